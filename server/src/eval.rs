@@ -1,0 +1,167 @@
+//! Runs a policy for many episodes and summarises them: the `eval` command, and the numbers a
+//! researcher compares with the published benchmark.
+
+use std::time::{Duration, Instant};
+
+use crate::expert::{Expert, Policy, RandomPolicy};
+use crate::sim::{Config, Game};
+
+/// The policies the command line and the Rollout RPC know.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PolicyKind {
+    /// The reference heuristic expert.
+    Expert,
+    /// Uniformly random actions.
+    Random,
+}
+
+impl PolicyKind {
+    /// A fresh policy for the episode of `seed` (the random policy is seeded from it, so an
+    /// evaluation is reproducible).
+    pub fn build(self, seed: u64) -> Box<dyn Policy + Send> {
+        match self {
+            PolicyKind::Expert => Box::new(Expert),
+            PolicyKind::Random => Box::new(RandomPolicy::new(seed ^ 0x9e37_79b9_7f4a_7c15)),
+        }
+    }
+}
+
+/// How one episode ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EpisodeSummary {
+    /// The reset seed.
+    pub seed: u64,
+    /// Final score.
+    pub score: i64,
+    /// Steps taken.
+    pub steps: u32,
+    /// Groups lost.
+    pub lost: u32,
+    /// Ended by losing groups (rather than the step cap or time limit).
+    pub terminated: bool,
+}
+
+/// Plays one episode from `reset(seed)` until it terminates, is truncated, or `max_steps` pass.
+pub fn run_episode(
+    kind: PolicyKind,
+    config: Config,
+    seed: u64,
+    max_steps: u32,
+) -> Result<EpisodeSummary, crate::sim::ConfigError> {
+    let mut game = Game::new(config)?;
+    // A drawn arrival list never fails.
+    let _ = game.reset(Some(seed), None);
+    let mut policy = kind.build(seed);
+    let mut steps = 0;
+    let mut terminated = false;
+    while steps < max_steps {
+        let action = policy.act(game.restaurant());
+        let Ok(outcome) = game.step(i64::from(action)) else {
+            break;
+        };
+        steps += 1;
+        if outcome.terminated || outcome.truncated {
+            terminated = outcome.terminated;
+            break;
+        }
+    }
+    let r = game.restaurant();
+    Ok(EpisodeSummary {
+        seed,
+        score: r.score(),
+        steps,
+        lost: r.lost(),
+        terminated,
+    })
+}
+
+/// Mean and standard deviation (population and sample).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stats {
+    /// Arithmetic mean.
+    pub mean: f64,
+    /// Population standard deviation (divides by n), as numpy's `std` reports it.
+    pub std: f64,
+    /// Sample standard deviation (divides by n - 1).
+    pub sample_std: f64,
+}
+
+impl Stats {
+    /// Summarises `values` (all zero for none).
+    pub fn of(values: impl Iterator<Item = f64> + Clone) -> Stats {
+        let n = values.clone().count() as f64;
+        if n == 0.0 {
+            return Stats { mean: 0.0, std: 0.0, sample_std: 0.0 };
+        }
+        let mean = values.clone().sum::<f64>() / n;
+        let ss: f64 = values.map(|v| (v - mean).powi(2)).sum();
+        Stats {
+            mean,
+            std: (ss / n).sqrt(),
+            sample_std: if n > 1.0 { (ss / (n - 1.0)).sqrt() } else { 0.0 },
+        }
+    }
+}
+
+/// The result of an evaluation.
+#[derive(Debug, Clone)]
+pub struct Evaluation {
+    /// Every episode, in seed order.
+    pub episodes: Vec<EpisodeSummary>,
+    /// Wall-clock time of the whole run.
+    pub elapsed: Duration,
+}
+
+impl Evaluation {
+    /// Score statistics.
+    pub fn score(&self) -> Stats {
+        Stats::of(self.episodes.iter().map(|e| e.score as f64))
+    }
+
+    /// Episode length statistics.
+    pub fn length(&self) -> Stats {
+        Stats::of(self.episodes.iter().map(|e| f64::from(e.steps)))
+    }
+
+    /// Steps taken in all.
+    pub fn total_steps(&self) -> u64 {
+        self.episodes.iter().map(|e| u64::from(e.steps)).sum()
+    }
+}
+
+/// Runs `episodes` episodes with seeds `seed, seed + 1, ...` on `threads` threads.
+pub fn evaluate(
+    kind: PolicyKind,
+    config: Config,
+    seed: u64,
+    episodes: u32,
+    max_steps: u32,
+    threads: usize,
+) -> Result<Evaluation, crate::sim::ConfigError> {
+    config.validate()?;
+    let start = Instant::now();
+    let seeds: Vec<u64> = (0..u64::from(episodes)).map(|i| seed.wrapping_add(i)).collect();
+    let threads = threads.clamp(1, seeds.len().max(1));
+    let chunk = seeds.len().div_ceil(threads).max(1);
+    let mut results: Vec<EpisodeSummary> = std::thread::scope(|scope| {
+        let handles: Vec<_> = seeds
+            .chunks(chunk)
+            .map(|part| {
+                scope.spawn(move || {
+                    part.iter()
+                        .filter_map(|&s| run_episode(kind, config, s, max_steps).ok())
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap_or_default())
+            .collect()
+    });
+    results.sort_by_key(|e| e.seed.wrapping_sub(seed));
+    Ok(Evaluation {
+        episodes: results,
+        elapsed: start.elapsed(),
+    })
+}
