@@ -668,6 +668,10 @@ impl Restaurant {
         self.config
             .validate()
             .map_err(|_| StateError("configuration out of range"))?;
+        // Far below u32::MAX, so that no tick arithmetic of a restored game can overflow.
+        if self.now > 1 << 30 || self.next_arrival > self.now + self.config.arrival_interval {
+            return Err(StateError("clock"));
+        }
         if !(1..=MAX_ARRIVALS).contains(&usize::from(self.arrivals_len)) {
             return Err(StateError("arrival list length"));
         }

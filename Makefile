@@ -1,0 +1,52 @@
+# The project's entry points. `make serve` starts the server, `make test` runs every test.
+# Needs only Rust (cargo) and Python 3.10+; everything else is installed here, into .venv.
+
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+SERVER := target/release/dinerdash-server
+
+.PHONY: serve build build-server test test-rust test-python lint bench venv clean
+
+## Start the gRPC server on port 50051 (Ctrl-C stops it).
+serve:
+	cargo run --release -p dinerdash-server -- --port 50051
+
+## The server binary alone: the same command the docker image builds with.
+build-server:
+	cargo build --release --locked -p dinerdash-server --bin dinerdash-server
+
+build: build-server
+	cargo build --release --locked --workspace --all-targets
+
+$(VENV)/.installed: client-py/pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e 'client-py[dev]'
+	touch $@
+
+venv: $(VENV)/.installed
+
+## Every test: Rust unit, property, conformance and gRPC tests, then the Python end-to-end tests.
+test: test-rust test-python
+
+test-rust: build
+	cargo test --release --workspace
+
+test-python: build venv
+	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m pytest -q tests
+
+lint: venv
+	cargo fmt --all -- --check
+	cargo clippy --workspace --all-targets -- -D warnings
+	$(VENV)/bin/ruff check client-py tests
+	$(VENV)/bin/ruff format --check client-py tests
+
+## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench.
+bench: build venv
+	cargo bench -p dinerdash-server
+	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m dinerdash bench
+
+clean:
+	cargo clean
+	rm -rf $(VENV)

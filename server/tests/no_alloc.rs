@@ -1,0 +1,49 @@
+//! A step and an expert decision allocate nothing: counted with a wrapping global allocator.
+#![allow(unsafe_code)]
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use dinerdash_server::expert::expert_action;
+use dinerdash_server::sim::{Config, Game, NUM_ACTIONS};
+
+struct Counting;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards to the system allocator unchanged, only counting calls.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // SAFETY: same contract as the caller's.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: same contract as the caller's.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+#[test]
+fn steps_and_expert_decisions_do_not_allocate() {
+    let mut game = Game::new(Config::default()).unwrap();
+    game.reset(Some(3), None).unwrap();
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    let mut steps = 0u32;
+    for i in 0..20_000u32 {
+        let r = game.restaurant();
+        let action = if i % 3 == 0 { (i * 7) % NUM_ACTIONS as u32 } else { u32::from(expert_action(r)) };
+        let _ = std::hint::black_box(r.observation());
+        let _ = std::hint::black_box(r.action_mask());
+        if game.step(i64::from(action)).unwrap().terminated {
+            break;
+        }
+        steps += 1;
+    }
+    let after = ALLOCATIONS.load(Ordering::Relaxed);
+    assert!(steps > 100);
+    assert_eq!(after - before, 0, "{} allocations in {steps} steps", after - before);
+}
