@@ -1,3 +1,5 @@
+#![allow(missing_docs)] // criterion_group! generates undocumented items.
+
 //! Simulator and expert speed: one random step, one expert decision, a whole expert episode,
 //! and the benchmark's 274 expert episodes end to end. Each bench also checks its result.
 
@@ -29,7 +31,9 @@ fn expert_states(seed: u64) -> Vec<Restaurant> {
 fn step(c: &mut Criterion) {
     let start = reset(0);
     let mut rng = SmallRng::seed_from_u64(1);
-    let actions: Vec<u8> = (0..4096).map(|_| rng.random_range(0..NUM_ACTIONS as u8)).collect();
+    let actions: Vec<u8> = (0..4096)
+        .map(|_| rng.random_range(0..NUM_ACTIONS as u8))
+        .collect();
     let mut group = c.benchmark_group("step");
     group.throughput(Throughput::Elements(actions.len() as u64));
     group.bench_function("random_actions_x4096", |b| {
@@ -48,7 +52,12 @@ fn step(c: &mut Criterion) {
 
 fn expert(c: &mut Criterion) {
     let states = expert_states(0);
-    assert_eq!(states.len(), 1 + run_episode(PolicyKind::Expert, Config::default(), 0, u32::MAX).unwrap().steps as usize);
+    assert_eq!(
+        states.len(),
+        1 + run_episode(PolicyKind::Expert, Config::default(), 0, u32::MAX)
+            .unwrap()
+            .steps as usize
+    );
     let mut group = c.benchmark_group("expert");
     group.throughput(Throughput::Elements(states.len() as u64));
     group.bench_function("decision_over_one_episode_of_states", |b| {
@@ -62,7 +71,13 @@ fn expert(c: &mut Criterion) {
     });
     group.bench_function("episode_seed_0", |b| {
         b.iter(|| {
-            let e = run_episode(PolicyKind::Expert, Config::default(), black_box(0), u32::MAX).unwrap();
+            let e = run_episode(
+                PolicyKind::Expert,
+                Config::default(),
+                black_box(0),
+                u32::MAX,
+            )
+            .unwrap();
             assert!(e.terminated);
             e.score
         })
@@ -78,7 +93,15 @@ fn expert(c: &mut Criterion) {
     group.bench_function("274_episodes_all_cores", |b| {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         b.iter(|| {
-            let e = evaluate(PolicyKind::Expert, Config::default(), 0, 274, u32::MAX, threads).unwrap();
+            let e = evaluate(
+                PolicyKind::Expert,
+                Config::default(),
+                0,
+                274,
+                u32::MAX,
+                threads,
+            )
+            .unwrap();
             assert_eq!(e.episodes.len(), 274);
             e.total_steps()
         })
@@ -93,7 +116,9 @@ fn reset_and_snapshot(c: &mut Criterion) {
     group.bench_function("reset_drawing_200_groups", |b| {
         b.iter(|| game.reset(None, None).unwrap())
     });
-    group.bench_function("clone_restaurant", |b| b.iter(|| *black_box(game.restaurant())));
+    group.bench_function("clone_restaurant", |b| {
+        b.iter(|| *black_box(game.restaurant()))
+    });
     group.bench_function("snapshot_restore", |b| {
         b.iter(|| Game::restore(&game.snapshot()).unwrap())
     });

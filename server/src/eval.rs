@@ -91,14 +91,22 @@ impl Stats {
     pub fn of(values: impl Iterator<Item = f64> + Clone) -> Stats {
         let n = values.clone().count() as f64;
         if n == 0.0 {
-            return Stats { mean: 0.0, std: 0.0, sample_std: 0.0 };
+            return Stats {
+                mean: 0.0,
+                std: 0.0,
+                sample_std: 0.0,
+            };
         }
         let mean = values.clone().sum::<f64>() / n;
         let ss: f64 = values.map(|v| (v - mean).powi(2)).sum();
         Stats {
             mean,
             std: (ss / n).sqrt(),
-            sample_std: if n > 1.0 { (ss / (n - 1.0)).sqrt() } else { 0.0 },
+            sample_std: if n > 1.0 {
+                (ss / (n - 1.0)).sqrt()
+            } else {
+                0.0
+            },
         }
     }
 }
@@ -140,7 +148,9 @@ pub fn evaluate(
 ) -> Result<Evaluation, crate::sim::ConfigError> {
     config.validate()?;
     let start = Instant::now();
-    let seeds: Vec<u64> = (0..u64::from(episodes)).map(|i| seed.wrapping_add(i)).collect();
+    let seeds: Vec<u64> = (0..u64::from(episodes))
+        .map(|i| seed.wrapping_add(i))
+        .collect();
     let threads = threads.clamp(1, seeds.len().max(1));
     let chunk = seeds.len().div_ceil(threads).max(1);
     let mut results: Vec<EpisodeSummary> = std::thread::scope(|scope| {

@@ -5,7 +5,36 @@
 //! - [`sim`]: the game itself, pure and synchronous (RULES.md).
 //! - [`expert`]: policies that read the game: the reference heuristic, random.
 //! - [`eval`]: runs a policy over many episodes and summarises scores (the `eval` command).
+//! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
+//! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
+//!   Step, Fork and Snapshot do to a session's environments (autoreset included).
+//! - [`rollout`]: records whole episodes of a server-side policy (the Rollout RPC).
+//! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
+//!   only place errors become `tonic::Status`; the auth interceptor.
+//! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and metrics together
+//!   on a listener until a shutdown future completes.
+//! - [`shutdown`]: SIGINT/SIGTERM and the shutdown deadline.
+//! - [`metrics`]: counters and the Prometheus text endpoint.
 
 pub mod eval;
 pub mod expert;
+pub mod metrics;
+pub mod rollout;
+pub mod server;
+pub mod service;
+pub mod session;
+pub mod shutdown;
 pub mod sim;
+
+/// The generated `dinerdash.v1` protocol: messages, the `DinerDash` client and server.
+#[allow(missing_docs, clippy::all)]
+pub mod pb {
+    tonic::include_proto!("dinerdash.v1");
+
+    /// The encoded descriptor set of `dinerdash.proto`, served by gRPC reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] =
+        include_bytes!(concat!(env!("OUT_DIR"), "/dinerdash_descriptor.bin"));
+}
+
+/// This server's version, reported in `Spec` and `ServerInfo`.
+pub const SERVER_VERSION: &str = env!("CARGO_PKG_VERSION");

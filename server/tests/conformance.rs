@@ -41,12 +41,20 @@ fn files() -> Vec<PathBuf> {
         .filter(|p| p.extension().is_some_and(|x| x == "jsonl"))
         .collect();
     files.sort();
-    assert!(!files.is_empty(), "no *.jsonl trajectories in {}", dir.display());
+    assert!(
+        !files.is_empty(),
+        "no *.jsonl trajectories in {}",
+        dir.display()
+    );
     files
 }
 
 fn obs_i64(game: &Game) -> Vec<i64> {
-    game.restaurant().observation().iter().map(|&v| i64::from(v)).collect()
+    game.restaurant()
+        .observation()
+        .iter()
+        .map(|&v| i64::from(v))
+        .collect()
 }
 
 #[test]
@@ -55,7 +63,11 @@ fn every_recorded_trajectory_replays_exactly() {
     let mut steps = 0;
     for path in files() {
         let text = std::fs::read_to_string(&path).unwrap();
-        for (line_no, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        for (line_no, line) in text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
+        {
             let ep: Episode = serde_json::from_str(line).unwrap();
             let at = format!("{}:{} (seed {})", path.display(), line_no + 1, ep.seed);
             let mut game = Game::new(Config::default()).unwrap();
@@ -65,7 +77,12 @@ fn every_recorded_trajectory_replays_exactly() {
                 let want_expert = i64::from(expert_action(game.restaurant()));
                 assert_eq!(want_expert, s.expert_action, "{at} step {i}: expert action");
                 let out = game.step(s.action).unwrap();
-                assert_eq!(obs_i64(&game), s.obs, "{at} step {i}: observation after action {}", s.action);
+                assert_eq!(
+                    obs_i64(&game),
+                    s.obs,
+                    "{at} step {i}: observation after action {}",
+                    s.action
+                );
                 assert_eq!(out.reward, s.reward, "{at} step {i}: reward");
                 assert_eq!(out.terminated, s.terminated, "{at} step {i}: terminated");
                 assert_eq!(game.restaurant().score(), s.score, "{at} step {i}: score");

@@ -35,7 +35,11 @@ fn steps_and_expert_decisions_do_not_allocate() {
     let mut steps = 0u32;
     for i in 0..20_000u32 {
         let r = game.restaurant();
-        let action = if i % 3 == 0 { (i * 7) % NUM_ACTIONS as u32 } else { u32::from(expert_action(r)) };
+        let action = if i % 3 == 0 {
+            (i * 7) % NUM_ACTIONS as u32
+        } else {
+            u32::from(expert_action(r))
+        };
         let _ = std::hint::black_box(r.observation());
         let _ = std::hint::black_box(r.action_mask());
         if game.step(i64::from(action)).unwrap().terminated {
@@ -45,5 +49,10 @@ fn steps_and_expert_decisions_do_not_allocate() {
     }
     let after = ALLOCATIONS.load(Ordering::Relaxed);
     assert!(steps > 100);
-    assert_eq!(after - before, 0, "{} allocations in {steps} steps", after - before);
+    assert_eq!(
+        after - before,
+        0,
+        "{} allocations in {steps} steps",
+        after - before
+    );
 }

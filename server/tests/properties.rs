@@ -39,7 +39,9 @@ fn pick(r: &Restaurant, prefer_legal: bool, raw: u8) -> u8 {
         return raw;
     }
     let mask = r.action_mask();
-    let legal: Vec<u8> = (0..NUM_ACTIONS as u8).filter(|&a| mask[usize::from(a)]).collect();
+    let legal: Vec<u8> = (0..NUM_ACTIONS as u8)
+        .filter(|&a| mask[usize::from(a)])
+        .collect();
     legal[usize::from(raw) % legal.len()]
 }
 
@@ -51,11 +53,19 @@ fn check_invariants(r: &Restaurant) {
     assert_eq!((obs[38], obs[39]), (hands[0] as i8, hands[1] as i8));
     for t in 1..=6u8 {
         let on_counter = r.counters().contains(&t);
-        assert_eq!(obs[17 + usize::from(t)], i8::from(on_counter), "counter of table {t}");
+        assert_eq!(
+            obs[17 + usize::from(t)],
+            i8::from(on_counter),
+            "counter of table {t}"
+        );
     }
     let (low, high) = dinerdash_server::sim::observation_bounds();
     for i in 0..40 {
-        assert!(low[i] <= obs[i] && obs[i] <= high[i], "obs[{i}] = {} out of bounds", obs[i]);
+        assert!(
+            low[i] <= obs[i] && obs[i] <= high[i],
+            "obs[{i}] = {} out of bounds",
+            obs[i]
+        );
     }
     assert!(r.action_mask()[0]);
 }
@@ -154,7 +164,11 @@ proptest! {
 
 #[test]
 fn time_limit_truncates() {
-    let mut game = Game::new(Config { time_limit: 3, ..Config::default() }).unwrap();
+    let mut game = Game::new(Config {
+        time_limit: 3,
+        ..Config::default()
+    })
+    .unwrap();
     game.reset(Some(0), None).unwrap();
     let outcomes: Vec<bool> = (0..3).map(|_| game.step(0).unwrap().truncated).collect();
     assert_eq!(outcomes, vec![false, false, true]);
@@ -162,5 +176,9 @@ fn time_limit_truncates() {
 
 #[test]
 fn game_state_fits_in_one_kib() {
-    assert!(std::mem::size_of::<Restaurant>() <= 1024, "{}", std::mem::size_of::<Restaurant>());
+    assert!(
+        std::mem::size_of::<Restaurant>() <= 1024,
+        "{}",
+        std::mem::size_of::<Restaurant>()
+    );
 }

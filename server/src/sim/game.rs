@@ -4,7 +4,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::config::{Config, ConfigError, MAX_ARRIVALS};
-use super::restaurant::{ArrivalError, NUM_ACTIONS, Restaurant, StateError, StepOutcome, pack_arrivals};
+use super::restaurant::{
+    ArrivalError, NUM_ACTIONS, Restaurant, StateError, StepOutcome, pack_arrivals,
+};
 use super::rng::Mt19937;
 use super::snapshot::{self, SnapshotError};
 
@@ -186,7 +188,13 @@ mod tests {
         assert_eq!(a.restaurant(), b.restaurant());
         // The next unseeded reset continues the stream; seed + 1 more reset replays it.
         let next = a.reset(None, None).unwrap();
-        assert_eq!(next, ResetInfo { seed: info.seed, stream_episodes: 1 });
+        assert_eq!(
+            next,
+            ResetInfo {
+                seed: info.seed,
+                stream_episodes: 1
+            }
+        );
         let mut c = Game::new(Config::default()).unwrap();
         c.reset(Some(info.seed), None).unwrap();
         c.reset(None, None).unwrap();
@@ -199,7 +207,10 @@ mod tests {
         let mut a = Game::new(Config::default()).unwrap();
         a.reset(Some(5), None).unwrap();
         a.reset(None, Some(&[(2, 3), (1, 1)])).unwrap();
-        assert_eq!(a.restaurant().arrivals().collect::<Vec<_>>(), vec![(2, 3), (1, 1)]);
+        assert_eq!(
+            a.restaurant().arrivals().collect::<Vec<_>>(),
+            vec![(2, 3), (1, 1)]
+        );
         a.reset(None, None).unwrap();
         let mut b = Game::new(Config::default()).unwrap();
         b.reset(Some(5), None).unwrap();
@@ -213,7 +224,10 @@ mod tests {
         assert_eq!(g.step(0), Err(StepError::NotReset));
         g.reset(Some(1), None).unwrap();
         assert_eq!(g.step(57), Err(StepError::ActionOutOfRange(57)));
-        assert_eq!(g.step(-1).unwrap_err().to_string(), "action must be in 0..=56, got -1");
+        assert_eq!(
+            g.step(-1).unwrap_err().to_string(),
+            "action must be in 0..=56, got -1"
+        );
         assert!(g.step(56).is_ok());
     }
 

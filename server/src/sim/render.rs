@@ -6,7 +6,13 @@ use std::fmt::Write;
 use super::restaurant::{NUM_TABLES, Restaurant, TABLE_CAPACITIES, status};
 
 const STATUS_NAMES: [&str; 7] = [
-    "free", "reading", "ready to order", "waiting for food", "eating", "dishes", "wants the bill",
+    "free",
+    "reading",
+    "ready to order",
+    "waiting for food",
+    "eating",
+    "dishes",
+    "wants the bill",
 ];
 /// ANSI colour per table status: calm when nothing is asked of the waiter, loud when something is.
 const STATUS_COLORS: [&str; 7] = ["2", "36", "1;33", "33", "32", "35", "1;31"];
@@ -22,7 +28,11 @@ fn item_name(item: u8) -> String {
 
 fn patience_bar(patience: i32, full: i32) -> String {
     let filled = ((patience.max(0) * 10 + full - 1) / full.max(1)).clamp(0, 10) as usize;
-    format!("[{}{}] {patience:>3}", "#".repeat(filled), ".".repeat(10 - filled))
+    format!(
+        "[{}{}] {patience:>3}",
+        "#".repeat(filled),
+        ".".repeat(10 - filled)
+    )
 }
 
 /// Draws the restaurant; with `color`, with ANSI colour codes.
@@ -51,7 +61,10 @@ pub fn render(r: &Restaurant, color: bool) -> String {
         let mut line = format!(
             "  T{t} ({} seats) {}",
             TABLE_CAPACITIES[t - 1],
-            paint(STATUS_COLORS[usize::from(s)], &format!("{:<16}", STATUS_NAMES[usize::from(s)]))
+            paint(
+                STATUS_COLORS[usize::from(s)],
+                &format!("{:<16}", STATUS_NAMES[usize::from(s)])
+            )
         );
         if let Some(g) = r.seated_group(t) {
             let _ = write!(
@@ -69,7 +82,13 @@ pub fn render(r: &Restaurant, color: bool) -> String {
     let counters: Vec<String> = r
         .counters()
         .iter()
-        .map(|&c| if c == 0 { "-".into() } else { format!("food(T{c})") })
+        .map(|&c| {
+            if c == 0 {
+                "-".into()
+            } else {
+                format!("food(T{c})")
+            }
+        })
         .collect();
     let _ = writeln!(out, "  counters: {}", counters.join(" "));
     let hands: Vec<String> = r.hands().iter().map(|&i| item_name(i)).collect();

@@ -219,7 +219,9 @@ pub enum ArrivalError {
     #[error("an arrival list must hold 1..=200 groups, got {0}")]
     Length(usize),
     /// A group's type or size is out of range.
-    #[error("arrival {index}: customer_type must be in 1..=2 and size in 1..=6, got type {customer_type}, size {size}")]
+    #[error(
+        "arrival {index}: customer_type must be in 1..=2 and size in 1..=6, got type {customer_type}, size {size}"
+    )]
     Group {
         /// Position in the list.
         index: usize,
@@ -231,9 +233,7 @@ pub enum ArrivalError {
 }
 
 /// Checks an explicit arrival list and packs it.
-pub(crate) fn pack_arrivals(
-    list: &[(u32, u32)],
-) -> Result<([u8; MAX_ARRIVALS], u8), ArrivalError> {
+pub(crate) fn pack_arrivals(list: &[(u32, u32)]) -> Result<([u8; MAX_ARRIVALS], u8), ArrivalError> {
     if list.is_empty() || list.len() > MAX_ARRIVALS {
         return Err(ArrivalError::Length(list.len()));
     }
@@ -675,7 +675,8 @@ impl Restaurant {
         if !(1..=MAX_ARRIVALS).contains(&usize::from(self.arrivals_len)) {
             return Err(StateError("arrival list length"));
         }
-        let valid_group = |g: &Group| (1..=2).contains(&g.customer_type) && (1..=6).contains(&g.size);
+        let valid_group =
+            |g: &Group| (1..=2).contains(&g.customer_type) && (1..=6).contains(&g.size);
         let arrivals_ok = self.arrivals().all(|(customer_type, size)| {
             valid_group(&Group {
                 customer_type,
@@ -686,8 +687,7 @@ impl Restaurant {
         if !arrivals_ok {
             return Err(StateError("arrival list entry"));
         }
-        if usize::from(self.queue_len) > QUEUE_CAPACITY || !self.queue().iter().all(valid_group)
-        {
+        if usize::from(self.queue_len) > QUEUE_CAPACITY || !self.queue().iter().all(valid_group) {
             return Err(StateError("queue"));
         }
         for table in &self.tables {

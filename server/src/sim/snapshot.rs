@@ -20,7 +20,9 @@ pub enum SnapshotError {
         expected: String,
     },
     /// Written by a different format version.
-    #[error("snapshot version {found} is not supported (this server reads version {SNAPSHOT_VERSION})")]
+    #[error(
+        "snapshot version {found} is not supported (this server reads version {SNAPSHOT_VERSION})"
+    )]
     Version {
         /// The version in the bytes.
         found: u16,
@@ -53,10 +55,13 @@ pub fn decode<T: DeserializeOwned>(kind: [u8; 4], bytes: &[u8]) -> Result<T, Sna
     if found != SNAPSHOT_VERSION {
         return Err(SnapshotError::Version { found });
     }
-    let (value, rest) =
-        postcard::take_from_bytes(&bytes[6..]).map_err(|e| SnapshotError::Corrupt(e.to_string()))?;
+    let (value, rest) = postcard::take_from_bytes(&bytes[6..])
+        .map_err(|e| SnapshotError::Corrupt(e.to_string()))?;
     if !rest.is_empty() {
-        return Err(SnapshotError::Corrupt(format!("{} trailing bytes", rest.len())));
+        return Err(SnapshotError::Corrupt(format!(
+            "{} trailing bytes",
+            rest.len()
+        )));
     }
     Ok(value)
 }

@@ -1,0 +1,76 @@
+"""DinerDash Gym: the Diner Dash benchmark as a Gymnasium environment served over gRPC.
+
+::
+
+    import gymnasium
+    env = gymnasium.make("dinerdash:DinerDash-v0", address="localhost:50051", expert=True)
+    envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=256, address="localhost:50051")
+
+Layout:
+    connection  the channel (options, address rules) and the one call wrapper (errors, retries)
+    errors      the exception hierarchy
+    env         DinerDashEnv, the Gymnasium Env
+    vector      DinerDashVectorEnv, the VectorEnv (one batched session per server)
+    server      LocalServer, the embedded default: a dinerdash-server subprocess
+    render      the rgb_array picture, drawn with numpy
+    rollout     rollout(): server-side expert/random episodes, streamed
+    cli         ``python -m dinerdash`` (evaluate, collect, bench)
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+import gymnasium
+
+from .connection import Connection
+from .env import DinerDashEnv, Snapshot
+from .errors import (
+    FailedPrecondition,
+    InvalidArgument,
+    LocalServerError,
+    ResourceExhausted,
+    ServerBinaryNotFound,
+    ServiceError,
+    ServiceInternalError,
+    ServiceTimeout,
+    ServiceTransportError,
+    SessionNotFound,
+    Unauthenticated,
+)
+from .rollout import Episode, rollout
+from .server import LocalServer
+from .vector import DinerDashVectorEnv
+
+try:
+    __version__ = version("dinerdash")
+except PackageNotFoundError:  # running from a source tree without installing
+    __version__ = "0.0.0"
+
+__all__ = [
+    "Connection",
+    "DinerDashEnv",
+    "DinerDashVectorEnv",
+    "Episode",
+    "FailedPrecondition",
+    "InvalidArgument",
+    "LocalServer",
+    "LocalServerError",
+    "ResourceExhausted",
+    "ServerBinaryNotFound",
+    "ServiceError",
+    "ServiceInternalError",
+    "ServiceTimeout",
+    "ServiceTransportError",
+    "SessionNotFound",
+    "Snapshot",
+    "Unauthenticated",
+    "rollout",
+]
+
+if "DinerDash-v0" not in gymnasium.registry:
+    gymnasium.register(
+        id="DinerDash-v0",
+        entry_point="dinerdash.env:DinerDashEnv",
+        vector_entry_point="dinerdash.vector:DinerDashVectorEnv",
+    )

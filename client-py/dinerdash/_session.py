@@ -1,0 +1,155 @@
+"""Pieces shared by the single and the vector environment: turning Python arguments into protocol
+messages, choosing the server(s) to talk to, and building the spaces from a session's Spec."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from ._proto import pb
+from .connection import Connection, resolve_replicas
+from .server import LocalServer
+
+#: Observation length and number of actions (RULES.md sections 6 and 4.1).
+OBSERVATION_SIZE = 40
+NUM_ACTIONS = 57
+
+#: The fields of GameConfig, i.e. the keys a ``config`` mapping may hold.
+CONFIG_FIELDS = tuple(f.name for f in pb.GameConfig.DESCRIPTOR.fields)
+
+Config = Mapping[str, int] | pb.GameConfig | None
+Arrivals = Sequence[tuple[int, int]] | Sequence[Mapping[str, int]]
+
+
+def make_config(config: Config) -> pb.GameConfig | None:
+    """A GameConfig from a mapping such as ``{"lives": 3, "time_limit": 1000}``."""
+    if config is None or isinstance(config, pb.GameConfig):
+        return config
+    if not isinstance(config, Mapping):
+        raise TypeError(
+            f"config: expected a mapping of {CONFIG_FIELDS}, got {type(config).__name__}"
+        )
+    unknown = sorted(set(config) - set(CONFIG_FIELDS))
+    if unknown:
+        raise ValueError(
+            f"config: unknown field(s) {unknown}; the fields are {list(CONFIG_FIELDS)}"
+        )
+    msg = pb.GameConfig()
+    for key, value in config.items():
+        if value is not None:
+            if int(value) < 0:
+                raise ValueError(f"config: {key} must be a non-negative integer, got {value!r}")
+            setattr(msg, key, int(value))
+    return msg
+
+
+def config_dict(config: pb.GameConfig) -> dict[str, int]:
+    """The fields present in a GameConfig, as a plain dict."""
+    return {
+        f.name: getattr(config, f.name) for f in config.DESCRIPTOR.fields if config.HasField(f.name)
+    }
+
+
+def _arrival(group: Any) -> pb.Arrival:
+    if isinstance(group, Mapping):
+        return pb.Arrival(customer_type=int(group["customer_type"]), size=int(group["size"]))
+    customer_type, size = group
+    return pb.Arrival(customer_type=int(customer_type), size=int(size))
+
+
+def _is_arrival_list(value: Any) -> bool:
+    """True for one list of groups (its first entry a (type, size) pair or a mapping)."""
+    if len(value) == 0:
+        return True
+    first = value[0]
+    if isinstance(first, Mapping):
+        return True
+    return len(first) == 2 and all(np.ndim(x) == 0 for x in first)
+
+
+def make_arrivals(arrivals: Any, num_envs: int = 1) -> list[pb.ArrivalList]:
+    """ArrivalLists from one list of ``(customer_type, size)`` pairs (every environment gets it)
+    or, for a vector env, a list of such lists (one per environment)."""
+    if arrivals is None:
+        return []
+    if _is_arrival_list(arrivals):
+        return [pb.ArrivalList(groups=[_arrival(g) for g in arrivals])]
+    lists = [pb.ArrivalList(groups=[_arrival(g) for g in one]) for one in arrivals]
+    if num_envs == 1 and len(lists) != 1:
+        raise ValueError("arrivals: give one list of (customer_type, size) pairs")
+    return lists
+
+
+def observation_space(spec: pb.Spec) -> spaces.Box:
+    """The Box of RULES.md section 6, with the bounds the server reports."""
+    if spec.observation_size != OBSERVATION_SIZE or spec.num_actions != NUM_ACTIONS:
+        raise RuntimeError(
+            f"the server reports {spec.observation_size} observations and {spec.num_actions} "
+            f"actions; this client knows {OBSERVATION_SIZE} and {NUM_ACTIONS} (ruleset v0)"
+        )
+    low = np.asarray(spec.observation_low, dtype=np.float32)
+    high = np.asarray(spec.observation_high, dtype=np.float32)
+    return spaces.Box(low=low, high=high, dtype=np.float32)
+
+
+def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
+    """The replicas to use: from ``address``, else ``DINERDASH_ADDRESS``; ``None`` means "start a
+    local server"."""
+    if address is None:
+        address = os.environ.get("DINERDASH_ADDRESS") or None
+    if address is None:
+        return None
+    return resolve_replicas(address)
+
+
+class Endpoint:
+    """Connections to one or more servers, and the local server this client started, if any.
+
+    Closing it closes every channel and stops the local server.
+    """
+
+    def __init__(
+        self,
+        address: str | Sequence[str] | None,
+        *,
+        max_servers: int | None = None,
+        token: str | None = None,
+        connect_timeout: float = 10.0,
+        server_binary: str | None = None,
+        pick: int | None = None,
+    ) -> None:
+        self.token = token
+        self.connect_timeout = connect_timeout
+        self.server: LocalServer | None = None
+        self.connections: list[Connection] = []
+        addresses = choose_addresses(address)
+        if addresses is None:
+            self.server = LocalServer(server_binary)
+            addresses = [self.server.address]
+        if pick is not None:
+            addresses = [addresses[pick % len(addresses)]]
+        if max_servers is not None:
+            addresses = addresses[:max_servers]
+        self.addresses = addresses
+        try:
+            for a in addresses:
+                self.connections.append(self.connect(a))
+        except BaseException:
+            self.close()
+            raise
+
+    def connect(self, address: str, connect_timeout: float | None = None) -> Connection:
+        timeout = self.connect_timeout if connect_timeout is None else connect_timeout
+        return Connection(address, token=self.token, connect_timeout=timeout)
+
+    def close(self) -> None:
+        for conn in self.connections:
+            conn.close()
+        self.connections = []
+        if self.server is not None:
+            self.server.stop()
+            self.server = None

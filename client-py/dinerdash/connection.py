@@ -1,0 +1,298 @@
+"""The channel to a DinerDash server and the one call wrapper every RPC goes through.
+
+Everything about the network lives here: the channel options, the address rules (a ``host:port``,
+a comma-separated or Python list of them, or a DNS name that resolves to several replicas), the
+mapping from gRPC status codes to the typed exceptions of :mod:`dinerdash.errors`, and the retry
+policy: only ``UNAVAILABLE`` is retried, with exponential backoff and a bounded number of attempts.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import socket
+import time
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import grpc
+
+from ._proto import pb, pb_grpc
+from .errors import ServiceTransportError, error_for_status
+
+__all__ = [
+    "CHANNEL_OPTIONS",
+    "DEFAULT_PORT",
+    "Connection",
+    "parse_addresses",
+    "resolve_replicas",
+]
+
+#: The port a server listens on when none is given (and the one the docker image exposes).
+DEFAULT_PORT = 50051
+
+CHANNEL_OPTIONS: list[tuple[str, Any]] = [
+    # A rollout of one long episode is (T + 1) x (40 + 57) bytes plus per-step fields: allow
+    # 256 MiB so that even 100,000-step episodes with action masks arrive in one message.
+    ("grpc.max_receive_message_length", 256 * 1024 * 1024),
+    # Snapshots of large vector sessions travel client -> server in Restore; the server applies
+    # its own (smaller) limit and names it in the INVALID_ARGUMENT it returns.
+    ("grpc.max_send_message_length", 256 * 1024 * 1024),
+    # gRPC's transparent retries could re-send a Step that the server already applied; this
+    # module retries by itself, and only UNAVAILABLE.
+    ("grpc.enable_retries", 0),
+    # After a server restart the channel must reconnect within a second or two, not after
+    # gRPC's default backoff that grows to two minutes (reconnect=True relies on this).
+    ("grpc.initial_reconnect_backoff_ms", 100),
+    ("grpc.min_reconnect_backoff_ms", 100),
+    ("grpc.max_reconnect_backoff_ms", 2000),
+    # Each Connection keeps its own subchannel (TCP connection), so one environment's traffic
+    # never queues behind another's and closing one never disturbs the others.
+    ("grpc.use_local_subchannel_pool", 1),
+    # Environment servers are on loopback or inside the cluster: never send them through an
+    # http_proxy that happens to be set for the trainer's downloads.
+    ("grpc.enable_http_proxy", 0),
+]
+
+
+def _split_host_port(address: str) -> tuple[str, int]:
+    address = address.strip()
+    if address.startswith("["):  # [ipv6]:port
+        host, _, rest = address[1:].partition("]")
+        port = rest.lstrip(":")
+        return host, int(port) if port else DEFAULT_PORT
+    if address.count(":") == 1:
+        host, port = address.split(":")
+        return host, int(port)
+    if address.count(":") > 1:  # a bare IPv6 literal
+        return address, DEFAULT_PORT
+    return address, DEFAULT_PORT
+
+
+def _join_host_port(host: str, port: int) -> str:
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def parse_addresses(address: str | Sequence[str]) -> list[str]:
+    """Normalises an ``address`` argument into a list of ``host:port`` strings.
+
+    ``address`` is a ``host:port``, several separated by commas, or a list of them; a missing port
+    means :data:`DEFAULT_PORT`.
+    """
+    items = address.split(",") if isinstance(address, str) else list(address)
+    out = []
+    for item in items:
+        if not isinstance(item, str) or not item.strip():
+            raise ValueError(f"address: expected 'host:port' strings, got {item!r}")
+        try:
+            host, port = _split_host_port(item)
+        except ValueError:
+            raise ValueError(f"address: bad port in {item!r}; expected 'host:port'") from None
+        out.append(_join_host_port(host, port))
+    if not out:
+        raise ValueError("address: no server address given")
+    return out
+
+
+def resolve_replicas(address: str | Sequence[str]) -> list[str]:
+    """Every server that ``address`` names, one ``host:port`` per replica.
+
+    A DNS name that resolves to several addresses (a Kubernetes headless Service, a round-robin
+    record) becomes one entry per address, so that a vector env can give each replica its own
+    session. Only addresses of one family are used (IPv4 when there are any), so that ``localhost``
+    is one server and not two names for the same one. A name that does not resolve is kept as is:
+    connecting to it then fails with a readable error.
+    """
+    out: list[str] = []
+    for item in parse_addresses(address):
+        host, port = _split_host_port(item)
+        try:
+            ipaddress.ip_address(host)
+            out.append(item)
+            continue
+        except ValueError:
+            pass
+        try:
+            infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        except OSError:
+            out.append(item)
+            continue
+        v4 = [i[4][0] for i in infos if i[0] == socket.AF_INET]
+        v6 = [i[4][0] for i in infos if i[0] == socket.AF_INET6]
+        ips = list(dict.fromkeys(v4 or v6))
+        if len(ips) <= 1:
+            out.append(item)  # one server: keep the name (nicer in messages, TLS-friendly)
+        else:
+            out.extend(_join_host_port(ip, port) for ip in ips)
+    return out
+
+
+class Connection:
+    """One channel to one server, and the call wrapper that every RPC of the client goes through.
+
+    Args:
+        address: ``host:port`` of the server.
+        token: sent as ``authorization: Bearer <token>`` when the server requires one (default:
+            the ``DINERDASH_AUTH_TOKEN`` environment variable).
+        connect_timeout: seconds to wait for the first connection; past it a readable
+            :class:`~dinerdash.errors.ServiceTransportError` says who could not be reached.
+        retries: attempts after the first for a call that fails with ``UNAVAILABLE``.
+        retry_backoff: seconds before the first retry; doubled after each one.
+        timeout: deadline of each call in seconds (``None``: no deadline).
+    """
+
+    def __init__(
+        self,
+        address: str,
+        *,
+        token: str | None = None,
+        connect_timeout: float = 10.0,
+        retries: int = 4,
+        retry_backoff: float = 0.1,
+        timeout: float | None = None,
+    ) -> None:
+        self.address = parse_addresses(address)[0]
+        self.retries = retries
+        self.retry_backoff = retry_backoff
+        self.timeout = timeout
+        token = token if token is not None else os.environ.get("DINERDASH_AUTH_TOKEN")
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else None
+        self.channel = grpc.insecure_channel(self.address, options=CHANNEL_OPTIONS)
+        self.stub = pb_grpc.DinerDashStub(self.channel)
+        self._closed = False
+        if not self.wait_ready(connect_timeout):
+            self.close()
+            raise ServiceTransportError(
+                f"could not connect to a dinerdash-server at {self.address} within "
+                f"{connect_timeout:g} s; is it running? Start one with "
+                f"`dinerdash-server --port {_split_host_port(self.address)[1]}`, or omit `address` "
+                "(and DINERDASH_ADDRESS) to let the client start a local one",
+                address=self.address,
+            )
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Waits up to ``timeout`` seconds for the server to answer; True when it did.
+
+        A ``ServerInfo`` call with ``wait_for_ready`` rather than ``grpc.channel_ready_future``,
+        whose polling thread outlives it and fails noisily when the channel is closed later.
+        """
+        try:
+            self.stub.ServerInfo(
+                pb.ServerInfoRequest(),
+                timeout=max(timeout, 0.001),
+                metadata=self._metadata,
+                wait_for_ready=True,
+            )
+            return True
+        except grpc.RpcError as e:
+            # Any answer from the server (e.g. UNAUTHENTICATED) means it is there.
+            return e.code() not in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE)
+
+    def call(
+        self,
+        method: str,
+        request: Any,
+        *,
+        timeout: float | None = None,
+        retries: int | None = None,
+    ) -> Any:
+        """Calls ``method`` (an RPC name such as ``"Step"``) and returns its reply.
+
+        Raises the typed exception for any gRPC error, with the server's message; retries only
+        ``UNAVAILABLE``, at most ``retries`` times (default: the connection's) with exponential
+        backoff.
+        """
+        rpc = getattr(self.stub, method)
+        timeout = self.timeout if timeout is None else timeout
+        attempt = 0
+        while True:
+            try:
+                return rpc(request, timeout=timeout, metadata=self._metadata)
+            except grpc.RpcError as e:
+                code, details = e.code(), e.details()
+            attempt = self._retry_or_raise(method, code, details, attempt, retries)
+
+    def future(self, method: str, request: Any) -> grpc.Future:
+        """Starts ``method`` without waiting; pass the future to :meth:`result`."""
+        rpc = getattr(self.stub, method)
+        return rpc.future(request, timeout=self.timeout, metadata=self._metadata)
+
+    def result(self, method: str, request: Any, future: grpc.Future) -> Any:
+        """The reply of a call started by :meth:`future`, with the same errors and retries as
+        :meth:`call`."""
+        try:
+            return future.result()
+        except grpc.RpcError as e:
+            code, details = e.code(), e.details()
+        if code != grpc.StatusCode.UNAVAILABLE or self.retries <= 0:
+            raise self._error(method, code, details, attempts=1) from None
+        time.sleep(self.retry_backoff)
+        rpc = getattr(self.stub, method)
+        attempt = 1
+        while True:
+            try:
+                return rpc(request, timeout=self.timeout, metadata=self._metadata)
+            except grpc.RpcError as e:
+                code, details = e.code(), e.details()
+            attempt = self._retry_or_raise(method, code, details, attempt)
+
+    def stream(self, method: str, request: Any) -> Iterator[Any]:
+        """Iterates the replies of a server-streaming ``method``, mapping errors as :meth:`call`
+        does. Only the opening of the stream is retried: a stream broken half-way raises."""
+        rpc = getattr(self.stub, method)
+        attempt = 0
+        received = False
+        while True:
+            try:
+                for reply in rpc(request, timeout=self.timeout, metadata=self._metadata):
+                    received = True
+                    yield reply
+                return
+            except grpc.RpcError as e:
+                code, details = e.code(), e.details()
+            if received:
+                raise self._error(method, code, details, attempts=1) from None
+            attempt = self._retry_or_raise(method, code, details, attempt)
+
+    def _retry_or_raise(
+        self,
+        method: str,
+        code: grpc.StatusCode,
+        details: str,
+        attempt: int,
+        retries: int | None = None,
+    ) -> int:
+        retries = self.retries if retries is None else retries
+        if code == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
+            time.sleep(self.retry_backoff * (2**attempt))
+            return attempt + 1
+        raise self._error(method, code, details, attempts=attempt + 1) from None
+
+    def _error(self, method: str, code: grpc.StatusCode, details: str, attempts: int):
+        if code == grpc.StatusCode.UNAVAILABLE:
+            details = (
+                f"{method}: the server at {self.address} is unavailable after {attempts} "
+                f"attempt{'s' if attempts != 1 else ''} ({details})"
+            )
+        else:
+            details = f"{method}: {details}"
+        return error_for_status(code, details, self.address)
+
+    def server_info(self) -> pb.ServerInfoResponse:
+        """The server's version, ruleset and limits."""
+        return self.call("ServerInfo", pb.ServerInfoRequest())
+
+    def close(self) -> None:
+        """Closes the channel; safe to call twice."""
+        if not self._closed:
+            self._closed = True
+            self.channel.close()
+
+    def __enter__(self) -> Connection:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Connection({self.address!r})"

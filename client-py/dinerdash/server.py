@@ -1,0 +1,226 @@
+"""A local ``dinerdash-server`` subprocess: the embedded default when no address is given.
+
+:class:`LocalServer` starts the binary on a free port (``--port 0``), waits for the line
+``dinerdash-server listening on HOST:PORT`` (with a timeout and a readable error), and always stops
+it: terminate, wait, then kill. On Linux the child also gets ``PR_SET_PDEATHSIG``, so it dies with
+the Python process even when that one is killed without a chance to clean up.
+
+The binary is, in this order: the ``binary`` argument, ``DINERDASH_SERVER``, ``dinerdash-server``
+on ``PATH``, or the release build of the workspace this package was installed from.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import weakref
+from collections.abc import Sequence
+from pathlib import Path
+
+from .errors import LocalServerError, ServerBinaryNotFound
+
+__all__ = ["LocalServer", "find_server_binary"]
+
+_LISTENING = re.compile(r"^dinerdash-server listening on (\S+)\s*$")
+_BUILD_HINT = (
+    "build it with `cargo build --release -p dinerdash-server` in the repository, then set "
+    "DINERDASH_SERVER=/path/to/target/release/dinerdash-server or put it on PATH; or connect to a "
+    "running server with address='host:port' (or DINERDASH_ADDRESS)"
+)
+
+
+def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
+    """The ``dinerdash-server`` binary to start, or :class:`ServerBinaryNotFound` saying how to
+    get one."""
+    tried = []
+    if binary is not None:
+        candidates = [("binary argument", Path(binary))]
+    else:
+        candidates = []
+        env = os.environ.get("DINERDASH_SERVER")
+        if env:
+            candidates.append(("DINERDASH_SERVER", Path(env)))
+        on_path = shutil.which("dinerdash-server")
+        if on_path:
+            candidates.append(("PATH", Path(on_path)))
+        # client-py/dinerdash/server.py -> the workspace root holds target/release.
+        workspace = Path(__file__).resolve().parent.parent.parent
+        candidates.append(("workspace", workspace / "target" / "release" / "dinerdash-server"))
+    for origin, path in candidates:
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
+        tried.append(f"{path} ({origin})")
+        if origin in ("binary argument", "DINERDASH_SERVER"):
+            break  # an explicit choice that is wrong is an error, not a hint to look elsewhere
+    raise ServerBinaryNotFound(
+        f"no dinerdash-server binary found (tried {', '.join(tried)}); {_BUILD_HINT}"
+    )
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
+    except Exception:
+        pass
+
+
+def _stop_process(proc: subprocess.Popen, timeout: float) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
+class LocalServer:
+    """A ``dinerdash-server`` child process on ``127.0.0.1`` and a port the server picks.
+
+    Use it as a context manager, or call :meth:`stop` (also run when the object is collected and
+    at interpreter exit)::
+
+        with LocalServer() as server:
+            env = gymnasium.make("dinerdash:DinerDash-v0", address=server.address)
+
+    Args:
+        binary: path of the binary (default: see :func:`find_server_binary`).
+        host: interface to listen on.
+        port: port to listen on; 0 lets the server pick a free one.
+        args: extra command-line arguments for the server (e.g. ``["--max-sessions", "8"]``).
+        startup_timeout: seconds to wait for the ``listening on`` line.
+        stop_timeout: seconds between terminate and kill.
+    """
+
+    def __init__(
+        self,
+        binary: str | os.PathLike[str] | None = None,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        args: Sequence[str] = (),
+        startup_timeout: float = 30.0,
+        stop_timeout: float = 10.0,
+    ) -> None:
+        self.binary = find_server_binary(binary)
+        self.host = host
+        self.port = port
+        self.args = list(args)
+        self.startup_timeout = startup_timeout
+        self.stop_timeout = stop_timeout
+        self.address: str | None = None
+        self.process: subprocess.Popen | None = None
+        self._stderr = None
+        self._finalizer: weakref.finalize | None = None
+        self.start()
+
+    @property
+    def pid(self) -> int | None:
+        """The server's process id while it runs."""
+        return self.process.pid if self.process is not None else None
+
+    def start(self) -> None:
+        """Starts the server and waits until it listens."""
+        if self.process is not None and self.process.poll() is None:
+            return
+        # stderr goes to a file: nobody drains a pipe, and its tail explains a failed start.
+        self._stderr = tempfile.TemporaryFile(mode="w+b")
+        cmd = [str(self.binary), "--host", self.host, "--port", str(self.port), *self.args]
+        try:
+            self.process = subprocess.Popen(
+                cmd,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=self._stderr,
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+            )
+        except OSError as e:
+            raise LocalServerError(f"could not start {cmd[0]}: {e}; {_BUILD_HINT}") from None
+        self._finalizer = weakref.finalize(self, _stop_process, self.process, self.stop_timeout)
+        lines: queue.Queue[str | None] = queue.Queue()
+        threading.Thread(
+            target=_pump,
+            args=(self.process.stdout, lines),
+            name="dinerdash-server-stdout",
+            daemon=True,
+        ).start()
+        deadline = time.monotonic() + self.startup_timeout
+        while True:
+            try:
+                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                tail = self._stderr_tail()
+                self.stop()
+                raise LocalServerError(
+                    f"{' '.join(cmd)} did not print 'dinerdash-server listening on HOST:PORT' "
+                    f"within {self.startup_timeout:g} s{tail}"
+                ) from None
+            if line is None:  # stdout closed: the server exited
+                code = self.process.wait()
+                tail = self._stderr_tail()
+                self.stop()
+                raise LocalServerError(
+                    f"{' '.join(cmd)} exited with status {code} before listening{tail}"
+                )
+            match = _LISTENING.match(line)
+            if match is not None:
+                self.address = match.group(1)
+                return
+
+    def _stderr_tail(self) -> str:
+        if self._stderr is None:
+            return ""
+        try:
+            self._stderr.seek(0)
+            tail = self._stderr.read()[-2000:].decode(errors="replace").strip()
+        except (OSError, ValueError):
+            return ""
+        return f"; its stderr:\n{tail}" if tail else ""
+
+    def is_running(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def stop(self) -> None:
+        """Stops the server (terminate, wait, kill); safe to call twice."""
+        if self._finalizer is not None:
+            self._finalizer()  # runs _stop_process once, and detaches it from interpreter exit
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
+
+    close = stop
+
+    def __enter__(self) -> LocalServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def __repr__(self) -> str:
+        state = "running" if self.is_running() else "stopped"
+        return f"LocalServer({self.address!r}, pid={self.pid}, {state})"
+
+
+def _pump(stream, lines: queue.Queue) -> None:
+    """Reads the server's stdout to its end, line by line into ``lines`` (``None`` at the end), so
+    that the server never blocks on a full pipe."""
+    try:
+        for raw in iter(stream.readline, b""):
+            lines.put(raw.decode(errors="replace").rstrip("\n"))
+    except (OSError, ValueError):
+        pass
+    lines.put(None)

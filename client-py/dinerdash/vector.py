@@ -1,0 +1,512 @@
+"""The vector environment: N Diner Dash games in one batched server session per server.
+
+``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, ...)`` builds this class (the
+registered ``vector_entry_point``). Each step is one ``Step`` call per server carrying N actions as
+packed little-endian ``int32``; the reply's packed arrays are turned into numpy arrays with
+``numpy.frombuffer``, with no Python loop over the environments.
+
+Scale-out: ``address`` may be a list of servers (or a DNS name that resolves to several). The N
+environments are then split into contiguous slices, one batched session per server, and the
+servers are called concurrently (gRPC futures). Environment ``i`` is seeded with ``seed + i``
+whatever server holds it, so the trajectories are the same as on one server. A session's calls
+always go to the server that created it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from . import render as _render
+from ._proto import pb
+from ._session import (
+    NUM_ACTIONS,
+    OBSERVATION_SIZE,
+    Config,
+    Endpoint,
+    config_dict,
+    make_arrivals,
+    make_config,
+)
+from ._session import observation_space as _observation_space
+from .connection import Connection
+from .errors import InvalidArgument, ServiceError, ServiceTransportError, SessionNotFound
+
+__all__ = ["DinerDashVectorEnv"]
+
+_WIRE_AUTORESET = {
+    AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
+    AutoresetMode.SAME_STEP: pb.AUTORESET_MODE_SAME_STEP,
+}
+_U64 = 1 << 64
+
+
+class _Shard:
+    """The environments ``start:stop`` of the vector env, in one session on one server."""
+
+    __slots__ = ("conn", "last", "pending", "session_id", "start", "stop")
+
+    def __init__(self, conn: Connection, start: int, stop: int) -> None:
+        self.conn = conn
+        self.start = start
+        self.stop = stop
+        #: The session on ``conn``'s server.
+        self.session_id: str | None = None
+        #: The last Batch received, kept for render() and for reporting a lost server.
+        self.last: pb.Batch | None = None
+        #: NEXT_STEP after a reconnect: the new session's first Batch, to hand out at the next
+        #: step() as that step's autoreset (Gymnasium's NEXT_STEP semantics).
+        self.pending: pb.Batch | None = None
+
+    @property
+    def size(self) -> int:
+        return self.stop - self.start
+
+
+class DinerDashVectorEnv(VectorEnv):
+    """``num_envs`` Diner Dash environments stepped together on one or more DinerDash servers.
+
+    The single environment, its spaces and infos are described in
+    :class:`dinerdash.env.DinerDashEnv`; here every value gains a leading axis of ``num_envs``:
+    observations ``(N, 40) float32``, rewards ``(N,) float64``, ``info["action_mask"]`` ``(N, 57)
+    bool``, ``info["score"]``, ``info["lost"]``, ``info["tick"]`` and (``expert=True``)
+    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask.
+
+    Autoreset: ``AutoresetMode.NEXT_STEP`` (default; the step after an episode ends resets that
+    environment, ignores its action and reports reward 0 and ``info["seed"]``) or
+    ``AutoresetMode.SAME_STEP`` (the ending step returns the new episode's first observation and
+    puts the ended one's last observation in ``info["final_obs"]`` and its score, lost and tick in
+    ``info["final_info"]``). ``metadata["autoreset_mode"]`` says which.
+
+    Args:
+        num_envs: number of environments N.
+        address: a server, a list of servers, or a DNS name resolving to several; with several,
+            the environments are split into contiguous slices, one per server (at most N servers).
+            Default: ``DINERDASH_ADDRESS``, else a local server is started and stopped on close.
+        expert: add ``expert_action`` to the infos.
+        reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
+            its session and report its environments' episodes as truncated.
+        autoreset_mode: ``AutoresetMode.NEXT_STEP`` or ``AutoresetMode.SAME_STEP``.
+        config: game configuration (GameConfig fields), as for the single env.
+        max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
+        render_mode: ``"ansi"`` or ``"rgb_array"``; ``render()`` returns one frame per env.
+        token, connect_timeout, reconnect_timeout, server_binary, ansi_color: as for the single env.
+
+    Reset: ``reset(seed=s)`` seeds environment ``i`` with ``s + i``; ``seed`` may also be a list
+    of N seeds. Options: ``{"arrivals": one list of (type, size) pairs or N lists,
+    "config": {...}}``.
+    """
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        address: str | Sequence[str] | None = None,
+        *,
+        expert: bool = False,
+        reconnect: bool = False,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        config: Config = None,
+        max_episode_steps: int | None = None,
+        render_mode: str | None = None,
+        token: str | None = None,
+        connect_timeout: float = 10.0,
+        reconnect_timeout: float = 60.0,
+        server_binary: str | None = None,
+        ansi_color: bool = False,
+    ) -> None:
+        mode = AutoresetMode(autoreset_mode)
+        if mode not in _WIRE_AUTORESET:
+            raise ValueError(
+                f"autoreset_mode {mode} is not supported: a server session resets all its "
+                "environments at once; use AutoresetMode.NEXT_STEP or AutoresetMode.SAME_STEP"
+            )
+        if render_mode not in (None, "ansi", "rgb_array"):
+            raise ValueError(
+                f"render_mode must be None, 'ansi' or 'rgb_array', got {render_mode!r}"
+            )
+        self.metadata = {
+            "render_modes": ["ansi", "rgb_array"],
+            "render_fps": 8,
+            "autoreset_mode": mode,
+        }
+        self.autoreset_mode = mode
+        self.render_mode = render_mode
+        self.num_envs = int(num_envs)
+        self.expert = bool(expert)
+        self.reconnect = bool(reconnect)
+        self.reconnect_timeout = reconnect_timeout
+        self.ansi_color = ansi_color
+        self._config = make_config(config)
+        #: Shards whose server was lost and reconnected during the current step.
+        self._reconnected: list[_Shard] = []
+        if max_episode_steps is not None:
+            cfg = pb.GameConfig()
+            if self._config is not None:
+                cfg.CopyFrom(self._config)
+            cfg.time_limit = int(max_episode_steps)
+            self._config = cfg
+        self._endpoint = Endpoint(
+            address,
+            max_servers=max(1, self.num_envs),
+            token=token,
+            connect_timeout=connect_timeout,
+            server_binary=server_binary,
+        )
+        conns = self._endpoint.connections
+        k = len(conns)
+        sizes = [self.num_envs // k + (j < self.num_envs % k) for j in range(k)]
+        self._shards: list[_Shard] = []
+        start = 0
+        for conn, size in zip(conns, sizes, strict=True):
+            self._shards.append(_Shard(conn, start, start + size))
+            start += size
+        try:
+            for shard in self._shards:
+                self._create_session(shard)
+        except BaseException:
+            self._close_sessions()
+            self._endpoint.close()
+            raise
+        spec = self.spec_proto
+        self.single_observation_space = _observation_space(spec)
+        self.single_action_space = spaces.Discrete(spec.num_actions)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+
+    # -- sessions -------------------------------------------------------------------------------
+
+    @property
+    def addresses(self) -> list[str]:
+        """The servers, in the order of the environment slices they hold."""
+        return [s.conn.address for s in self._shards]
+
+    @property
+    def env_slices(self) -> list[tuple[str, slice]]:
+        """Which server holds which environments."""
+        return [(s.conn.address, slice(s.start, s.stop)) for s in self._shards]
+
+    @property
+    def session_ids(self) -> list[str | None]:
+        return [s.session_id for s in self._shards]
+
+    @property
+    def server(self):
+        """The :class:`~dinerdash.server.LocalServer` this env started, or ``None``."""
+        return self._endpoint.server
+
+    @property
+    def game_config(self) -> dict[str, int]:
+        """The effective game configuration, every field present."""
+        return config_dict(self.spec_proto.config)
+
+    def _create_session(self, shard: _Shard) -> None:
+        request = pb.CreateSessionRequest(
+            num_envs=shard.size,
+            config=self._config,
+            autoreset_mode=_WIRE_AUTORESET[self.autoreset_mode],
+            action_masks=True,
+            expert_actions=self.expert,
+        )
+        reply = shard.conn.call("CreateSession", request)
+        shard.session_id = reply.session_id
+        shard.last = None
+        shard.pending = None
+        self.spec_proto: pb.Spec = reply.spec
+
+    def _reopen(self, shard: _Shard, error: ServiceError) -> None:
+        """Waits for a lost server and opens a new session there (reconnect=True)."""
+        deadline = time.monotonic() + self.reconnect_timeout
+        server = self._endpoint.server
+        if server is not None and not server.is_running():
+            server.start()  # the local server this env owns died: start it again
+            shard.conn.close()
+            shard.conn = self._endpoint.connections[0] = self._endpoint.connect(server.address)
+        while True:
+            if shard.conn.wait_ready(max(0.0, deadline - time.monotonic())):
+                try:
+                    self._create_session(shard)
+                    return
+                except ServiceTransportError:
+                    pass
+            if time.monotonic() >= deadline:
+                raise ServiceTransportError(
+                    f"lost environments {shard.start}..{shard.stop - 1} ({error}) and could not "
+                    f"reconnect to {shard.conn.address} within {self.reconnect_timeout:g} s",
+                    address=shard.conn.address,
+                ) from None
+            time.sleep(0.1)
+
+    def _fail(self, shard: _Shard, error: ServiceError) -> ServiceError:
+        """The same error, saying which environments it concerns when there are several servers."""
+        if len(self._shards) == 1:
+            return error
+        return type(error)(
+            f"{error.details} [environments {shard.start}..{shard.stop - 1} of the vector env]",
+            code=error.code,
+            address=error.address,
+        )
+
+    # -- Gymnasium API --------------------------------------------------------------------------
+
+    def reset(
+        self,
+        *,
+        seed: int | Sequence[int] | None = None,
+        options: dict[str, Any] | None = None,
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        seeds = None
+        if seed is None or isinstance(seed, (int, np.integer)):
+            super().reset(seed=None if seed is None else int(seed))
+        else:
+            seeds = [int(s) for s in seed]
+            if len(seeds) != self.num_envs:
+                raise ValueError(
+                    f"seed: expected an int or {self.num_envs} seeds, got {len(seeds)}"
+                )
+        options = dict(options or {})
+        unknown = sorted(set(options) - {"arrivals", "config"})
+        if unknown:
+            raise ValueError(
+                f"reset options: unknown key(s) {unknown}; known: 'arrivals', 'config'"
+            )
+        arrivals = make_arrivals(options.get("arrivals"), self.num_envs)
+        if len(self._shards) > 1 and len(arrivals) not in (0, 1, self.num_envs):
+            raise InvalidArgument(
+                f"arrivals: expected one list or {self.num_envs} lists (one per environment), "
+                f"got {len(arrivals)}"
+            )
+        config = make_config(options.get("config"))
+        if config is not None:
+            self._config = config
+
+        def request(shard: _Shard) -> pb.ResetRequest:
+            r = pb.ResetRequest(session_id=shard.session_id, config=config)
+            if seeds is not None:
+                r.seeds.extend(seeds[shard.start : shard.stop])
+            elif seed is not None:
+                r.seed = (int(seed) + shard.start) % _U64
+            if len(arrivals) == 1 or len(self._shards) == 1:
+                r.arrivals.extend(arrivals)
+            elif arrivals:
+                r.arrivals.extend(arrivals[shard.start : shard.stop])
+            return r
+
+        requests = [request(s) for s in self._shards]
+        futures = [s.conn.future("Reset", r) for s, r in zip(self._shards, requests, strict=True)]
+        batches = []
+        for shard, req, fut in zip(self._shards, requests, futures, strict=True):
+            try:
+                batch = shard.conn.result("Reset", req, fut)
+            except (ServiceTransportError, SessionNotFound) as e:
+                if not self.reconnect:
+                    raise self._fail(shard, e) from None
+                self._reopen(shard, e)
+                batch = shard.conn.call("Reset", request(shard))
+            except ServiceError as e:
+                raise self._fail(shard, e) from None
+            shard.last, shard.pending = batch, None
+            batches.append(batch)
+        obs, info = self._decode_common(batches)
+        info["seed"] = self._seeds(batches)
+        info["_seed"] = np.ones(self.num_envs, dtype=np.bool_)
+        return obs, info
+
+    def step(
+        self, actions: Any
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        acts = np.asarray(actions)
+        if acts.shape != (self.num_envs,):
+            raise ValueError(f"actions: expected shape ({self.num_envs},), got {acts.shape}")
+        wire = acts.astype("<i4", copy=False)
+        shards = self._shards
+        if len(shards) == 1 and shards[0].pending is None:
+            shard = shards[0]
+            try:
+                batch = shard.conn.call(
+                    "Step", pb.StepRequest(session_id=shard.session_id, actions=wire.tobytes())
+                )
+            except (ServiceTransportError, SessionNotFound) as e:
+                batch = self._recover_step(shard, e)
+            shard.last = batch
+            return self._decode_step([batch])
+        calls = []
+        for shard in shards:
+            if shard.pending is not None:
+                calls.append((None, None))
+                continue
+            req = pb.StepRequest(
+                session_id=shard.session_id, actions=wire[shard.start : shard.stop].tobytes()
+            )
+            calls.append((req, shard.conn.future("Step", req)))
+        batches = []
+        for shard, (req, fut) in zip(shards, calls, strict=True):
+            if fut is None:
+                batch, shard.pending = shard.pending, None
+            else:
+                try:
+                    batch = shard.conn.result("Step", req, fut)
+                except (ServiceTransportError, SessionNotFound) as e:
+                    batch = self._recover_step(shard, e)
+                except ServiceError as e:
+                    raise self._fail(shard, e) from None
+            shard.last = batch
+            batches.append(batch)
+        return self._decode_step(batches)
+
+    def _recover_step(self, shard: _Shard, error: ServiceError) -> pb.Batch:
+        """A Batch that reports the shard's interrupted episodes as truncated, after opening a
+        new session for them (reconnect=True); raises ``error`` otherwise."""
+        if not self.reconnect or shard.last is None:
+            raise self._fail(shard, error) from None
+        last = shard.last
+        self._reopen(shard, error)
+        first = shard.conn.call("Reset", pb.ResetRequest(session_id=shard.session_id))
+        n = shard.size
+        out = pb.Batch()
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            # This step ends the episodes (last state, truncated); the next step() hands out the
+            # new session's first observations as the autoreset.
+            out.CopyFrom(last)
+            out.reset = bytes(n)
+            del out.seeds[:]
+            out.seeds.extend([0] * n)
+            shard.pending = first
+        else:
+            # SAME_STEP: the new episodes start in this very step; the old ones are final_*.
+            out.CopyFrom(first)
+            out.final_observations = last.observations
+            out.final_scores = last.scores
+            out.final_lost = last.lost
+            out.final_ticks = last.ticks
+        out.rewards = bytes(4 * n)
+        out.terminated = bytes(n)
+        out.truncated = b"\x01" * n
+        out.ClearField("stream_episodes")
+        self._reconnected.append(shard)
+        return out
+
+    def _join(self, batches: list[pb.Batch], field: str) -> bytes:
+        if len(batches) == 1:
+            return getattr(batches[0], field)
+        return b"".join([getattr(b, field) for b in batches])
+
+    def _seeds(self, batches: list[pb.Batch]) -> np.ndarray:
+        if len(batches) == 1:
+            return np.array(batches[0].seeds, dtype=np.uint64)
+        return np.array([s for b in batches for s in b.seeds], dtype=np.uint64)
+
+    def _decode_common(self, batches: list[pb.Batch]) -> tuple[np.ndarray, dict[str, Any]]:
+        n = self.num_envs
+        j = self._join
+        obs = np.frombuffer(j(batches, "observations"), dtype=np.int8)
+        obs = obs.reshape(n, OBSERVATION_SIZE).astype(np.float32)
+        masks = np.frombuffer(j(batches, "action_masks"), dtype=np.bool_)
+        info: dict[str, Any] = {
+            "action_mask": masks.reshape(n, NUM_ACTIONS).copy(),
+            "_action_mask": np.ones(n, dtype=np.bool_),
+            "score": np.frombuffer(j(batches, "scores"), dtype="<i4").astype(np.int64),
+            "_score": np.ones(n, dtype=np.bool_),
+            "lost": np.frombuffer(j(batches, "lost"), dtype="<u4").astype(np.int64),
+            "_lost": np.ones(n, dtype=np.bool_),
+            "tick": np.frombuffer(j(batches, "ticks"), dtype="<u4").astype(np.int64),
+            "_tick": np.ones(n, dtype=np.bool_),
+        }
+        if self.expert:
+            expert = np.frombuffer(j(batches, "expert_actions"), dtype=np.uint8)
+            info["expert_action"] = expert.astype(np.int64)
+            info["_expert_action"] = np.ones(n, dtype=np.bool_)
+        return obs, info
+
+    def _decode_step(self, batches: list[pb.Batch]):
+        n = self.num_envs
+        j = self._join
+        obs, info = self._decode_common(batches)
+        rewards = np.frombuffer(j(batches, "rewards"), dtype="<i4").astype(np.float64)
+        terminated = np.frombuffer(j(batches, "terminated"), dtype=np.bool_).copy()
+        truncated = np.frombuffer(j(batches, "truncated"), dtype=np.bool_).copy()
+        reset = np.frombuffer(j(batches, "reset"), dtype=np.bool_)
+        if reset.any():
+            # The environments reset in this step carry their reset info: the seed.
+            info["seed"] = self._seeds(batches)
+            info["_seed"] = reset.copy()
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+                final = np.frombuffer(j(batches, "final_observations"), dtype=np.int8)
+                final = final.reshape(n, OBSERVATION_SIZE).astype(np.float32)
+                final_obs = np.full(n, None, dtype=object)
+                for i in np.flatnonzero(reset):  # only the environments that just ended
+                    final_obs[i] = final[i]
+                info["final_obs"] = final_obs
+                info["_final_obs"] = reset.copy()
+                info["final_info"] = {
+                    "score": np.frombuffer(j(batches, "final_scores"), dtype="<i4").astype(
+                        np.int64
+                    ),
+                    "_score": reset.copy(),
+                    "lost": np.frombuffer(j(batches, "final_lost"), dtype="<u4").astype(np.int64),
+                    "_lost": reset.copy(),
+                    "tick": np.frombuffer(j(batches, "final_ticks"), dtype="<u4").astype(np.int64),
+                    "_tick": reset.copy(),
+                }
+                info["_final_info"] = reset.copy()
+        if self._reconnected:
+            lost = np.zeros(n, dtype=np.bool_)
+            for shard in self._reconnected:
+                lost[shard.start : shard.stop] = True
+            info["reconnected"] = lost
+            info["_reconnected"] = lost.copy()
+            self._reconnected = []
+        return obs, rewards, terminated, truncated, info
+
+    def render(self) -> tuple[Any, ...] | None:
+        if self.render_mode is None:
+            gym.logger.warn(
+                "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
+            )
+            return None
+        if self.render_mode == "ansi":
+            return tuple(
+                shard.conn.call(
+                    "Render",
+                    pb.RenderRequest(
+                        session_id=shard.session_id, env_index=i, color=self.ansi_color
+                    ),
+                ).text
+                for shard in self._shards
+                for i in range(shard.size)
+            )
+        if any(s.last is None for s in self._shards):
+            raise gym.error.ResetNeeded("call reset() before render()")
+        batches = [s.last for s in self._shards]
+        obs, info = self._decode_common(batches)
+        lives = self.spec_proto.config.lives
+        return tuple(
+            _render.draw(
+                obs[i], score=int(info["score"][i]), lost=int(info["lost"][i]), lives=lives
+            )
+            for i in range(self.num_envs)
+        )
+
+    def _close_sessions(self) -> None:
+        for shard in self._shards:
+            if shard.session_id is not None:
+                try:
+                    shard.conn.call(
+                        "CloseSession",
+                        pb.CloseSessionRequest(session_id=shard.session_id),
+                        timeout=2.0,
+                        retries=0,
+                    )
+                except ServiceError:
+                    pass  # the server is gone or already forgot the session
+                shard.session_id = None
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self._close_sessions()
+        self._endpoint.close()

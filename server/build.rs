@@ -1,0 +1,19 @@
+//! Compiles `proto/dinerdash/v1/dinerdash.proto` with protox (no system `protoc`) into the
+//! tonic client and server, and writes the encoded descriptor set that server reflection serves.
+
+use std::path::PathBuf;
+
+use prost::Message as _;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR")?).join("../proto");
+    let proto = root.join("dinerdash/v1/dinerdash.proto");
+    println!("cargo:rerun-if-changed={}", proto.display());
+    let fds = protox::compile([&proto], [&root])?;
+    let out = PathBuf::from(std::env::var("OUT_DIR")?);
+    std::fs::write(out.join("dinerdash_descriptor.bin"), fds.encode_to_vec())?;
+    tonic_prost_build::configure()
+        .emit_rerun_if_changed(false)
+        .compile_fds(fds)?;
+    Ok(())
+}

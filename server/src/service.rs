@@ -1,0 +1,441 @@
+//! The tonic glue of `dinerdash.v1.DinerDash`: decode a request, call the session store (or the
+//! rollout recorder), encode the reply. This is the only module where errors become
+//! `tonic::Status`, each [`SessionError`] mapped once in [`status`]; it also holds the bearer
+//! token interceptor.
+
+use std::sync::Arc;
+
+use tokio::sync::Semaphore;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status};
+
+use crate::eval::PolicyKind;
+use crate::metrics::Metrics;
+use crate::pb;
+use crate::rollout::{self, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, Recording};
+use crate::session::{
+    Autoreset, Batch, ResetArgs, SessionError, SessionId, SessionOptions, SessionSpec, Store,
+};
+use crate::sim::{self, Config, NUM_ACTIONS, OBSERVATION_SIZE, SNAPSHOT_VERSION};
+
+/// Largest message the server reads or writes. The biggest legitimate ones are a Restore of a
+/// 1024-environment session (~3.5 MB) and a Rollout episode of 100,000 steps with action masks
+/// (~10 MB); anything larger is refused by this limit before it is buffered.
+pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+/// Rollout episodes buffered ahead of a slow reader.
+const ROLLOUT_BUFFER: usize = 2;
+
+/// Maps a session error to its gRPC status: the one place that decides the codes.
+pub fn status(e: SessionError) -> Status {
+    let message = e.to_string();
+    match e {
+        SessionError::NotFound(_) => Status::not_found(message),
+        SessionError::InvalidArgument(_) => Status::invalid_argument(message),
+        SessionError::TooManySessions(_) => Status::resource_exhausted(message),
+        SessionError::NotReset | SessionError::EpisodeOver | SessionError::EnvEpisodeOver(_) => {
+            Status::failed_precondition(message)
+        }
+        SessionError::Internal(_) => Status::internal(message),
+    }
+}
+
+/// The game configuration of a request: absent fields (or an absent message) keep `v0`.
+fn config_from(config: Option<&pb::GameConfig>) -> Config {
+    let d = Config::default();
+    let Some(c) = config else {
+        return d;
+    };
+    Config {
+        arrival_interval: c.arrival_interval.unwrap_or(d.arrival_interval),
+        patience: [
+            c.patience_type1.unwrap_or(d.patience[0]),
+            c.patience_type2.unwrap_or(d.patience[1]),
+        ],
+        decay: [
+            c.decay_type1.unwrap_or(d.decay[0]),
+            c.decay_type2.unwrap_or(d.decay[1]),
+        ],
+        reading_ticks: c.reading_ticks.unwrap_or(d.reading_ticks),
+        cooking_ticks: c.cooking_ticks.unwrap_or(d.cooking_ticks),
+        eating_ticks: c.eating_ticks.unwrap_or(d.eating_ticks),
+        lives: c.lives.unwrap_or(d.lives),
+        time_limit: c.time_limit.unwrap_or(d.time_limit),
+    }
+}
+
+/// A configuration with every field present.
+fn config_to(c: &Config) -> pb::GameConfig {
+    pb::GameConfig {
+        arrival_interval: Some(c.arrival_interval),
+        patience_type1: Some(c.patience[0]),
+        patience_type2: Some(c.patience[1]),
+        decay_type1: Some(c.decay[0]),
+        decay_type2: Some(c.decay[1]),
+        reading_ticks: Some(c.reading_ticks),
+        cooking_ticks: Some(c.cooking_ticks),
+        eating_ticks: Some(c.eating_ticks),
+        lives: Some(c.lives),
+        time_limit: Some(c.time_limit),
+    }
+}
+
+fn autoreset_to(mode: Autoreset) -> pb::AutoresetMode {
+    match mode {
+        Autoreset::NextStep => pb::AutoresetMode::NextStep,
+        Autoreset::SameStep => pb::AutoresetMode::SameStep,
+        Autoreset::Disabled => pb::AutoresetMode::Disabled,
+    }
+}
+
+fn autoreset_from(value: i32) -> Result<Autoreset, SessionError> {
+    match pb::AutoresetMode::try_from(value) {
+        Ok(pb::AutoresetMode::Unspecified | pb::AutoresetMode::NextStep) => Ok(Autoreset::NextStep),
+        Ok(pb::AutoresetMode::SameStep) => Ok(Autoreset::SameStep),
+        Ok(pb::AutoresetMode::Disabled) => Ok(Autoreset::Disabled),
+        Err(_) => Err(SessionError::InvalidArgument(format!(
+            "autoreset_mode must be in 0..=3, got {value}"
+        ))),
+    }
+}
+
+fn spec_to(spec: &SessionSpec) -> pb::Spec {
+    let (low, high) = sim::observation_bounds();
+    pb::Spec {
+        num_envs: spec.num_envs as u32,
+        observation_size: OBSERVATION_SIZE as u32,
+        observation_low: low.iter().map(|&v| i32::from(v)).collect(),
+        observation_high: high.iter().map(|&v| i32::from(v)).collect(),
+        observation_dtype: "float32".into(),
+        num_actions: NUM_ACTIONS as u32,
+        ruleset: sim::RULESET.into(),
+        server_version: crate::SERVER_VERSION.into(),
+        autoreset_mode: autoreset_to(spec.options.autoreset).into(),
+        config: Some(config_to(&spec.config)),
+        action_masks: spec.options.action_masks,
+        expert_actions: spec.options.expert_actions,
+    }
+}
+
+fn created(id: SessionId, spec: &SessionSpec) -> pb::CreateSessionResponse {
+    pb::CreateSessionResponse {
+        session_id: id.to_string(),
+        spec: Some(spec_to(spec)),
+    }
+}
+
+fn batch_to(b: Batch) -> pb::Batch {
+    pb::Batch {
+        num_envs: b.num_envs,
+        observations: b.observations,
+        rewards: b.rewards,
+        terminated: b.terminated,
+        truncated: b.truncated,
+        scores: b.scores,
+        lost: b.lost,
+        ticks: b.ticks,
+        action_masks: b.action_masks,
+        expert_actions: b.expert_actions,
+        reset: b.reset,
+        seeds: b.seeds,
+        final_observations: b.final_observations,
+        final_scores: b.final_scores,
+        final_lost: b.final_lost,
+        final_ticks: b.final_ticks,
+        stream_episodes: b.stream_episodes,
+    }
+}
+
+fn episode_to(r: Recording) -> pb::Episode {
+    pb::Episode {
+        seed: r.seed,
+        steps: r.steps,
+        observations: r.observations,
+        actions: r.actions,
+        rewards: r.rewards,
+        expert_actions: r.expert_actions,
+        action_masks: r.action_masks,
+        score: r.score,
+        lost: r.lost,
+        terminated: r.terminated,
+        truncated: r.truncated,
+    }
+}
+
+/// The `DinerDash` service. Cloning is shallow.
+#[derive(Debug, Clone)]
+pub struct DinerDashService {
+    /// The sessions.
+    store: Store,
+    /// Counts failed RPCs by code.
+    metrics: Arc<Metrics>,
+    /// Rollouts recording at once: one per core, so that streaming demonstrations cannot
+    /// starve the Step path of every other client.
+    rollouts: Arc<Semaphore>,
+}
+
+impl DinerDashService {
+    /// A service over `store`.
+    pub fn new(store: Store, metrics: Arc<Metrics>) -> DinerDashService {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        DinerDashService {
+            store,
+            metrics,
+            rollouts: Arc::new(Semaphore::new(cores)),
+        }
+    }
+
+    /// The status for `e`, counted.
+    fn fail(&self, e: SessionError) -> Status {
+        let status = status(e);
+        self.metrics.count_error(status.code() as usize);
+        tracing::debug!(code = ?status.code(), message = status.message(), "request refused");
+        status
+    }
+}
+
+#[tonic::async_trait]
+impl pb::diner_dash_server::DinerDash for DinerDashService {
+    #[tracing::instrument(skip_all, fields(num_envs = request.get_ref().num_envs))]
+    async fn create_session(
+        &self,
+        request: Request<pb::CreateSessionRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let r = request.into_inner();
+        let options = SessionOptions {
+            autoreset: autoreset_from(r.autoreset_mode).map_err(|e| self.fail(e))?,
+            action_masks: r.action_masks,
+            expert_actions: r.expert_actions,
+        };
+        let config = config_from(r.config.as_ref());
+        let (id, spec) = self
+            .store
+            .create(r.num_envs, config, options, r.seed)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!(session = %id, "session created");
+        Ok(Response::new(created(id, &spec)))
+    }
+
+    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    async fn close_session(
+        &self,
+        request: Request<pb::CloseSessionRequest>,
+    ) -> Result<Response<pb::CloseSessionResponse>, Status> {
+        self.store
+            .close(&request.get_ref().session_id)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!("session closed");
+        Ok(Response::new(pb::CloseSessionResponse {}))
+    }
+
+    #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
+    async fn reset(
+        &self,
+        request: Request<pb::ResetRequest>,
+    ) -> Result<Response<pb::Batch>, Status> {
+        let r = request.into_inner();
+        let args = ResetArgs {
+            seed: r.seed,
+            seeds: r.seeds,
+            arrivals: r
+                .arrivals
+                .iter()
+                .map(|list| {
+                    list.groups
+                        .iter()
+                        .map(|g| (g.customer_type, g.size))
+                        .collect()
+                })
+                .collect(),
+            config: r.config.as_ref().map(|c| config_from(Some(c))),
+        };
+        let batch = self
+            .store
+            .reset(&r.session_id, &args)
+            .map_err(|e| self.fail(e))?;
+        Ok(Response::new(batch_to(batch)))
+    }
+
+    #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
+    async fn step(&self, request: Request<pb::StepRequest>) -> Result<Response<pb::Batch>, Status> {
+        let r = request.get_ref();
+        let batch = self
+            .store
+            .step(&r.session_id, &r.actions)
+            .map_err(|e| self.fail(e))?;
+        Ok(Response::new(batch_to(batch)))
+    }
+
+    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    async fn fork(
+        &self,
+        request: Request<pb::ForkRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let (id, spec) = self
+            .store
+            .fork(&request.get_ref().session_id)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!(fork = %id, "session forked");
+        Ok(Response::new(created(id, &spec)))
+    }
+
+    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    async fn snapshot(
+        &self,
+        request: Request<pb::SnapshotRequest>,
+    ) -> Result<Response<pb::SnapshotResponse>, Status> {
+        let snapshot = self
+            .store
+            .snapshot(&request.get_ref().session_id)
+            .map_err(|e| self.fail(e))?;
+        Ok(Response::new(pb::SnapshotResponse { snapshot }))
+    }
+
+    #[tracing::instrument(skip_all)]
+    async fn restore(
+        &self,
+        request: Request<pb::RestoreRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let (id, spec) = self
+            .store
+            .restore(&request.get_ref().snapshot)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!(session = %id, "session restored");
+        Ok(Response::new(created(id, &spec)))
+    }
+
+    #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
+    async fn render(
+        &self,
+        request: Request<pb::RenderRequest>,
+    ) -> Result<Response<pb::RenderResponse>, Status> {
+        let r = request.get_ref();
+        let text = self
+            .store
+            .render(&r.session_id, r.env_index, r.color)
+            .map_err(|e| self.fail(e))?;
+        Ok(Response::new(pb::RenderResponse { text }))
+    }
+
+    type RolloutStream = ReceiverStream<Result<pb::Episode, Status>>;
+
+    #[tracing::instrument(skip_all, fields(episodes = request.get_ref().seeds.len()))]
+    async fn rollout(
+        &self,
+        request: Request<pb::RolloutRequest>,
+    ) -> Result<Response<Self::RolloutStream>, Status> {
+        let r = request.into_inner();
+        let invalid = |msg: String| self.fail(SessionError::InvalidArgument(msg));
+        let policy = match pb::Policy::try_from(r.policy) {
+            Ok(pb::Policy::Expert) => PolicyKind::Expert,
+            Ok(pb::Policy::Random) => PolicyKind::Random,
+            _ => {
+                return Err(invalid(format!(
+                    "policy must be POLICY_EXPERT (1) or POLICY_RANDOM (2), got {}",
+                    r.policy
+                )));
+            }
+        };
+        if r.seeds.is_empty() || r.seeds.len() > MAX_ROLLOUT_EPISODES as usize {
+            return Err(invalid(format!(
+                "seeds must hold 1..={MAX_ROLLOUT_EPISODES} seeds, got {}",
+                r.seeds.len()
+            )));
+        }
+        let max_steps = r.max_steps.unwrap_or(MAX_ROLLOUT_STEPS);
+        if !(1..=MAX_ROLLOUT_STEPS).contains(&max_steps) {
+            return Err(invalid(format!(
+                "max_steps must be in 1..={MAX_ROLLOUT_STEPS}, got {max_steps}"
+            )));
+        }
+        let config = config_from(r.config.as_ref());
+        config.validate().map_err(|e| invalid(e.to_string()))?;
+
+        let (tx, rx) = tokio::sync::mpsc::channel(ROLLOUT_BUFFER);
+        let permits = Arc::clone(&self.rollouts);
+        let metrics = Arc::clone(&self.metrics);
+        let masks = r.action_masks;
+        let seeds = r.seeds;
+        tokio::spawn(async move {
+            let Ok(_permit) = permits.acquire_owned().await else {
+                return;
+            };
+            let work = tokio::task::spawn_blocking(move || {
+                for seed in seeds {
+                    let sent = match rollout::record(policy, config, seed, max_steps, masks) {
+                        Ok(rec) => {
+                            metrics
+                                .rollout_episodes
+                                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            tx.blocking_send(Ok(episode_to(rec)))
+                        }
+                        Err(e) => tx.blocking_send(Err(status(SessionError::InvalidArgument(
+                            e.to_string(),
+                        )))),
+                    };
+                    if sent.is_err() {
+                        // The client went away: stop recording.
+                        return;
+                    }
+                }
+            });
+            if let Err(e) = work.await {
+                tracing::error!("rollout worker failed: {e}");
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn server_info(
+        &self,
+        _request: Request<pb::ServerInfoRequest>,
+    ) -> Result<Response<pb::ServerInfoResponse>, Status> {
+        let limits = self.store.limits();
+        Ok(Response::new(pb::ServerInfoResponse {
+            server_version: crate::SERVER_VERSION.into(),
+            ruleset: sim::RULESET.into(),
+            max_sessions: u32::try_from(limits.max_sessions).unwrap_or(u32::MAX),
+            max_envs_per_session: u32::try_from(limits.max_envs_per_session).unwrap_or(u32::MAX),
+            session_ttl_seconds: limits.session_ttl.as_secs(),
+            live_sessions: self.store.live() as u64,
+            max_rollout_episodes: MAX_ROLLOUT_EPISODES,
+            max_message_bytes: MAX_MESSAGE_BYTES as u64,
+            snapshot_version: u32::from(SNAPSHOT_VERSION),
+        }))
+    }
+}
+
+/// Checks `authorization: Bearer <token>` on every request when the server has a token.
+#[derive(Debug, Clone)]
+pub struct AuthInterceptor {
+    /// The expected `authorization` value, `Bearer <token>`; `None` lets every request in.
+    expected: Option<Arc<[u8]>>,
+}
+
+impl AuthInterceptor {
+    /// An interceptor for `token` (`None`: open server).
+    pub fn new(token: Option<&str>) -> AuthInterceptor {
+        AuthInterceptor {
+            expected: token.map(|t| Arc::from(format!("Bearer {t}").into_bytes())),
+        }
+    }
+}
+
+/// Compares without returning early, so that the time taken does not reveal the token.
+fn same_bytes(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+impl tonic::service::Interceptor for AuthInterceptor {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(expected) = &self.expected else {
+            return Ok(request);
+        };
+        match request.metadata().get("authorization") {
+            None => Err(Status::unauthenticated(
+                "missing authorization metadata: send `authorization: Bearer <token>`",
+            )),
+            Some(value) if same_bytes(value.as_bytes(), expected) => Ok(request),
+            Some(_) => Err(Status::unauthenticated("invalid auth token")),
+        }
+    }
+}

@@ -1,0 +1,448 @@
+//! The session store: unguessable session IDs, the limits, idle expiry, and one lock per
+//! session.
+//!
+//! There is no global lock on the step path. Sessions live in [`SHARDS`] hash maps, each behind
+//! its own std `Mutex` that is held only to look up, insert or remove an `Arc<Session>`; the
+//! work of a Reset or Step happens under the session's own std `Mutex`, so the steps of one
+//! session are serialized and different sessions run in parallel. std rather than tokio mutexes:
+//! no critical section ever awaits, and they are several times cheaper.
+//!
+//! - [`envs`]: the environments of one session and what Reset and Step do to them.
+
+pub mod envs;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::time::{Duration, Instant};
+
+pub use envs::{Autoreset, Batch, Envs, ResetArgs, SessionOptions};
+
+use crate::metrics::Metrics;
+use crate::shutdown::Shutdown;
+use crate::sim::Config;
+
+/// Number of shards of the session map: enough that two cores never wait on each other's
+/// lookups, few enough that a sweep over all of them is cheap.
+const SHARDS: usize = 64;
+/// Longest prefix of a bad session ID echoed back in an error message.
+const MAX_ECHOED_ID: usize = 64;
+
+/// Why a session operation was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SessionError {
+    /// No session has this ID: never created, closed, or expired.
+    #[error("session {0} not found (closed or expired)")]
+    NotFound(String),
+    /// The request is malformed; the message names the field and its allowed range.
+    #[error("{0}")]
+    InvalidArgument(String),
+    /// The server holds its maximum number of sessions.
+    #[error("the server holds its maximum of {0} sessions; close one or raise --max-sessions")]
+    TooManySessions(usize),
+    /// Step or Render before the first Reset.
+    #[error("the session was never reset; call reset")]
+    NotReset,
+    /// A single-environment (or autoreset DISABLED) session stepped after its episode ended.
+    #[error("episode is over; call reset")]
+    EpisodeOver,
+    /// Environment i of an autoreset DISABLED session stepped after its episode ended.
+    #[error("environment {0}: episode is over; call reset")]
+    EnvEpisodeOver(usize),
+    /// A state the checks rule out.
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+/// Default most live sessions: an idle single-environment session costs ~3.5 KB, so 100,000
+/// fit in well under 1 GiB.
+pub const DEFAULT_MAX_SESSIONS: u32 = 100_000;
+/// Default most environments in one session.
+pub const DEFAULT_MAX_ENVS_PER_SESSION: u32 = 1024;
+/// Default idle time after which a session is closed.
+pub const DEFAULT_SESSION_TTL: Duration = Duration::from_secs(300);
+
+/// The limits a server enforces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Most live sessions; CreateSession, Fork and Restore beyond it are refused.
+    pub max_sessions: usize,
+    /// Most environments in one session.
+    pub max_envs_per_session: usize,
+    /// A session unused for this long is closed.
+    pub session_ttl: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_sessions: DEFAULT_MAX_SESSIONS as usize,
+            max_envs_per_session: DEFAULT_MAX_ENVS_PER_SESSION as usize,
+            session_ttl: DEFAULT_SESSION_TTL,
+        }
+    }
+}
+
+/// A session ID: 128 random bits, written as 32 lowercase hex digits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct SessionId(u128);
+
+impl SessionId {
+    /// A fresh ID from the operating system's random source.
+    fn random() -> Result<SessionId, SessionError> {
+        use rand::TryRngCore;
+        let mut bytes = [0u8; 16];
+        rand::rngs::OsRng.try_fill_bytes(&mut bytes).map_err(|e| {
+            SessionError::Internal(format!("no system randomness for a session ID: {e}"))
+        })?;
+        Ok(SessionId(u128::from_le_bytes(bytes)))
+    }
+
+    /// The ID written as `text`, or the NOT_FOUND error for it.
+    pub fn parse(text: &str) -> Result<SessionId, SessionError> {
+        let valid = text.len() == 32 && text.bytes().all(|b| b.is_ascii_hexdigit());
+        match valid.then(|| u128::from_str_radix(text, 16)) {
+            Some(Ok(id)) => Ok(SessionId(id)),
+            _ => {
+                let shown: String = text.chars().take(MAX_ECHOED_ID).collect();
+                Err(SessionError::NotFound(shown))
+            }
+        }
+    }
+
+    /// Which shard holds this ID (the low bits are as random as any).
+    fn shard(self) -> usize {
+        (self.0 as usize) % SHARDS
+    }
+}
+
+impl std::fmt::Display for SessionId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:032x}", self.0)
+    }
+}
+
+/// What a client needs to know about a session it created (the protocol's `Spec`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SessionSpec {
+    /// N.
+    pub num_envs: usize,
+    /// The options, autoreset as it is in effect.
+    pub options: SessionOptions,
+    /// The configuration of the next reset.
+    pub config: Config,
+}
+
+/// One session: its environments behind their own lock, and when it was last used.
+#[derive(Debug)]
+pub struct Session {
+    /// Milliseconds since the store's epoch at the last lookup; the sweeper reads it.
+    last_used_ms: AtomicU64,
+    /// The environments. Locked for the whole of one Reset or Step.
+    envs: Mutex<Envs>,
+}
+
+impl Session {
+    /// The environments, locked. A panic under the lock cannot leave a half-stepped
+    /// environment visible to clients any worse than the error it raised, so poisoning is
+    /// ignored rather than turning one failure into a dead session.
+    fn lock(&self) -> MutexGuard<'_, Envs> {
+        self.envs.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// What a client needs to know about this session.
+    fn spec(&self) -> SessionSpec {
+        let envs = self.lock();
+        SessionSpec {
+            num_envs: envs.len(),
+            options: *envs.options(),
+            config: envs.config(),
+        }
+    }
+}
+
+/// The sessions of one server. Cloning `Store` is shallow: clones share the sessions.
+#[derive(Debug, Clone)]
+pub struct Store {
+    /// Everything the clones share.
+    shared: Arc<Shared>,
+}
+
+#[derive(Debug)]
+struct Shared {
+    /// Session maps, by [`SessionId::shard`].
+    shards: Vec<Mutex<HashMap<SessionId, Arc<Session>>>>,
+    /// Live sessions: the limit is checked against this, not by locking every shard.
+    live: AtomicUsize,
+    /// The limits.
+    limits: Limits,
+    /// Zero of `Session::last_used_ms`.
+    epoch: Instant,
+    /// Counters for the metrics endpoint.
+    metrics: Arc<Metrics>,
+}
+
+impl Store {
+    /// An empty store.
+    pub fn new(limits: Limits, metrics: Arc<Metrics>) -> Store {
+        Store {
+            shared: Arc::new(Shared {
+                shards: (0..SHARDS).map(|_| Mutex::new(HashMap::new())).collect(),
+                live: AtomicUsize::new(0),
+                limits,
+                epoch: Instant::now(),
+                metrics,
+            }),
+        }
+    }
+
+    /// The limits this store enforces.
+    pub fn limits(&self) -> &Limits {
+        &self.shared.limits
+    }
+
+    /// Live sessions.
+    pub fn live(&self) -> usize {
+        self.shared.live.load(Ordering::Relaxed)
+    }
+
+    fn now_ms(&self) -> u64 {
+        self.shared.epoch.elapsed().as_millis() as u64
+    }
+
+    fn shard(&self, id: SessionId) -> MutexGuard<'_, HashMap<SessionId, Arc<Session>>> {
+        self.shared.shards[id.shard()]
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// The session with this ID, marked as used now.
+    fn get(&self, id: &str) -> Result<Arc<Session>, SessionError> {
+        let key = SessionId::parse(id)?;
+        let session = self
+            .shard(key)
+            .get(&key)
+            .cloned()
+            .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
+        session.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
+        Ok(session)
+    }
+
+    /// Adds a session within the session limit and returns its ID and spec.
+    fn insert(&self, envs: Envs) -> Result<(SessionId, SessionSpec), SessionError> {
+        let max = self.shared.limits.max_sessions;
+        self.shared
+            .live
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |live| {
+                (live < max).then_some(live + 1)
+            })
+            .map_err(|_| SessionError::TooManySessions(max))?;
+        let session = Arc::new(Session {
+            last_used_ms: AtomicU64::new(self.now_ms()),
+            envs: Mutex::new(envs),
+        });
+        let spec = session.spec();
+        let id = loop {
+            let id = match SessionId::random() {
+                Ok(id) => id,
+                Err(e) => {
+                    self.shared.live.fetch_sub(1, Ordering::AcqRel);
+                    return Err(e);
+                }
+            };
+            let mut shard = self.shard(id);
+            // 128 random bits do not collide, but a collision must not replace a session.
+            if let std::collections::hash_map::Entry::Vacant(slot) = shard.entry(id) {
+                slot.insert(Arc::clone(&session));
+                break id;
+            }
+        };
+        let m = &self.shared.metrics;
+        m.sessions_created.fetch_add(1, Ordering::Relaxed);
+        m.live_sessions.fetch_add(1, Ordering::Relaxed);
+        tracing::debug!(session = %id, num_envs = spec.num_envs, "session created");
+        Ok((id, spec))
+    }
+
+    /// Creates a session of `num_envs` environments, not reset yet.
+    pub fn create(
+        &self,
+        num_envs: u32,
+        config: Config,
+        options: SessionOptions,
+        seed: Option<u64>,
+    ) -> Result<(SessionId, SessionSpec), SessionError> {
+        let max = self.shared.limits.max_envs_per_session;
+        let n = usize::try_from(num_envs).unwrap_or(usize::MAX);
+        if !(1..=max).contains(&n) {
+            return Err(SessionError::InvalidArgument(format!(
+                "num_envs must be in 1..={max}, got {num_envs}"
+            )));
+        }
+        self.insert(Envs::new(n, config, options, seed)?)
+    }
+
+    /// Closes a session.
+    pub fn close(&self, id: &str) -> Result<(), SessionError> {
+        let key = SessionId::parse(id)?;
+        self.shard(key)
+            .remove(&key)
+            .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
+        self.shared.live.fetch_sub(1, Ordering::AcqRel);
+        let m = &self.shared.metrics;
+        m.sessions_closed.fetch_add(1, Ordering::Relaxed);
+        m.live_sessions.fetch_sub(1, Ordering::Relaxed);
+        tracing::debug!(session = %key, "session closed");
+        Ok(())
+    }
+
+    /// Resets every environment of a session.
+    pub fn reset(&self, id: &str, args: &ResetArgs) -> Result<Batch, SessionError> {
+        let batch = self.get(id)?.lock().reset(args)?;
+        let m = &self.shared.metrics;
+        m.env_resets
+            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
+        Ok(batch)
+    }
+
+    /// Steps every environment of a session.
+    pub fn step(&self, id: &str, actions: &[u8]) -> Result<Batch, SessionError> {
+        let batch = self.get(id)?.lock().step(actions)?;
+        let m = &self.shared.metrics;
+        m.step_calls.fetch_add(1, Ordering::Relaxed);
+        m.env_steps
+            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
+        let resets = batch.resets();
+        if resets > 0 {
+            m.env_resets.fetch_add(resets, Ordering::Relaxed);
+        }
+        Ok(batch)
+    }
+
+    /// A new session identical to this one, random streams included.
+    pub fn fork(&self, id: &str) -> Result<(SessionId, SessionSpec), SessionError> {
+        let copy = self.get(id)?.lock().clone();
+        self.insert(copy)
+    }
+
+    /// The session as versioned bytes.
+    pub fn snapshot(&self, id: &str) -> Result<Vec<u8>, SessionError> {
+        Ok(self.get(id)?.lock().snapshot())
+    }
+
+    /// A new session from snapshot bytes.
+    pub fn restore(&self, bytes: &[u8]) -> Result<(SessionId, SessionSpec), SessionError> {
+        let envs = Envs::restore(bytes, self.shared.limits.max_envs_per_session)?;
+        self.insert(envs)
+    }
+
+    /// One environment of a session drawn as text.
+    pub fn render(&self, id: &str, env_index: u32, color: bool) -> Result<String, SessionError> {
+        self.get(id)?.lock().render(env_index, color)
+    }
+
+    /// Closes every session idle for longer than the TTL; returns how many.
+    pub fn sweep(&self) -> usize {
+        let ttl = self.shared.limits.session_ttl.as_millis() as u64;
+        let now = self.now_ms();
+        let mut evicted = 0;
+        for shard in &self.shared.shards {
+            let mut shard = shard.lock().unwrap_or_else(PoisonError::into_inner);
+            shard.retain(|id, session| {
+                let idle = now.saturating_sub(session.last_used_ms.load(Ordering::Relaxed));
+                let keep = idle <= ttl;
+                if !keep {
+                    tracing::debug!(session = %id, idle_ms = idle, "idle session evicted");
+                    evicted += 1;
+                }
+                keep
+            });
+        }
+        if evicted > 0 {
+            self.shared.live.fetch_sub(evicted, Ordering::AcqRel);
+            let m = &self.shared.metrics;
+            m.sessions_expired
+                .fetch_add(evicted as u64, Ordering::Relaxed);
+            m.live_sessions.fetch_sub(evicted as u64, Ordering::Relaxed);
+            tracing::info!(evicted, "closed idle sessions");
+        }
+        evicted
+    }
+
+    /// Sweeps idle sessions every quarter TTL (10 ms to 30 s) until `shutdown` fires.
+    pub async fn sweep_until(self, mut shutdown: Shutdown) {
+        let period = (self.shared.limits.session_ttl / 4)
+            .clamp(Duration::from_millis(10), Duration::from_secs(30));
+        let mut ticker = tokio::time::interval(period);
+        ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                () = shutdown.wait() => return,
+                _ = ticker.tick() => {
+                    // A sweep of 100,000 sessions takes milliseconds: run it off the workers.
+                    let store = self.clone();
+                    let _ = tokio::task::spawn_blocking(move || store.sweep()).await;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn options() -> SessionOptions {
+        SessionOptions {
+            autoreset: Autoreset::NextStep,
+            action_masks: false,
+            expert_actions: false,
+        }
+    }
+
+    #[test]
+    fn ids_are_32_hex_digits_and_parse_back() {
+        let id = SessionId::random().unwrap();
+        let text = id.to_string();
+        assert_eq!(text.len(), 32);
+        assert_eq!(SessionId::parse(&text), Ok(id));
+        assert!(SessionId::parse("xyz").is_err());
+        assert!(SessionId::parse(&format!("+{}", &text[1..])).is_err());
+    }
+
+    #[test]
+    fn limits_and_close() {
+        let limits = Limits {
+            max_sessions: 2,
+            ..Limits::default()
+        };
+        let store = Store::new(limits, Arc::default());
+        let (a, _) = store.create(1, Config::default(), options(), None).unwrap();
+        store.create(1, Config::default(), options(), None).unwrap();
+        assert_eq!(
+            store.create(1, Config::default(), options(), None),
+            Err(SessionError::TooManySessions(2))
+        );
+        store.close(&a.to_string()).unwrap();
+        assert_eq!(store.live(), 1);
+        assert!(store.close(&a.to_string()).is_err());
+        store.create(1, Config::default(), options(), None).unwrap();
+    }
+
+    #[test]
+    fn sweep_evicts_only_idle_sessions() {
+        let limits = Limits {
+            session_ttl: Duration::ZERO,
+            ..Limits::default()
+        };
+        let store = Store::new(limits, Arc::default());
+        let (id, _) = store.create(1, Config::default(), options(), None).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(store.sweep(), 1);
+        assert_eq!(store.live(), 0);
+        assert!(matches!(
+            store.step(&id.to_string(), &[0; 4]),
+            Err(SessionError::NotFound(_))
+        ));
+    }
+}

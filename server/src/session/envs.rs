@@ -1,0 +1,538 @@
+//! The environments of one session and what Reset and Step do to them: seeds per environment,
+//! explicit arrival lists, autoreset (Gymnasium 1.x `NEXT_STEP` and `SAME_STEP`), and the packed
+//! little-endian arrays of a [`Batch`].
+//!
+//! Every request is checked in full before any environment changes, so a refused Reset or Step
+//! leaves the session exactly as it was.
+
+use serde::{Deserialize, Serialize};
+
+use super::SessionError;
+use crate::expert::expert_action;
+use crate::sim::{
+    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, Restaurant, render,
+    snapshot,
+};
+
+/// Kind tag of a whole-session snapshot (a single game's is `DDgm`).
+const SESSION_SNAPSHOT: [u8; 4] = *b"DDss";
+
+/// What a Step does to an environment whose episode has ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Autoreset {
+    /// Gymnasium's default: the next Step resets it and ignores its action.
+    NextStep,
+    /// The Step that ends the episode resets it and reports the ended episode's last state.
+    SameStep,
+    /// Nothing: stepping it is an error until Reset. Single-environment sessions always.
+    Disabled,
+}
+
+/// How a session was asked to behave, fixed at creation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SessionOptions {
+    /// The effective autoreset mode ([`Autoreset::Disabled`] whenever N = 1).
+    pub autoreset: Autoreset,
+    /// Whether every Batch carries the action masks.
+    pub action_masks: bool,
+    /// Whether every Batch carries the expert's choices.
+    pub expert_actions: bool,
+}
+
+/// What a Reset asks for, as decoded from the request.
+#[derive(Debug, Clone, Default)]
+pub struct ResetArgs {
+    /// Environment i is seeded `seed + i` (wrapping).
+    pub seed: Option<u64>,
+    /// One seed per environment; exclusive with `seed`.
+    pub seeds: Vec<u64>,
+    /// None, one list for all, or one per environment; `(customer_type, size)` pairs.
+    pub arrivals: Vec<Vec<(u32, u32)>>,
+    /// The configuration from this reset on.
+    pub config: Option<Config>,
+}
+
+/// The result of a Reset or Step for all N environments, as packed little-endian arrays
+/// (the layout of `dinerdash.v1.Batch`).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Batch {
+    /// N.
+    pub num_envs: u32,
+    /// N x 40 int8.
+    pub observations: Vec<u8>,
+    /// N x int32.
+    pub rewards: Vec<u8>,
+    /// N x uint8.
+    pub terminated: Vec<u8>,
+    /// N x uint8.
+    pub truncated: Vec<u8>,
+    /// N x int32.
+    pub scores: Vec<u8>,
+    /// N x uint32.
+    pub lost: Vec<u8>,
+    /// N x uint32.
+    pub ticks: Vec<u8>,
+    /// N x 57 uint8, when the session asked for masks; else empty.
+    pub action_masks: Vec<u8>,
+    /// N x uint8, when the session asked for expert actions; else empty.
+    pub expert_actions: Vec<u8>,
+    /// N x uint8: the environment was reset in this call.
+    pub reset: Vec<u8>,
+    /// N: the seed of each environment reset in this call, else 0.
+    pub seeds: Vec<u64>,
+    /// N: resets of the stream since it was seeded, for environments reset in this call.
+    pub stream_episodes: Vec<u32>,
+    /// SAME_STEP Steps only: N x 40 int8 of the ended episodes (zeros elsewhere).
+    pub final_observations: Vec<u8>,
+    /// SAME_STEP Steps only: N x int32.
+    pub final_scores: Vec<u8>,
+    /// SAME_STEP Steps only: N x uint32.
+    pub final_lost: Vec<u8>,
+    /// SAME_STEP Steps only: N x uint32.
+    pub final_ticks: Vec<u8>,
+}
+
+/// An i64 score as the int32 of the wire, saturated (scores stay far inside i32 in practice).
+fn to_i32(v: i64) -> i32 {
+    v.clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32
+}
+
+impl Batch {
+    /// An empty batch with room for `n` environments.
+    fn with_capacity(n: usize, options: &SessionOptions, finals: bool) -> Batch {
+        let finals_of = |width: usize| Vec::with_capacity(if finals { n * width } else { 0 });
+        Batch {
+            num_envs: n as u32,
+            observations: Vec::with_capacity(n * OBSERVATION_SIZE),
+            rewards: Vec::with_capacity(n * 4),
+            terminated: Vec::with_capacity(n),
+            truncated: Vec::with_capacity(n),
+            scores: Vec::with_capacity(n * 4),
+            lost: Vec::with_capacity(n * 4),
+            ticks: Vec::with_capacity(n * 4),
+            action_masks: Vec::with_capacity(if options.action_masks {
+                n * NUM_ACTIONS
+            } else {
+                0
+            }),
+            expert_actions: Vec::with_capacity(if options.expert_actions { n } else { 0 }),
+            reset: Vec::with_capacity(n),
+            seeds: Vec::with_capacity(n),
+            stream_episodes: Vec::with_capacity(n),
+            final_observations: finals_of(OBSERVATION_SIZE),
+            final_scores: finals_of(4),
+            final_lost: finals_of(4),
+            final_ticks: finals_of(4),
+        }
+    }
+
+    /// Appends one environment's row: what happened in this call, then the state it is in now.
+    fn push(
+        &mut self,
+        reward: i64,
+        terminated: bool,
+        truncated: bool,
+        reset: Option<ResetInfo>,
+        r: &Restaurant,
+        options: &SessionOptions,
+    ) {
+        self.rewards
+            .extend_from_slice(&to_i32(reward).to_le_bytes());
+        self.terminated.push(u8::from(terminated));
+        self.truncated.push(u8::from(truncated));
+        self.reset.push(u8::from(reset.is_some()));
+        self.seeds.push(reset.map_or(0, |info| info.seed));
+        self.stream_episodes
+            .push(reset.map_or(0, |info| info.stream_episodes));
+        self.observations
+            .extend(r.observation().iter().map(|&v| v as u8));
+        self.scores
+            .extend_from_slice(&to_i32(r.score()).to_le_bytes());
+        self.lost.extend_from_slice(&r.lost().to_le_bytes());
+        self.ticks.extend_from_slice(&r.tick().to_le_bytes());
+        if options.action_masks {
+            self.action_masks
+                .extend(r.action_mask().iter().map(|&m| u8::from(m)));
+        }
+        if options.expert_actions {
+            self.expert_actions.push(expert_action(r));
+        }
+    }
+
+    /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
+    fn push_final(&mut self, ended: Option<&Restaurant>) {
+        match ended {
+            Some(r) => {
+                self.final_observations
+                    .extend(r.observation().iter().map(|&v| v as u8));
+                self.final_scores
+                    .extend_from_slice(&to_i32(r.score()).to_le_bytes());
+                self.final_lost.extend_from_slice(&r.lost().to_le_bytes());
+                self.final_ticks.extend_from_slice(&r.tick().to_le_bytes());
+            }
+            None => {
+                self.final_observations
+                    .extend_from_slice(&[0; OBSERVATION_SIZE]);
+                self.final_scores.extend_from_slice(&[0; 4]);
+                self.final_lost.extend_from_slice(&[0; 4]);
+                self.final_ticks.extend_from_slice(&[0; 4]);
+            }
+        }
+    }
+
+    /// How many environments were reset in this call.
+    pub fn resets(&self) -> u64 {
+        self.reset.iter().map(|&r| u64::from(r)).sum()
+    }
+}
+
+/// One environment: a game, and whether the next Step resets it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct Env {
+    /// The game, random stream included.
+    game: Game,
+    /// NEXT_STEP: the episode ended in the last Step, so the next Step resets it.
+    autoreset_pending: bool,
+}
+
+impl Env {
+    /// Whether the current episode has ended.
+    fn done(&self) -> bool {
+        let r = self.game.restaurant();
+        r.is_terminated() || r.is_truncated()
+    }
+}
+
+/// The N environments of a session and its options: everything a snapshot holds.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Envs {
+    /// At least one.
+    envs: Vec<Env>,
+    /// Fixed at creation.
+    options: SessionOptions,
+    /// The seed of CreateSession, used by the first Reset if that gives none.
+    first_seed: Option<u64>,
+}
+
+impl Envs {
+    /// `n >= 1` environments with `config`, not reset yet. Single-environment sessions never
+    /// autoreset, whatever was asked.
+    pub fn new(
+        n: usize,
+        config: Config,
+        mut options: SessionOptions,
+        seed: Option<u64>,
+    ) -> Result<Envs, SessionError> {
+        let game = Game::new(config).map_err(|e| SessionError::InvalidArgument(e.to_string()))?;
+        if n == 1 {
+            options.autoreset = Autoreset::Disabled;
+        }
+        let env = Env {
+            game,
+            autoreset_pending: false,
+        };
+        Ok(Envs {
+            envs: vec![env; n],
+            options,
+            first_seed: seed,
+        })
+    }
+
+    /// N.
+    pub fn len(&self) -> usize {
+        self.envs.len()
+    }
+
+    /// Never: a session holds at least one environment.
+    pub fn is_empty(&self) -> bool {
+        self.envs.is_empty()
+    }
+
+    /// The options fixed at creation.
+    pub fn options(&self) -> &SessionOptions {
+        &self.options
+    }
+
+    /// The configuration the next reset uses.
+    pub fn config(&self) -> Config {
+        self.envs
+            .first()
+            .map_or_else(Config::default, |e| *e.game.config())
+    }
+
+    /// Resets every environment (all of the request is checked first).
+    pub fn reset(&mut self, args: &ResetArgs) -> Result<Batch, SessionError> {
+        let n = self.envs.len();
+        let invalid = |msg: String| Err(SessionError::InvalidArgument(msg));
+        if args.seed.is_some() && !args.seeds.is_empty() {
+            return invalid("seed and seeds are exclusive: give at most one".into());
+        }
+        if !args.seeds.is_empty() && args.seeds.len() != n {
+            return invalid(format!(
+                "seeds must hold 0 or {n} entries (one per environment), got {}",
+                args.seeds.len()
+            ));
+        }
+        if ![0, 1, n].contains(&args.arrivals.len()) {
+            return invalid(format!(
+                "arrivals must hold 0, 1 or {n} lists, got {}",
+                args.arrivals.len()
+            ));
+        }
+        for (i, list) in args.arrivals.iter().enumerate() {
+            check_arrivals(i, list)?;
+        }
+        if let Some(config) = &args.config {
+            config
+                .validate()
+                .map_err(|e| SessionError::InvalidArgument(e.to_string()))?;
+        }
+
+        let first_seed = self.first_seed.take();
+        let base = args.seed.or(if args.seeds.is_empty() {
+            first_seed
+        } else {
+            None
+        });
+        let mut batch = Batch::with_capacity(n, &self.options, false);
+        for (i, env) in self.envs.iter_mut().enumerate() {
+            if let Some(config) = args.config {
+                env.game.set_config(config).map_err(internal)?;
+            }
+            let seed = match args.seeds.get(i) {
+                Some(&s) => Some(s),
+                None => base.map(|s| s.wrapping_add(i as u64)),
+            };
+            let arrivals = match args.arrivals.len() {
+                0 => None,
+                1 => args.arrivals.first(),
+                _ => args.arrivals.get(i),
+            };
+            let info = env
+                .game
+                .reset(seed, arrivals.map(Vec::as_slice))
+                .map_err(internal)?;
+            env.autoreset_pending = false;
+            batch.push(
+                0,
+                false,
+                false,
+                Some(info),
+                env.game.restaurant(),
+                &self.options,
+            );
+        }
+        Ok(batch)
+    }
+
+    /// One action per environment, as N little-endian int32 (all checked first).
+    pub fn step(&mut self, actions: &[u8]) -> Result<Batch, SessionError> {
+        let n = self.envs.len();
+        if actions.len() != 4 * n {
+            return Err(SessionError::InvalidArgument(format!(
+                "actions must hold {n} little-endian int32 ({} bytes), got {} bytes",
+                4 * n,
+                actions.len()
+            )));
+        }
+        for (i, a) in actions.chunks_exact(4).enumerate() {
+            let a = i32::from_le_bytes([a[0], a[1], a[2], a[3]]);
+            if !(0..NUM_ACTIONS as i32).contains(&a) {
+                return Err(SessionError::InvalidArgument(format!(
+                    "actions[{i}] must be in 0..={}, got {a}",
+                    NUM_ACTIONS - 1
+                )));
+            }
+        }
+        if !self.envs.iter().all(|e| e.game.is_started()) {
+            return Err(SessionError::NotReset);
+        }
+        let mode = self.options.autoreset;
+        if mode == Autoreset::Disabled {
+            if let Some(i) = self.envs.iter().position(Env::done) {
+                return Err(if n == 1 {
+                    SessionError::EpisodeOver
+                } else {
+                    SessionError::EnvEpisodeOver(i)
+                });
+            }
+        }
+
+        let mut batch = Batch::with_capacity(n, &self.options, mode == Autoreset::SameStep);
+        for (env, a) in self.envs.iter_mut().zip(actions.chunks_exact(4)) {
+            let action = i64::from(i32::from_le_bytes([a[0], a[1], a[2], a[3]]));
+            if env.autoreset_pending {
+                // NEXT_STEP: this Step resets the environment and ignores its action.
+                let info = env.game.reset(None, None).map_err(internal)?;
+                env.autoreset_pending = false;
+                batch.push(
+                    0,
+                    false,
+                    false,
+                    Some(info),
+                    env.game.restaurant(),
+                    &self.options,
+                );
+                continue;
+            }
+            let outcome = env.game.step(action).map_err(internal)?;
+            let ended = outcome.terminated || outcome.truncated;
+            let mut reset = None;
+            match mode {
+                Autoreset::NextStep => env.autoreset_pending = ended,
+                Autoreset::SameStep if ended => {
+                    batch.push_final(Some(env.game.restaurant()));
+                    reset = Some(env.game.reset(None, None).map_err(internal)?);
+                }
+                Autoreset::SameStep => batch.push_final(None),
+                Autoreset::Disabled => {}
+            }
+            batch.push(
+                outcome.reward,
+                outcome.terminated,
+                outcome.truncated,
+                reset,
+                env.game.restaurant(),
+                &self.options,
+            );
+        }
+        Ok(batch)
+    }
+
+    /// Environment `index` drawn as text.
+    pub fn render(&self, index: u32, color: bool) -> Result<String, SessionError> {
+        let n = self.envs.len();
+        let env = usize::try_from(index)
+            .ok()
+            .and_then(|i| self.envs.get(i))
+            .ok_or_else(|| {
+                SessionError::InvalidArgument(format!(
+                    "env_index must be in 0..={}, got {index}",
+                    n - 1
+                ))
+            })?;
+        if !env.game.is_started() {
+            return Err(SessionError::NotReset);
+        }
+        Ok(render::render(env.game.restaurant(), color))
+    }
+
+    /// The whole session as versioned bytes.
+    pub fn snapshot(&self) -> Vec<u8> {
+        snapshot::encode(SESSION_SNAPSHOT, self)
+    }
+
+    /// A session from [`Envs::snapshot`] bytes, checked: at most `max_envs` environments, every
+    /// game a reachable state.
+    pub fn restore(bytes: &[u8], max_envs: usize) -> Result<Envs, SessionError> {
+        let mut envs: Envs = snapshot::decode(SESSION_SNAPSHOT, bytes)
+            .map_err(|e| SessionError::InvalidArgument(format!("snapshot: {e}")))?;
+        let n = envs.envs.len();
+        if !(1..=max_envs).contains(&n) {
+            return Err(SessionError::InvalidArgument(format!(
+                "snapshot: the number of environments must be in 1..={max_envs}, got {n}"
+            )));
+        }
+        for (i, env) in envs.envs.iter().enumerate() {
+            env.game.check().map_err(|e| {
+                SessionError::InvalidArgument(format!("snapshot: environment {i}: {e}"))
+            })?;
+        }
+        if n == 1 {
+            envs.options.autoreset = Autoreset::Disabled;
+        }
+        // Only an ended NEXT_STEP episode can be waiting for its autoreset.
+        let next_step = envs.options.autoreset == Autoreset::NextStep;
+        for env in &mut envs.envs {
+            env.autoreset_pending = next_step && env.done();
+        }
+        Ok(envs)
+    }
+}
+
+/// Checks explicit arrival list `i` of a Reset.
+fn check_arrivals(i: usize, list: &[(u32, u32)]) -> Result<(), SessionError> {
+    if !(1..=MAX_ARRIVALS).contains(&list.len()) {
+        return Err(SessionError::InvalidArgument(format!(
+            "arrivals[{i}] must hold 1..={MAX_ARRIVALS} groups, got {}",
+            list.len()
+        )));
+    }
+    for (g, &(customer_type, size)) in list.iter().enumerate() {
+        if !(1..=2).contains(&customer_type) {
+            return Err(SessionError::InvalidArgument(format!(
+                "arrivals[{i}].groups[{g}].customer_type must be in 1..=2, got {customer_type}"
+            )));
+        }
+        if !(1..=6).contains(&size) {
+            return Err(SessionError::InvalidArgument(format!(
+                "arrivals[{i}].groups[{g}].size must be in 1..=6, got {size}"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// An error the checks above rule out; reported rather than panicking.
+fn internal(e: impl std::fmt::Display) -> SessionError {
+    SessionError::Internal(e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn options(autoreset: Autoreset) -> SessionOptions {
+        SessionOptions {
+            autoreset,
+            action_masks: true,
+            expert_actions: true,
+        }
+    }
+
+    fn actions(a: &[i32]) -> Vec<u8> {
+        a.iter().flat_map(|x| x.to_le_bytes()).collect()
+    }
+
+    #[test]
+    fn refused_requests_change_nothing() {
+        let mut envs =
+            Envs::new(2, Config::default(), options(Autoreset::NextStep), Some(3)).unwrap();
+        envs.reset(&ResetArgs::default()).unwrap();
+        let before = envs.snapshot();
+        assert!(envs.step(&actions(&[0, 57])).is_err());
+        let bad = ResetArgs {
+            arrivals: vec![vec![(1, 1)], vec![(1, 7)]],
+            ..ResetArgs::default()
+        };
+        assert_eq!(
+            envs.reset(&bad).unwrap_err().to_string(),
+            "arrivals[1].groups[0].size must be in 1..=6, got 7"
+        );
+        assert_eq!(envs.snapshot(), before);
+    }
+
+    #[test]
+    fn first_reset_uses_the_creation_seed_per_environment() {
+        let mut envs =
+            Envs::new(3, Config::default(), options(Autoreset::NextStep), Some(10)).unwrap();
+        let batch = envs.reset(&ResetArgs::default()).unwrap();
+        assert_eq!(batch.seeds, vec![10, 11, 12]);
+        let again = envs.reset(&ResetArgs::default()).unwrap();
+        assert_eq!(again.seeds, vec![10, 11, 12]);
+        assert_eq!(again.stream_episodes, vec![1, 1, 1]);
+    }
+
+    #[test]
+    fn snapshot_round_trips() {
+        let mut envs =
+            Envs::new(2, Config::default(), options(Autoreset::SameStep), Some(1)).unwrap();
+        envs.reset(&ResetArgs::default()).unwrap();
+        envs.step(&actions(&[15, 16])).unwrap();
+        let bytes = envs.snapshot();
+        let mut copy = Envs::restore(&bytes, 8).unwrap();
+        assert_eq!(copy.step(&actions(&[0, 0])), envs.step(&actions(&[0, 0])));
+        assert!(Envs::restore(&bytes, 1).is_err());
+        assert!(Envs::restore(&bytes[..bytes.len() - 3], 8).is_err());
+    }
+}

@@ -1,0 +1,114 @@
+"""The embedded default: no address and no DINERDASH_ADDRESS starts a local server, and close()
+stops it, leaving no process behind."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import dinerdash
+import gymnasium
+import pytest
+from dinerdash import LocalServer, ServerBinaryNotFound
+
+from .conftest import server_binary
+
+
+def children_named_server() -> list[int]:
+    """Live (or zombie) child processes of this test process that run dinerdash-server."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            comm = stat.read_text().split("(", 1)[1].rsplit(")", 1)[0]
+        except OSError:
+            continue
+        if int(fields[1]) == os.getpid() and comm.startswith("dinerdash-serv"):
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+@pytest.fixture
+def binary_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("DINERDASH_SERVER", str(server_binary()))
+
+
+def test_env_starts_and_stops_its_own_server(binary_env) -> None:
+    before = set(children_named_server())
+    env = gymnasium.make("dinerdash:DinerDash-v0", expert=True)
+    server = env.unwrapped.server
+    assert isinstance(server, LocalServer) and server.is_running()
+    pid = server.pid
+    assert env.unwrapped.address == server.address and server.address.startswith("127.0.0.1:")
+    assert pid in set(children_named_server()) - before
+    _, info = env.reset(seed=0)
+    env.step(info["expert_action"])
+    env.close()
+    assert gone(pid) and pid not in children_named_server()
+
+
+def test_vector_env_starts_and_stops_its_own_server(binary_env) -> None:
+    envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=4)
+    pid = envs.server.pid
+    assert not gone(pid) and pid in children_named_server()
+    envs.reset(seed=0)
+    envs.close()
+    assert gone(pid) and pid not in children_named_server()
+
+
+def test_rollout_starts_and_stops_its_own_server(binary_env) -> None:
+    before = set(children_named_server())
+    episodes = list(dinerdash.rollout("random", episodes=2))
+    assert [ep.seed for ep in episodes] == [0, 1]
+    assert set(children_named_server()) <= before
+
+
+def test_dinerdash_address_is_used_instead(binary_env, address: str, monkeypatch) -> None:
+    monkeypatch.setenv("DINERDASH_ADDRESS", address)
+    env = gymnasium.make("dinerdash:DinerDash-v0")
+    try:
+        assert env.unwrapped.server is None and env.unwrapped.address == address
+    finally:
+        env.close()
+
+
+def test_missing_binary_says_how_to_get_one(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("DINERDASH_SERVER", str(tmp_path / "no-such-server"))
+    with pytest.raises(ServerBinaryNotFound) as e:
+        gymnasium.make("dinerdash:DinerDash-v0")
+    message = str(e.value)
+    assert "cargo build --release -p dinerdash-server" in message and "DINERDASH_SERVER" in message
+    assert isinstance(e.value, FileNotFoundError)
+
+
+def test_local_server_that_fails_to_start_reports_why(tmp_path: Path) -> None:
+    with pytest.raises(dinerdash.LocalServerError) as e:
+        LocalServer(server_binary(), args=["--no-such-flag"])
+    assert "exited" in str(e.value) and "no-such-flag" in str(e.value)
+
+
+def test_reconnect_restarts_a_local_server_that_died(binary_env) -> None:
+    env = gymnasium.make("dinerdash:DinerDash-v0", reconnect=True, reconnect_timeout=30)
+    server = env.unwrapped.server
+    first_pid = server.pid
+    try:
+        env.reset(seed=0)
+        os.kill(first_pid, 9)
+        _, _, _, truncated, info = env.step(0)
+        assert truncated and info["reconnected"]
+        assert server.is_running() and server.pid != first_pid
+        env.reset(seed=0)
+        env.step(0)
+    finally:
+        env.close()
+    assert gone(first_pid) and gone(server.pid)

@@ -1,0 +1,151 @@
+"""Issue 5's client side: one vector env spread over three real servers behaves, step for step,
+like the same vector env on one server; a killed replica gives a clear error or is recovered."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+from dinerdash import Connection, DinerDashVectorEnv, ServiceTransportError
+from dinerdash.connection import resolve_replicas
+from gymnasium.vector import AutoresetMode
+
+N = 7  # uneven on purpose: slices of 3, 2 and 2
+STEPS = 300
+
+
+@pytest.fixture
+def three(start_server):
+    return [start_server() for _ in range(3)]
+
+
+def trajectory(envs: DinerDashVectorEnv, steps: int = STEPS) -> list:
+    rng = np.random.default_rng(3)
+    out = [envs.reset(seed=50)]
+    info = out[0][1]
+    for _ in range(steps):
+        actions = np.where(
+            rng.random(envs.num_envs) < 0.6,
+            info["expert_action"],
+            rng.integers(0, 57, envs.num_envs),
+        )
+        out.append(envs.step(actions))
+        info = out[-1][4]
+    return out
+
+
+def assert_same(a: list, b: list) -> None:
+    def eq(x, y, where):
+        if isinstance(x, dict):
+            assert x.keys() == y.keys(), where
+            for k in x:
+                eq(x[k], y[k], f"{where}.{k}")
+        elif isinstance(x, np.ndarray) and x.dtype == object:
+            for u, v in zip(x, y, strict=True):
+                eq(u, v, where)
+        elif x is None:
+            assert y is None, where
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=where)
+
+    for t, (x, y) in enumerate(zip(a, b, strict=True)):
+        for i, (u, v) in enumerate(zip(x, y, strict=True)):
+            eq(u, v, f"step {t} item {i}")
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_three_servers_give_the_trajectories_of_one(three, mode) -> None:
+    kwargs = {"expert": True, "config": {"lives": 2}, "autoreset_mode": mode}
+    one = DinerDashVectorEnv(N, three[0].address, **kwargs)
+    spread = DinerDashVectorEnv(N, [s.address for s in three], **kwargs)
+    try:
+        assert [a for a, _ in spread.env_slices] == [s.address for s in three]
+        assert [sl for _, sl in spread.env_slices] == [slice(0, 3), slice(3, 5), slice(5, 7)]
+        for server in three:  # one batched session on each server
+            with Connection(server.address) as conn:
+                assert conn.server_info().live_sessions == (2 if server is three[0] else 1)
+        a, b = trajectory(one), trajectory(spread)
+        assert any(step[2].any() for step in a[1:])  # episodes ended and were autoreset
+        assert_same(a, b)
+    finally:
+        one.close()
+        spread.close()
+
+
+def test_comma_separated_addresses(three) -> None:
+    envs = DinerDashVectorEnv(3, ",".join(s.address for s in three))
+    try:
+        assert envs.addresses == [s.address for s in three]
+        _, info = envs.reset(seed=10)
+        np.testing.assert_array_equal(info["seed"], [10, 11, 12])
+    finally:
+        envs.close()
+
+
+def test_fewer_envs_than_servers_uses_fewer_servers(three) -> None:
+    envs = DinerDashVectorEnv(2, [s.address for s in three])
+    try:
+        assert envs.addresses == [three[0].address, three[1].address]
+    finally:
+        envs.close()
+
+
+def test_a_dns_name_with_several_addresses_is_several_replicas(monkeypatch) -> None:
+    # No resolver on this machine returns several loopback addresses for one name, so the
+    # resolver's answer is given here; the expansion is what is tested.
+    answers = [
+        (socket.AF_INET, socket.SOCK_STREAM, 6, "", (f"10.0.0.{i}", 50051)) for i in (1, 2, 3)
+    ]
+    answers.append((socket.AF_INET6, socket.SOCK_STREAM, 6, "", ("fd00::1", 50051, 0, 0)))
+    monkeypatch.setattr(socket, "getaddrinfo", lambda *a, **k: answers)
+    assert resolve_replicas("dinerdash-headless:50051") == [
+        "10.0.0.1:50051",
+        "10.0.0.2:50051",
+        "10.0.0.3:50051",
+    ]
+    monkeypatch.undo()
+    assert resolve_replicas("localhost:1234") == ["localhost:1234"]  # one server, not two
+    assert resolve_replicas(["127.0.0.1:1", "127.0.0.1:2"]) == ["127.0.0.1:1", "127.0.0.1:2"]
+
+
+def test_killing_one_replica_is_a_clear_error(three) -> None:
+    envs = DinerDashVectorEnv(N, [s.address for s in three])
+    try:
+        envs.reset(seed=0)
+        envs.step(np.zeros(N, dtype=np.int64))
+        three[1].kill()
+        with pytest.raises(ServiceTransportError) as e:
+            envs.step(np.zeros(N, dtype=np.int64))
+        assert three[1].address in str(e.value) and "environments 3..4" in str(e.value)
+    finally:
+        envs.close()
+
+
+def test_killed_replica_recovers_with_reconnect(three, start_server) -> None:
+    kwargs = {"expert": True, "reconnect": True, "reconnect_timeout": 30}
+    reference = DinerDashVectorEnv(N, three[0].address, expert=True)
+    envs = DinerDashVectorEnv(N, [s.address for s in three], **kwargs)
+    try:
+        _, info = envs.reset(seed=0)
+        _, ref_info = reference.reset(seed=0)
+        for _ in range(20):
+            _, _, _, _, info = envs.step(info["expert_action"])
+            _, _, _, _, ref_info = reference.step(ref_info["expert_action"])
+        three[2].kill()
+        start_server.started.append(three[2].restart())
+        actions = info["expert_action"]
+        obs, reward, terminated, truncated, info = envs.step(actions)
+        ref = reference.step(actions)
+        np.testing.assert_array_equal(truncated, [False] * 5 + [True] * 2)
+        np.testing.assert_array_equal(info["reconnected"], [False] * 5 + [True] * 2)
+        # The replicas that stayed up go on exactly as before.
+        np.testing.assert_array_equal(obs[:5], ref[0][:5])
+        np.testing.assert_array_equal(reward[:5], ref[1][:5])
+        obs, reward, terminated, truncated, info = envs.step(info["expert_action"])
+        np.testing.assert_array_equal(info["_seed"], [False] * 5 + [True] * 2)  # the autoreset
+        np.testing.assert_array_equal(info["tick"][5:], [0, 0])
+        assert (info["tick"][:5] == 22).all()
+    finally:
+        envs.close()
+        reference.close()
