@@ -4,6 +4,8 @@ stops it, leaving no process behind."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import dinerdash
@@ -112,3 +114,26 @@ def test_reconnect_restarts_a_local_server_that_died(binary_env) -> None:
     finally:
         env.close()
     assert gone(first_pid) and gone(server.pid)
+
+
+def test_grpc_tuning_respects_the_callers_choice() -> None:
+    probe = "import os, dinerdash; print(os.environ.get('GRPC_EXPERIMENTS'))"
+    clean = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("GRPC_EXPERIMENTS", "DINERDASH_GRPC_TUNING")
+    }
+
+    def seen(**extra: str) -> str:
+        out = subprocess.run(
+            [sys.executable, "-c", probe],
+            env={**clean, **extra},
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        return out.stdout.strip()
+
+    assert seen() == "-event_engine_client"
+    assert seen(GRPC_EXPERIMENTS="") == ""
+    assert seen(DINERDASH_GRPC_TUNING="0") == "None"

@@ -23,6 +23,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 import gymnasium
 
+from . import _tuning  # noqa: F401  (first: gRPC settings must precede the first import of grpc)
 from .connection import Connection
 from .env import DinerDashEnv, Snapshot
 from .errors import (
