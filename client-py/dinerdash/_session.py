@@ -4,7 +4,8 @@ messages, choosing the server(s) to talk to, and building the spaces from a sess
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -12,6 +13,7 @@ from gymnasium import spaces
 
 from ._proto import pb
 from .connection import Connection, resolve_replicas
+from .errors import ServiceTransportError
 from .server import LocalServer
 
 #: Observation length and number of actions (RULES.md sections 6 and 4.1).
@@ -145,6 +147,37 @@ class Endpoint:
     def connect(self, address: str, connect_timeout: float | None = None) -> Connection:
         timeout = self.connect_timeout if connect_timeout is None else connect_timeout
         return Connection(address, token=self.token, connect_timeout=timeout)
+
+    def reopen(
+        self, index: int, create: Callable[[Connection], None], lost: str, timeout: float
+    ) -> Connection:
+        """Waits up to ``timeout`` seconds for server ``index`` to answer again, then calls
+        ``create`` with its connection to open a new session there (``reconnect=True``).
+
+        A local server this client owns that died is started again (on a new free port). Returns
+        the connection to use from now on; ``lost`` names what was lost, for the error raised
+        when the server does not come back in time.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            # Checked on every round: a dying process may still look alive at first.
+            if self.server is not None and not self.server.is_running():
+                self.server.start()
+                self.connections[index].close()
+                self.connections[index] = self.connect(self.server.address)
+            conn = self.connections[index]
+            if conn.wait_ready(min(1.0, max(0.0, deadline - time.monotonic()))):
+                try:
+                    create(conn)
+                    return conn
+                except ServiceTransportError:
+                    pass  # went away again between connecting and creating: keep waiting
+            if time.monotonic() >= deadline:
+                raise ServiceTransportError(
+                    f"lost {lost} and could not reconnect to {conn.address} within {timeout:g} s",
+                    address=conn.address,
+                ) from None
+            time.sleep(0.1)
 
     def close(self) -> None:
         for conn in self.connections:

@@ -31,6 +31,11 @@ __all__ = [
 #: The port a server listens on when none is given (and the one the docker image exposes).
 DEFAULT_PORT = 50051
 
+#: Calls never retried on UNAVAILABLE. A Step the server applied but whose reply was lost would
+#: be applied twice by a retry, silently changing the episode; it raises instead, and
+#: ``reconnect=True`` recovers by reporting the interrupted episode as truncated.
+NOT_RETRIED = frozenset({"Step"})
+
 CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     # A rollout of one long episode is (T + 1) x (40 + 57) bytes plus per-step fields: allow
     # 256 MiB so that even 100,000-step episodes with action masks arrive in one message.
@@ -224,7 +229,7 @@ class Connection:
             return future.result()
         except grpc.RpcError as e:
             code, details = e.code(), e.details()
-        if code != grpc.StatusCode.UNAVAILABLE or self.retries <= 0:
+        if code != grpc.StatusCode.UNAVAILABLE or self.retries <= 0 or method in NOT_RETRIED:
             raise self._error(method, code, details, attempts=1) from None
         time.sleep(self.retry_backoff)
         rpc = getattr(self.stub, method)
@@ -263,6 +268,8 @@ class Connection:
         retries: int | None = None,
     ) -> int:
         retries = self.retries if retries is None else retries
+        if method in NOT_RETRIED:
+            retries = 0
         if code == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
             time.sleep(self.retry_backoff * (2**attempt))
             return attempt + 1

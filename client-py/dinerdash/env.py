@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import random
 import struct
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, SupportsFloat
@@ -218,27 +217,12 @@ class DinerDashEnv(gym.Env[np.ndarray, np.int64]):
 
     def _recover(self, error: ServiceError) -> None:
         """Waits for the server to come back and opens a new session there (reconnect=True)."""
-        deadline = time.monotonic() + self.reconnect_timeout
-        server = self._endpoint.server
-        if server is not None and not server.is_running():
-            # The local server this env owns died: start it again (on a new free port).
-            server.start()
-            self._conn.close()
-            self._conn = self._endpoint.connections[0] = self._endpoint.connect(server.address)
-        while True:
-            if self._conn.wait_ready(max(0.0, deadline - time.monotonic())):
-                try:
-                    self._create_session()
-                    return
-                except ServiceTransportError:
-                    pass  # went away again between connecting and creating: keep waiting
-            if time.monotonic() >= deadline:
-                raise ServiceTransportError(
-                    f"lost the session ({error}) and could not reconnect to {self.address} "
-                    f"within {self.reconnect_timeout:g} s",
-                    address=self.address,
-                ) from None
-            time.sleep(0.1)
+
+        def create(conn: Connection) -> None:
+            self._conn = conn
+            self._create_session()
+
+        self._endpoint.reopen(0, create, f"the session ({error})", self.reconnect_timeout)
 
     # -- Gymnasium API ------------------------------------------------------------------------
 

@@ -14,7 +14,6 @@ always go to the server that created it.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -222,26 +221,13 @@ class DinerDashVectorEnv(VectorEnv):
 
     def _reopen(self, shard: _Shard, error: ServiceError) -> None:
         """Waits for a lost server and opens a new session there (reconnect=True)."""
-        deadline = time.monotonic() + self.reconnect_timeout
-        server = self._endpoint.server
-        if server is not None and not server.is_running():
-            server.start()  # the local server this env owns died: start it again
-            shard.conn.close()
-            shard.conn = self._endpoint.connections[0] = self._endpoint.connect(server.address)
-        while True:
-            if shard.conn.wait_ready(max(0.0, deadline - time.monotonic())):
-                try:
-                    self._create_session(shard)
-                    return
-                except ServiceTransportError:
-                    pass
-            if time.monotonic() >= deadline:
-                raise ServiceTransportError(
-                    f"lost environments {shard.start}..{shard.stop - 1} ({error}) and could not "
-                    f"reconnect to {shard.conn.address} within {self.reconnect_timeout:g} s",
-                    address=shard.conn.address,
-                ) from None
-            time.sleep(0.1)
+
+        def create(conn: Connection) -> None:
+            shard.conn = conn
+            self._create_session(shard)
+
+        lost = f"environments {shard.start}..{shard.stop - 1} ({error})"
+        self._endpoint.reopen(self._shards.index(shard), create, lost, self.reconnect_timeout)
 
     def _fail(self, shard: _Shard, error: ServiceError) -> ServiceError:
         """The same error, saying which environments it concerns when there are several servers."""
