@@ -163,26 +163,28 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
     let score = result.score();
     let length = result.length();
     let secs = result.elapsed.as_secs_f64().max(1e-9);
-    println!(
-        "policy {:?}: {} episodes (seeds {}..={})",
+    let report = format!(
+        "policy {:?}: {} episodes (seeds {}..={})\n\
+         score  {:.1} ± {:.1} (sample sd {:.1})\n\
+         length {:.1} ± {:.1} steps\n\
+         {} steps in {:.3} s on {} threads: {:.0} steps/s\n",
         args.policy,
         result.episodes.len(),
         args.seed,
         args.seed
-            .wrapping_add(u64::from(args.episodes.saturating_sub(1)))
-    );
-    println!(
-        "score  {:.1} ± {:.1} (sample sd {:.1})",
-        score.mean, score.std, score.sample_std
-    );
-    println!("length {:.1} ± {:.1} steps", length.mean, length.std);
-    println!(
-        "{} steps in {:.3} s on {} threads: {:.0} steps/s",
+            .wrapping_add(u64::from(args.episodes.saturating_sub(1))),
+        score.mean,
+        score.std,
+        score.sample_std,
+        length.mean,
+        length.std,
         result.total_steps(),
         secs,
         threads,
         result.total_steps() as f64 / secs
     );
+    // A reader that went away (`| head`) is not an error worth a panic.
+    let _ = std::io::stdout().lock().write_all(report.as_bytes());
     ExitCode::SUCCESS
 }
 
