@@ -3,15 +3,13 @@
 //! conformance trajectories.
 
 mod grpc_support;
-
-use std::path::PathBuf;
+mod recorded;
 
 use dinerdash_server::eval::{PolicyKind, run_episode};
 use dinerdash_server::expert::expert_action;
 use dinerdash_server::pb;
 use dinerdash_server::sim::{self, Config, Game};
 use grpc_support::*;
-use serde::Deserialize;
 use tonic::Code;
 
 #[tokio::test]
@@ -431,39 +429,6 @@ async fn rollout_streams_one_episode_per_seed() {
     server.stop().await;
 }
 
-#[derive(Deserialize)]
-struct Episode {
-    seed: u64,
-    reset_obs: Vec<i64>,
-    steps: Vec<Step>,
-}
-
-#[derive(Deserialize)]
-struct Step {
-    action: i64,
-    expert_action: i64,
-    obs: Vec<i64>,
-    reward: i64,
-    terminated: bool,
-    score: i64,
-    lost: u32,
-}
-
-fn conformance_files() -> Vec<PathBuf> {
-    let dir = std::env::var_os("DINERDASH_CONFORMANCE_DIR").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/conformance"),
-        PathBuf::from,
-    );
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap_or_else(|e| panic!("conformance data not found at {}: {e}", dir.display()))
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "jsonl"))
-        .collect();
-    files.sort();
-    assert!(!files.is_empty());
-    files
-}
-
 fn obs_i64(bytes: &[u8]) -> Vec<i64> {
     bytes.iter().map(|&b| i64::from(b as i8)).collect()
 }
@@ -473,53 +438,48 @@ async fn conformance_trajectories_replay_through_grpc() {
     let server = TestServer::start().await;
     let mut c = server.client().await;
     let mut episodes = 0;
-    for path in conformance_files() {
-        let text = std::fs::read_to_string(&path).unwrap();
-        for line in text.lines().filter(|l| !l.trim().is_empty()) {
-            let ep: Episode = serde_json::from_str(line).unwrap();
-            let at = format!("{} seed {}", path.display(), ep.seed);
-            let id = create(
-                &mut c,
-                create_request(1, pb::AutoresetMode::Unspecified, None),
-            )
-            .await;
-            let mut batch = reset(&mut c, &id, Some(ep.seed)).await;
-            assert_eq!(obs_i64(&batch.observations), ep.reset_obs, "{at}: reset");
-            for (i, s) in ep.steps.iter().enumerate() {
-                assert_eq!(
-                    i64::from(batch.expert_actions[0]),
-                    s.expert_action,
-                    "{at} step {i}: expert"
-                );
-                batch = step(&mut c, &id, &[s.action as i32]).await;
-                assert_eq!(
-                    obs_i64(&batch.observations),
-                    s.obs,
-                    "{at} step {i}: observation"
-                );
-                assert_eq!(
-                    i64::from(i32s(&batch.rewards)[0]),
-                    s.reward,
-                    "{at} step {i}: reward"
-                );
-                assert_eq!(
-                    batch.terminated[0] == 1,
-                    s.terminated,
-                    "{at} step {i}: terminated"
-                );
-                assert_eq!(
-                    i64::from(i32s(&batch.scores)[0]),
-                    s.score,
-                    "{at} step {i}: score"
-                );
-                assert_eq!(u32s(&batch.lost)[0], s.lost, "{at} step {i}: lost");
-                assert_eq!(u32s(&batch.ticks)[0] as usize, i + 1, "{at} step {i}: tick");
-            }
-            c.close_session(pb::CloseSessionRequest { session_id: id })
-                .await
-                .unwrap();
-            episodes += 1;
+    for (at, ep) in recorded::episodes() {
+        let id = create(
+            &mut c,
+            create_request(1, pb::AutoresetMode::Unspecified, None),
+        )
+        .await;
+        let mut batch = reset(&mut c, &id, Some(ep.seed)).await;
+        assert_eq!(obs_i64(&batch.observations), ep.reset_obs, "{at}: reset");
+        for (i, s) in ep.steps.iter().enumerate() {
+            assert_eq!(
+                i64::from(batch.expert_actions[0]),
+                s.expert_action,
+                "{at} step {i}: expert"
+            );
+            batch = step(&mut c, &id, &[s.action as i32]).await;
+            assert_eq!(
+                obs_i64(&batch.observations),
+                s.obs,
+                "{at} step {i}: observation"
+            );
+            assert_eq!(
+                i64::from(i32s(&batch.rewards)[0]),
+                s.reward,
+                "{at} step {i}: reward"
+            );
+            assert_eq!(
+                batch.terminated[0] == 1,
+                s.terminated,
+                "{at} step {i}: terminated"
+            );
+            assert_eq!(
+                i64::from(i32s(&batch.scores)[0]),
+                s.score,
+                "{at} step {i}: score"
+            );
+            assert_eq!(u32s(&batch.lost)[0], s.lost, "{at} step {i}: lost");
+            assert_eq!(u32s(&batch.ticks)[0] as usize, i + 1, "{at} step {i}: tick");
         }
+        c.close_session(pb::CloseSessionRequest { session_id: id })
+            .await
+            .unwrap();
+        episodes += 1;
     }
     assert!(episodes > 0);
     server.stop().await;

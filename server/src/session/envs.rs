@@ -160,6 +160,11 @@ impl Batch {
     }
 
     /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
+    /// An environment that was just reset: reward 0, not done.
+    fn push_reset(&mut self, info: ResetInfo, r: &Restaurant, options: &SessionOptions) {
+        self.push(0, false, false, Some(info), r, options);
+    }
+
     fn push_final(&mut self, ended: Option<&Restaurant>) {
         match ended {
             Some(r) => {
@@ -313,14 +318,7 @@ impl Envs {
                 .reset(seed, arrivals.map(Vec::as_slice))
                 .map_err(internal)?;
             env.autoreset_pending = false;
-            batch.push(
-                0,
-                false,
-                false,
-                Some(info),
-                env.game.restaurant(),
-                &self.options,
-            );
+            batch.push_reset(info, env.game.restaurant(), &self.options);
         }
         Ok(batch)
     }
@@ -365,14 +363,7 @@ impl Envs {
                 // NEXT_STEP: this Step resets the environment and ignores its action.
                 let info = env.game.reset(None, None).map_err(internal)?;
                 env.autoreset_pending = false;
-                batch.push(
-                    0,
-                    false,
-                    false,
-                    Some(info),
-                    env.game.restaurant(),
-                    &self.options,
-                );
+                batch.push_reset(info, env.game.restaurant(), &self.options);
                 continue;
             }
             let outcome = env.game.step(action).map_err(internal)?;
