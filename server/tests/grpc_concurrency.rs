@@ -112,20 +112,8 @@ async fn one_session_hammered_by_many_tasks_stays_consistent() {
     for _ in 0..total {
         game.step(0).unwrap();
     }
-    let snapshot = c
-        .snapshot(pb::SnapshotRequest {
-            session_id: id.clone(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .snapshot;
-    let copy = c
-        .restore(pb::RestoreRequest { snapshot })
-        .await
-        .unwrap()
-        .into_inner()
-        .session_id;
+    let snapshot = snapshot(&mut c, &id).await;
+    let copy = restore(&mut c, snapshot).await;
     let last = step(&mut c, &copy, &[0]).await;
     game.step(0).unwrap();
     let obs: Vec<u8> = game

@@ -178,14 +178,7 @@ async fn bad_sessions_are_refused() {
         create_request(4, pb::AutoresetMode::NextStep, Some(1)),
     )
     .await;
-    let snapshot = c
-        .snapshot(pb::SnapshotRequest {
-            session_id: a.clone(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .snapshot;
+    let snapshot = snapshot(&mut c, &a).await;
     create(&mut c, create_request(1, pb::AutoresetMode::NextStep, None)).await;
     let full = "the server holds its maximum of 2 sessions; close one or raise --max-sessions";
     assert_status(
@@ -351,21 +344,14 @@ async fn bad_render_restore_and_rollout_requests_are_refused() {
             .contains('\x1b')
     );
 
-    let snapshot = c
-        .snapshot(pb::SnapshotRequest {
-            session_id: id.clone(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .snapshot;
+    let taken = snapshot(&mut c, &id).await;
     let restore = |snapshot: Vec<u8>| pb::RestoreRequest { snapshot };
     assert_status(
         c.restore(restore(b"garbage".to_vec())).await,
         Code::InvalidArgument,
         "snapshot: not a DDss snapshot",
     );
-    let mut other_version = snapshot.clone();
+    let mut other_version = taken.clone();
     other_version[4] = 99;
     assert_status(
         c.restore(restore(other_version)).await,
@@ -373,7 +359,7 @@ async fn bad_render_restore_and_rollout_requests_are_refused() {
         "snapshot: snapshot version 99 is not supported (this server reads version 1)",
     );
     let status = c
-        .restore(restore(snapshot[..snapshot.len() / 2].to_vec()))
+        .restore(restore(taken[..taken.len() / 2].to_vec()))
         .await
         .unwrap_err();
     assert_eq!(status.code(), Code::InvalidArgument);
@@ -391,12 +377,7 @@ async fn bad_render_restore_and_rollout_requests_are_refused() {
         create_request(4, pb::AutoresetMode::NextStep, Some(2)),
     )
     .await;
-    let wide = cb
-        .snapshot(pb::SnapshotRequest { session_id: wide })
-        .await
-        .unwrap()
-        .into_inner()
-        .snapshot;
+    let wide = snapshot(&mut cb, &wide).await;
     assert_status(
         c.restore(restore(wide)).await,
         Code::InvalidArgument,

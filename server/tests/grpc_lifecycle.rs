@@ -227,29 +227,10 @@ async fn fork_and_snapshot_share_the_future() {
         .into_inner();
     assert_ne!(fork.session_id, id);
     assert_eq!(fork.spec.unwrap().num_envs, 4);
-    let snapshot = c
-        .snapshot(pb::SnapshotRequest {
-            session_id: id.clone(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .snapshot;
-    let here = c
-        .restore(pb::RestoreRequest {
-            snapshot: snapshot.clone(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .session_id;
+    let snapshot = snapshot(&mut c, &id).await;
+    let here = restore(&mut c, snapshot.clone()).await;
     // The snapshot also recreates the session on another server.
-    let there = c2
-        .restore(pb::RestoreRequest { snapshot })
-        .await
-        .unwrap()
-        .into_inner()
-        .session_id;
+    let there = restore(&mut c2, snapshot).await;
 
     // Unseeded resets draw from the copied random streams too.
     for round in 0..3 {

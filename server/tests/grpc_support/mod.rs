@@ -152,6 +152,28 @@ pub async fn step(client: &mut DinerDashClient<Channel>, id: &str, actions: &[i3
         .into_inner()
 }
 
+/// Snapshots a session: the bytes that Restore turns back into it.
+pub async fn snapshot(client: &mut DinerDashClient<Channel>, id: &str) -> Vec<u8> {
+    client
+        .snapshot(pb::SnapshotRequest {
+            session_id: id.to_owned(),
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .snapshot
+}
+
+/// Restores a snapshot into a new session; returns its id.
+pub async fn restore(client: &mut DinerDashClient<Channel>, snapshot: Vec<u8>) -> String {
+    client
+        .restore(pb::RestoreRequest { snapshot })
+        .await
+        .unwrap()
+        .into_inner()
+        .session_id
+}
+
 /// Resets a session with `seed`.
 pub async fn reset(
     client: &mut DinerDashClient<Channel>,
