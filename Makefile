@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVER := target/release/dinerdash-server
 
-.PHONY: serve build build-server test test-rust test-python lint bench venv clean
+.PHONY: serve build build-server test test-rust test-python lint bench docker-smoke venv clean
 
 ## Start the gRPC server on port 50051 (Ctrl-C stops it).
 serve:
@@ -46,6 +46,13 @@ lint: venv
 bench: build venv
 	cargo bench -p dinerdash-server
 	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m dinerdash bench
+
+## The docker image end to end (needs a Docker engine with compose): build it, start three
+## healthy replicas and run the example trainer over all three; exit status is the trainer's.
+COMPOSE := docker compose -f docker/compose.yaml
+docker-smoke:
+	$(COMPOSE) up --build --abort-on-container-exit --exit-code-from trainer; \
+	status=$$?; $(COMPOSE) down; exit $$status
 
 clean:
 	cargo clean
