@@ -32,6 +32,10 @@ def trajectory(envs: DinerDashVectorEnv, steps: int = STEPS) -> list:
         )
         out.append(envs.step(actions))
         info = out[-1][4]
+        done = out[-1][2] | out[-1][3]
+        if envs.autoreset_mode == AutoresetMode.DISABLED and done.any():
+            out.append(envs.reset(seed=int(rng.integers(0, 1000)), options={"reset_mask": done}))
+            info = out[-1][1]
     return out
 
 
@@ -54,14 +58,20 @@ def assert_same(a: list, b: list) -> None:
             eq(u, v, f"step {t} item {i}")
 
 
-@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
-def test_three_servers_give_the_trajectories_of_one(three, mode) -> None:
-    kwargs = {"expert": True, "config": {"lives": 2}, "autoreset_mode": mode}
-    one = DinerDashVectorEnv(N, three[0].address, **kwargs)
-    spread = DinerDashVectorEnv(N, [s.address for s in three], **kwargs)
+@pytest.mark.parametrize(("mode", "n"), [(mode, N) for mode in AutoresetMode] + [(None, 3)])
+def test_three_servers_give_the_trajectories_of_one(three, mode, n) -> None:
+    # n = 3: one environment per server, in the default NEXT_STEP mode.
+    kwargs = {"expert": True, "config": {"lives": 2}}
+    if mode is not None:
+        kwargs["autoreset_mode"] = mode
+    one = DinerDashVectorEnv(n, three[0].address, **kwargs)
+    spread = DinerDashVectorEnv(n, [s.address for s in three], **kwargs)
     try:
         assert [a for a, _ in spread.env_slices] == [s.address for s in three]
-        assert [sl for _, sl in spread.env_slices] == [slice(0, 3), slice(3, 5), slice(5, 7)]
+        slices = [slice(0, 3), slice(3, 5), slice(5, 7)]
+        if n == 3:
+            slices = [slice(i, i + 1) for i in range(3)]
+        assert [sl for _, sl in spread.env_slices] == slices
         for server in three:  # one batched session on each server
             with Connection(server.address) as conn:
                 assert conn.server_info().live_sessions == (2 if server is three[0] else 1)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import pytest
-from dinerdash import DinerDashEnv, DinerDashVectorEnv
+from dinerdash import DinerDashEnv, DinerDashVectorEnv, FailedPrecondition
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 STEPS = 400
@@ -30,6 +30,23 @@ def compare_info(mine: dict, ref: dict, where: str) -> None:
             )
             if key != "seed":  # SyncVectorEnv stores u64 seeds as int64; ours are uint64
                 assert mine[key].dtype == ref[key].dtype, f"{where} {key}"
+
+
+def compare_partial_reset(mine: tuple, ref: tuple, done: np.ndarray, where: str) -> None:
+    """After ``reset(options={"reset_mask": done})``: the same observations; Gymnasium's infos
+    cover the environments reset, ours every environment (the others' current values)."""
+    np.testing.assert_array_equal(mine[0], ref[0], err_msg=where)
+    info_m, info_r = mine[1], ref[1]
+    assert info_m.keys() == info_r.keys(), where
+    np.testing.assert_array_equal(info_m["_seed"], done, err_msg=where)
+    for key in info_r:
+        if not key.startswith("_"):
+            reset = info_r[f"_{key}"]
+            np.testing.assert_array_equal(reset, done, err_msg=f"{where} {key}")
+            assert info_m[f"_{key}"][reset].all(), f"{where} {key}"
+            np.testing.assert_array_equal(
+                info_m[key][reset].astype(info_r[key].dtype), info_r[key][reset], err_msg=where
+            )
 
 
 def run_pair(address: str, mode: AutoresetMode, n: int = 4) -> int:
@@ -61,16 +78,26 @@ def run_pair(address: str, mode: AutoresetMode, n: int = 4) -> int:
                     for d in (info_r["final_info"],):
                         d.pop(key), d.pop(f"_{key}")
             compare_info(info_m, info_r, f"step {t}")
-            ends += int(np.sum(out_m[2] | out_m[3]))
+            done = out_m[2] | out_m[3]
+            ends += int(np.sum(done))
+            if mode == AutoresetMode.DISABLED and done.any():
+                # No autoreset: the caller resets the finished environments alone.
+                options = {"reset_mask": done}
+                seed = int(rng.integers(0, 1000))
+                mine_reset = mine.reset(seed=seed, options=dict(options))
+                ref_reset = ref.reset(seed=seed, options=dict(options))
+                compare_partial_reset(mine_reset, ref_reset, done, f"reset after step {t}")
+                info_m = mine_reset[1]
     finally:
         mine.close()
         ref.close()
     return ends
 
 
-@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
-def test_same_as_gymnasium_sync_vector_env(address: str, mode: AutoresetMode) -> None:
-    assert run_pair(address, mode) >= 2  # the autoreset path was taken
+@pytest.mark.parametrize("n", [1, 4])
+@pytest.mark.parametrize("mode", list(AutoresetMode))
+def test_same_as_gymnasium_sync_vector_env(address: str, mode: AutoresetMode, n: int) -> None:
+    assert run_pair(address, mode, n) >= 2  # the (auto)reset path was taken
 
 
 def test_make_vec_uses_the_batched_session(address: str) -> None:
@@ -143,3 +170,44 @@ def test_render_one_frame_per_env(address: str) -> None:
             assert len(frames) == 2
         finally:
             envs.close()
+
+
+def test_reset_mask_is_checked(address: str) -> None:
+    envs = DinerDashVectorEnv(3, address, autoreset_mode=AutoresetMode.DISABLED)
+    try:
+        first = np.array([True, False, False])
+        with pytest.raises(ValueError, match="environment 1 has never been reset"):
+            envs.reset(options={"reset_mask": first})
+        envs.reset(seed=0)
+        with pytest.raises(TypeError, match="must be a numpy array"):
+            envs.reset(options={"reset_mask": [True, False, False]})
+        with pytest.raises(ValueError, match=r"bool array of shape \(3,\)"):
+            envs.reset(options={"reset_mask": np.ones(2, dtype=bool)})
+        with pytest.raises(ValueError, match="selects no environment"):
+            envs.reset(options={"reset_mask": np.zeros(3, dtype=bool)})
+        with pytest.raises(ValueError, match="give it with a full reset"):
+            envs.reset(options={"reset_mask": first, "config": {"lives": 1}})
+        obs, info = envs.step(np.zeros(3, dtype=np.int64))[::4]
+        again, info = envs.reset(seed=0, options={"reset_mask": first})
+        np.testing.assert_array_equal(info["tick"], [0, 1, 1])
+        np.testing.assert_array_equal(again[1:], obs[1:])
+        np.testing.assert_array_equal(info["_seed"], first)
+    finally:
+        envs.close()
+
+
+def test_disabled_mode_refuses_finished_environments(address: str) -> None:
+    envs = DinerDashVectorEnv(
+        2, address, autoreset_mode=AutoresetMode.DISABLED, max_episode_steps=2
+    )
+    try:
+        envs.reset(seed=0)
+        envs.step(np.zeros(2, dtype=np.int64))
+        truncated = envs.step(np.zeros(2, dtype=np.int64))[3]
+        assert truncated.all()
+        with pytest.raises(FailedPrecondition, match="environment 0: episode is over"):
+            envs.step(np.zeros(2, dtype=np.int64))
+        _, info = envs.reset(options={"reset_mask": np.array([False, True])})
+        np.testing.assert_array_equal(info["tick"], [2, 0])
+    finally:
+        envs.close()

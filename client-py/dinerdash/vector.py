@@ -43,6 +43,7 @@ __all__ = ["DinerDashVectorEnv"]
 _WIRE_AUTORESET = {
     AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
     AutoresetMode.SAME_STEP: pb.AUTORESET_MODE_SAME_STEP,
+    AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
 }
 _U64 = 1 << 64
 
@@ -82,7 +83,9 @@ class DinerDashVectorEnv(VectorEnv):
     environment, ignores its action and reports reward 0 and ``info["seed"]``) or
     ``AutoresetMode.SAME_STEP`` (the ending step returns the new episode's first observation and
     puts the ended one's last observation in ``info["final_obs"]`` and its score, lost and tick in
-    ``info["final_info"]``). ``metadata["autoreset_mode"]`` says which.
+    ``info["final_info"]``) or ``AutoresetMode.DISABLED`` (stepping a finished environment raises
+    :class:`~dinerdash.errors.FailedPrecondition`; reset it with ``options={"reset_mask": ...}``).
+    ``metadata["autoreset_mode"]`` says which.
 
     Args:
         num_envs: number of environments N.
@@ -92,7 +95,7 @@ class DinerDashVectorEnv(VectorEnv):
         expert: add ``expert_action`` to the infos.
         reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
             its session and report its environments' episodes as truncated.
-        autoreset_mode: ``AutoresetMode.NEXT_STEP`` or ``AutoresetMode.SAME_STEP``.
+        autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
         config: game configuration (GameConfig fields), as for the single env.
         max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
         render_mode: ``"ansi"`` or ``"rgb_array"``; ``render()`` returns one frame per env.
@@ -100,7 +103,10 @@ class DinerDashVectorEnv(VectorEnv):
 
     Reset: ``reset(seed=s)`` seeds environment ``i`` with ``s + i``; ``seed`` may also be a list
     of N seeds. Options: ``{"arrivals": one list of (type, size) pairs or N lists,
-    "config": {...}}``.
+    "config": {...}, "reset_mask": (N,) bool array}``. With a ``reset_mask`` (any autoreset mode,
+    as in Gymnasium) only those environments are reset, environment ``i`` still with ``s + i``;
+    the others keep their episode, and the observations and infos returned are their current ones
+    (``info["_seed"]`` is the mask of environments reset). A ``config`` needs a full reset.
     """
 
     def __init__(
@@ -121,11 +127,6 @@ class DinerDashVectorEnv(VectorEnv):
         ansi_color: bool = False,
     ) -> None:
         mode = AutoresetMode(autoreset_mode)
-        if mode not in _WIRE_AUTORESET:
-            raise ValueError(
-                f"autoreset_mode {mode} is not supported: a server session resets all its "
-                "environments at once; use AutoresetMode.NEXT_STEP or AutoresetMode.SAME_STEP"
-            )
         if render_mode not in (None, "ansi", "rgb_array"):
             raise ValueError(
                 f"render_mode must be None, 'ansi' or 'rgb_array', got {render_mode!r}"
@@ -257,11 +258,13 @@ class DinerDashVectorEnv(VectorEnv):
                     f"seed: expected an int or {self.num_envs} seeds, got {len(seeds)}"
                 )
         options = dict(options or {})
-        unknown = sorted(set(options) - {"arrivals", "config"})
+        unknown = sorted(set(options) - {"arrivals", "config", "reset_mask"})
         if unknown:
             raise ValueError(
-                f"reset options: unknown key(s) {unknown}; known: 'arrivals', 'config'"
+                f"reset options: unknown key(s) {unknown}; known: 'arrivals', 'config', "
+                "'reset_mask'"
             )
+        mask = self._reset_mask(options.get("reset_mask"), options.get("config"))
         arrivals = make_arrivals(options.get("arrivals"), self.num_envs)
         if len(self._shards) > 1 and len(arrivals) not in (0, 1, self.num_envs):
             raise InvalidArgument(
@@ -272,8 +275,10 @@ class DinerDashVectorEnv(VectorEnv):
         if config is not None:
             self._config = config
 
-        def request(shard: _Shard) -> pb.ResetRequest:
+        def request(shard: _Shard, partial: bool = True) -> pb.ResetRequest:
             r = pb.ResetRequest(session_id=shard.session_id, config=config)
+            if mask is not None and partial:
+                r.reset_mask = mask[shard.start : shard.stop].astype(np.uint8).tobytes()
             if seeds is not None:
                 r.seeds.extend(seeds[shard.start : shard.stop])
             elif seed is not None:
@@ -284,25 +289,64 @@ class DinerDashVectorEnv(VectorEnv):
                 r.arrivals.extend(arrivals[shard.start : shard.stop])
             return r
 
-        requests = [request(s) for s in self._shards]
-        futures = [s.conn.future("Reset", r) for s, r in zip(self._shards, requests, strict=True)]
-        batches = []
+        # A shard with none of its environments in the mask is not called: it keeps its state.
+        called = [mask is None or bool(mask[s.start : s.stop].any()) for s in self._shards]
+        requests = [request(s) if c else None for s, c in zip(self._shards, called, strict=True)]
+        futures = [
+            s.conn.future("Reset", r) if r is not None else None
+            for s, r in zip(self._shards, requests, strict=True)
+        ]
+        batches, reset = [], []
         for shard, req, fut in zip(self._shards, requests, futures, strict=True):
+            if req is None:
+                batches.append(shard.last)
+                reset.append(bytes(shard.size))
+                continue
             try:
                 batch = shard.conn.result("Reset", req, fut)
             except (ServiceTransportError, SessionNotFound) as e:
                 if not self.reconnect:
                     raise self._fail(shard, e) from None
                 self._reopen(shard, e)
-                batch = shard.conn.call("Reset", request(shard))
+                # The new session starts every environment of the shard afresh.
+                batch = shard.conn.call("Reset", request(shard, partial=False))
             except ServiceError as e:
                 raise self._fail(shard, e) from None
             shard.last, shard.pending = batch, None
             batches.append(batch)
+            reset.append(batch.reset)
         obs, info = self._decode_common(batches)
         info["seed"] = self._seeds(batches)
-        info["_seed"] = np.ones(self.num_envs, dtype=np.bool_)
+        info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
         return obs, info
+
+    def _reset_mask(self, reset_mask: Any, config: Any) -> np.ndarray | None:
+        """The ``reset_mask`` option checked as Gymnasium's vector envs check it, or ``None``."""
+        if reset_mask is None:
+            return None
+        if not isinstance(reset_mask, np.ndarray):
+            raise TypeError(
+                f"options['reset_mask'] must be a numpy array, got {type(reset_mask).__name__}"
+            )
+        if reset_mask.shape != (self.num_envs,) or reset_mask.dtype != np.bool_:
+            raise ValueError(
+                f"options['reset_mask'] must be a bool array of shape ({self.num_envs},), got "
+                f"{reset_mask.dtype} {reset_mask.shape}"
+            )
+        if not reset_mask.any():
+            raise ValueError("options['reset_mask'] selects no environment")
+        if config is not None:
+            raise ValueError(
+                "options['config'] applies to every environment: give it with a full reset, "
+                "not a reset_mask"
+            )
+        for shard in self._shards:
+            if shard.last is None and not reset_mask[shard.start : shard.stop].all():
+                kept = shard.start + int(np.flatnonzero(~reset_mask[shard.start : shard.stop])[0])
+                raise ValueError(
+                    f"environment {kept} has never been reset: include it in reset_mask"
+                )
+        return reset_mask
 
     def step(
         self, actions: Any
@@ -356,14 +400,16 @@ class DinerDashVectorEnv(VectorEnv):
         first = shard.conn.call("Reset", pb.ResetRequest(session_id=shard.session_id))
         n = shard.size
         out = pb.Batch()
-        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-            # This step ends the episodes (last state, truncated); the next step() hands out the
-            # new session's first observations as the autoreset.
+        if self.autoreset_mode != AutoresetMode.SAME_STEP:
+            # This step ends the episodes (last state, truncated). NEXT_STEP: the next step()
+            # hands out the new session's first observations as the autoreset. DISABLED: the
+            # caller resets them; the new session's episodes have already started.
             out.CopyFrom(last)
             out.reset = bytes(n)
             del out.seeds[:]
             out.seeds.extend([0] * n)
-            shard.pending = first
+            if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+                shard.pending = first
         else:
             # SAME_STEP: the new episodes start in this very step; the old ones are final_*.
             out.CopyFrom(first)

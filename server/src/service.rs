@@ -87,14 +87,27 @@ fn autoreset_to(mode: Autoreset) -> pb::AutoresetMode {
     }
 }
 
-fn autoreset_from(value: i32) -> Result<Autoreset, SessionError> {
+/// The wire's mode; UNSPECIFIED is DISABLED for one environment (a Gymnasium `Env`), else NEXT_STEP.
+fn autoreset_from(value: i32, num_envs: u32) -> Result<Autoreset, SessionError> {
     match pb::AutoresetMode::try_from(value) {
+        Ok(pb::AutoresetMode::Unspecified) if num_envs == 1 => Ok(Autoreset::Disabled),
         Ok(pb::AutoresetMode::Unspecified | pb::AutoresetMode::NextStep) => Ok(Autoreset::NextStep),
         Ok(pb::AutoresetMode::SameStep) => Ok(Autoreset::SameStep),
         Ok(pb::AutoresetMode::Disabled) => Ok(Autoreset::Disabled),
         Err(_) => Err(SessionError::InvalidArgument(format!(
             "autoreset_mode must be in 0..=3, got {value}"
         ))),
+    }
+}
+
+/// Packed uint8 flags of the wire (each 0 or 1).
+fn flags(field: &str, bytes: &[u8]) -> Result<Vec<bool>, SessionError> {
+    match bytes.iter().position(|&b| b > 1) {
+        Some(i) => Err(SessionError::InvalidArgument(format!(
+            "{field}[{i}] must be 0 or 1, got {}",
+            bytes[i]
+        ))),
+        None => Ok(bytes.iter().map(|&b| b == 1).collect()),
     }
 }
 
@@ -202,7 +215,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
         let r = request.into_inner();
         let options = SessionOptions {
-            autoreset: autoreset_from(r.autoreset_mode).map_err(|e| self.fail(e))?,
+            autoreset: autoreset_from(r.autoreset_mode, r.num_envs).map_err(|e| self.fail(e))?,
             action_masks: r.action_masks,
             expert_actions: r.expert_actions,
         };
@@ -247,6 +260,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
                 })
                 .collect(),
             config: r.config.as_ref().map(|c| config_from(Some(c))),
+            reset_mask: flags("reset_mask", &r.reset_mask).map_err(|e| self.fail(e))?,
         };
         let batch = self
             .store

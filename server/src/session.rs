@@ -43,7 +43,7 @@ pub enum SessionError {
     /// Step or Render before the first Reset.
     #[error("the session was never reset; call reset")]
     NotReset,
-    /// A single-environment (or autoreset DISABLED) session stepped after its episode ended.
+    /// A single-environment autoreset DISABLED session stepped after its episode ended.
     #[error("episode is over; call reset")]
     EpisodeOver,
     /// Environment i of an autoreset DISABLED session stepped after its episode ended.

@@ -285,6 +285,20 @@ async fn bad_resets_are_refused() {
             },
             "lives must be in 1..=1000, got 0",
         ),
+        (
+            pb::ResetRequest {
+                reset_mask: vec![1, 2],
+                ..Default::default()
+            },
+            "reset_mask[1] must be 0 or 1, got 2",
+        ),
+        (
+            pb::ResetRequest {
+                reset_mask: vec![1, 0],
+                ..Default::default()
+            },
+            "environment 1 has never been reset: include it in reset_mask",
+        ),
     ];
     for (mut request, message) in cases {
         request.session_id = id.clone();

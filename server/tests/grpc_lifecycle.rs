@@ -17,7 +17,7 @@ async fn single_environment_lifecycle() {
     let server = TestServer::start().await;
     let mut c = server.client().await;
     let created = c
-        .create_session(create_request(1, pb::AutoresetMode::NextStep, Some(7)))
+        .create_session(create_request(1, pb::AutoresetMode::Unspecified, Some(7)))
         .await
         .unwrap()
         .into_inner();
@@ -39,7 +39,7 @@ async fn single_environment_lifecycle() {
     assert_eq!(spec.observation_dtype, "float32");
     assert_eq!(spec.num_actions, 57);
     assert_eq!(spec.ruleset, "v0");
-    // A single environment never autoresets, whatever was asked.
+    // Unspecified means no autoreset for a single environment.
     assert_eq!(spec.autoreset_mode(), pb::AutoresetMode::Disabled);
     let config = spec.config.unwrap();
     assert_eq!(
@@ -173,6 +173,20 @@ async fn sixty_four_environments_same_step() {
     };
     let resets = run_vector(64, pb::AutoresetMode::SameStep, Mode::SameStep, config, 400).await;
     assert!(resets > 64, "autoreset happened {resets} times");
+}
+
+#[tokio::test]
+async fn a_single_environment_autoresets_when_asked() {
+    // A vector env of one environment (or one environment per server) asks for NEXT_STEP.
+    let config = Config {
+        lives: 1,
+        time_limit: 90,
+        ..Config::default()
+    };
+    let resets = run_vector(1, pb::AutoresetMode::NextStep, Mode::NextStep, config, 400).await;
+    assert!(resets > 1, "autoreset happened {resets} times");
+    let resets = run_vector(1, pb::AutoresetMode::SameStep, Mode::SameStep, config, 400).await;
+    assert!(resets > 1, "autoreset happened {resets} times");
 }
 
 #[tokio::test]

@@ -128,18 +128,20 @@ class ArrivalList(_message.Message):
     def __init__(self, groups: _Optional[_Iterable[_Union[Arrival, _Mapping]]] = ...) -> None: ...
 
 class ResetRequest(_message.Message):
-    __slots__ = ("session_id", "seed", "seeds", "arrivals", "config")
+    __slots__ = ("session_id", "seed", "seeds", "arrivals", "config", "reset_mask")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     SEEDS_FIELD_NUMBER: _ClassVar[int]
     ARRIVALS_FIELD_NUMBER: _ClassVar[int]
     CONFIG_FIELD_NUMBER: _ClassVar[int]
+    RESET_MASK_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     seed: int
     seeds: _containers.RepeatedScalarFieldContainer[int]
     arrivals: _containers.RepeatedCompositeFieldContainer[ArrivalList]
     config: GameConfig
-    def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ..., seeds: _Optional[_Iterable[int]] = ..., arrivals: _Optional[_Iterable[_Union[ArrivalList, _Mapping]]] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ...) -> None: ...
+    reset_mask: bytes
+    def __init__(self, session_id: _Optional[str] = ..., seed: _Optional[int] = ..., seeds: _Optional[_Iterable[int]] = ..., arrivals: _Optional[_Iterable[_Union[ArrivalList, _Mapping]]] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ..., reset_mask: _Optional[bytes] = ...) -> None: ...
 
 class StepRequest(_message.Message):
     __slots__ = ("session_id", "actions")

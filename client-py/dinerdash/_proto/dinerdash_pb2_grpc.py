@@ -118,8 +118,8 @@ class DinerDashServicer:
     def Step(self, request, context):
         """Applies one action per environment and advances each by one tick.
         Errors: NOT_FOUND, INVALID_ARGUMENT (actions not N little-endian int32, an action outside
-        0..=56), FAILED_PRECONDITION (never reset; or a single-environment session, or a session with
-        autoreset DISABLED, whose episode is over: "episode is over; call reset").
+        0..=56), FAILED_PRECONDITION (never reset; or, with autoreset DISABLED, an episode is over:
+        "episode is over; call reset").
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -24,14 +24,14 @@ pub enum Autoreset {
     NextStep,
     /// The Step that ends the episode resets it and reports the ended episode's last state.
     SameStep,
-    /// Nothing: stepping it is an error until Reset. Single-environment sessions always.
+    /// Nothing: stepping it is an error until Reset.
     Disabled,
 }
 
 /// How a session was asked to behave, fixed at creation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SessionOptions {
-    /// The effective autoreset mode ([`Autoreset::Disabled`] whenever N = 1).
+    /// The autoreset mode.
     pub autoreset: Autoreset,
     /// Whether every Batch carries the action masks.
     pub action_masks: bool,
@@ -50,6 +50,9 @@ pub struct ResetArgs {
     pub arrivals: Vec<Vec<(u32, u32)>>,
     /// The configuration from this reset on.
     pub config: Option<Config>,
+    /// Empty: reset every environment; else one flag per environment, at least one set, and the
+    /// others keep their episode.
+    pub reset_mask: Vec<bool>,
 }
 
 /// The result of a Reset or Step for all N environments, as packed little-endian arrays
@@ -159,12 +162,17 @@ impl Batch {
         }
     }
 
-    /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
     /// An environment that was just reset: reward 0, not done.
     fn push_reset(&mut self, info: ResetInfo, r: &Restaurant, options: &SessionOptions) {
         self.push(0, false, false, Some(info), r, options);
     }
 
+    /// An environment that a partial Reset left alone: its current state, reward 0.
+    fn push_unchanged(&mut self, r: &Restaurant, options: &SessionOptions) {
+        self.push(0, r.is_terminated(), r.is_truncated(), None, r, options);
+    }
+
+    /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
     fn push_final(&mut self, ended: Option<&Restaurant>) {
         match ended {
             Some(r) => {
@@ -220,18 +228,14 @@ pub struct Envs {
 }
 
 impl Envs {
-    /// `n >= 1` environments with `config`, not reset yet. Single-environment sessions never
-    /// autoreset, whatever was asked.
+    /// `n >= 1` environments with `config`, not reset yet.
     pub fn new(
         n: usize,
         config: Config,
-        mut options: SessionOptions,
+        options: SessionOptions,
         seed: Option<u64>,
     ) -> Result<Envs, SessionError> {
         let game = Game::new(config).map_err(|e| SessionError::InvalidArgument(e.to_string()))?;
-        if n == 1 {
-            options.autoreset = Autoreset::Disabled;
-        }
         let env = Env {
             game,
             autoreset_pending: false,
@@ -265,7 +269,7 @@ impl Envs {
             .map_or_else(Config::default, |e| *e.game.config())
     }
 
-    /// Resets every environment (all of the request is checked first).
+    /// Resets every environment, or those of `reset_mask` (all of the request is checked first).
     pub fn reset(&mut self, args: &ResetArgs) -> Result<Batch, SessionError> {
         let n = self.envs.len();
         let invalid = |msg: String| Err(SessionError::InvalidArgument(msg));
@@ -292,6 +296,30 @@ impl Envs {
                 .validate()
                 .map_err(|e| SessionError::InvalidArgument(e.to_string()))?;
         }
+        let partial = !args.reset_mask.is_empty();
+        if partial {
+            if args.reset_mask.len() != n {
+                return invalid(format!(
+                    "reset_mask must hold 0 or {n} entries (one per environment), got {}",
+                    args.reset_mask.len()
+                ));
+            }
+            if !args.reset_mask.contains(&true) {
+                return invalid("reset_mask selects no environment".into());
+            }
+            if args.config.is_some() {
+                return invalid(
+                    "config applies to every environment: give it with a full reset, not a reset_mask"
+                        .into(),
+                );
+            }
+            let mut kept = args.reset_mask.iter().zip(&self.envs);
+            if let Some(i) = kept.position(|(&reset, env)| !reset && !env.game.is_started()) {
+                return invalid(format!(
+                    "environment {i} has never been reset: include it in reset_mask"
+                ));
+            }
+        }
 
         let first_seed = self.first_seed.take();
         let base = args.seed.or(if args.seeds.is_empty() {
@@ -301,6 +329,10 @@ impl Envs {
         });
         let mut batch = Batch::with_capacity(n, &self.options, false);
         for (i, env) in self.envs.iter_mut().enumerate() {
+            if partial && !args.reset_mask[i] {
+                batch.push_unchanged(env.game.restaurant(), &self.options);
+                continue;
+            }
             if let Some(config) = args.config {
                 env.game.set_config(config).map_err(internal)?;
             }
@@ -429,9 +461,6 @@ impl Envs {
                 SessionError::InvalidArgument(format!("snapshot: environment {i}: {e}"))
             })?;
         }
-        if n == 1 {
-            envs.options.autoreset = Autoreset::Disabled;
-        }
         // Only an ended NEXT_STEP episode can be waiting for its autoreset.
         let next_step = envs.options.autoreset == Autoreset::NextStep;
         for env in &mut envs.envs {
@@ -512,6 +541,69 @@ mod tests {
         let again = envs.reset(&ResetArgs::default()).unwrap();
         assert_eq!(again.seeds, vec![10, 11, 12]);
         assert_eq!(again.stream_episodes, vec![1, 1, 1]);
+    }
+
+    #[test]
+    fn a_reset_mask_resets_only_its_environments() {
+        let mut envs = Envs::new(3, Config::default(), options(Autoreset::Disabled), None).unwrap();
+        let refused = |envs: &mut Envs, mask: &[bool], config: Option<Config>| {
+            let args = ResetArgs {
+                reset_mask: mask.to_vec(),
+                config,
+                ..ResetArgs::default()
+            };
+            envs.reset(&args).unwrap_err().to_string()
+        };
+        assert_eq!(
+            refused(&mut envs, &[true, false, true], None),
+            "environment 1 has never been reset: include it in reset_mask"
+        );
+        envs.reset(&ResetArgs {
+            seed: Some(5),
+            ..ResetArgs::default()
+        })
+        .unwrap();
+        let before = envs.step(&actions(&[0, 0, 0])).unwrap();
+        assert_eq!(
+            refused(&mut envs, &[true, false], None),
+            "reset_mask must hold 0 or 3 entries (one per environment), got 2"
+        );
+        assert_eq!(
+            refused(&mut envs, &[false; 3], None),
+            "reset_mask selects no environment"
+        );
+        assert_eq!(
+            refused(&mut envs, &[true; 3], Some(Config::default())),
+            "config applies to every environment: give it with a full reset, not a reset_mask"
+        );
+
+        let partial = envs
+            .reset(&ResetArgs {
+                seed: Some(100),
+                reset_mask: vec![false, true, false],
+                ..ResetArgs::default()
+            })
+            .unwrap();
+        assert_eq!(partial.reset, vec![0, 1, 0]);
+        assert_eq!(partial.seeds, vec![0, 101, 0]);
+        let row = |b: &Batch, i: usize| {
+            b.observations[i * OBSERVATION_SIZE..][..OBSERVATION_SIZE].to_vec()
+        };
+        for i in [0, 2] {
+            assert_eq!(row(&partial, i), row(&before, i));
+        }
+        assert_eq!(partial.ticks[..4], before.ticks[..4]);
+        let mut fresh =
+            Envs::new(1, Config::default(), options(Autoreset::Disabled), None).unwrap();
+        let fresh = fresh
+            .reset(&ResetArgs {
+                seed: Some(101),
+                ..ResetArgs::default()
+            })
+            .unwrap();
+        assert_eq!(row(&partial, 1), row(&fresh, 0));
+        assert_eq!(partial.expert_actions[1], fresh.expert_actions[0]);
+        assert_eq!(partial.ticks[4..8], [0; 4]);
     }
 
     #[test]
