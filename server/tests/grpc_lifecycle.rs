@@ -110,6 +110,15 @@ async fn single_environment_lifecycle() {
     server.stop().await;
 }
 
+/// One life and a time limit make episodes end by both termination and truncation.
+fn short() -> Config {
+    Config {
+        lives: 1,
+        time_limit: 90,
+        ..Config::default()
+    }
+}
+
 /// Steps a session of `n` environments `steps` times with deterministic actions, comparing every
 /// Batch with the local model.
 async fn run_vector(
@@ -145,48 +154,23 @@ async fn run_vector(
     resets
 }
 
+/// Every autoreset mode against the model, for 64 environments and for one (a vector env of one
+/// environment, or one environment per server, asks for NEXT_STEP or SAME_STEP explicitly).
 #[tokio::test]
-async fn sixty_four_environments_next_step() {
-    // One life and a time limit make episodes end by both termination and truncation.
-    let config = Config {
-        lives: 1,
-        time_limit: 90,
-        ..Config::default()
-    };
-    let resets = run_vector(
-        64,
-        pb::AutoresetMode::Unspecified,
-        Mode::NextStep,
-        config,
-        400,
-    )
-    .await;
-    assert!(resets > 64, "autoreset happened {resets} times");
-}
-
-#[tokio::test]
-async fn sixty_four_environments_same_step() {
-    let config = Config {
-        lives: 1,
-        time_limit: 90,
-        ..Config::default()
-    };
-    let resets = run_vector(64, pb::AutoresetMode::SameStep, Mode::SameStep, config, 400).await;
-    assert!(resets > 64, "autoreset happened {resets} times");
-}
-
-#[tokio::test]
-async fn a_single_environment_autoresets_when_asked() {
-    // A vector env of one environment (or one environment per server) asks for NEXT_STEP.
-    let config = Config {
-        lives: 1,
-        time_limit: 90,
-        ..Config::default()
-    };
-    let resets = run_vector(1, pb::AutoresetMode::NextStep, Mode::NextStep, config, 400).await;
-    assert!(resets > 1, "autoreset happened {resets} times");
-    let resets = run_vector(1, pb::AutoresetMode::SameStep, Mode::SameStep, config, 400).await;
-    assert!(resets > 1, "autoreset happened {resets} times");
+async fn autoreset_modes_follow_the_model() {
+    let cases = [
+        (64, pb::AutoresetMode::Unspecified, Mode::NextStep),
+        (64, pb::AutoresetMode::SameStep, Mode::SameStep),
+        (1, pb::AutoresetMode::NextStep, Mode::NextStep),
+        (1, pb::AutoresetMode::SameStep, Mode::SameStep),
+    ];
+    for (n, mode, model_mode) in cases {
+        let resets = run_vector(n, mode, model_mode, short(), 400).await;
+        assert!(
+            resets > u64::from(n),
+            "{mode:?} x {n}: autoreset happened {resets} times"
+        );
+    }
 }
 
 #[tokio::test]
