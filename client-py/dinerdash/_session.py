@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 from ._proto import pb
 from .connection import Connection, resolve_replicas
-from .errors import ServiceTransportError
+from .errors import ServiceError, ServiceTransportError
 from .server import LocalServer
 
 #: Observation length and number of actions (RULES.md sections 6 and 4.1).
@@ -84,6 +84,16 @@ def make_arrivals(arrivals: Any, num_envs: int = 1) -> list[pb.ArrivalList]:
     if num_envs == 1 and len(lists) != 1:
         raise ValueError("arrivals: give one list of (customer_type, size) pairs")
     return lists
+
+
+def close_session(conn: Connection, session_id: str) -> None:
+    """Closes a session, once and briefly: a server that is gone or already forgot the session
+    has nothing left to free."""
+    try:
+        request = pb.CloseSessionRequest(session_id=session_id)
+        conn.call("CloseSession", request, timeout=2.0, retries=0)
+    except ServiceError:
+        pass
 
 
 def observation_space(spec: pb.Spec) -> spaces.Box:
@@ -186,3 +196,21 @@ class Endpoint:
         if self.server is not None:
             self.server.stop()
             self.server = None
+
+
+class SessionOwner:
+    """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share:
+    the :class:`Endpoint` they opened and the server's ``Spec`` of their session."""
+
+    _endpoint: Endpoint
+    spec_proto: pb.Spec
+
+    @property
+    def server(self):
+        """The :class:`~dinerdash.server.LocalServer` this env started, or ``None``."""
+        return self._endpoint.server
+
+    @property
+    def game_config(self) -> dict[str, int]:
+        """The effective game configuration, every field present."""
+        return config_dict(self.spec_proto.config)

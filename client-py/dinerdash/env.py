@@ -15,7 +15,15 @@ from gymnasium import spaces
 
 from . import render as _render
 from ._proto import pb
-from ._session import NUM_ACTIONS, Config, Endpoint, config_dict, make_arrivals, make_config
+from ._session import (
+    NUM_ACTIONS,
+    Config,
+    Endpoint,
+    SessionOwner,
+    close_session,
+    make_arrivals,
+    make_config,
+)
 from ._session import observation_space as _observation_space
 from .connection import Connection
 from .errors import InvalidArgument, ServiceError, ServiceTransportError, SessionNotFound
@@ -42,7 +50,7 @@ class Snapshot:
         return self.data
 
 
-class DinerDashEnv(gym.Env[np.ndarray, np.int64]):
+class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     """
     ## Description
 
@@ -193,16 +201,6 @@ class DinerDashEnv(gym.Env[np.ndarray, np.int64]):
         """The server's id of this environment's session."""
         return self._session_id
 
-    @property
-    def server(self):
-        """The :class:`~dinerdash.server.LocalServer` this env started, or ``None``."""
-        return self._endpoint.server
-
-    @property
-    def game_config(self) -> dict[str, int]:
-        """The effective game configuration, every field present."""
-        return config_dict(self.spec_proto.config)
-
     def _create_session(self) -> None:
         request = pb.CreateSessionRequest(
             num_envs=1,
@@ -318,15 +316,7 @@ class DinerDashEnv(gym.Env[np.ndarray, np.int64]):
 
     def close(self) -> None:
         if self._session_id is not None:
-            try:
-                self._conn.call(
-                    "CloseSession",
-                    pb.CloseSessionRequest(session_id=self._session_id),
-                    timeout=2.0,
-                    retries=0,
-                )
-            except ServiceError:
-                pass  # the server is gone or already forgot the session: nothing to free
+            close_session(self._conn, self._session_id)
             self._session_id = None
         self._endpoint.close()
         super().close()

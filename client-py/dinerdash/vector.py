@@ -30,7 +30,8 @@ from ._session import (
     OBSERVATION_SIZE,
     Config,
     Endpoint,
-    config_dict,
+    SessionOwner,
+    close_session,
     make_arrivals,
     make_config,
 )
@@ -70,7 +71,7 @@ class _Shard:
         return self.stop - self.start
 
 
-class DinerDashVectorEnv(VectorEnv):
+class DinerDashVectorEnv(SessionOwner, VectorEnv):
     """``num_envs`` Diner Dash environments stepped together on one or more DinerDash servers.
 
     The single environment, its spaces and infos are described in
@@ -195,16 +196,6 @@ class DinerDashVectorEnv(VectorEnv):
     @property
     def session_ids(self) -> list[str | None]:
         return [s.session_id for s in self._shards]
-
-    @property
-    def server(self):
-        """The :class:`~dinerdash.server.LocalServer` this env started, or ``None``."""
-        return self._endpoint.server
-
-    @property
-    def game_config(self) -> dict[str, int]:
-        """The effective game configuration, every field present."""
-        return config_dict(self.spec_proto.config)
 
     def _create_session(self, shard: _Shard) -> None:
         request = pb.CreateSessionRequest(
@@ -528,15 +519,7 @@ class DinerDashVectorEnv(VectorEnv):
     def _close_sessions(self) -> None:
         for shard in self._shards:
             if shard.session_id is not None:
-                try:
-                    shard.conn.call(
-                        "CloseSession",
-                        pb.CloseSessionRequest(session_id=shard.session_id),
-                        timeout=2.0,
-                        retries=0,
-                    )
-                except ServiceError:
-                    pass  # the server is gone or already forgot the session
+                close_session(shard.conn, shard.session_id)
                 shard.session_id = None
 
     def close_extras(self, **kwargs: Any) -> None:

@@ -28,53 +28,52 @@ async fn unknown_sessions_are_not_found() {
     let mut c = server.client().await;
     let ghost = "0123456789abcdef0123456789abcdef";
     let message = format!("session {ghost} not found (closed or expired)");
-    assert_status(
-        c.step(step_request(ghost, &[0])).await,
-        Code::NotFound,
-        &message,
-    );
-    assert_status(
-        c.reset(pb::ResetRequest {
-            session_id: ghost.into(),
-            ..Default::default()
-        })
-        .await,
-        Code::NotFound,
-        &message,
-    );
-    assert_status(
-        c.fork(pb::ForkRequest {
-            session_id: ghost.into(),
-        })
-        .await,
-        Code::NotFound,
-        &message,
-    );
-    assert_status(
-        c.snapshot(pb::SnapshotRequest {
-            session_id: ghost.into(),
-        })
-        .await,
-        Code::NotFound,
-        &message,
-    );
-    assert_status(
-        c.render(pb::RenderRequest {
-            session_id: ghost.into(),
-            ..Default::default()
-        })
-        .await,
-        Code::NotFound,
-        &message,
-    );
-    assert_status(
-        c.close_session(pb::CloseSessionRequest {
-            session_id: ghost.into(),
-        })
-        .await,
-        Code::NotFound,
-        &message,
-    );
+    let id = || ghost.to_owned();
+    let refusals = [
+        ("step", c.step(step_request(ghost, &[0])).await.map(drop)),
+        (
+            "reset",
+            c.reset(pb::ResetRequest {
+                session_id: id(),
+                ..Default::default()
+            })
+            .await
+            .map(drop),
+        ),
+        (
+            "fork",
+            c.fork(pb::ForkRequest { session_id: id() }).await.map(drop),
+        ),
+        (
+            "snapshot",
+            c.snapshot(pb::SnapshotRequest { session_id: id() })
+                .await
+                .map(drop),
+        ),
+        (
+            "render",
+            c.render(pb::RenderRequest {
+                session_id: id(),
+                ..Default::default()
+            })
+            .await
+            .map(drop),
+        ),
+        (
+            "close_session",
+            c.close_session(pb::CloseSessionRequest { session_id: id() })
+                .await
+                .map(drop),
+        ),
+    ];
+    for (call, result) in refusals {
+        let status = result.expect_err(call);
+        assert_eq!(
+            (status.code(), status.message()),
+            (Code::NotFound, &*message),
+            "{call}"
+        );
+    }
     assert_status(
         c.step(step_request("not-an-id", &[0])).await,
         Code::NotFound,
