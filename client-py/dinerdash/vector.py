@@ -83,7 +83,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     Autoreset: ``AutoresetMode.NEXT_STEP`` (default; the step after an episode ends resets that
     environment, ignores its action and reports reward 0 and ``info["seed"]``) or
     ``AutoresetMode.SAME_STEP`` (the ending step returns the new episode's first observation and
-    puts the ended one's last observation in ``info["final_obs"]`` and its score, lost and tick in
+    puts the ended one's last observation in ``info["final_obs"]`` and its infos in
     ``info["final_info"]``) or ``AutoresetMode.DISABLED`` (stepping a finished environment raises
     :class:`~dinerdash.errors.FailedPrecondition`; reset it with ``options={"reset_mask": ...}``).
     ``metadata["autoreset_mode"]`` says which.
@@ -408,6 +408,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             out.final_scores = last.scores
             out.final_lost = last.lost
             out.final_ticks = last.ticks
+            out.final_action_masks = last.action_masks
+            out.final_expert_actions = last.expert_actions
         out.rewards = bytes(4 * n)
         out.terminated = bytes(n)
         out.truncated = b"\x01" * n
@@ -477,6 +479,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                     "tick": np.frombuffer(j(batches, "final_ticks"), dtype="<u4").astype(np.int64),
                     "_tick": reset.copy(),
                 }
+                final_masks = np.frombuffer(j(batches, "final_action_masks"), dtype=np.bool_)
+                info["final_info"]["action_mask"] = final_masks.reshape(n, NUM_ACTIONS).copy()
+                info["final_info"]["_action_mask"] = reset.copy()
+                if self.expert:
+                    expert = np.frombuffer(j(batches, "final_expert_actions"), dtype=np.uint8)
+                    info["final_info"]["expert_action"] = expert.astype(np.int64)
+                    info["final_info"]["_expert_action"] = reset.copy()
                 info["_final_info"] = reset.copy()
         if self._reconnected:
             lost = np.zeros(n, dtype=np.bool_)

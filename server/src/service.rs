@@ -154,6 +154,8 @@ fn batch_to(b: Batch) -> pb::Batch {
         final_scores: b.final_scores,
         final_lost: b.final_lost,
         final_ticks: b.final_ticks,
+        final_action_masks: b.final_action_masks,
+        final_expert_actions: b.final_expert_actions,
         stream_episodes: b.stream_episodes,
     }
 }

@@ -93,6 +93,10 @@ pub struct Batch {
     pub final_lost: Vec<u8>,
     /// SAME_STEP Steps only: N x uint32.
     pub final_ticks: Vec<u8>,
+    /// SAME_STEP Steps with masks only: N x 57 uint8.
+    pub final_action_masks: Vec<u8>,
+    /// SAME_STEP Steps with expert actions only: N x uint8.
+    pub final_expert_actions: Vec<u8>,
 }
 
 /// An i64 score as the int32 of the wire, saturated (scores stay far inside i32 in practice).
@@ -104,6 +108,8 @@ impl Batch {
     /// An empty batch with room for `n` environments.
     fn with_capacity(n: usize, options: &SessionOptions, finals: bool) -> Batch {
         let finals_of = |width: usize| Vec::with_capacity(if finals { n * width } else { 0 });
+        let mask_width = if options.action_masks { NUM_ACTIONS } else { 0 };
+        let expert_width = usize::from(options.expert_actions);
         Batch {
             num_envs: n as u32,
             observations: Vec::with_capacity(n * OBSERVATION_SIZE),
@@ -113,12 +119,8 @@ impl Batch {
             scores: Vec::with_capacity(n * 4),
             lost: Vec::with_capacity(n * 4),
             ticks: Vec::with_capacity(n * 4),
-            action_masks: Vec::with_capacity(if options.action_masks {
-                n * NUM_ACTIONS
-            } else {
-                0
-            }),
-            expert_actions: Vec::with_capacity(if options.expert_actions { n } else { 0 }),
+            action_masks: Vec::with_capacity(n * mask_width),
+            expert_actions: Vec::with_capacity(n * expert_width),
             reset: Vec::with_capacity(n),
             seeds: Vec::with_capacity(n),
             stream_episodes: Vec::with_capacity(n),
@@ -126,6 +128,8 @@ impl Batch {
             final_scores: finals_of(4),
             final_lost: finals_of(4),
             final_ticks: finals_of(4),
+            final_action_masks: finals_of(mask_width),
+            final_expert_actions: finals_of(expert_width),
         }
     }
 
@@ -173,7 +177,7 @@ impl Batch {
     }
 
     /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
-    fn push_final(&mut self, ended: Option<&Restaurant>) {
+    fn push_final(&mut self, ended: Option<&Restaurant>, options: &SessionOptions) {
         match ended {
             Some(r) => {
                 self.final_observations
@@ -182,6 +186,13 @@ impl Batch {
                     .extend_from_slice(&to_i32(r.score()).to_le_bytes());
                 self.final_lost.extend_from_slice(&r.lost().to_le_bytes());
                 self.final_ticks.extend_from_slice(&r.tick().to_le_bytes());
+                if options.action_masks {
+                    self.final_action_masks
+                        .extend(r.action_mask().iter().map(|&m| u8::from(m)));
+                }
+                if options.expert_actions {
+                    self.final_expert_actions.push(expert_action(r));
+                }
             }
             None => {
                 self.final_observations
@@ -189,6 +200,12 @@ impl Batch {
                 self.final_scores.extend_from_slice(&[0; 4]);
                 self.final_lost.extend_from_slice(&[0; 4]);
                 self.final_ticks.extend_from_slice(&[0; 4]);
+                if options.action_masks {
+                    self.final_action_masks.extend_from_slice(&[0; NUM_ACTIONS]);
+                }
+                if options.expert_actions {
+                    self.final_expert_actions.push(0);
+                }
             }
         }
     }
@@ -404,10 +421,10 @@ impl Envs {
             match mode {
                 Autoreset::NextStep => env.autoreset_pending = ended,
                 Autoreset::SameStep if ended => {
-                    batch.push_final(Some(env.game.restaurant()));
+                    batch.push_final(Some(env.game.restaurant()), &self.options);
                     reset = Some(env.game.reset(None, None).map_err(internal)?);
                 }
-                Autoreset::SameStep => batch.push_final(None),
+                Autoreset::SameStep => batch.push_final(None, &self.options),
                 Autoreset::Disabled => {}
             }
             batch.push(

@@ -276,15 +276,26 @@ impl Model {
             let mut reset = None;
             if self.mode == Mode::SameStep {
                 let r = g.restaurant();
-                let (obs, score, lost, tick) = if ended {
-                    (r.observation(), r.score() as i32, r.lost(), r.tick())
+                let (obs, score, lost, tick, mask, expert) = if ended {
+                    let (r_obs, r_mask) = (r.observation(), r.action_mask());
+                    (
+                        r_obs,
+                        r.score() as i32,
+                        r.lost(),
+                        r.tick(),
+                        r_mask,
+                        expert_action(r),
+                    )
                 } else {
-                    ([0; 40], 0, 0, 0)
+                    ([0; 40], 0, 0, 0, [false; 57], 0)
                 };
                 b.final_observations.extend(obs.iter().map(|&v| v as u8));
                 b.final_scores.extend(score.to_le_bytes());
                 b.final_lost.extend(lost.to_le_bytes());
                 b.final_ticks.extend(tick.to_le_bytes());
+                b.final_action_masks
+                    .extend(mask.iter().map(|&m| u8::from(m)));
+                b.final_expert_actions.push(expert);
                 if ended {
                     let info = g.reset(None, None).unwrap();
                     reset = Some((info.seed, info.stream_episodes));
