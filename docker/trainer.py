@@ -24,6 +24,8 @@ def main() -> None:
 
     addresses = [a.strip() for a in os.environ["DINERDASH_ADDRESS"].split(",") if a.strip()]
     envs = gym.make_vec("dinerdash:DinerDash-v0", num_envs=args.num_envs, address=addresses)
+    servers = envs.addresses  # a DNS name with several addresses is several servers
+    print(f"{args.num_envs} environments over {', '.join(servers)}", flush=True)
     rng = np.random.default_rng(args.seed)
     _, info = envs.reset(seed=args.seed)
     returns = np.zeros(args.num_envs)
@@ -39,7 +41,7 @@ def main() -> None:
         returns[done] = 0
     elapsed = time.perf_counter() - start
     envs.close()
-    print(f"{args.steps * args.num_envs / elapsed:,.0f} env-steps/s over {len(addresses)} servers")
+    print(f"{args.steps * args.num_envs / elapsed:,.0f} env-steps/s over {len(servers)} servers")
     if finished:
         print(f"{len(finished)} episodes, mean return {np.mean(finished):.1f}")
 
