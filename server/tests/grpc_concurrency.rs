@@ -35,12 +35,7 @@ async fn sixty_four_sessions_in_parallel_do_not_cross_talk() {
                 let a = actions.next();
                 let batch = step(&mut c, &id, &[a]).await;
                 let out = game.step(i64::from(a)).unwrap();
-                let obs: Vec<u8> = game
-                    .restaurant()
-                    .observation()
-                    .iter()
-                    .map(|&v| v as u8)
-                    .collect();
+                let obs = wire_observation(&game);
                 assert_eq!(batch.observations, obs, "task {t} step {s}");
                 assert_eq!(
                     i32s(&batch.rewards),
@@ -116,12 +111,7 @@ async fn one_session_hammered_by_many_tasks_stays_consistent() {
     let copy = restore(&mut c, snapshot).await;
     let last = step(&mut c, &copy, &[0]).await;
     game.step(0).unwrap();
-    let obs: Vec<u8> = game
-        .restaurant()
-        .observation()
-        .iter()
-        .map(|&v| v as u8)
-        .collect();
+    let obs = wire_observation(&game);
     assert_eq!(last.observations, obs);
     assert_eq!(u32s(&last.ticks), vec![total + 1]);
     server.stop().await;

@@ -271,12 +271,7 @@ async fn reset_with_seeds_arrivals_and_config() {
     for (i, &seed) in first.seeds.iter().enumerate() {
         let mut g = Game::new(Config::default()).unwrap();
         g.reset(Some(seed), None).unwrap();
-        let obs: Vec<u8> = g
-            .restaurant()
-            .observation()
-            .iter()
-            .map(|&v| v as u8)
-            .collect();
+        let obs = wire_observation(&g);
         assert_eq!(
             &first.observations[40 * i..40 * (i + 1)],
             &obs[..],
@@ -310,12 +305,7 @@ async fn reset_with_seeds_arrivals_and_config() {
         })
         .unwrap();
         g.reset(Some([5, 50, 500][i]), Some(&[(2, 6)])).unwrap();
-        let obs: Vec<u8> = g
-            .restaurant()
-            .observation()
-            .iter()
-            .map(|&v| v as u8)
-            .collect();
+        let obs = wire_observation(&g);
         assert_eq!(&batch.observations[40 * i..40 * (i + 1)], &obs[..]);
         // The waiting group is the scripted one: size 6.
         assert_eq!(batch.observations[40 * i + 25], 6);
@@ -390,12 +380,7 @@ async fn rollout_streams_one_episode_per_seed() {
                     ep.seed
                 );
                 g.step(i64::from(ep.actions[i])).unwrap();
-                let obs: Vec<u8> = g
-                    .restaurant()
-                    .observation()
-                    .iter()
-                    .map(|&v| v as u8)
-                    .collect();
+                let obs = wire_observation(&g);
                 assert_eq!(&ep.observations[40 * (i + 1)..40 * (i + 2)], &obs[..]);
             }
             if policy == pb::Policy::Expert {

@@ -324,6 +324,15 @@ fn empty_batch(n: usize) -> pb::Batch {
     }
 }
 
+/// A game's observation as the wire carries it: 40 int8 as bytes.
+pub fn wire_observation(g: &Game) -> Vec<u8> {
+    g.restaurant()
+        .observation()
+        .iter()
+        .map(|&v| v as u8)
+        .collect()
+}
+
 fn push_row(
     b: &mut pb::Batch,
     reward: i32,
@@ -333,8 +342,7 @@ fn push_row(
     g: &Game,
 ) {
     let r = g.restaurant();
-    b.observations
-        .extend(r.observation().iter().map(|&v| v as u8));
+    b.observations.extend(wire_observation(g));
     b.rewards.extend(reward.to_le_bytes());
     b.terminated.push(u8::from(terminated));
     b.truncated.push(u8::from(truncated));
