@@ -7,7 +7,7 @@ import socket
 
 import numpy as np
 import pytest
-from dinerdash import Connection, DinerDashVectorEnv, ServiceTransportError
+from dinerdash import Connection, DinerDashVectorEnv, FailedPrecondition, ServiceTransportError
 from dinerdash.connection import resolve_replicas
 from gymnasium.vector import AutoresetMode
 
@@ -117,6 +117,23 @@ def test_a_dns_name_with_several_addresses_is_several_replicas(monkeypatch) -> N
     monkeypatch.undo()
     assert resolve_replicas("localhost:1234") == ["localhost:1234"]  # one server, not two
     assert resolve_replicas(["127.0.0.1:1", "127.0.0.1:2"]) == ["127.0.0.1:1", "127.0.0.1:2"]
+
+
+def test_errors_name_environments_by_their_index_in_the_vector_env(three) -> None:
+    envs = DinerDashVectorEnv(
+        N, [s.address for s in three], autoreset_mode=AutoresetMode.DISABLED, max_episode_steps=1
+    )
+    try:
+        envs.reset(seed=0)
+        assert envs.step(np.zeros(N, dtype=np.int64))[3].all()
+        envs.reset(options={"reset_mask": np.arange(N) < 4})  # all of server 1, one of server 2
+        with pytest.raises(FailedPrecondition) as e:
+            envs.step(np.zeros(N, dtype=np.int64))
+        # Server 2 holds environments 3 and 4; its environment 1 is environment 4 here.
+        assert "environment 4: episode is over; call reset" in str(e.value)
+        assert "[environments 3..4 of the vector env]" in str(e.value)
+    finally:
+        envs.close()
 
 
 def test_killing_one_replica_is_a_clear_error(three) -> None:

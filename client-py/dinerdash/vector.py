@@ -14,6 +14,7 @@ always go to the server that created it.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -47,6 +48,8 @@ _WIRE_AUTORESET = {
     AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
 }
 _U64 = 1 << 64
+#: How a server's message names one of its session's environments.
+_ENV_INDEX = re.compile(r"\benvironment (\d+)\b")
 
 
 class _Shard:
@@ -222,11 +225,15 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._endpoint.reopen(self._shards.index(shard), create, lost, self.reconnect_timeout)
 
     def _fail(self, shard: _Shard, error: ServiceError) -> ServiceError:
-        """The same error, saying which environments it concerns when there are several servers."""
+        """The same error, saying which environments it concerns when there are several servers
+        (an environment the server names by its index in the shard gets its index here)."""
         if len(self._shards) == 1:
             return error
+        details = _ENV_INDEX.sub(
+            lambda m: f"environment {shard.start + int(m.group(1))}", error.details, count=1
+        )
         return type(error)(
-            f"{error.details} [environments {shard.start}..{shard.stop - 1} of the vector env]",
+            f"{details} [environments {shard.start}..{shard.stop - 1} of the vector env]",
             code=error.code,
             address=error.address,
         )
