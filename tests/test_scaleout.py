@@ -7,7 +7,13 @@ import socket
 
 import numpy as np
 import pytest
-from dinerdash import Connection, DinerDashVectorEnv, FailedPrecondition, ServiceTransportError
+from dinerdash import (
+    Connection,
+    DinerDashVectorEnv,
+    FailedPrecondition,
+    InvalidArgument,
+    ServiceTransportError,
+)
 from dinerdash.connection import resolve_replicas
 from gymnasium.vector import AutoresetMode
 
@@ -117,6 +123,22 @@ def test_a_dns_name_with_several_addresses_is_several_replicas(monkeypatch) -> N
     monkeypatch.undo()
     assert resolve_replicas("localhost:1234") == ["localhost:1234"]  # one server, not two
     assert resolve_replicas(["127.0.0.1:1", "127.0.0.1:2"]) == ["127.0.0.1:1", "127.0.0.1:2"]
+
+
+def test_bad_actions_are_refused_before_any_server_steps(three) -> None:
+    envs = DinerDashVectorEnv(N, [s.address for s in three])
+    try:
+        envs.reset(seed=0)
+        for bad in (57, -1, 2**32 + 1):  # the last would wrap to 1 as an int32
+            actions = np.zeros(N, dtype=np.int64)
+            actions[5] = bad
+            message = rf"^actions\[5\] must be in 0..=56, got {bad}$"
+            with pytest.raises(InvalidArgument, match=message):
+                envs.step(actions)
+        _, _, _, _, info = envs.step(np.zeros(N, dtype=np.int64))
+        np.testing.assert_array_equal(info["tick"], np.ones(N))  # no server stepped before
+    finally:
+        envs.close()
 
 
 def test_errors_name_environments_by_their_index_in_the_vector_env(three) -> None:

@@ -352,6 +352,12 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         acts = np.asarray(actions)
         if acts.shape != (self.num_envs,):
             raise ValueError(f"actions: expected shape ({self.num_envs},), got {acts.shape}")
+        # Checked here, before any server steps: int32 casting would wrap large values into range,
+        # and over several servers a step refused by one would have moved the others.
+        bad = np.flatnonzero((acts < 0) | (acts >= NUM_ACTIONS))
+        if bad.size:
+            i = int(bad[0])
+            raise InvalidArgument(f"actions[{i}] must be in 0..={NUM_ACTIONS - 1}, got {acts[i]}")
         wire = acts.astype("<i4", copy=False)
         shards = self._shards
         if len(shards) == 1 and shards[0].pending is None:
