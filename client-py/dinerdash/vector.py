@@ -288,8 +288,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             return r
 
         # A shard with none of its environments in the mask is not called: it keeps its state.
-        called = [mask is None or bool(mask[s.start : s.stop].any()) for s in self._shards]
-        requests = [request(s) if c else None for s, c in zip(self._shards, called, strict=True)]
+        requests = [
+            request(s) if mask is None or mask[s.start : s.stop].any() else None
+            for s in self._shards
+        ]
         futures = [
             s.conn.future("Reset", r) if r is not None else None
             for s, r in zip(self._shards, requests, strict=True)
@@ -440,26 +442,29 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             return np.array(batches[0].seeds, dtype=np.uint64)
         return np.array([s for b in batches for s in b.seeds], dtype=np.uint64)
 
-    def _decode_common(self, batches: list[pb.Batch]) -> tuple[np.ndarray, dict[str, Any]]:
+    def _decode_common(
+        self, batches: list[pb.Batch], prefix: str = "", present: np.ndarray | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Observations and infos of the state the batches return, or with ``prefix="final_"``
+        of the episodes that ended (SAME_STEP); ``present`` is every info key's ``_key`` mask."""
         n = self.num_envs
-        j = self._join
-        obs = np.frombuffer(j(batches, "observations"), dtype=np.int8)
-        obs = obs.reshape(n, OBSERVATION_SIZE).astype(np.float32)
-        masks = np.frombuffer(j(batches, "action_masks"), dtype=np.bool_)
+        if present is None:
+            present = np.ones(n, dtype=np.bool_)
+
+        def field(name: str, dtype: str) -> np.ndarray:
+            return np.frombuffer(self._join(batches, prefix + name), dtype=dtype)
+
+        obs = field("observations", "i1").reshape(n, OBSERVATION_SIZE).astype(np.float32)
         info: dict[str, Any] = {
-            "action_mask": masks.reshape(n, NUM_ACTIONS).copy(),
-            "_action_mask": np.ones(n, dtype=np.bool_),
-            "score": np.frombuffer(j(batches, "scores"), dtype="<i4").astype(np.int64),
-            "_score": np.ones(n, dtype=np.bool_),
-            "lost": np.frombuffer(j(batches, "lost"), dtype="<u4").astype(np.int64),
-            "_lost": np.ones(n, dtype=np.bool_),
-            "tick": np.frombuffer(j(batches, "ticks"), dtype="<u4").astype(np.int64),
-            "_tick": np.ones(n, dtype=np.bool_),
+            "action_mask": field("action_masks", "?").reshape(n, NUM_ACTIONS).copy(),
+            "score": field("scores", "<i4").astype(np.int64),
+            "lost": field("lost", "<u4").astype(np.int64),
+            "tick": field("ticks", "<u4").astype(np.int64),
         }
         if self.expert:
-            expert = np.frombuffer(j(batches, "expert_actions"), dtype=np.uint8)
-            info["expert_action"] = expert.astype(np.int64)
-            info["_expert_action"] = np.ones(n, dtype=np.bool_)
+            info["expert_action"] = field("expert_actions", "u1").astype(np.int64)
+        for key in list(info):
+            info[f"_{key}"] = present.copy()
         return obs, info
 
     def _decode_step(self, batches: list[pb.Batch]):
@@ -475,30 +480,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             info["seed"] = self._seeds(batches)
             info["_seed"] = reset.copy()
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
-                final = np.frombuffer(j(batches, "final_observations"), dtype=np.int8)
-                final = final.reshape(n, OBSERVATION_SIZE).astype(np.float32)
+                final, final_info = self._decode_common(batches, "final_", reset)
                 final_obs = np.full(n, None, dtype=object)
                 for i in np.flatnonzero(reset):  # only the environments that just ended
                     final_obs[i] = final[i]
                 info["final_obs"] = final_obs
                 info["_final_obs"] = reset.copy()
-                info["final_info"] = {
-                    "score": np.frombuffer(j(batches, "final_scores"), dtype="<i4").astype(
-                        np.int64
-                    ),
-                    "_score": reset.copy(),
-                    "lost": np.frombuffer(j(batches, "final_lost"), dtype="<u4").astype(np.int64),
-                    "_lost": reset.copy(),
-                    "tick": np.frombuffer(j(batches, "final_ticks"), dtype="<u4").astype(np.int64),
-                    "_tick": reset.copy(),
-                }
-                final_masks = np.frombuffer(j(batches, "final_action_masks"), dtype=np.bool_)
-                info["final_info"]["action_mask"] = final_masks.reshape(n, NUM_ACTIONS).copy()
-                info["final_info"]["_action_mask"] = reset.copy()
-                if self.expert:
-                    expert = np.frombuffer(j(batches, "final_expert_actions"), dtype=np.uint8)
-                    info["final_info"]["expert_action"] = expert.astype(np.int64)
-                    info["final_info"]["_expert_action"] = reset.copy()
+                info["final_info"] = final_info
                 info["_final_info"] = reset.copy()
         if self._reconnected:
             lost = np.zeros(n, dtype=np.bool_)
