@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-CONFORMANCE_DIR = REPO.parent / "shared" / "conformance"
+CONFORMANCE_DIR = REPO / "tests" / "data" / "conformance"
 STARTUP_TIMEOUT = 30.0
 _LISTENING = re.compile(r"^dinerdash-server listening on (\S+):(\d+)\s*$")
 

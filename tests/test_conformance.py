@@ -1,4 +1,4 @@
-"""Trajectories recorded from the reference simulator (../shared/conformance) replay exactly
+"""Trajectories recorded from the reference simulator (tests/data/conformance) replay exactly
 through the client: observations, rewards, terminations, score, lost and the expert's choices."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-//! Replays every trajectory recorded from the reference simulator (`../shared/conformance`) and
+//! Replays every trajectory recorded from the reference simulator (`tests/data/conformance`) and
 //! checks every number of every step, and the expert's choice before each step.
 
 use dinerdash_server::expert::expert_action;

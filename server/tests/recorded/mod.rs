@@ -1,4 +1,4 @@
-//! The trajectories recorded from the reference simulator (`../shared/conformance/*.jsonl`, or
+//! The trajectories recorded from the reference simulator (`tests/data/conformance/*.jsonl`, or
 //! `DINERDASH_CONFORMANCE_DIR`), read at run time; shared by the tests that replay them.
 
 #![allow(dead_code)]
@@ -31,7 +31,7 @@ pub struct Step {
 /// the data is missing: a replay of nothing proves nothing.
 pub fn episodes() -> Vec<(String, Episode)> {
     let dir = std::env::var_os("DINERDASH_CONFORMANCE_DIR").map_or_else(
-        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/conformance"),
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/data/conformance"),
         PathBuf::from,
     );
     let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
