@@ -16,7 +16,7 @@ from .connection import Connection, resolve_replicas
 from .errors import ServiceError, ServiceTransportError
 from .server import LocalServer
 
-#: Observation length and number of actions (RULES.md sections 6 and 4.1).
+#: Observation length and number of actions (docs/rules.md sections 6 and 4.1).
 OBSERVATION_SIZE = 40
 NUM_ACTIONS = 57
 
@@ -97,7 +97,7 @@ def close_session(conn: Connection, session_id: str) -> None:
 
 
 def observation_space(spec: pb.Spec) -> spaces.Box:
-    """The Box of RULES.md section 6, with the bounds the server reports."""
+    """The Box of docs/rules.md section 6, with the bounds the server reports."""
     if spec.observation_size != OBSERVATION_SIZE or spec.num_actions != NUM_ACTIONS:
         raise RuntimeError(
             f"the server reports {spec.observation_size} observations and {spec.num_actions} "

@@ -276,7 +276,7 @@ def _write_minari(episodes, out: Path, dataset_id: str) -> Path | None:
         )
         for i, ep in enumerate(episodes)
     ]
-    # The spaces of RULES.md section 6, as the server reports them; no server needed here.
+    # The spaces of docs/rules.md section 6, as the server reports them; no server needed here.
     low = np.array([0, 0, -1] * 6 + [0] * 6 + [0, 0] * 7 + [0, 0], dtype=np.float32)
     high = np.array([6, 6, 4] * 6 + [1] * 6 + [4, 6] * 7 + [18, 18], dtype=np.float32)
     create_dataset_from_buffers(
@@ -286,7 +286,7 @@ def _write_minari(episodes, out: Path, dataset_id: str) -> Path | None:
         eval_env=gymnasium.spec("DinerDash-v0"),
         observation_space=spaces.Box(low, high, dtype=np.float32),
         action_space=spaces.Discrete(NUM_ACTIONS),
-        algorithm_name="reference expert (RULES.md section 8), server-side rollout",
+        algorithm_name="reference expert (docs/rules.md section 8), server-side rollout",
         author="dinerdash",
         description=f"{len(episodes)} expert episodes of {DinerDashEnv.__name__}, ruleset v0",
     )

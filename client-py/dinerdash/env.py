@@ -58,7 +58,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     ``v0``: the waitress seats arriving groups at six tables, takes their orders to the kitchen,
     brings the food, collects the bill and clears the dishes, before the groups lose patience.
     The game runs on a ``dinerdash-server``; this class is a thin client of one server session.
-    The rules, bit for bit those of the reference simulator, are in RULES.md.
+    The rules, bit for bit those of the reference simulator, are in docs/rules.md.
 
     ## Action Space
 

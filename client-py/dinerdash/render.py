@@ -1,6 +1,6 @@
 """The ``rgb_array`` render mode: a picture of the restaurant drawn with numpy alone.
 
-Everything is read from the observation (RULES.md section 6) plus the score and lives from the
+Everything is read from the observation (docs/rules.md section 6) plus the score and lives from the
 info, so any observation can be drawn, including ones stored in a dataset::
 
     +--------------------------------------------------+
@@ -25,7 +25,7 @@ __all__ = ["STATUS_COLORS", "draw"]
 
 WIDTH, HEIGHT = 400, 260
 
-#: Table colours by status (RULES.md section 1).
+#: Table colours by status (docs/rules.md section 1).
 STATUS_COLORS = np.array(
     [
         (214, 214, 214),  # 0 free and clean

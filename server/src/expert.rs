@@ -1,4 +1,4 @@
-//! Policies that read the game: the benchmark's reference heuristic expert (RULES.md §8) and
+//! Policies that read the game: the benchmark's reference heuristic expert (docs/rules.md §8) and
 //! a uniformly random policy. Further experts (deeper look-ahead) implement [`Policy`] beside them.
 
 use rand::{Rng, SeedableRng, rngs::SmallRng};

@@ -2,7 +2,7 @@
 //! environment service that hosts many sessions of it.
 //!
 //! # Layout
-//! - [`sim`]: the game itself, pure and synchronous (RULES.md).
+//! - [`sim`]: the game itself, pure and synchronous (docs/rules.md).
 //! - [`expert`]: policies that read the game: the reference heuristic, random.
 //! - [`eval`]: runs a policy over many episodes and summarises scores (the `eval` command).
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.

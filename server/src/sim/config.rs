@@ -1,11 +1,11 @@
 //! The game's tunable numbers: ruleset `v0` defaults, and their validation.
 //!
-//! Everything that RULES.md §9 lets a user change lives here; table layout and the sizes of the
+//! Everything that docs/rules.md §9 lets a user change lives here; table layout and the sizes of the
 //! observation and action spaces do not.
 
 use serde::{Deserialize, Serialize};
 
-/// Longest arrival list a game holds (RULES.md §2 draws exactly this many).
+/// Longest arrival list a game holds (docs/rules.md §2 draws exactly this many).
 pub const MAX_ARRIVALS: usize = 200;
 
 /// A configuration value outside its allowed range.

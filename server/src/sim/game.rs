@@ -1,5 +1,5 @@
 //! A game: the restaurant of the current episode plus the random stream that draws each
-//! episode's arrival list (RULES.md §2, §3), reset, checked stepping, and snapshots.
+//! episode's arrival list (docs/rules.md §2, §3), reset, checked stepping, and snapshots.
 
 use serde::{Deserialize, Serialize};
 
@@ -88,7 +88,7 @@ impl Game {
         &self.config
     }
 
-    /// Starts an episode (RULES.md §3). With a seed the random stream restarts from it; without
+    /// Starts an episode (docs/rules.md §3). With a seed the random stream restarts from it; without
     /// one it continues (and a game never seeded seeds itself from entropy). An explicit
     /// arrival list replaces the drawn one and consumes no random numbers.
     pub fn reset(

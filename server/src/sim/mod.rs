@@ -1,4 +1,4 @@
-//! The game of Diner Dash, ruleset `v0` (RULES.md): pure, synchronous and deterministic. It
+//! The game of Diner Dash, ruleset `v0` (docs/rules.md): pure, synchronous and deterministic. It
 //! knows nothing of sessions, networks or async; everything above it only calls this API.
 //!
 //! - [`config`]: the tunable numbers and their validation;
@@ -26,7 +26,7 @@ pub use snapshot::{SNAPSHOT_VERSION, SnapshotError};
 /// The ruleset this simulator implements.
 pub const RULESET: &str = "v0";
 
-/// Inclusive lower and upper bounds of each observation index (RULES.md §6).
+/// Inclusive lower and upper bounds of each observation index (docs/rules.md §6).
 pub fn observation_bounds() -> ([i8; OBSERVATION_SIZE], [i8; OBSERVATION_SIZE]) {
     let mut low = [0i8; OBSERVATION_SIZE];
     let mut high = [0i8; OBSERVATION_SIZE];

@@ -1,5 +1,5 @@
 //! The restaurant: the whole game state of one episode as a plain `Copy` value, the 57 actions
-//! (RULES.md §4), one tick of time (§5), the observation (§6) and the action mask (§7).
+//! (docs/rules.md §4), one tick of time (§5), the observation (§6) and the action mask (§7).
 //!
 //! Nothing here draws random numbers: arrivals come from the episode's arrival list, so a copy of
 //! a `Restaurant` is a complete future, which the expert's look-ahead relies on. Fixed-size arrays
@@ -29,9 +29,9 @@ pub const NUM_ACTIONS: usize = 57;
 /// would do; the spare slots make that an argument rather than a crash.
 const ORDER_CAPACITY: usize = 8;
 
-/// One observation: 40 small integers (RULES.md §6).
+/// One observation: 40 small integers (docs/rules.md §6).
 pub type Observation = [i8; OBSERVATION_SIZE];
-/// One action mask: `true` where the action's preconditions hold (RULES.md §7).
+/// One action mask: `true` where the action's preconditions hold (docs/rules.md §7).
 pub type ActionMask = [bool; NUM_ACTIONS];
 
 /// Action 0: let time pass.
@@ -44,7 +44,7 @@ const FIRST_GO_TO: u8 = 1;
 const FIRST_PICK_UP: u8 = 8;
 const FIRST_SEAT: u8 = 15;
 
-/// Table status codes of RULES.md §1.
+/// Table status codes of docs/rules.md §1.
 pub mod status {
     /// Free and clean.
     pub const FREE: u8 = 0;
@@ -109,7 +109,7 @@ impl Group {
         let d = config.decay[usize::from(self.customer_type - 1)] as i32;
         self.buffer -= d;
         if self.buffer < 0 {
-            // The overshoot is not carried into P (RULES.md §5.1).
+            // The overshoot is not carried into P (docs/rules.md §5.1).
             self.patience -= d;
             self.buffer = 0;
         }
@@ -159,7 +159,7 @@ pub struct StepOutcome {
     pub truncated: bool,
 }
 
-/// Score shaping of the expert's look-ahead (RULES.md §8); never applied to the real game.
+/// Score shaping of the expert's look-ahead (docs/rules.md §8); never applied to the real game.
 fn shaped_bonus(patience: i32, divisor: i32) -> i64 {
     if patience >= 700 {
         return 0;
@@ -252,7 +252,7 @@ pub(crate) fn pack_arrivals(list: &[(u32, u32)]) -> Result<([u8; MAX_ARRIVALS], 
 }
 
 impl Restaurant {
-    /// A freshly reset restaurant (RULES.md §3) for the given packed arrival list; the first
+    /// A freshly reset restaurant (docs/rules.md §3) for the given packed arrival list; the first
     /// group arrives at once.
     pub(crate) fn new(config: Config, arrivals: [u8; MAX_ARRIVALS], arrivals_len: u8) -> Self {
         let mut r = Restaurant {
@@ -359,7 +359,7 @@ impl Restaurant {
         }
     }
 
-    /// The expert's look-ahead: the score change of one step with the shaping of RULES.md §8.
+    /// The expert's look-ahead: the score change of one step with the shaping of docs/rules.md §8.
     pub(crate) fn shaped_step_gain(&self, action: u8) -> i64 {
         let mut copy = *self;
         copy.apply::<true>(action);
@@ -394,7 +394,7 @@ impl Restaurant {
         self.counters.contains(&t)
     }
 
-    /// Whether action `a`'s preconditions hold (RULES.md §4.1).
+    /// Whether action `a`'s preconditions hold (docs/rules.md §4.1).
     fn is_legal(&self, a: u8) -> bool {
         let free_hand = self.hands_used() < HAND_CAPACITY;
         match a {
@@ -422,7 +422,7 @@ impl Restaurant {
         }
     }
 
-    /// The action mask of RULES.md §7: [`Self::is_legal`] for every action, computed in one
+    /// The action mask of docs/rules.md §7: [`Self::is_legal`] for every action, computed in one
     /// pass (the server builds one per environment per step).
     pub fn action_mask(&self) -> ActionMask {
         let mut mask = [false; NUM_ACTIONS];
@@ -450,7 +450,7 @@ impl Restaurant {
         mask
     }
 
-    /// Applies an action (RULES.md §4.1); with `SHAPED`, adds the expert's shaping.
+    /// Applies an action (docs/rules.md §4.1); with `SHAPED`, adds the expert's shaping.
     fn apply<const SHAPED: bool>(&mut self, a: u8) {
         if !self.is_legal(a) {
             return;
@@ -558,7 +558,7 @@ impl Restaurant {
         }
     }
 
-    /// One tick of time (RULES.md §5).
+    /// One tick of time (docs/rules.md §5).
     fn advance(&mut self) {
         let config = self.config;
         // 1. The queue loses patience; groups at 0 leave without a penalty.
@@ -656,7 +656,7 @@ impl Restaurant {
         self.next_arrival = self.now + self.config.arrival_interval;
     }
 
-    /// The 40-number observation of RULES.md §6.
+    /// The 40-number observation of docs/rules.md §6.
     pub fn observation(&self) -> Observation {
         let mut obs = [0i8; OBSERVATION_SIZE];
         for (t, table) in self.tables.iter().enumerate() {

@@ -1,5 +1,5 @@
 //! The arrival generator: MT19937 seeded and sampled exactly like CPython's `random` module
-//! (RULES.md §2), so that `reset(seed=s)` draws the reference's customers.
+//! (docs/rules.md §2), so that `reset(seed=s)` draws the reference's customers.
 
 use serde::{Deserialize, Serialize};
 use serde_big_array::BigArray;
