@@ -8,6 +8,7 @@
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
+//! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
 //! - [`rollout`]: records whole episodes of a server-side policy (the Rollout RPC).
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status`; the auth interceptor.
@@ -16,6 +17,7 @@
 //! - [`shutdown`]: SIGINT/SIGTERM and the shutdown deadline.
 //! - [`metrics`]: counters and the Prometheus text endpoint.
 
+pub mod cpu;
 pub mod eval;
 pub mod expert;
 pub mod metrics;

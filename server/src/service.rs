@@ -5,10 +5,10 @@
 
 use std::sync::Arc;
 
-use tokio::sync::Semaphore;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
+use crate::cpu::CpuPool;
 use crate::eval::PolicyKind;
 use crate::metrics::Metrics;
 use crate::pb;
@@ -183,19 +183,18 @@ pub struct DinerDashService {
     store: Store,
     /// Counts failed RPCs by code.
     metrics: Arc<Metrics>,
-    /// Rollouts recording at once: one per core, so that streaming demonstrations cannot
-    /// starve the Step path of every other client.
-    rollouts: Arc<Semaphore>,
+    /// Where Rollout episodes are recorded: one worker per core, off the async workers, so
+    /// that streaming demonstrations cannot starve the Step path of every other client.
+    cpu: CpuPool,
 }
 
 impl DinerDashService {
     /// A service over `store`.
     pub fn new(store: Store, metrics: Arc<Metrics>) -> DinerDashService {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         DinerDashService {
             store,
             metrics,
-            rollouts: Arc::new(Semaphore::new(cores)),
+            cpu: CpuPool::per_core(),
         }
     }
 
@@ -367,15 +366,12 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         config.validate().map_err(|e| invalid(e.to_string()))?;
 
         let (tx, rx) = tokio::sync::mpsc::channel(ROLLOUT_BUFFER);
-        let permits = Arc::clone(&self.rollouts);
+        let cpu = self.cpu.clone();
         let metrics = Arc::clone(&self.metrics);
         let masks = r.action_masks;
         let seeds = r.seeds;
         tokio::spawn(async move {
-            let Ok(_permit) = permits.acquire_owned().await else {
-                return;
-            };
-            let work = tokio::task::spawn_blocking(move || {
+            let work = cpu.run(move || {
                 for seed in seeds {
                     let sent = match rollout::record(policy, config, seed, max_steps, masks) {
                         Ok(rec) => {

@@ -1,0 +1,131 @@
+//! The bounded pool for CPU-heavy work: Rollout episodes and planner decisions. Such work runs on
+//! tokio's blocking threads, never on the async workers that serve Step and Reset, and at most
+//! `workers` jobs run at once, so a flood of heavy requests queues here instead of starving
+//! every other client.
+
+use std::sync::Arc;
+
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+
+/// Why a job did not run to completion.
+#[derive(Debug, thiserror::Error)]
+pub enum CpuError {
+    /// The pool was closed (the server is shutting down).
+    #[error("the server is shutting down")]
+    Closed,
+    /// The job panicked; the panic was caught on its blocking thread.
+    #[error("a worker failed: {0}")]
+    Failed(String),
+}
+
+/// A bounded pool of blocking workers. Cloning is shallow: every clone shares the same permits.
+#[derive(Debug, Clone)]
+pub struct CpuPool {
+    /// One permit per job allowed to run at once.
+    permits: Arc<Semaphore>,
+    /// The number of permits, for reports.
+    workers: usize,
+}
+
+impl CpuPool {
+    /// A pool running at most `workers` jobs at once (at least one).
+    pub fn new(workers: usize) -> CpuPool {
+        let workers = workers.max(1);
+        CpuPool {
+            permits: Arc::new(Semaphore::new(workers)),
+            workers,
+        }
+    }
+
+    /// A pool of one worker per core.
+    pub fn per_core() -> CpuPool {
+        CpuPool::new(std::thread::available_parallelism().map_or(1, |n| n.get()))
+    }
+
+    /// How many jobs may run at once.
+    pub fn workers(&self) -> usize {
+        self.workers
+    }
+
+    /// Waits for a free worker. Holding the permit is what reserves the worker: pass it into
+    /// [`CpuPool::run_with`], or keep it across several blocking jobs.
+    pub async fn acquire(&self) -> Result<OwnedSemaphorePermit, CpuError> {
+        Arc::clone(&self.permits)
+            .acquire_owned()
+            .await
+            .map_err(|_| CpuError::Closed)
+    }
+
+    /// Runs `job` on a blocking thread once a worker is free, and returns its result. When the
+    /// caller stops waiting (a cancelled request), a job already running finishes and releases
+    /// its worker; one still queued never starts.
+    pub async fn run<F, R>(&self, job: F) -> Result<R, CpuError>
+    where
+        F: FnOnce() -> R + Send + 'static,
+        R: Send + 'static,
+    {
+        let permit = self.acquire().await?;
+        CpuPool::run_with(permit, job).await
+    }
+
+    /// Runs `job` on a blocking thread under a permit already taken from [`CpuPool::acquire`];
+    /// the permit is released when the job ends.
+    pub async fn run_with<F, R>(permit: OwnedSemaphorePermit, job: F) -> Result<R, CpuError>
+    where
+        F: FnOnce() -> R + Send + 'static,
+        R: Send + 'static,
+    {
+        tokio::task::spawn_blocking(move || {
+            let result = job();
+            drop(permit);
+            result
+        })
+        .await
+        .map_err(|e| CpuError::Failed(e.to_string()))
+    }
+
+    /// Refuses every job not yet running (on shutdown).
+    pub fn close(&self) {
+        self.permits.close();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn never_runs_more_jobs_than_workers() {
+        let pool = CpuPool::new(2);
+        let running = Arc::new(AtomicUsize::new(0));
+        let most = Arc::new(AtomicUsize::new(0));
+        let jobs = (0..8).map(|_| {
+            let (pool, running, most) = (pool.clone(), running.clone(), most.clone());
+            tokio::spawn(async move {
+                pool.run(move || {
+                    let now = running.fetch_add(1, Ordering::SeqCst) + 1;
+                    most.fetch_max(now, Ordering::SeqCst);
+                    std::thread::sleep(std::time::Duration::from_millis(5));
+                    running.fetch_sub(1, Ordering::SeqCst);
+                })
+                .await
+            })
+        });
+        for job in jobs.collect::<Vec<_>>() {
+            job.await.unwrap().unwrap();
+        }
+        assert!(most.load(Ordering::SeqCst) <= 2);
+    }
+
+    #[tokio::test]
+    async fn a_closed_pool_refuses_and_a_panic_is_an_error() {
+        let pool = CpuPool::new(1);
+        assert!(matches!(
+            pool.run(|| panic!("boom")).await,
+            Err(CpuError::Failed(_))
+        ));
+        pool.close();
+        assert!(matches!(pool.run(|| 1).await, Err(CpuError::Closed)));
+    }
+}
