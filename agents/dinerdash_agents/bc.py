@@ -29,8 +29,8 @@ class BCConfig:
     hidden: int = 512
     dropout: float = 0.2
     loss: str = "masked"  # "masked" | "plain"
-    epochs: int = 30
-    batch_size: int = 256
+    epochs: int = 10
+    batch_size: int = 512
     learning_rate: float = 1e-3
 
     def to_json(self) -> dict:

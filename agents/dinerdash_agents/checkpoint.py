@@ -83,6 +83,7 @@ def save(directory: str | Path, model: Any, description: dict[str, Any]) -> Path
     description = {"format": FORMAT, "format_version": FORMAT_VERSION, **description}
     tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
     try:
+        tmp.chmod(0o755)  # mkdtemp's 0700 would make a committed checkpoint private
         eqx.tree_serialise_leaves(tmp / PARAMETERS, model)
         (tmp / DESCRIPTION).write_text(json.dumps(description, indent=2) + "\n")
         if directory.exists():

@@ -197,10 +197,10 @@ def factor_cells(obs: jax.Array, mask: jax.Array) -> jax.Array:
 class DPGMConfig:
     reweight_hidden: int = 512
     loss: str = "masked"  # "masked" | "plain": the softmax of stages 2 and 3
-    graph_epochs: int = 3
-    reweight_epochs: int = 10
-    finetune_epochs: int = 10
-    batch_size: int = 256
+    graph_epochs: int = 2
+    reweight_epochs: int = 5
+    finetune_epochs: int = 5
+    batch_size: int = 512
     graph_learning_rate: float = 0.05
     learning_rate: float = 1e-3
     finetune_learning_rate: float = 3e-4

@@ -223,11 +223,6 @@ def _figure(r: dict[str, Any], path: Path) -> None:
     names = ["expert"] + [row["name"] for row in r["agents"]] + ["random"]
     ours = [r["expert"]["mean"]] + [row["mean"] for row in r["agents"]] + [r["random"]["mean"]]
     paper = [PAPER_EXPERT] + [row["paper"] for row in r["agents"]] + [PAPER_RANDOM]
-    # The paper's Fig. 5 has one BC bar per data size: its plain-loss variant.
-    paper = [
-        None if (n.startswith("bc-") and "plain" not in n) else p
-        for n, p in zip(names, paper, strict=True)
-    ]
     y = np.arange(len(names))[::-1]
     fig, ax = plt.subplots(figsize=(8, 0.55 * len(names) + 1.2), dpi=110)
     ax.barh(y + 0.2, ours, height=0.4, color="#3b7dd8", label="ours (seeds 1000..1099)")

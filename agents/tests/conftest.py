@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="session", autouse=True)
 def server_address() -> Iterator[str]:
+    """Started first (autouse): forking the server after JAX has started its threads is unsafe."""
     from dinerdash.server import LocalServer
 
     for key in ("DINERDASH_AUTH_TOKEN", "DINERDASH_ADDRESS"):
