@@ -36,7 +36,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: {args.algorithm} ({config.loss} loss) on {data['episodes']} episodes "
-        f"({data['steps']} steps) of {args.demos} in {training['seconds']:.1f} s"
+        f"({data['steps']} steps) of {args.demos} in {training['seconds']:.1f} s "
+        f"({training['cpu_seconds']:.1f} s of CPU)"
     )
     return 0
 

@@ -149,6 +149,7 @@ def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
                     "paper_fraction": None if agent.paper is None else agent.paper / PAPER_EXPERT,
                     "fraction": result["mean"] / expert["mean"],
                     "training_seconds": description["training"]["seconds"],
+                    "training_cpu_seconds": description["training"]["cpu_seconds"],
                     "training_steps": description["data"]["steps"],
                     **result,
                 }
@@ -157,7 +158,12 @@ def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
         "command": "python -m dinerdash_agents paper --out docs/results",
         "demonstrations": {"file": demos.name, "seeds": f"0..{DEMO_EPISODES - 1}"},
         "evaluation": {"seeds": f"{EVAL_SEED}..{EVAL_SEED + EVAL_EPISODES - 1}"},
-        "machine": {"cores": os.cpu_count(), "python": platform.python_version()},
+        "machine": {
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            # Other work on the machine slows the wall-clock training times down.
+            "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
+        },
         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
         "expert": expert,
         "random": {**random, "paper": PAPER_RANDOM, "fraction": random["mean"] / expert["mean"]},
@@ -184,7 +190,9 @@ def _markdown(r: dict[str, Any]) -> str:
         f"Demonstrations: expert episodes of seeds {r['demonstrations']['seeds']} (the first 274 "
         f"or the first 70 of them). Evaluation: {EVAL_EPISODES} unseen seeds "
         f"{r['evaluation']['seeds']}, greedy actions, final score per episode. Fractions are of "
-        "the expert's mean on the same seeds (the paper's of its expert's 9,921).",
+        "the expert's mean on the same seeds (the paper's of its expert's 9,921). Training: wall "
+        "clock, and CPU seconds of all threads in brackets; the 1-minute load average was "
+        f"{r['machine']['load_average_at_end'][0]} at the end of the run.",
         "",
         "| agent | paper | paper / expert | ours (mean ± sd) | ours / expert | training |",
         "|---|---:|---:|---:|---:|---:|",
@@ -196,7 +204,7 @@ def _markdown(r: dict[str, Any]) -> str:
         lines.append(
             f"| `{row['name']}`: {row['label']} | {paper} | {_pct(row['paper_fraction'])} "
             f"| {row['mean']:,.1f} ± {row['sd']:,.1f} | {_pct(row['fraction'])} "
-            f"| {row['training_seconds']:.1f} s |"
+            f"| {row['training_seconds']:.1f} s ({row['training_cpu_seconds']:.1f} s) |"
         )
     rnd = r["random"]
     lines.append(
