@@ -51,13 +51,6 @@ class Policy:
         self.algorithm: str = description["algorithm"]
         self.name: str = description.get("name", self.algorithm)
 
-        @eqx.filter_jit
-        def greedy(model, obs, mask, use_mask):
-            logits = model(obs, mask)
-            return jnp.argmax(masked_logits(logits, mask if use_mask else None), axis=-1)
-
-        self._greedy = greedy
-
     def act(self, obs: Any, action_mask: Any | None = None) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float32)
         single = obs.ndim == 1
@@ -70,10 +63,17 @@ class Policy:
             mask = np.asarray(action_mask, dtype=np.bool_).reshape(obs.shape[0], NUM_ACTIONS)
         else:
             mask = np.ones((obs.shape[0], NUM_ACTIONS), dtype=np.bool_)
-        actions = np.asarray(self._greedy(self.model, obs, mask, use_mask), dtype=np.int64)
+        actions = np.asarray(_greedy(self.model, obs, mask, use_mask), dtype=np.int64)
         return actions[0] if single else actions
 
     __call__ = act
+
+
+@eqx.filter_jit
+def _greedy(model: Any, obs: jax.Array, mask: jax.Array, use_mask: bool) -> jax.Array:
+    # One jitted function for every policy: models of the same shape share its compilation.
+    logits = model(obs, mask)
+    return jnp.argmax(masked_logits(logits, mask if use_mask else None), axis=-1)
 
 
 def save(directory: str | Path, model: Any, description: dict[str, Any]) -> Path:

@@ -54,58 +54,73 @@ MAX_ARITY = 3
 
 # ---- the sub-state variables (all discrete), read from the observation and the action mask ----
 
-#: name -> number of values; the order is the column order of :func:`sub_state`.
-VARIABLES: dict[str, int] = {"none": 1}
-for _t in range(1, TABLES + 1):
-    VARIABLES[f"status{_t}"] = 7  # 0 free .. 6 waiting for the bill
-    VARIABLES[f"table_patience{_t}"] = 6  # P div 200 of the seated group, -1..4 shifted to 0..5
-    VARIABLES[f"capacity{_t}"] = 7
-    VARIABLES[f"food_ready{_t}"] = 2  # the table's food is on a counter
-    VARIABLES[f"food_in_hand{_t}"] = 2
-for _g in range(1, QUEUE + 1):
-    VARIABLES[f"group_waiting{_g}"] = 2
-    VARIABLES[f"group_size{_g}"] = 7
-    VARIABLES[f"group_patience{_g}"] = 5  # P div 200, 0..4
-VARIABLES["hand_items"] = 3
-VARIABLES["hand_orders"] = 3
-VARIABLES["hand_dishes"] = 3
-for _a in range(NUM_ACTIONS):
-    VARIABLES[f"legal{_a}"] = 2  # the action's preconditions hold (docs/rules.md section 7)
-VARIABLES["legal_others"] = 5  # legal actions other than wait, 4 meaning 4 or more
-VARIABLES["legal_tables"] = 4  # legal go-to-table actions, 3 meaning 3 or more
-VARIABLES["legal_seats"] = 4  # legal seating actions, 3 meaning 3 or more
+#: (family, how many, values): the variables in the column order of :func:`sub_state`, which
+#: computes each family as one block (one array operation rather than one per column).
+_FAMILIES: list[tuple[str, int, int]] = [
+    ("none", 1, 1),
+    ("status", TABLES, 7),  # 0 free .. 6 waiting for the bill
+    ("table_patience", TABLES, 6),  # P div 200 of the seated group, -1..4 shifted to 0..5
+    ("capacity", TABLES, 7),
+    ("food_ready", TABLES, 2),  # the table's food is on a counter
+    ("food_in_hand", TABLES, 2),
+    ("group_waiting", QUEUE, 2),
+    ("group_size", QUEUE, 7),
+    ("group_patience", QUEUE, 5),  # P div 200, 0..4
+    ("hand_items", 1, 3),
+    ("hand_orders", 1, 3),
+    ("hand_dishes", 1, 3),
+    ("legal", NUM_ACTIONS, 2),  # the action's preconditions hold (docs/rules.md section 7)
+    ("legal_others", 1, 5),  # legal actions other than wait, 4 meaning 4 or more
+    ("legal_tables", 1, 4),  # legal go-to-table actions, 3 meaning 3 or more
+    ("legal_seats", 1, 4),  # legal seating actions, 3 meaning 3 or more
+]
+
+#: name -> number of values, in column order: tables and groups numbered from 1 ("status3",
+#: "group_size1"), actions from 0 ("legal15").
+VARIABLES: dict[str, int] = {}
+for _family, _count, _values in _FAMILIES:
+    if _count == 1:
+        VARIABLES[_family] = _values
+    else:
+        _first = 0 if _family == "legal" else 1
+        for _i in range(_first, _first + _count):
+            VARIABLES[f"{_family}{_i}"] = _values
 _COLUMN = {name: i for i, name in enumerate(VARIABLES)}
+_CARDINALITIES = np.array(list(VARIABLES.values()), np.int32)
 
 
 def sub_state(obs: jax.Array, mask: jax.Array) -> jax.Array:
     """Every sub-state variable of a batch, (B, len(VARIABLES)) int32, clipped to its range."""
     o = jnp.round(obs).astype(jnp.int32)
     m = mask.astype(jnp.int32)
-    b = o.shape[0]
     hands = o[:, 38:40]
-    cols: dict[str, jax.Array] = {"none": jnp.zeros(b, jnp.int32)}
-    for t in range(1, TABLES + 1):
-        base = 3 * (t - 1)
-        cols[f"status{t}"] = o[:, base]
-        cols[f"table_patience{t}"] = o[:, base + 2] + 1
-        cols[f"capacity{t}"] = o[:, base + 1]
-        cols[f"food_ready{t}"] = o[:, 18 + t - 1]
-        cols[f"food_in_hand{t}"] = jnp.any(hands == 6 + t, axis=1).astype(jnp.int32)
-    for g in range(1, QUEUE + 1):
-        size = o[:, 25 + 2 * (g - 1)]
-        cols[f"group_waiting{g}"] = (size > 0).astype(jnp.int32)
-        cols[f"group_size{g}"] = size
-        cols[f"group_patience{g}"] = o[:, 24 + 2 * (g - 1)]
-    cols["hand_items"] = jnp.sum(hands > 0, axis=1)
-    cols["hand_orders"] = jnp.sum((hands >= 1) & (hands <= 6), axis=1)
-    cols["hand_dishes"] = jnp.sum(hands >= 13, axis=1)
-    for a in range(NUM_ACTIONS):
-        cols[f"legal{a}"] = m[:, a]
-    cols["legal_others"] = jnp.sum(m[:, 1:], axis=1)
-    cols["legal_tables"] = jnp.sum(m[:, 1:7], axis=1)
-    cols["legal_seats"] = jnp.sum(m[:, 15:], axis=1)
-    cards = jnp.asarray(list(VARIABLES.values()), jnp.int32)
-    return jnp.clip(jnp.stack([cols[name] for name in VARIABLES], axis=1), 0, cards - 1)
+    tables = o[:, :18].reshape(-1, TABLES, 3)  # status, capacity, patience level
+    queue = o[:, 24:38].reshape(-1, QUEUE, 2)  # patience level, size
+    in_hand = hands[:, None, :] == 7 + jnp.arange(TABLES)[None, :, None]  # food(t) is 6 + t
+
+    def one(x: jax.Array) -> jax.Array:
+        return x[:, None]
+
+    blocks = {
+        "none": jnp.zeros_like(o[:, :1]),
+        "status": tables[:, :, 0],
+        "table_patience": tables[:, :, 2] + 1,
+        "capacity": tables[:, :, 1],
+        "food_ready": o[:, 18:24],
+        "food_in_hand": jnp.any(in_hand, axis=2).astype(jnp.int32),
+        "group_waiting": (queue[:, :, 1] > 0).astype(jnp.int32),
+        "group_size": queue[:, :, 1],
+        "group_patience": queue[:, :, 0],
+        "hand_items": one(jnp.sum(hands > 0, axis=1)),
+        "hand_orders": one(jnp.sum((hands >= 1) & (hands <= 6), axis=1)),
+        "hand_dishes": one(jnp.sum(hands >= 13, axis=1)),
+        "legal": m,
+        "legal_others": one(jnp.sum(m[:, 1:], axis=1)),
+        "legal_tables": one(jnp.sum(m[:, 1:7], axis=1)),
+        "legal_seats": one(jnp.sum(m[:, 15:], axis=1)),
+    }
+    x = jnp.concatenate([blocks[family] for family, _, _ in _FAMILIES], axis=1)
+    return jnp.clip(x, 0, jnp.asarray(_CARDINALITIES) - 1)
 
 
 # ---- the factors of every action ----
