@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVER := target/release/dinerdash-server
 
-.PHONY: serve build build-server test test-rust test-python lint bench docker-smoke venv clean
+.PHONY: serve build build-server test test-rust test-python test-agents lint bench docker-smoke venv clean
 
 ## Start the gRPC server on port 50051 (Ctrl-C stops it).
 serve:
@@ -19,16 +19,17 @@ build-server:
 build: build-server
 	cargo build --release --locked --workspace --all-targets
 
-$(VENV)/.installed: client-py/pyproject.toml
+$(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'client-py[dev]'
+	$(PY) -m pip install --quiet -e 'client-py[dev]' -e 'agents[dev]'
 	touch $@
 
 venv: $(VENV)/.installed
 
-## Every test: Rust unit, property, conformance and gRPC tests, then the Python end-to-end tests.
-test: test-rust test-python
+## Every test: Rust unit, property, conformance and gRPC tests, the Python end-to-end tests, then
+## the agents' tests (BC and DPGM against a local server).
+test: test-rust test-python test-agents
 
 test-rust: build
 	cargo test --release --workspace
@@ -36,11 +37,14 @@ test-rust: build
 test-python: build venv
 	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m pytest -q tests
 
+test-agents: build-server venv
+	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m pytest -q agents/tests
+
 lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
-	$(VENV)/bin/ruff check client-py tests
-	$(VENV)/bin/ruff format --check client-py tests
+	$(VENV)/bin/ruff check client-py tests agents
+	$(VENV)/bin/ruff format --check client-py tests agents
 
 ## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench.
 bench: build venv

@@ -1,0 +1,34 @@
+"""The DinerDash Gym paper's imitation agents in JAX: behaviour cloning and DPGM.
+
+::
+
+    import gymnasium, dinerdash_agents
+    policy = dinerdash_agents.load("docs/results/checkpoints/dpgm-274")
+    envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=8)
+    obs, info = envs.reset(seed=1000)
+    obs, reward, terminated, truncated, info = envs.step(policy.act(obs, info["action_mask"]))
+
+Layout:
+    demos       reading and slicing ``python -m dinerdash collect``'s demonstrations
+    training    the (masked) cross-entropy and the jitted minibatch loop both agents use
+    bc          behaviour cloning: two FC layers with dropout between
+    dpgm        DPGM: a factor graph per action, re-weighting layers, end-to-end fine-tuning
+    checkpoint  saving and loading checkpoint directories; the Policy that load() returns
+    play        playing a policy through the client's vector env, printing as dinerdash does
+    paper       the paper's experiment end to end: results.md, results.json, the bar chart
+    cli         ``python -m dinerdash_agents`` (train, evaluate, paper)
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .checkpoint import Policy, load
+from .errors import AgentsError, CheckpointError, DemosError
+
+try:
+    __version__ = version("dinerdash-agents")
+except PackageNotFoundError:  # running from a source tree without installing
+    __version__ = "0.0.0"
+
+__all__ = ["AgentsError", "CheckpointError", "DemosError", "Policy", "load"]

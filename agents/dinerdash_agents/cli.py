@@ -1,0 +1,170 @@
+"""``python -m dinerdash_agents`` (also ``dinerdash-agents``): train, evaluate, and the paper's
+experiment end to end.
+
+::
+
+    python -m dinerdash_agents train bc --demos demos/dinerdash_expert.npz --out runs/bc
+    python -m dinerdash_agents evaluate runs/bc --episodes 100 --seed 1000 --json
+    python -m dinerdash_agents paper --out docs/results
+
+Every command that talks to a server takes ``--address host:port`` (several separated by
+commas); without it (and without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started
+and stopped, as in ``python -m dinerdash``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+__all__ = ["main"]
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .run import default_config, train_checkpoint
+
+    config = default_config(args.algorithm, epochs=args.epochs, loss=args.loss)
+    _, description = train_checkpoint(
+        args.algorithm,
+        args.demos,
+        args.out,
+        episodes=args.episodes,
+        seed=args.seed,
+        config=config,
+    )
+    data, training = description["data"], description["training"]
+    print(
+        f"wrote {args.out}: {args.algorithm} ({config.loss} loss) on {data['episodes']} episodes "
+        f"({data['steps']} steps) of {args.demos} in {training['seconds']:.1f} s "
+        f"({training['cpu_seconds']:.1f} s of CPU)"
+    )
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from dinerdash.cli import Progress
+
+    from .checkpoint import load
+    from .play import evaluate_policy, print_evaluation, timed
+
+    policy = load(args.checkpoint)
+    if args.episodes < 1:
+        print("error: --episodes must be at least 1", file=sys.stderr)
+        return 2
+    progress = Progress(args.episodes, policy.name)
+    scores, lengths, elapsed = timed(
+        lambda: evaluate_policy(
+            policy.act,
+            args.episodes,
+            seed=args.seed,
+            address=args.address,
+            num_envs=args.num_envs,
+            max_steps=args.max_steps,
+            use_mask=not args.no_mask,
+            progress=progress,
+        )
+    )
+    progress.close()
+    name = policy.name + (" (no mask)" if args.no_mask else "")
+    print_evaluation(
+        name,
+        scores,
+        lengths,
+        seed=args.seed,
+        num_envs=args.num_envs,
+        elapsed=elapsed,
+        as_json=args.json,
+    )
+    return 0
+
+
+def _cmd_paper(args: argparse.Namespace) -> int:
+    from .paper import run_paper
+
+    run_paper(args.out, address=args.address, demos=args.demos, seed=args.seed)
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m dinerdash_agents", description=__doc__.splitlines()[0]
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def address(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--address",
+            help="server host:port, several separated by commas (default: DINERDASH_ADDRESS, "
+            "else a local server is started)",
+        )
+
+    p = sub.add_parser("train", help="train an agent on expert demonstrations")
+    p.add_argument("algorithm", choices=["bc", "dpgm"])
+    p.add_argument(
+        "--demos", required=True, help="the .npz written by `python -m dinerdash collect`"
+    )
+    p.add_argument(
+        "--episodes", type=int, default=None, help="train on the first K episodes (default: all)"
+    )
+    p.add_argument("--out", required=True, help="checkpoint directory to write")
+    p.add_argument("--seed", type=int, default=0, help="initialisation and shuffling seed")
+    p.add_argument(
+        "--epochs", type=int, default=None, help="epochs (of every stage, for dpgm); default: tuned"
+    )
+    p.add_argument(
+        "--loss",
+        choices=["masked", "plain"],
+        default="masked",
+        help="masked: softmax over the legal actions of each step; plain: over all 57 "
+        "(the paper's)",
+    )
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate", help="mean ± sd score of a checkpoint over seeded episodes")
+    p.add_argument("checkpoint", help="checkpoint directory")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the first episode (episode i: seed + i)"
+    )
+    p.add_argument(
+        "--max-steps", type=int, default=100_000, help="truncate an episode after this many steps"
+    )
+    p.add_argument("--num-envs", type=int, default=64, help="environments stepped together")
+    p.add_argument("--json", action="store_true", help="also print the per-episode scores as JSON")
+    p.add_argument(
+        "--no-mask", action="store_true", help="greedy over all 57 actions, not the legal ones"
+    )
+    address(p)
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser(
+        "paper", help="the paper's experiment: collect, train every agent, evaluate, report"
+    )
+    p.add_argument("--out", required=True, help="results directory (e.g. docs/results)")
+    p.add_argument(
+        "--demos",
+        default=None,
+        help="use this demonstrations file instead of collecting seeds 0..273 again",
+    )
+    p.add_argument("--seed", type=int, default=0, help="training seed of every agent")
+    address(p)
+    p.set_defaults(func=_cmd_paper)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if getattr(args, "address", None) and "," in args.address:
+        args.address = [a for a in args.address.split(",") if a]
+    from dinerdash.errors import LocalServerError, ServiceError
+
+    from .errors import AgentsError
+
+    try:
+        return args.func(args)
+    except (AgentsError, ServiceError, LocalServerError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130

@@ -1,0 +1,257 @@
+"""The paper's experiment end to end (``python -m dinerdash_agents paper --out docs/results``):
+collect the 274 expert demonstrations (seeds 0..273), train every agent on the first 274 and the
+first 70 episodes, evaluate each, the random policy and the expert on the 100 unseen seeds
+1000..1099, and write ``results.md``, ``results.json``, ``results.png`` (Fig. 5's bars, paper
+beside ours) and the checkpoints under ``checkpoints/<name>/``."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["AGENTS", "EVAL_EPISODES", "EVAL_SEED", "run_paper"]
+
+DEMO_EPISODES = 274
+EVAL_SEED = 1000
+EVAL_EPISODES = 100
+#: Fig. 5 of the paper (average score over 100 episodes) and its expert.
+PAPER_EXPERT = 9921.0
+PAPER_RANDOM = -1245.8
+
+
+@dataclass(frozen=True)
+class Agent:
+    name: str
+    algorithm: str
+    episodes: int
+    loss: str
+    paper: float | None  # the paper's Fig. 5 value, where it has one
+
+    @property
+    def label(self) -> str:
+        loss = "plain cross-entropy" if self.loss == "plain" else "cross-entropy over legal actions"
+        what = "BC" if self.algorithm == "bc" else "DPGM"
+        return f"{what}, {self.episodes} demos, {loss}"
+
+
+AGENTS = [
+    Agent("dpgm-274", "dpgm", 274, "masked", 9608.1),
+    Agent("bc-274", "bc", 274, "masked", 7791.2),
+    Agent("bc-plain-274", "bc", 274, "plain", 7791.2),
+    Agent("dpgm-70", "dpgm", 70, "masked", 7064.3),
+    Agent("bc-70", "bc", 70, "masked", 6343.8),
+    Agent("bc-plain-70", "bc", 70, "plain", 6343.8),
+]
+
+
+def run_paper(
+    out: str | Path,
+    *,
+    address: str | list[str] | None = None,
+    demos: str | Path | None = None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    from dinerdash.server import LocalServer
+
+    server = None
+    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
+        # Started before any JAX work: forking a process with JAX's threads running is unsafe.
+        server = LocalServer()
+        address = server.address
+    try:
+        with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
+            if demos is None:
+                demos = _collect(Path(tmp), address)
+            return _experiment(out, Path(demos), address, seed)
+    finally:
+        if server is not None:
+            server.stop()
+
+
+def _collect(directory: Path, address: str | list[str]) -> Path:
+    from dinerdash.cli import main as dinerdash_main
+
+    from .errors import AgentsError
+
+    addr = address if isinstance(address, str) else ",".join(address)
+    argv = ["collect", "--episodes", str(DEMO_EPISODES), "--seed", "0", "--out", str(directory)]
+    if dinerdash_main([*argv, "--address", addr]) != 0:
+        raise AgentsError("collecting the expert demonstrations failed (see above)")
+    return directory / "dinerdash_expert.npz"
+
+
+def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
+    from dinerdash.cli import Progress, evaluate_through_env
+
+    from .play import evaluate_policy
+    from .run import default_config, train_checkpoint
+
+    rows: list[dict[str, Any]] = []
+
+    def evaluate(name: str, fn) -> dict[str, Any]:
+        progress = Progress(EVAL_EPISODES, f"evaluate {name}")
+        scores, lengths = fn(progress)
+        progress.close()
+        return {
+            "scores": [int(s) for s in scores],
+            "lengths": [int(x) for x in lengths],
+            "mean": float(np.mean(scores)),
+            "sd": float(np.std(scores)),
+            "mean_length": float(np.mean(lengths)),
+        }
+
+    common = {"seed": EVAL_SEED, "address": address, "num_envs": EVAL_EPISODES}
+    expert = evaluate(
+        "expert", lambda p: evaluate_through_env("expert", EVAL_EPISODES, progress=p, **common)
+    )
+    random = evaluate(
+        "random", lambda p: evaluate_through_env("random", EVAL_EPISODES, progress=p, **common)
+    )
+    for agent in AGENTS:
+        config = default_config(agent.algorithm, loss=agent.loss)
+        policy, description = train_checkpoint(
+            agent.algorithm,
+            demos,
+            out / "checkpoints" / agent.name,
+            episodes=agent.episodes,
+            seed=seed,
+            config=config,
+            name=agent.name,
+        )
+        masks = [True, False] if agent.loss == "plain" else [True]
+        for use_mask in masks:
+            name = agent.name + ("" if use_mask else " (no mask)")
+            result = evaluate(
+                name,
+                lambda p, m=use_mask, act=policy.act: evaluate_policy(
+                    act, EVAL_EPISODES, progress=p, use_mask=m, **common
+                ),
+            )
+            rows.append(
+                {
+                    "name": name,
+                    "label": agent.label + ("" if use_mask else ", greedy over all 57"),
+                    "algorithm": agent.algorithm,
+                    "episodes": agent.episodes,
+                    "loss": agent.loss,
+                    "greedy_over": "legal actions" if use_mask else "all 57 actions",
+                    "paper": agent.paper,
+                    "paper_fraction": None if agent.paper is None else agent.paper / PAPER_EXPERT,
+                    "fraction": result["mean"] / expert["mean"],
+                    "training_seconds": description["training"]["seconds"],
+                    "training_cpu_seconds": description["training"]["cpu_seconds"],
+                    "training_steps": description["data"]["steps"],
+                    **result,
+                }
+            )
+    results = {
+        "command": "python -m dinerdash_agents paper --out docs/results",
+        "demonstrations": {"file": demos.name, "seeds": f"0..{DEMO_EPISODES - 1}"},
+        "evaluation": {"seeds": f"{EVAL_SEED}..{EVAL_SEED + EVAL_EPISODES - 1}"},
+        "machine": {
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+            # Other work on the machine slows the wall-clock training times down.
+            "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
+        },
+        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+        "expert": expert,
+        "random": {**random, "paper": PAPER_RANDOM, "fraction": random["mean"] / expert["mean"]},
+        "agents": rows,
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / "results.md").write_text(_markdown(results))
+    _figure(results, out / "results.png")
+    print(f"wrote {out / 'results.md'}, {out / 'results.json'}, {out / 'results.png'}")
+    print((out / "results.md").read_text())
+    return results
+
+
+def _pct(x: float | None) -> str:
+    return "" if x is None else f"{100 * x:.1f} %"
+
+
+def _markdown(r: dict[str, Any]) -> str:
+    e = r["expert"]
+    lines = [
+        "# The paper's Fig. 5, reproduced",
+        "",
+        f"Written by `{r['command']}` on {r['date_utc']} UTC ({r['machine']['cores']} cores). "
+        f"Demonstrations: expert episodes of seeds {r['demonstrations']['seeds']} (the first 274 "
+        f"or the first 70 of them). Evaluation: {EVAL_EPISODES} unseen seeds "
+        f"{r['evaluation']['seeds']}, greedy actions, final score per episode. Fractions are of "
+        "the expert's mean on the same seeds (the paper's of its expert's 9,921). Training: wall "
+        "clock, and CPU seconds of all threads in brackets; the 1-minute load average was "
+        f"{r['machine']['load_average_at_end'][0]} at the end of the run.",
+        "",
+        "| agent | paper | paper / expert | ours (mean ± sd) | ours / expert | training |",
+        "|---|---:|---:|---:|---:|---:|",
+        f"| reference expert | {PAPER_EXPERT:,.1f} | 100.0 % | {e['mean']:,.1f} ± {e['sd']:,.1f} "
+        "| 100.0 % | |",
+    ]
+    for row in r["agents"]:
+        paper = "" if row["paper"] is None else f"{row['paper']:,.1f}"
+        lines.append(
+            f"| `{row['name']}`: {row['label']} | {paper} | {_pct(row['paper_fraction'])} "
+            f"| {row['mean']:,.1f} ± {row['sd']:,.1f} | {_pct(row['fraction'])} "
+            f"| {row['training_seconds']:.1f} s ({row['training_cpu_seconds']:.1f} s) |"
+        )
+    rnd = r["random"]
+    lines.append(
+        f"| random | {PAPER_RANDOM:,.1f} | {_pct(PAPER_RANDOM / PAPER_EXPERT)} "
+        f"| {rnd['mean']:,.1f} ± {rnd['sd']:,.1f} | {_pct(rnd['fraction'])} | |"
+    )
+    by = {row["name"]: row for row in r["agents"]}
+    lines += ["", "Paper's ordering, DPGM above BC (both with the loss over legal actions):"]
+    for k in (274, 70):
+        d, b = by[f"dpgm-{k}"], by[f"bc-{k}"]
+        verdict = "yes" if d["mean"] > b["mean"] else "no"
+        lines.append(
+            f"- {k} demonstrations: DPGM {d['mean']:,.1f} vs BC {b['mean']:,.1f}: {verdict}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _figure(r: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = ["expert"] + [row["name"] for row in r["agents"]] + ["random"]
+    ours = [r["expert"]["mean"]] + [row["mean"] for row in r["agents"]] + [r["random"]["mean"]]
+    paper = [PAPER_EXPERT] + [row["paper"] for row in r["agents"]] + [PAPER_RANDOM]
+    y = np.arange(len(names))[::-1]
+    fig, ax = plt.subplots(figsize=(8, 0.55 * len(names) + 1.2), dpi=110)
+    ax.barh(y + 0.2, ours, height=0.4, color="#3b7dd8", label="ours (seeds 1000..1099)")
+    ax.barh(
+        y - 0.2,
+        [0 if p is None else p for p in paper],
+        height=0.4,
+        color="#bbbbbb",
+        label="paper, Fig. 5",
+    )
+    for yi, v in zip(y, ours, strict=True):
+        ax.text(max(v, 0) + 80, yi + 0.2, f"{v:,.0f}", va="center", fontsize=8)
+    for yi, v in zip(y, paper, strict=True):
+        if v is not None:
+            ax.text(max(v, 0) + 80, yi - 0.2, f"{v:,.1f}", va="center", fontsize=8, color="#555")
+    ax.set_yticks(y, names)
+    ax.axvline(0, color="black", linewidth=0.8)
+    ax.set_xlabel("average score over 100 episodes")
+    ax.set_title("DinerDash: final performance (Fig. 5 style)")
+    ax.set_xlim(min(min(ours), PAPER_RANDOM) - 500, max(max(ours), PAPER_EXPERT) * 1.15)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

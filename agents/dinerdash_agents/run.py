@@ -1,0 +1,104 @@
+"""One training run: the first K episodes of a demonstrations file -> a trained agent -> a
+checkpoint directory with the description of what was done."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+from dinerdash.cli import Progress
+
+from . import checkpoint
+from .demos import load_demos
+from .errors import AgentsError
+
+__all__ = ["default_config", "train_checkpoint"]
+
+
+def default_config(algorithm: str, *, epochs: int | None = None, loss: str = "masked") -> Any:
+    """The algorithm's default config; ``epochs`` replaces the epochs of every stage."""
+    if algorithm not in checkpoint.ALGORITHMS:
+        raise AgentsError(f"unknown algorithm {algorithm!r} (known: bc, dpgm)")
+    if loss not in ("masked", "plain"):
+        raise AgentsError(f"--loss must be masked or plain, got {loss!r}")
+    if epochs is not None and epochs < 1:
+        raise AgentsError(f"--epochs must be at least 1 (got {epochs})")
+    if algorithm == "bc":
+        from .bc import BCConfig
+
+        config = BCConfig(loss=loss)
+        if epochs is not None:
+            config = dataclasses.replace(config, epochs=epochs)
+    else:
+        from .dpgm import DPGMConfig
+
+        config = DPGMConfig(loss=loss)
+        if epochs is not None:
+            config = dataclasses.replace(
+                config, graph_epochs=epochs, reweight_epochs=epochs, finetune_epochs=epochs
+            )
+    return config
+
+
+def _epochs(config: Any) -> int:
+    if hasattr(config, "epochs"):
+        return config.epochs
+    return config.graph_epochs + config.reweight_epochs + config.finetune_epochs
+
+
+def train_checkpoint(
+    algorithm: str,
+    demos_path: str | Path,
+    out: str | Path,
+    *,
+    episodes: int | None = None,
+    seed: int = 0,
+    config: Any = None,
+    name: str | None = None,
+    progress: bool = True,
+) -> tuple[checkpoint.Policy, dict]:
+    """Trains ``algorithm`` on the first ``episodes`` episodes of ``demos_path`` and writes the
+    checkpoint to ``out`` (atomically); returns the policy and its description."""
+    if config is None:
+        config = default_config(algorithm)
+    demos = load_demos(demos_path, episodes)
+    module = checkpoint.ALGORITHMS[algorithm]
+    bar = Progress(_epochs(config), f"train {name or algorithm}") if progress else None
+    losses_seen: list[float] = []
+
+    def on_epoch(stage: str, epoch: int, loss: float) -> None:
+        losses_seen.append(loss)
+        if bar is not None:
+            bar.update()
+
+    start, cpu_start = time.monotonic(), time.process_time()
+    model, losses = module.train(demos, config, seed=seed, on_epoch=on_epoch)
+    # Wall time depends on what else the machine runs; CPU time (all threads) much less so.
+    seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
+    if bar is not None:
+        bar.close()
+    from . import __version__
+
+    description = {
+        "name": name or Path(out).name,
+        "algorithm": algorithm,
+        "package_version": __version__,
+        "config": config.to_json(),
+        "data": {
+            "demos": Path(demos_path).name,
+            "episodes": demos.episodes,
+            "episodes_in_file": demos.available,
+            "steps": demos.steps,
+            "seeds": None if demos.seeds is None else [int(s) for s in demos.seeds[[0, -1]]],
+        },
+        "training": {
+            "seed": seed,
+            "seconds": round(seconds, 3),
+            "cpu_seconds": round(cpu_seconds, 3),
+            "final_losses": {stage: round(v[-1], 6) for stage, v in losses.items() if v},
+        },
+    }
+    checkpoint.save(out, model, description)
+    return checkpoint.Policy(model, checkpoint.read_description(out)), description
