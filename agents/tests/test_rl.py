@@ -40,15 +40,24 @@ def test_gae_bootstraps_a_truncation_but_not_a_termination():
     np.testing.assert_allclose(np.asarray(returns), np.asarray(adv) + np.asarray(values))
 
 
+def test_sampling_follows_the_probabilities():
+    logits = jnp.log(jnp.array([[0.1, 0.0, 0.6, 0.3]] * 20_000))
+    u = np.random.default_rng(1).random(20_000, dtype=np.float32)
+    actions, logp = ppo.sample_actions(logits, jnp.asarray(u))
+    counts = np.bincount(np.asarray(actions), minlength=4) / 20_000
+    np.testing.assert_allclose(counts, [0.1, 0.0, 0.6, 0.3], atol=0.02)
+    np.testing.assert_allclose(np.exp(np.asarray(logp)), np.array([0.1, 0.0, 0.6, 0.3])[actions])
+
+
 def test_masked_sampling_never_picks_an_illegal_action():
     rng = np.random.default_rng(0)
-    for trial in range(50):
+    for _ in range(50):
         mask = rng.random((64, NUM_ACTIONS)) < rng.uniform(0.02, 0.5)
         mask[:, 0] = True  # waiting is always legal
         logits = jnp.asarray(rng.normal(0, 30, (64, NUM_ACTIONS)), jnp.float32)
-        actions, logp = ppo.sample_actions(
-            jnp.where(mask, logits, ILLEGAL_LOGIT), jax.random.PRNGKey(trial)
-        )
+        u = rng.random(64, dtype=np.float32)
+        u[:4] = [0.0, 0.999999, np.nextafter(np.float32(1), np.float32(0)), 0.5]  # the edges
+        actions, logp = ppo.sample_actions(jnp.where(mask, logits, ILLEGAL_LOGIT), jnp.asarray(u))
         assert mask[np.arange(64), np.asarray(actions)].all()
         assert np.isfinite(np.asarray(logp)).all()
 
