@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import bc, dpgm
+from . import bc, dpgm, ppo
 from .demos import NUM_ACTIONS, OBSERVATION_SIZE
 from .errors import CheckpointError
 from .training import masked_logits
@@ -34,7 +35,13 @@ DESCRIPTION = "checkpoint.json"
 PARAMETERS = "model.eqx"
 
 #: algorithm name -> (module with init/train/config_from_json, its config class)
-ALGORITHMS: dict[str, Any] = {"bc": bc, "dpgm": dpgm}
+ALGORITHMS: dict[str, Any] = {
+    "bc": bc,
+    "dpgm": dpgm,
+    "ppo": ppo,
+    "ppo-masked": ppo,
+    "gail": ppo,
+}
 
 
 class Policy:
@@ -76,8 +83,14 @@ def _greedy(model: Any, obs: jax.Array, mask: jax.Array, use_mask: bool) -> jax.
     return jnp.argmax(masked_logits(logits, mask if use_mask else None), axis=-1)
 
 
-def save(directory: str | Path, model: Any, description: dict[str, Any]) -> Path:
-    """Writes ``model`` and ``description`` to ``directory`` atomically; returns the path."""
+def save(
+    directory: str | Path,
+    model: Any,
+    description: dict[str, Any],
+    extra: Callable[[Path], None] | None = None,
+) -> Path:
+    """Writes ``model`` and ``description`` to ``directory`` atomically; returns the path.
+    ``extra(tmp)`` writes further files into the directory before it is renamed into place."""
     directory = Path(directory)
     directory.parent.mkdir(parents=True, exist_ok=True)
     description = {"format": FORMAT, "format_version": FORMAT_VERSION, **description}
@@ -86,6 +99,8 @@ def save(directory: str | Path, model: Any, description: dict[str, Any]) -> Path
         tmp.chmod(0o755)  # mkdtemp's 0700 would make a committed checkpoint private
         eqx.tree_serialise_leaves(tmp / PARAMETERS, model)
         (tmp / DESCRIPTION).write_text(json.dumps(description, indent=2) + "\n")
+        if extra is not None:
+            extra(tmp)
         if directory.exists():
             old = directory.with_name(f".{directory.name}.old")
             shutil.rmtree(old, ignore_errors=True)

@@ -22,7 +22,15 @@ __all__ = ["main"]
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from .rl import RL_ALGORITHMS
+
+    if args.algorithm in RL_ALGORITHMS:
+        return _cmd_train_rl(args)
+    from .errors import AgentsError
     from .run import default_config, train_checkpoint
+
+    if args.demos is None:
+        raise AgentsError(f"{args.algorithm} needs --demos")
 
     config = default_config(args.algorithm, epochs=args.epochs, loss=args.loss)
     _, description = train_checkpoint(
@@ -38,6 +46,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
         f"wrote {args.out}: {args.algorithm} ({config.loss} loss) on {data['episodes']} episodes "
         f"({data['steps']} steps) of {args.demos} in {training['seconds']:.1f} s "
         f"({training['cpu_seconds']:.1f} s of CPU)"
+    )
+    return 0
+
+
+def _cmd_train_rl(args: argparse.Namespace) -> int:
+    from .rl import train_rl
+
+    trainer = train_rl(
+        args.algorithm,
+        args.steps,
+        args.out,
+        num_envs=args.num_envs,
+        address=args.address,
+        demos=args.demos,
+        seed=args.seed,
+        resume=args.resume,
+    )
+    print(
+        f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
+        f"mean score of the last 100 episodes {trainer.mean_recent_score:.1f}"
     )
     return 0
 
@@ -82,7 +110,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_paper(args: argparse.Namespace) -> int:
     from .paper import run_paper
 
-    run_paper(args.out, address=args.address, demos=args.demos, seed=args.seed)
+    run_paper(
+        args.out, address=args.address, demos=args.demos, seed=args.seed, rl_steps=args.rl_steps
+    )
     return 0
 
 
@@ -99,10 +129,13 @@ def _parser() -> argparse.ArgumentParser:
             "else a local server is started)",
         )
 
-    p = sub.add_parser("train", help="train an agent on expert demonstrations")
-    p.add_argument("algorithm", choices=["bc", "dpgm"])
+    p = sub.add_parser(
+        "train", help="train an agent: on expert demonstrations (bc, dpgm) or on the server (RL)"
+    )
+    p.add_argument("algorithm", choices=["bc", "dpgm", "ppo", "ppo-masked", "gail"])
     p.add_argument(
-        "--demos", required=True, help="the .npz written by `python -m dinerdash collect`"
+        "--demos",
+        help="the .npz written by `python -m dinerdash collect` (bc, dpgm and gail need it)",
     )
     p.add_argument(
         "--episodes", type=int, default=None, help="train on the first K episodes (default: all)"
@@ -119,6 +152,10 @@ def _parser() -> argparse.ArgumentParser:
         help="masked: softmax over the legal actions of each step; plain: over all 57 "
         "(the paper's)",
     )
+    p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
+    p.add_argument("--num-envs", type=int, help="RL: environments stepped together (default 256)")
+    p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
+    address(p)
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("evaluate", help="mean ± sd score of a checkpoint over seeded episodes")
@@ -148,6 +185,13 @@ def _parser() -> argparse.ArgumentParser:
         help="use this demonstrations file instead of collecting seeds 0..273 again",
     )
     p.add_argument("--seed", type=int, default=0, help="training seed of every agent")
+    p.add_argument(
+        "--rl-steps",
+        type=int,
+        default=None,
+        help="environment steps of each RL agent (default: 3e7 for PPO, 1e7 for GAIL); a run "
+        "already checkpointed under OUT/checkpoints is continued to it, or only loaded",
+    )
     address(p)
     p.set_defaults(func=_cmd_paper)
     return parser

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from .rl import RL_ALGORITHMS
+
 __all__ = ["AGENTS", "EVAL_EPISODES", "EVAL_SEED", "run_paper"]
 
 DEMO_EPISODES = 274
@@ -31,12 +33,20 @@ PAPER_RANDOM = -1245.8
 class Agent:
     name: str
     algorithm: str
-    episodes: int
-    loss: str
+    episodes: int  # demonstrations used (0: none, RL on the game's reward)
+    loss: str  # imitation agents: "masked" or "plain"; RL agents: "masked" or "unmasked" policy
     paper: float | None  # the paper's Fig. 5 value, where it has one
 
     @property
+    def rl(self) -> bool:
+        return self.algorithm in RL_ALGORITHMS
+
+    @property
     def label(self) -> str:
+        if self.algorithm == "gail":
+            return f"GAIL (masked PPO on a discriminator's reward), {self.episodes} demos"
+        if self.rl:
+            return f"PPO, policy {'over legal actions' if self.loss == 'masked' else 'over all 57'}"
         loss = "plain cross-entropy" if self.loss == "plain" else "cross-entropy over legal actions"
         what = "BC" if self.algorithm == "bc" else "DPGM"
         return f"{what}, {self.episodes} demos, {loss}"
@@ -49,7 +59,13 @@ AGENTS = [
     Agent("dpgm-70", "dpgm", 70, "masked", 7064.3),
     Agent("bc-70", "bc", 70, "masked", 6343.8),
     Agent("bc-plain-70", "bc", 70, "plain", 6343.8),
+    Agent("ppo-masked", "ppo-masked", 0, "masked", 8799.1),
+    Agent("ppo", "ppo", 0, "unmasked", 8799.1),
+    Agent("gail-274", "gail", 274, "masked", 8254.4),
 ]
+#: Environment steps of the RL agents: the paper's PPO budget, and GAIL's.
+RL_STEPS = 30_000_000
+GAIL_STEPS = 10_000_000
 
 
 def run_paper(
@@ -58,6 +74,7 @@ def run_paper(
     address: str | list[str] | None = None,
     demos: str | Path | None = None,
     seed: int = 0,
+    rl_steps: int | None = None,
 ) -> dict[str, Any]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -72,7 +89,7 @@ def run_paper(
         with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
             if demos is None:
                 demos = _collect(Path(tmp), address)
-            return _experiment(out, Path(demos), address, seed)
+            return _experiment(out, Path(demos), address, seed, rl_steps)
     finally:
         if server is not None:
             server.stop()
@@ -90,7 +107,7 @@ def _collect(directory: Path, address: str | list[str]) -> Path:
     return directory / "dinerdash_expert.npz"
 
 
-def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
+def _experiment(out: Path, demos: Path, address, seed: int, rl_steps: int | None) -> dict[str, Any]:
     from dinerdash.cli import Progress, evaluate_through_env
 
     from .play import evaluate_policy
@@ -118,17 +135,20 @@ def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
         "random", lambda p: evaluate_through_env("random", EVAL_EPISODES, progress=p, **common)
     )
     for agent in AGENTS:
-        config = default_config(agent.algorithm, loss=agent.loss)
-        policy, description = train_checkpoint(
-            agent.algorithm,
-            demos,
-            out / "checkpoints" / agent.name,
-            episodes=agent.episodes,
-            seed=seed,
-            config=config,
-            name=agent.name,
-        )
-        masks = [True, False] if agent.loss == "plain" else [True]
+        if agent.rl:
+            policy, description = _train_rl(agent, out, demos, address, seed, rl_steps)
+        else:
+            config = default_config(agent.algorithm, loss=agent.loss)
+            policy, description = train_checkpoint(
+                agent.algorithm,
+                demos,
+                out / "checkpoints" / agent.name,
+                episodes=agent.episodes,
+                seed=seed,
+                config=config,
+                name=agent.name,
+            )
+        masks = [True, False] if agent.loss in ("plain", "unmasked") else [True]
         for use_mask in masks:
             name = agent.name + ("" if use_mask else " (no mask)")
             result = evaluate(
@@ -150,7 +170,8 @@ def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
                     "fraction": result["mean"] / expert["mean"],
                     "training_seconds": description["training"]["seconds"],
                     "training_cpu_seconds": description["training"]["cpu_seconds"],
-                    "training_steps": description["data"]["steps"],
+                    "training_steps": description["data"].get("steps"),
+                    "environment_steps": description["data"].get("environment_steps"),
                     **result,
                 }
             )
@@ -175,6 +196,29 @@ def _experiment(out: Path, demos: Path, address, seed: int) -> dict[str, Any]:
     print(f"wrote {out / 'results.md'}, {out / 'results.json'}, {out / 'results.png'}")
     print((out / "results.md").read_text())
     return results
+
+
+def _train_rl(
+    agent: Agent, out: Path, demos: Path, address, seed: int, rl_steps: int | None
+) -> tuple[Any, dict[str, Any]]:
+    """Trains an RL agent, or continues its run where a checkpoint of it already stands (a
+    finished run is only loaded: the full budgets take tens of minutes)."""
+    from . import checkpoint
+    from .rl import train_rl
+
+    directory = out / "checkpoints" / agent.name
+    steps = rl_steps or (GAIL_STEPS if agent.algorithm == "gail" else RL_STEPS)
+    resume = directory if (directory / checkpoint.DESCRIPTION).is_file() else None
+    train_rl(
+        agent.algorithm,
+        steps,
+        directory,
+        address=address,
+        demos=demos if agent.algorithm == "gail" else None,
+        seed=seed,
+        resume=resume,
+    )
+    return checkpoint.load(directory), checkpoint.read_description(directory)
 
 
 def _pct(x: float | None) -> str:

@@ -19,7 +19,7 @@ __all__ = ["default_config", "train_checkpoint"]
 
 def default_config(algorithm: str, *, epochs: int | None = None, loss: str = "masked") -> Any:
     """The algorithm's default config; ``epochs`` replaces the epochs of every stage."""
-    if algorithm not in checkpoint.ALGORITHMS:
+    if algorithm not in ("bc", "dpgm"):
         raise AgentsError(f"unknown algorithm {algorithm!r} (known: bc, dpgm)")
     if loss not in ("masked", "plain"):
         raise AgentsError(f"--loss must be masked or plain, got {loss!r}")

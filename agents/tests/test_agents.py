@@ -202,8 +202,12 @@ def test_checkpoint_of_another_algorithm_or_version_is_refused(tmp_path: Path) -
     (out / "checkpoint.json").write_text(json.dumps({**described, "format_version": 99}))
     with pytest.raises(CheckpointError, match="'format_version' is 99"):
         load(out)
-    (out / "checkpoint.json").write_text(json.dumps({**described, "algorithm": "gail"}))
-    with pytest.raises(CheckpointError, match="'algorithm' is 'gail'"):
+    (out / "checkpoint.json").write_text(json.dumps({**described, "algorithm": "sac"}))
+    with pytest.raises(CheckpointError, match="'algorithm' is 'sac'"):
+        load(out)
+    # A known algorithm whose config does not fit (a BC config labelled PPO).
+    (out / "checkpoint.json").write_text(json.dumps({**described, "algorithm": "ppo"}))
+    with pytest.raises(CheckpointError, match="'config' does not fit ppo"):
         load(out)
     (out / "checkpoint.json").write_text(json.dumps(described))
     (out / "model.eqx").write_bytes(b"\x00\x01")

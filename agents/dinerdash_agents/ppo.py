@@ -1,0 +1,398 @@
+"""PPO, in the spirit of CleanRL's single-file PPO, against one batched server session.
+
+``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, address=..., autoreset_mode=SAME_STEP)``
+feeds a jitted actor-critic: per step one jitted call acts for all N environments; per iteration
+one jitted call runs every epoch and minibatch of the update (a ``lax.scan``).
+
+- ``ppo-masked``: illegal actions (``info["action_mask"]``) get the logit
+  :data:`~dinerdash_agents.training.ILLEGAL_LOGIT` when acting and in the update, so the policy
+  never takes one and spends no probability on them.
+- ``ppo``: the paper's PPO over all 57 actions; an illegal action only lets a tick pass.
+
+Termination and truncation differ in one place, the bootstrap: after a terminated episode the
+next value is 0; after a truncated one it is the critic's value of the episode's last observation
+(``info["final_obs"]``), not of the next episode's first. Either way the advantage stops at the
+episode's end.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .bc import OBSERVATION_HIGH
+from .demos import NUM_ACTIONS, OBSERVATION_SIZE
+from .training import masked_logits
+
+__all__ = ["ActorCritic", "PPOConfig", "gae", "init", "sample_actions"]
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO's hyper-parameters; the defaults are those of the committed results."""
+
+    masked: bool = True
+    num_envs: int = 256
+    num_steps: int = 64
+    hidden: int = 128
+    learning_rate: float = 3e-4
+    anneal_lr: bool = True
+    gamma: float = 0.995
+    gae_lambda: float = 0.95
+    num_minibatches: int = 4
+    update_epochs: int = 2
+    clip_coef: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    #: Rewards are multiples of 10, and -500 for a group that runs away: scaled to about 1.
+    reward_scale: float = 0.01
+    #: Training episodes are truncated here (ruleset v0 has no time limit).
+    max_episode_steps: int = 5000
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def config_from_json(values: dict) -> PPOConfig:
+    return PPOConfig(**values)
+
+
+def _mlp(sizes: list[int], out_scale: float, key: jax.Array) -> list[eqx.nn.Linear]:
+    """Linear layers with CleanRL's orthogonal initialisation (sqrt 2 inside, ``out_scale`` last)
+    and zero biases."""
+    keys = jax.random.split(key, len(sizes) - 1)
+    layers = []
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(sizes)):
+        scale = out_scale if i == len(sizes) - 2 else float(np.sqrt(2.0))
+        w = jax.nn.initializers.orthogonal(scale)(keys[i], (n_out, n_in), jnp.float32)
+        layer = eqx.nn.Linear(n_in, n_out, key=keys[i])
+        layer = eqx.tree_at(lambda lin: (lin.weight, lin.bias), layer, (w, jnp.zeros(n_out)))
+        layers.append(layer)
+    return layers
+
+
+def _forward(layers: list[eqx.nn.Linear], x: jax.Array) -> jax.Array:
+    for layer in layers[:-1]:
+        x = jnp.tanh(x @ layer.weight.T + layer.bias)
+    return x @ layers[-1].weight.T + layers[-1].bias
+
+
+class ActorCritic(eqx.Module):
+    """Separate actor and critic MLPs (two tanh layers of ``hidden`` each) over the scaled
+    observation. Calling it gives the actor's logits, as every agent of this package does."""
+
+    actor: list[eqx.nn.Linear]
+    critic: list[eqx.nn.Linear]
+
+    def __init__(self, config: PPOConfig, key: jax.Array) -> None:
+        ka, kc = jax.random.split(key)
+        h = config.hidden
+        self.actor = _mlp([OBSERVATION_SIZE, h, h, NUM_ACTIONS], 0.01, ka)
+        self.critic = _mlp([OBSERVATION_SIZE, h, h, 1], 1.0, kc)
+
+    def __call__(
+        self, obs: jax.Array, mask: jax.Array | None = None, key: jax.Array | None = None
+    ) -> jax.Array:
+        """Action logits of a batch (B, 40); the mask only restricts the softmax."""
+        del mask, key
+        return _forward(self.actor, obs / OBSERVATION_HIGH)
+
+    def value(self, obs: jax.Array) -> jax.Array:
+        """The critic's value of each observation of a batch, (B,)."""
+        return _forward(self.critic, obs / OBSERVATION_HIGH)[:, 0]
+
+
+def init(config: PPOConfig, seed: int = 0) -> ActorCritic:
+    return ActorCritic(config, jax.random.PRNGKey(seed))
+
+
+def gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    next_values: jax.Array,
+    terminated: jax.Array,
+    done: jax.Array,
+    gamma: float,
+    lam: float,
+) -> tuple[jax.Array, jax.Array]:
+    """Generalised advantage estimates and returns of time-major ``(T, N)`` arrays.
+
+    ``next_values[t]`` is the critic's value of what follows step ``t``: the next observation, or
+    where the episode was truncated at ``t``, its last observation. ``terminated`` zeroes that
+    bootstrap; ``done`` (terminated or truncated) keeps the advantage from running into the next
+    episode.
+    """
+
+    def back(carry: jax.Array, x: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
+        r, v, nv, term, d = x
+        delta = r + gamma * (1.0 - term) * nv - v
+        adv = delta + gamma * lam * (1.0 - d) * carry
+        return adv, adv
+
+    xs = (rewards, values, next_values, terminated, done)
+    _, adv = jax.lax.scan(back, jnp.zeros_like(values[0]), xs, reverse=True)
+    return adv, adv + values
+
+
+def sample_actions(logits: jax.Array, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """One action per row of ``logits`` by inverse transform sampling with ``u`` (one uniform
+    number in [0, 1) per row, drawn on the host: far cheaper on a CPU than drawing 57 per row
+    with JAX's generator), and its log-probability. An action of probability 0 (an illegal one,
+    masked) is never picked: the pick is the first action whose cumulative probability exceeds
+    ``u`` times the total, and an action of probability 0 adds nothing to it."""
+    logp = jax.nn.log_softmax(logits)
+    cdf = jnp.cumsum(jnp.exp(logp), axis=-1)
+    target = u[:, None] * cdf[:, -1:]
+    actions = jnp.minimum(jnp.sum(cdf <= target, axis=-1), logits.shape[-1] - 1)
+    return actions, jnp.take_along_axis(logp, actions[:, None], axis=1)[:, 0]
+
+
+def entropy(logits: jax.Array, mask: jax.Array | None) -> jax.Array:
+    """Entropy of each row's distribution (over the legal actions only, with ``mask``)."""
+    logp = jax.nn.log_softmax(logits)
+    plogp = jnp.exp(logp) * logp
+    if mask is not None:
+        plogp = jnp.where(mask, plogp, 0.0)
+    return -plogp.sum(-1)
+
+
+def make_act(masked: bool) -> Callable[..., tuple[jax.Array, ...]]:
+    @eqx.filter_jit
+    def act(model: ActorCritic, u: jax.Array, obs: jax.Array, mask: jax.Array, boot: jax.Array):
+        """Sampled actions for ``obs`` (``u``: a uniform number per row), their
+        log-probabilities and values, and in the same call the values of ``boot`` (the
+        bootstrap observations of the previous step)."""
+        logits = masked_logits(model(obs), mask if masked else None)
+        actions, logp = sample_actions(logits, u)
+        return actions, logp, model.value(obs), model.value(boot)
+
+    return act
+
+
+def make_update(
+    config: PPOConfig, optimizer: optax.GradientTransformation
+) -> Callable[..., tuple[Any, Any, dict[str, jax.Array]]]:
+    def loss_fn(model: ActorCritic, mb: dict[str, jax.Array]):
+        mask = mb["mask"] if config.masked else None
+        logits = masked_logits(model(mb["obs"]), mask)
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits), mb["actions"][:, None], axis=1)
+        log_ratio = logp[:, 0] - mb["logp"]
+        ratio = jnp.exp(log_ratio)
+        adv = (mb["adv"] - mb["adv"].mean()) / (mb["adv"].std() + 1e-8)
+        clipped = jnp.clip(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
+        pg = jnp.maximum(-adv * ratio, -adv * clipped).mean()
+        v_loss = 0.5 * ((model.value(mb["obs"]) - mb["returns"]) ** 2).mean()
+        ent = entropy(logits, mask).mean()
+        loss = pg + config.vf_coef * v_loss - config.ent_coef * ent
+        kl = ((ratio - 1) - log_ratio).mean()
+        return loss, {"policy_loss": pg, "value_loss": v_loss, "entropy": ent, "approx_kl": kl}
+
+    @eqx.filter_jit
+    def update(model: ActorCritic, opt_state: Any, batch: dict[str, jax.Array], key: jax.Array):
+        """Every epoch and minibatch of one PPO update; returns the model, the optimiser state
+        and the mean of each statistic."""
+        size = batch["obs"].shape[0]
+        mb = size // config.num_minibatches
+        params, static = eqx.partition(model, eqx.is_array)
+
+        def epoch(carry, k):
+            def minibatch(carry, part):
+                params, opt_state = carry
+                grads, stats = jax.grad(
+                    lambda p: loss_fn(eqx.combine(p, static), part), has_aux=True
+                )(params)
+                updates, opt_state = optimizer.update(grads, opt_state, params)
+                return (eqx.apply_updates(params, updates), opt_state), stats
+
+            order = jax.random.permutation(k, size)[: mb * config.num_minibatches]
+            parts = jax.tree.map(
+                lambda x: x[order].reshape(config.num_minibatches, mb, *x.shape[1:]), batch
+            )
+            return jax.lax.scan(minibatch, carry, parts)
+
+        keys = jax.random.split(key, config.update_epochs)
+        (params, opt_state), stats = jax.lax.scan(epoch, (params, opt_state), keys)
+        return eqx.combine(params, static), opt_state, jax.tree.map(jnp.mean, stats)
+
+    return update
+
+
+def optimizer_for(config: PPOConfig, iterations: int) -> optax.GradientTransformation:
+    """Adam with CleanRL's clipping; the learning rate falls linearly to 0 over ``iterations``
+    when annealed."""
+    updates = iterations * config.update_epochs * config.num_minibatches
+    lr = (
+        optax.linear_schedule(config.learning_rate, 0.0, max(updates, 1))
+        if config.anneal_lr
+        else config.learning_rate
+    )
+    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr, eps=1e-5))
+
+
+advantages = jax.jit(gae, static_argnames=("gamma", "lam"))
+
+
+class Rollout:
+    """Time-major buffers of one iteration: ``num_steps`` steps of ``num_envs`` environments."""
+
+    def __init__(self, steps: int, envs: int) -> None:
+        self.obs = np.zeros((steps, envs, OBSERVATION_SIZE), np.float32)
+        self.mask = np.zeros((steps, envs, NUM_ACTIONS), np.bool_)
+        self.actions = np.zeros((steps, envs), np.int32)
+        self.logp = np.zeros((steps, envs), np.float32)
+        self.values = np.zeros((steps, envs), np.float32)
+        self.next_values = np.zeros((steps, envs), np.float32)
+        self.rewards = np.zeros((steps, envs), np.float32)
+        self.terminated = np.zeros((steps, envs), np.float32)
+        self.done = np.zeros((steps, envs), np.float32)
+
+    def batch(self, adv: jax.Array, returns: jax.Array) -> dict[str, Any]:
+        """The iteration's samples, flattened, as the update takes them."""
+        flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
+        return {
+            "obs": flat(self.obs),
+            "mask": flat(self.mask),
+            "actions": flat(self.actions),
+            "logp": flat(self.logp),
+            "adv": flat(adv),
+            "returns": flat(returns),
+        }
+
+
+class Trainer:
+    """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
+    one iteration: collect ``num_steps`` steps of every environment, then update.
+
+    GAIL subclasses it and replaces :meth:`rewards_of`.
+    """
+
+    def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
+        self.config = config
+        self.total_steps = int(total_steps)
+        self.seed = seed
+        self.per_iteration = config.num_envs * config.num_steps
+        #: Whole iterations, enough to reach ``total_steps``.
+        self.iterations = max(-(-self.total_steps // self.per_iteration), 1)
+        self.model = init(config, seed)
+        self.optimizer = optimizer_for(config, self.iterations)
+        self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
+        self.key = jax.random.PRNGKey(seed + 1)
+        #: Environment steps and iterations done, episodes ended.
+        self.steps = 0
+        self.iteration = 0
+        self.episodes = 0
+        #: One row per iteration: steps, mean score of the last 100 episodes, env-steps/s.
+        self.curve: list[tuple[int, float, float]] = []
+        self.recent_scores: list[float] = []
+        self._act = make_act(config.masked)
+        self._update = make_update(config, self.optimizer)
+        self._buffers = Rollout(config.num_steps, config.num_envs)
+        self._envs: Any = None
+
+    # --- the environments ------------------------------------------------------------------
+
+    def attach(self, envs: Any) -> None:
+        """Starts playing on ``envs`` (a SAME_STEP vector env of ``num_envs`` environments),
+        seeding environment i with ``seed * num_envs + i`` at the first reset."""
+        self._envs = envs
+        obs, info = envs.reset(seed=self.seed * self.config.num_envs + self.steps)
+        self._obs, self._mask = obs, info["action_mask"]
+        self._boot = obs
+        self._score = np.zeros(self.config.num_envs)
+
+    def _next_key(self) -> jax.Array:
+        self.key, k = jax.random.split(self.key)
+        return k
+
+    def collect(self) -> Rollout:
+        """Plays ``num_steps`` steps of every environment into the buffers."""
+        b, envs = self._buffers, self._envs
+        # The iteration's own stream, so that a resumed run draws what the original would have.
+        uniform = np.random.default_rng([self.seed, self.iteration])
+        for t in range(self.config.num_steps):
+            u = uniform.random(self.config.num_envs, dtype=np.float32)
+            a, logp, v, boot_v = jax.device_get(
+                self._act(self.model, u, self._obs, self._mask, self._boot)
+            )
+            if t > 0:
+                b.next_values[t - 1] = boot_v
+            b.obs[t], b.mask[t], b.actions[t], b.logp[t], b.values[t] = (
+                self._obs,
+                self._mask,
+                a,
+                logp,
+                v,
+            )
+            obs, reward, terminated, truncated, info = envs.step(a)
+            done = terminated | truncated
+            b.rewards[t], b.terminated[t], b.done[t] = reward, terminated, done
+            self._score += reward
+            self._boot = obs
+            if done.any():
+                self._boot = obs.copy()
+                for i in np.flatnonzero(done):
+                    self._boot[i] = info["final_obs"][i]
+                    self.recent_scores.append(float(self._score[i]))
+                    self._score[i] = 0.0
+                self.episodes += int(done.sum())
+                del self.recent_scores[:-100]
+            self._obs, self._mask = obs, info["action_mask"]
+        u = np.zeros(self.config.num_envs, np.float32)
+        *_, boot_v = self._act(self.model, u, self._obs, self._mask, self._boot)
+        b.next_values[-1] = boot_v
+        return b
+
+    def rewards_of(self, rollout: Rollout) -> np.ndarray:
+        """The rewards PPO learns from: the game's, scaled."""
+        return rollout.rewards * self.config.reward_scale
+
+    def step(self) -> dict[str, float]:
+        """One iteration: collect, then update; returns the update's statistics."""
+        rollout = self.collect()
+        adv, returns = advantages(
+            self.rewards_of(rollout),
+            rollout.values,
+            rollout.next_values,
+            rollout.terminated,
+            rollout.done,
+            gamma=self.config.gamma,
+            lam=self.config.gae_lambda,
+        )
+        self.model, self.opt_state, stats = self._update(
+            self.model, self.opt_state, rollout.batch(adv, returns), self._next_key()
+        )
+        self.steps += self.per_iteration
+        self.iteration += 1
+        return {k: float(v) for k, v in stats.items()}
+
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint needs beside the model to continue exactly where this left off."""
+        return {
+            "opt_state": self.opt_state,
+            "key": self.key,
+            "counts": np.array([self.steps, self.iteration, self.episodes], np.int64),
+            # Fixed length (NaN-padded), so that a checkpoint always has the same shape.
+            "recent_scores": np.array(
+                self.recent_scores + [np.nan] * (100 - len(self.recent_scores))
+            ),
+        }
+
+    def restore(self, model: ActorCritic, state: dict[str, Any], description: dict) -> None:
+        """Continues from a checkpoint's model and :meth:`state`."""
+        self.model, self.opt_state, self.key = model, state["opt_state"], state["key"]
+        self.steps, self.iteration, self.episodes = (int(c) for c in state["counts"])
+        scores = np.asarray(state["recent_scores"])
+        self.recent_scores = [float(s) for s in scores if not np.isnan(s)]
+
+    @property
+    def mean_recent_score(self) -> float:
+        return float(np.mean(self.recent_scores)) if self.recent_scores else float("nan")

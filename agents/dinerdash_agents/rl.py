@@ -1,0 +1,245 @@
+"""One reinforcement-learning run (``train ppo|ppo-masked|gail``): a vector env on the server, a
+:class:`~dinerdash_agents.ppo.Trainer`, a progress bar, a learning curve, and periodic atomic
+checkpoints that ``--resume`` continues from.
+
+A checkpoint directory of an RL run holds what every checkpoint holds (``model.eqx``,
+``checkpoint.json``) plus the trainer's state (``trainer.eqx``: optimiser state and random key)
+and the learning curve (``curve.csv``, ``curve.png``). Losing the server stops the run with a
+clear error after writing such a checkpoint, so no finished iteration is lost.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import gymnasium
+from dinerdash.cli import Progress
+from gymnasium.vector import AutoresetMode
+
+from . import checkpoint, ppo
+from .errors import AgentsError
+
+__all__ = ["RL_ALGORITHMS", "train_rl"]
+
+#: RL algorithm name -> whether its policy is masked.
+RL_ALGORITHMS = {"ppo": False, "ppo-masked": True, "gail": True}
+TRAINER_STATE = "trainer.eqx"
+CURVE_CSV = "curve.csv"
+CURVE_PNG = "curve.png"
+#: Seconds between two periodic checkpoints.
+CHECKPOINT_EVERY = 120.0
+
+
+def _trainer_for(algorithm: str, config: ppo.PPOConfig, steps: int, seed: int, demos: Any):
+    if algorithm == "gail":
+        from . import gail
+
+        return gail.GAILTrainer(config, steps, seed=seed, demos=demos)
+    return ppo.Trainer(config, steps, seed=seed)
+
+
+class _Spent:
+    """Training time: what a resumed run had spent before, plus this process's since it began."""
+
+    def __init__(self, wall: float = 0.0, cpu: float = 0.0) -> None:
+        self._wall, self._cpu = wall - time.monotonic(), cpu - time.process_time()
+
+    def wall(self) -> float:
+        return self._wall + time.monotonic()
+
+    def cpu(self) -> float:
+        return self._cpu + time.process_time()
+
+
+def _description(trainer: ppo.Trainer, algorithm: str, name: str, spent: _Spent) -> dict:
+    from . import __version__
+
+    return {
+        "name": name,
+        "algorithm": algorithm,
+        "package_version": __version__,
+        "config": trainer.config.to_json(),
+        "data": {"environment_steps": trainer.steps, "episodes": trainer.episodes},
+        "training": {
+            "seed": trainer.seed,
+            "total_steps": trainer.total_steps,
+            "iterations": trainer.iteration,
+            "seconds": round(spent.wall(), 3),
+            "cpu_seconds": round(spent.cpu(), 3),
+            "mean_recent_score": trainer.mean_recent_score,
+        },
+    }
+
+
+def _write_curve(directory: Path, curve: list[tuple[int, float, float]], title: str) -> None:
+    with open(directory / CURVE_CSV, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["env_steps", "mean_score_last_100_episodes", "env_steps_per_s"])
+        w.writerows(curve)
+    if not curve:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps, scores, _ = zip(*curve, strict=True)
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    ax.plot(steps, scores)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("mean score, last 100 episodes")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(directory / CURVE_PNG)
+    plt.close(fig)
+
+
+def _save(trainer: ppo.Trainer, out: Path, algorithm: str, spent: _Spent) -> None:
+    description = _description(trainer, algorithm, out.name, spent)
+
+    def extra(tmp: Path) -> None:
+        eqx.tree_serialise_leaves(tmp / TRAINER_STATE, trainer.state())
+        _write_curve(tmp, trainer.curve, f"{algorithm}: {out.name}")
+
+    checkpoint.save(out, trainer.model, description, extra=extra)
+
+
+def _resume(directory: Path, algorithm: str, steps: int | None, demos: Any) -> tuple[Any, _Spent]:
+    description = checkpoint.read_description(directory)
+    found = description.get("algorithm")
+    if found != algorithm:
+        raise AgentsError(
+            f"{directory / checkpoint.DESCRIPTION}: field 'algorithm' is {found!r}; "
+            f"cannot resume it as {algorithm}"
+        )
+    config = ppo.config_from_json(description["config"])
+    training = description["training"]
+    total = steps if steps is not None else training["total_steps"]
+    trainer = _trainer_for(algorithm, config, total, training["seed"], demos)
+    policy = checkpoint.load(directory, algorithm)
+    try:
+        state = eqx.tree_deserialise_leaves(directory / TRAINER_STATE, trainer.state())
+    except Exception as e:  # a missing or foreign file
+        raise AgentsError(f"{directory / TRAINER_STATE} cannot be resumed from: {e!r}") from e
+    trainer.restore(policy.model, state, description)
+    with open(directory / CURVE_CSV, newline="") as f:
+        rows = list(csv.reader(f))[1:]
+    trainer.curve = [(int(a), float(b), float(c)) for a, b, c in rows]
+    return trainer, _Spent(training["seconds"], training.get("cpu_seconds", 0.0))
+
+
+def train_rl(
+    algorithm: str,
+    steps: int | None,
+    out: str | Path,
+    *,
+    num_envs: int | None = None,
+    address: str | list[str] | None = None,
+    demos: str | Path | None = None,
+    seed: int = 0,
+    resume: str | Path | None = None,
+    config: ppo.PPOConfig | None = None,
+    progress: bool = True,
+) -> ppo.Trainer:
+    """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
+    checkpointing to ``out``; returns the trainer."""
+    import dinerdash  # noqa: F401  (registers DinerDash-v0)
+
+    if algorithm not in RL_ALGORITHMS:
+        raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL_ALGORITHMS)})")
+    if algorithm == "gail" and demos is None:
+        raise AgentsError("gail needs --demos (a file written by python -m dinerdash collect)")
+    if steps is not None and steps < 1:
+        raise AgentsError(f"--steps must be at least 1 (got {steps})")
+    out = Path(out)
+    server = None
+    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
+        from dinerdash.server import LocalServer
+
+        # Started before any JAX work: forking a process with JAX's threads running is unsafe.
+        server = LocalServer()
+        address = server.address
+    try:
+        return _train(
+            algorithm, steps, out, num_envs, address, demos, seed, resume, config, progress
+        )
+    finally:
+        if server is not None:
+            server.stop()
+
+
+def _train(
+    algorithm: str,
+    steps: int | None,
+    out: Path,
+    num_envs: int | None,
+    address: str | list[str],
+    demos: str | Path | None,
+    seed: int,
+    resume: str | Path | None,
+    config: ppo.PPOConfig | None,
+    progress: bool,
+) -> ppo.Trainer:
+    demo_data = None
+    if demos is not None:
+        from .demos import load_demos
+
+        demo_data = load_demos(demos, None)
+    if resume is not None:
+        trainer, spent = _resume(Path(resume), algorithm, steps, demo_data)
+    else:
+        if steps is None:
+            raise AgentsError("--steps is needed (or --resume DIR)")
+        config = config or ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
+        if num_envs is not None:
+            config = dataclasses.replace(config, num_envs=num_envs)
+        trainer, spent = _trainer_for(algorithm, config, steps, seed, demo_data), _Spent()
+    cfg = trainer.config
+    envs = gymnasium.make_vec(
+        "dinerdash:DinerDash-v0",
+        num_envs=cfg.num_envs,
+        address=address,
+        autoreset_mode=AutoresetMode.SAME_STEP,
+        max_episode_steps=cfg.max_episode_steps,
+    )
+    # The bar counts environment steps, so that its rate is env-steps/s.
+    bar = Progress(trainer.iterations * trainer.per_iteration, algorithm) if progress else None
+    if bar is not None:
+        bar.update(trainer.steps)
+    last_save = time.monotonic()
+    try:
+        trainer.attach(envs)
+        while trainer.iteration < trainer.iterations:
+            began, steps_before = time.monotonic(), trainer.steps
+            trainer.step()
+            rate = (trainer.steps - steps_before) / max(time.monotonic() - began, 1e-9)
+            trainer.curve.append((trainer.steps, trainer.mean_recent_score, round(rate, 1)))
+            if bar is not None:
+                bar.desc = f"{algorithm} score {trainer.mean_recent_score:,.0f}"
+                bar.update(trainer.per_iteration)
+            if time.monotonic() - last_save >= CHECKPOINT_EVERY:
+                _save(trainer, out, algorithm, spent)
+                last_save = time.monotonic()
+    except Exception as e:
+        from dinerdash.errors import ServiceError
+
+        if not isinstance(e, ServiceError) or trainer.iteration == 0:
+            raise
+        _save(trainer, out, algorithm, spent)
+        raise AgentsError(
+            f"lost the server after {trainer.steps} environment steps ({e}); the run is "
+            f"checkpointed in {out}: continue it with --resume {out}"
+        ) from e
+    finally:
+        envs.close()
+        if bar is not None:
+            bar.close()
+    _save(trainer, out, algorithm, spent)
+    return trainer

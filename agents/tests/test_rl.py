@@ -1,0 +1,192 @@
+"""PPO and GAIL: advantages on a hand-made trajectory, masked sampling, a short learning run
+against a real local server, the GAIL discriminator, and resuming a checkpointed run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+
+from dinerdash_agents import gail, ppo
+from dinerdash_agents.checkpoint import Policy, load
+from dinerdash_agents.cli import main as agents_main
+from dinerdash_agents.demos import NUM_ACTIONS, load_demos
+from dinerdash_agents.play import evaluate_policy
+from dinerdash_agents.training import ILLEGAL_LOGIT
+
+
+def test_gae_bootstraps_a_truncation_but_not_a_termination():
+    # One environment, four steps: step 1 terminates, step 3 is truncated.
+    g, lam = 0.9, 0.5
+    rewards = jnp.array([[1.0], [2.0], [3.0], [4.0]])
+    values = jnp.array([[10.0], [20.0], [30.0], [40.0]])
+    # What follows each step: V(obs 1); anything (terminated); V(obs 3); V(step 3's final obs).
+    next_values = jnp.array([[20.0], [999.0], [40.0], [7.0]])
+    terminated = jnp.array([[0.0], [1.0], [0.0], [0.0]])
+    done = jnp.array([[0.0], [1.0], [0.0], [1.0]])
+    adv, returns = ppo.gae(rewards, values, next_values, terminated, done, g, lam)
+    d3 = 4 + g * 7 - 40  # truncated: bootstraps from the last observation's value
+    d2 = 3 + g * 40 - 30
+    d1 = 2 - 20  # terminated: nothing follows
+    d0 = 1 + g * 20 - 10
+    expected = [d0 + g * lam * d1, d1, d2 + g * lam * d3, d3]  # no advantage crosses an end
+    np.testing.assert_allclose(np.asarray(adv)[:, 0], expected, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(returns), np.asarray(adv) + np.asarray(values))
+
+
+def test_sampling_follows_the_probabilities():
+    logits = jnp.log(jnp.array([[0.1, 0.0, 0.6, 0.3]] * 20_000))
+    u = np.random.default_rng(1).random(20_000, dtype=np.float32)
+    actions, logp = ppo.sample_actions(logits, jnp.asarray(u))
+    counts = np.bincount(np.asarray(actions), minlength=4) / 20_000
+    np.testing.assert_allclose(counts, [0.1, 0.0, 0.6, 0.3], atol=0.02)
+    np.testing.assert_allclose(np.exp(np.asarray(logp)), np.array([0.1, 0.0, 0.6, 0.3])[actions])
+
+
+def test_masked_sampling_never_picks_an_illegal_action():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        mask = rng.random((64, NUM_ACTIONS)) < rng.uniform(0.02, 0.5)
+        mask[:, 0] = True  # waiting is always legal
+        logits = jnp.asarray(rng.normal(0, 30, (64, NUM_ACTIONS)), jnp.float32)
+        u = rng.random(64, dtype=np.float32)
+        u[:4] = [0.0, 0.999999, np.nextafter(np.float32(1), np.float32(0)), 0.5]  # the edges
+        actions, logp = ppo.sample_actions(jnp.where(mask, logits, ILLEGAL_LOGIT), jnp.asarray(u))
+        assert mask[np.arange(64), np.asarray(actions)].all()
+        assert np.isfinite(np.asarray(logp)).all()
+
+
+def test_a_short_masked_ppo_run_learns(server_address: str):
+    """About 20,000 steps lift the greedy policy far above its untrained self on unseen seeds."""
+    config = ppo.PPOConfig(num_envs=32, num_steps=64)
+    trainer = ppo.Trainer(config, 20_000, seed=0)
+
+    def greedy_score() -> float:
+        policy = Policy(trainer.model, {"algorithm": "ppo-masked"})
+        scores, _ = evaluate_policy(
+            policy.act, 16, seed=500, address=server_address, num_envs=16, max_steps=3000
+        )
+        return float(scores.mean())
+
+    before = greedy_score()
+    envs = gymnasium.make_vec(
+        "dinerdash:DinerDash-v0",
+        num_envs=config.num_envs,
+        address=server_address,
+        autoreset_mode=AutoresetMode.SAME_STEP,
+        max_episode_steps=config.max_episode_steps,
+    )
+    try:
+        trainer.attach(envs)
+        while trainer.iteration < trainer.iterations:
+            stats = trainer.step()
+            assert all(np.isfinite(v) for v in stats.values())
+    finally:
+        envs.close()
+    assert trainer.steps >= 20_000
+    after = greedy_score()
+    assert after > before + 2000, (before, after)
+
+
+def test_the_gail_discriminator_separates_expert_pairs_from_random_ones(expert_demos: Path):
+    demos = load_demos(expert_demos, 10)
+    rng = np.random.default_rng(0)
+    expert = {"obs": demos.observations, "actions": demos.actions.astype(np.int32)}
+    random = {
+        "obs": demos.observations,
+        "actions": rng.integers(0, NUM_ACTIONS, len(demos.actions)).astype(np.int32),
+    }
+    d = gail.Discriminator(jax.random.PRNGKey(0))
+    before = float(gail.discriminator_loss(d, expert, random))
+    d, _ = gail.fit_discriminator(d, expert, random, steps=300)
+    after = float(gail.discriminator_loss(d, expert, random))
+    assert after < before
+    e = np.asarray(d(expert["obs"], expert["actions"]))
+    r = np.asarray(d(random["obs"], random["actions"]))
+    accuracy = ((e > 0).mean() + (r < 0).mean()) / 2
+    assert accuracy > 0.8, accuracy
+
+
+def test_resume_continues_from_the_saved_step_count(server_address: str, tmp_path: Path):
+    out = tmp_path / "run"
+    small = ["--num-envs", "8", "--address", server_address, "--out", str(out)]
+    assert agents_main(["train", "ppo-masked", "--steps", "1500", *small]) == 0
+    first = json.loads((out / "checkpoint.json").read_text())
+    # Whole iterations of 8 environments x the default num_steps, enough to reach --steps.
+    per_iteration = 8 * ppo.PPOConfig().num_steps
+    assert first["data"]["environment_steps"] == 3 * per_iteration
+    assert len((out / "curve.csv").read_text().splitlines()) == 1 + 3
+
+    resume = ["train", "ppo-masked", "--steps", "2500", "--resume", str(out), *small]
+    assert agents_main(resume) == 0
+    second = json.loads((out / "checkpoint.json").read_text())
+    assert second["data"]["environment_steps"] == 5 * per_iteration
+    assert second["training"]["iterations"] == 5
+    rows = (out / "curve.csv").read_text().splitlines()[1:]
+    assert [int(r.split(",")[0]) for r in rows] == [per_iteration * i for i in range(1, 6)]
+    assert (out / "curve.png").is_file()
+    assert load(out).algorithm == "ppo-masked"
+
+
+def test_rl_bad_input_is_refused_with_a_clear_error(tmp_path: Path, capsys):
+    assert agents_main(["train", "gail", "--steps", "100", "--out", str(tmp_path / "g")]) == 1
+    assert "gail needs --demos" in capsys.readouterr().err
+    assert not (tmp_path / "g").exists()
+    bc_dir = tmp_path / "not-rl"
+    bc_dir.mkdir()
+    (bc_dir / "checkpoint.json").write_text("{}")
+    argv = ["train", "ppo", "--resume", str(bc_dir), "--out", str(tmp_path / "p")]
+    assert agents_main(argv) == 1
+    assert "checkpoint.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("algorithm", ["ppo", "gail"])
+def test_every_rl_algorithm_trains_and_loads(
+    algorithm: str, server_address: str, expert_demos: Path, tmp_path: Path
+):
+    out = tmp_path / algorithm
+    argv = ["train", algorithm, "--steps", "512", "--num-envs", "8", "--out", str(out)]
+    argv += ["--address", server_address, "--demos", str(expert_demos)]
+    assert agents_main(argv) == 0
+    policy = load(out)
+    obs = np.zeros((3, 40), np.float32)
+    assert policy.act(obs, np.ones((3, NUM_ACTIONS), bool)).shape == (3,)
+
+
+def test_losing_the_server_leaves_a_resumable_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+):
+    from dinerdash.server import LocalServer
+
+    server = LocalServer()
+    step = ppo.Trainer.step
+
+    def step_then_lose_the_server(self: ppo.Trainer) -> dict:
+        stats = step(self)
+        if self.iteration == 2:
+            server.stop()
+        return stats
+
+    monkeypatch.setattr(ppo.Trainer, "step", step_then_lose_the_server)
+    out = tmp_path / "run"
+    argv = ["train", "ppo-masked", "--steps", "2500", "--num-envs", "8", "--out", str(out)]
+    try:
+        assert agents_main([*argv, "--address", server.address]) == 1
+    finally:
+        server.stop()
+    err = capsys.readouterr().err
+    assert "lost the server" in err and f"--resume {out}" in err
+    per_iteration = 8 * ppo.PPOConfig().num_steps
+    saved = json.loads((out / "checkpoint.json").read_text())
+    assert saved["data"]["environment_steps"] == 2 * per_iteration
+
+    monkeypatch.setattr(ppo.Trainer, "step", step)
+    with LocalServer() as again:
+        assert agents_main([*argv, "--resume", str(out), "--address", again.address]) == 0
+    assert json.loads((out / "checkpoint.json").read_text())["training"]["iterations"] == 5
