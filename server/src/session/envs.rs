@@ -385,10 +385,7 @@ impl Envs {
         for (i, a) in actions.chunks_exact(4).enumerate() {
             let a = i32::from_le_bytes([a[0], a[1], a[2], a[3]]);
             if !(0..NUM_ACTIONS as i32).contains(&a) {
-                return Err(SessionError::InvalidArgument(format!(
-                    "actions[{i}] must be in 0..={}, got {a}",
-                    NUM_ACTIONS - 1
-                )));
+                return Err(SessionError::ActionOutOfRange { env: i, action: a });
             }
         }
         if !self.envs.iter().all(|e| e.game.is_started()) {
