@@ -22,7 +22,7 @@ build: build-server
 $(VENV)/.installed: client-py/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'client-py[dev]'
+	$(PY) -m pip install --quiet -e 'client-py[dev,sb3]'
 	touch $@
 
 venv: $(VENV)/.installed
