@@ -95,7 +95,9 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def tls_server(pki: dict[str, Path]) -> Iterator[ServerProcess]:
     """A server whose certificate the private CA signed."""
-    server = ServerProcess("--tls-cert", str(pki["server.pem"]), "--tls-key", str(pki["server.key"]))
+    server = ServerProcess(
+        "--tls-cert", str(pki["server.pem"]), "--tls-key", str(pki["server.key"])
+    )
     yield server
     server.stop()
 
