@@ -135,12 +135,18 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     * ``config``: game configuration, e.g. ``{"lives": 3, "time_limit": 2000}`` (the GameConfig
       fields of the protocol; absent fields keep the ``v0`` rules).
     * ``render_mode``: ``"ansi"`` (the server's text board) or ``"rgb_array"`` (a picture).
+    * ``timeout``: deadline of every call in seconds (default ``DINERDASH_TIMEOUT``, else 60); a
+      stuck server raises :class:`~dinerdash.ServiceTimeout`.
+    * ``tls_ca``: connect with TLS trusting this PEM CA (or self-signed) certificate (default
+      ``DINERDASH_TLS_CA``); ``tls=True``: TLS trusting the system's roots.
     * ``token``: auth token (default ``DINERDASH_AUTH_TOKEN``); ``connect_timeout``,
       ``reconnect_timeout`` in seconds; ``server_binary`` for the local server; ``ansi_color``.
 
     Reset options: ``{"arrivals": [(customer_type, size), ...], "config": {...}}``.
 
-    Extras: :meth:`fork`, :meth:`snapshot` / :meth:`restore`.
+    Extras: :meth:`action_masks` (for sb3-contrib's MaskablePPO), :meth:`fork`,
+    :meth:`snapshot` / :meth:`restore`. ``close()`` frees the session; a later ``reset()`` opens a
+    new one.
 
     ## Version History
 

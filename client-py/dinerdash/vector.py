@@ -73,6 +73,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         config: game configuration (GameConfig fields), as for the single env.
         max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
         render_mode: ``"ansi"`` or ``"rgb_array"``; ``render()`` returns one frame per env.
+        timeout, tls, tls_ca: every call's deadline and TLS, as for the single env.
         token, connect_timeout, reconnect_timeout, server_binary, ansi_color: as for the single env.
 
     Reset: ``reset(seed=s)`` seeds environment ``i`` with ``s + i``; ``seed`` may also be a list
@@ -81,6 +82,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     as in Gymnasium) only those environments are reset, environment ``i`` still with ``s + i``;
     the others keep their episode, and the observations and infos returned are their current ones
     (``info["_seed"]`` is the mask of environments reset). A ``config`` needs a full reset.
+
+    :meth:`action_masks` gives the ``(N, 57)`` masks of the current states. Errors that concern
+    one environment carry its index in this vector env as ``env_index``. ``close()`` frees the
+    sessions; a later full ``reset()`` opens new ones.
     """
 
     def __init__(
