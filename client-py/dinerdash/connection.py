@@ -255,9 +255,16 @@ class Connection:
             self.channel = grpc.secure_channel(self.address, credentials, options=CHANNEL_OPTIONS)
         self.stub = pb_grpc.DinerDashStub(self.channel)
         self._closed = False
-        if not self.wait_ready(connect_timeout):
+        # A first short wait, then the TLS probe, then the rest: a TLS mismatch never gets an
+        # answer, and should say so at once rather than after the whole connect timeout.
+        first = min(connect_timeout, 1.0)
+        ready = self.wait_ready(first)
+        if not ready:
+            self._tls_mismatch(final=False)
+            ready = self.wait_ready(connect_timeout - first)
+        if not ready:
+            self._tls_mismatch(final=True)
             self.close()
-            self._raise_tls_mismatch()
             raise ServiceTransportError(
                 f"could not connect to a dinerdash-server at {self.address} within "
                 f"{connect_timeout:g} s; is it running? Start one with "
@@ -266,29 +273,31 @@ class Connection:
                 address=self.address,
             )
 
-    def _raise_tls_mismatch(self) -> None:
-        """Raises :class:`TLSMismatch` when a failed connect is TLS meeting plaintext (or a
-        certificate the client does not trust), rather than a server that is not there."""
+    def _tls_mismatch(self, final: bool) -> None:
+        """Closes the connection and raises :class:`TLSMismatch` when a failed connect is TLS
+        meeting plaintext, or (``final``: after the whole connect timeout, since a busy TLS server
+        looks the same at first) a certificate the client does not trust."""
         speaks_tls = _speaks_tls(self.address)
         if speaks_tls and not self.tls:
-            raise TLSMismatch(
-                f"the server at {self.address} speaks TLS and this client connected in plaintext; "
-                "pass tls_ca=PATH (or DINERDASH_TLS_CA) for a private CA or a self-signed "
-                "certificate, or tls=True for one signed by a public CA",
-                address=self.address,
+            message = (
+                f"the server at {self.address} speaks TLS and this client connected in "
+                "plaintext; pass tls_ca=PATH (or DINERDASH_TLS_CA) for a private CA or a "
+                "self-signed certificate, or tls=True for one signed by a public CA"
             )
-        if speaks_tls is False and self.tls:
-            raise TLSMismatch(
+        elif speaks_tls is False and self.tls:
+            message = (
                 f"the server at {self.address} does not speak TLS and this client asked for it "
-                "(tls=True, tls_ca or DINERDASH_TLS_CA); connect in plaintext",
-                address=self.address,
+                "(tls=True, tls_ca or DINERDASH_TLS_CA); connect in plaintext"
             )
-        if speaks_tls and self.tls:
-            raise TLSMismatch(
+        elif speaks_tls and self.tls and final:
+            message = (
                 f"TLS with the server at {self.address} failed: its certificate is not trusted "
-                "(check tls_ca / DINERDASH_TLS_CA) or does not name this host",
-                address=self.address,
+                "(check tls_ca / DINERDASH_TLS_CA) or does not name this host"
             )
+        else:
+            return
+        self.close()
+        raise TLSMismatch(message, address=self.address)
 
     def wait_ready(self, timeout: float) -> bool:
         """Waits up to ``timeout`` seconds for the server to answer; True when it did.
