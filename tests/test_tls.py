@@ -159,6 +159,9 @@ def test_tls_against_plaintext_and_an_untrusted_certificate_say_tls(
         DinerDashVectorEnv(2, address, tls_ca=pki["ca.pem"], connect_timeout=60)
     with pytest.raises(TLSMismatch, match="not trusted"):
         DinerDashEnv(tls_server.address, tls_ca=pki["other-ca.pem"], connect_timeout=2)
+    # tls=True trusts the system's roots, which never signed a test certificate.
+    with pytest.raises(TLSMismatch, match="not trusted"):
+        DinerDashEnv(tls_server.address, tls=True, connect_timeout=2)
 
 
 def test_the_cli_connects_with_tls_ca(tls_server: ServerProcess, pki: dict[str, Path]) -> None:
