@@ -42,6 +42,11 @@ pub fn status(e: SessionError) -> Status {
             vec![("session_id", id.clone())],
         ),
         SessionError::InvalidArgument(_) => (Code::InvalidArgument, "INVALID_ARGUMENT", vec![]),
+        SessionError::KeptNeverReset(i) => (
+            Code::InvalidArgument,
+            "INVALID_ARGUMENT",
+            vec![("env_index", i.to_string())],
+        ),
         SessionError::ActionOutOfRange { env, action } => (
             Code::InvalidArgument,
             "ACTION_OUT_OF_RANGE",
@@ -73,8 +78,17 @@ pub fn status(e: SessionError) -> Status {
         .map(|(k, v)| (k.to_string(), v))
         .collect();
     let mut details = ErrorDetails::with_error_info(reason, ERROR_DOMAIN, metadata);
-    if code == Code::InvalidArgument {
-        details.add_bad_request_violation(offending_field(&message), message.clone());
+    match &e {
+        SessionError::ActionOutOfRange { env, .. } => {
+            details.add_bad_request_violation(format!("actions[{env}]"), message.clone());
+        }
+        SessionError::KeptNeverReset(i) => {
+            details.add_bad_request_violation(format!("reset_mask[{i}]"), message.clone());
+        }
+        _ if code == Code::InvalidArgument => {
+            details.add_bad_request_violation(offending_field(&message), message.clone());
+        }
+        _ => {}
     }
     Status::with_error_details(code, message, details)
 }

@@ -47,6 +47,9 @@ pub enum SessionError {
         /// The action given.
         action: i32,
     },
+    /// A partial Reset would keep environment `i`, which has never been reset.
+    #[error("environment {0} has never been reset: include it in reset_mask")]
+    KeptNeverReset(usize),
     /// The server holds its maximum number of sessions.
     #[error("the server holds its maximum of {0} sessions; close one or raise --max-sessions")]
     TooManySessions(usize),

@@ -108,6 +108,29 @@ async fn refusals_carry_reason_field_and_environment() {
         Some("env_index".into())
     );
 
+    let fresh = create(
+        &mut c,
+        create_request(2, pb::AutoresetMode::NextStep, Some(1)),
+    )
+    .await;
+    let keep_unreset = pb::ResetRequest {
+        session_id: fresh,
+        reset_mask: vec![1, 0],
+        ..Default::default()
+    };
+    assert_eq!(
+        details(
+            c.reset(keep_unreset).await,
+            Code::InvalidArgument,
+            "env_index"
+        ),
+        (
+            "INVALID_ARGUMENT".into(),
+            Some("1".into()),
+            Some("reset_mask[1]".into())
+        )
+    );
+
     // A one-group-per-life game that never seats anyone ends once a group is lost; with
     // autoreset DISABLED the next step names the environment whose episode is over.
     let mut config = create_request(2, pb::AutoresetMode::Disabled, Some(1));

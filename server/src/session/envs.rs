@@ -332,9 +332,7 @@ impl Envs {
             }
             let mut kept = args.reset_mask.iter().zip(&self.envs);
             if let Some(i) = kept.position(|(&reset, env)| !reset && !env.game.is_started()) {
-                return invalid(format!(
-                    "environment {i} has never been reset: include it in reset_mask"
-                ));
+                return Err(SessionError::KeptNeverReset(i));
             }
         }
 
