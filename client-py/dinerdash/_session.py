@@ -1,5 +1,7 @@
-"""Pieces shared by the single and the vector environment: turning Python arguments into protocol
-messages, choosing the server(s) to talk to, and building the spaces from a session's Spec."""
+"""Pieces shared by the single and the vector environment: checking and turning Python arguments
+(render mode, reset options, config, arrivals) into protocol messages, choosing and connecting to
+the server(s) (:class:`Endpoint`: address, deadline, TLS, the local server), and building the
+spaces from a session's Spec. The session itself is :mod:`dinerdash._core`'s."""
 
 from __future__ import annotations
 
@@ -144,7 +146,9 @@ def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
 class Endpoint:
     """Connections to one or more servers, and the local server this client started, if any.
 
-    Closing it closes every channel and stops the local server.
+    Every connection gets the same deadline (``timeout``) and TLS settings (``tls``, ``tls_ca``);
+    a local server is plaintext on loopback. Closing it closes every channel and stops the local
+    server.
     """
 
     def __init__(
