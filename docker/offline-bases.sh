@@ -4,13 +4,31 @@
 # reach a Debian mirror. They stand in for the official images: Debian bookworm from debootstrap,
 # this host's stable Rust toolchain, Debian's Python 3.11 with pip. The host's extra CA
 # certificates (/usr/local/share/ca-certificates) go into the images, so that a TLS-inspecting
-# proxy works from inside a build. Needs root, debootstrap and a running Docker engine.
+# proxy works from inside a build.
 #
-#   sudo docker/offline-bases.sh && make docker-smoke
+# Needs: root (run it as root, or with sudo where sudo exists), `debootstrap` (apt-get install
+# debootstrap), a running Docker engine, and a rustup stable toolchain: the invoking user's
+# (~/.rustup of $SUDO_USER under sudo, else of root), or wherever RUSTUP_HOME points.
+#
+#   docker/offline-bases.sh && make docker-smoke        # as root
+#   sudo docker/offline-bases.sh && make docker-smoke   # as a user with sudo
 set -euo pipefail
 
+die() { echo "offline-bases.sh: $*" >&2; exit 1; }
+[ "$(id -u)" -eq 0 ] || die "needs root (debootstrap and docker import): run it as root or with sudo"
+command -v debootstrap >/dev/null || die "needs debootstrap: apt-get install debootstrap"
+command -v docker >/dev/null || die "needs docker (a running Docker engine)"
+# Under sudo, HOME is root's: the toolchain is the invoking user's.
+user_home=$(getent passwd "${SUDO_USER:-$(id -un)}" | cut -d: -f6)
+rustup_home=${RUSTUP_HOME:-${user_home:-$HOME}/.rustup}
+toolchain=$rustup_home/toolchains/stable-x86_64-unknown-linux-gnu
+[ -d "$toolchain/bin" ] || die "no rustup stable toolchain in $rustup_home (install rustup, \
+run 'rustup toolchain install stable', or set RUSTUP_HOME)"
+rustup_bin=$(command -v rustup || true)
+[ -n "$rustup_bin" ] || rustup_bin=${user_home:-$HOME}/.cargo/bin/rustup
+[ -x "$rustup_bin" ] || die "no rustup binary on PATH or in ${user_home:-$HOME}/.cargo/bin"
+
 mirror=${DEBIAN_MIRROR:-http://deb.debian.org/debian}
-toolchain=${RUSTUP_HOME:-$HOME/.rustup}/toolchains/stable-x86_64-unknown-linux-gnu
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 
@@ -24,7 +42,7 @@ tar -C "$work/rootfs" -c . | docker import \
 
 mkdir -p "$work/rust"
 cp -a "$toolchain/bin" "$toolchain/lib" "$work/rust/"
-cp "$(command -v rustup)" "$work/rust/rustup"
+cp "$rustup_bin" "$work/rust/rustup"
 docker build -t rust:1-slim-bookworm -f - "$work/rust" <<'EOF'
 FROM debian:bookworm-slim
 ENV RUSTUP_HOME=/usr/local/rustup CARGO_HOME=/usr/local/cargo \

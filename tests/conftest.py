@@ -117,7 +117,12 @@ class ServerProcess:
 @pytest.fixture(autouse=True)
 def _hermetic_env(monkeypatch: pytest.MonkeyPatch) -> None:
     """Tests choose their servers explicitly; a developer's DINERDASH_* must not leak in."""
-    for key in ("DINERDASH_ADDRESS", "DINERDASH_AUTH_TOKEN"):
+    for key in (
+        "DINERDASH_ADDRESS",
+        "DINERDASH_AUTH_TOKEN",
+        "DINERDASH_TIMEOUT",
+        "DINERDASH_TLS_CA",
+    ):
         monkeypatch.delenv(key, raising=False)
 
 

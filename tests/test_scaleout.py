@@ -10,6 +10,7 @@ import pytest
 from dinerdash import (
     Connection,
     DinerDashVectorEnv,
+    EpisodeOver,
     FailedPrecondition,
     InvalidArgument,
     ServiceTransportError,
@@ -151,9 +152,13 @@ def test_errors_name_environments_by_their_index_in_the_vector_env(three) -> Non
         envs.reset(options={"reset_mask": np.arange(N) < 4})  # all of server 1, one of server 2
         with pytest.raises(FailedPrecondition) as e:
             envs.step(np.zeros(N, dtype=np.int64))
-        # Server 2 holds environments 3 and 4; its environment 1 is environment 4 here.
-        assert "environment 4: episode is over; call reset" in str(e.value)
-        assert "[environments 3..4 of the vector env]" in str(e.value)
+        # Server 2 holds environments 3 and 4; its environment 1 is environment 4 here. The
+        # index comes from the error's structured details (reason EPISODE_OVER, env_index).
+        assert isinstance(e.value, EpisodeOver) and e.value.reason == "EPISODE_OVER"
+        assert e.value.env_index == 4
+        assert "episode is over; call reset" in str(e.value)
+        assert "environment 4 of the vector env" in str(e.value)
+        assert "environments 3..4" in str(e.value)
     finally:
         envs.close()
 

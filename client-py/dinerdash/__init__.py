@@ -8,13 +8,16 @@
 
 Layout:
     connection  the channel (options, address rules) and the one call wrapper (errors, retries)
-    errors      the exception hierarchy
+    errors      the exception hierarchy (mapped from the server's structured error details)
+    _core       the session core: one batched session on one server (create, reset, step,
+                decode, reconnect), shared by both environments
     env         DinerDashEnv, the Gymnasium Env
     vector      DinerDashVectorEnv, the VectorEnv (one batched session per server)
     server      LocalServer, the embedded default: a dinerdash-server subprocess
     render      the rgb_array picture, drawn with numpy
     rollout     rollout(): server-side expert/random episodes, streamed
     cli         ``python -m dinerdash`` (evaluate, collect, bench)
+    sb3         make_vec_env(): a stable-baselines3 VecEnv over one batched session (extra [sb3])
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ from . import _tuning  # noqa: F401  (first: gRPC settings must precede the firs
 from .connection import Connection
 from .env import DinerDashEnv, Snapshot
 from .errors import (
+    EnvClosed,
+    EpisodeOver,
     FailedPrecondition,
     InvalidArgument,
     LocalServerError,
@@ -37,6 +42,7 @@ from .errors import (
     ServiceTimeout,
     ServiceTransportError,
     SessionNotFound,
+    TLSMismatch,
     Unauthenticated,
 )
 from .rollout import Episode, rollout
@@ -52,7 +58,9 @@ __all__ = [
     "Connection",
     "DinerDashEnv",
     "DinerDashVectorEnv",
+    "EnvClosed",
     "Episode",
+    "EpisodeOver",
     "FailedPrecondition",
     "InvalidArgument",
     "LocalServer",
@@ -65,6 +73,7 @@ __all__ = [
     "ServiceTransportError",
     "SessionNotFound",
     "Snapshot",
+    "TLSMismatch",
     "Unauthenticated",
     "rollout",
 ]

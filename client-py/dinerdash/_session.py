@@ -1,5 +1,7 @@
-"""Pieces shared by the single and the vector environment: turning Python arguments into protocol
-messages, choosing the server(s) to talk to, and building the spaces from a session's Spec."""
+"""Pieces shared by the single and the vector environment: checking and turning Python arguments
+(render mode, reset options, config, arrivals) into protocol messages, choosing and connecting to
+the server(s) (:class:`Endpoint`: address, deadline, TLS, the local server), and building the
+spaces from a session's Spec. The session itself is :mod:`dinerdash._core`'s."""
 
 from __future__ import annotations
 
@@ -86,6 +88,29 @@ def make_arrivals(arrivals: Any, num_envs: int = 1) -> list[pb.ArrivalList]:
     return lists
 
 
+RENDER_MODES = ("ansi", "rgb_array")
+
+
+def check_render_mode(render_mode: str | None) -> str | None:
+    """``render_mode`` if it is one of :data:`RENDER_MODES` or ``None``; else ValueError."""
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(
+            f"render_mode must be None or one of {list(RENDER_MODES)}, got {render_mode!r}"
+        )
+    return render_mode
+
+
+def check_options(options: Mapping[str, Any] | None, known: Sequence[str]) -> dict[str, Any]:
+    """The reset ``options`` as a dict, refusing keys outside ``known``."""
+    options = dict(options or {})
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ValueError(
+            f"reset options: unknown key(s) {unknown}; known: {', '.join(map(repr, known))}"
+        )
+    return options
+
+
 def close_session(conn: Connection, session_id: str) -> None:
     """Closes a session, once and briefly: a server that is gone or already forgot the session
     has nothing left to free."""
@@ -121,7 +146,9 @@ def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
 class Endpoint:
     """Connections to one or more servers, and the local server this client started, if any.
 
-    Closing it closes every channel and stops the local server.
+    Every connection gets the same deadline (``timeout``) and TLS settings (``tls``, ``tls_ca``);
+    a local server is plaintext on loopback. Closing it closes every channel and stops the local
+    server.
     """
 
     def __init__(
@@ -133,13 +160,21 @@ class Endpoint:
         connect_timeout: float = 10.0,
         server_binary: str | None = None,
         pick: int | None = None,
+        timeout: float | None = None,
+        tls: bool = False,
+        tls_ca: str | os.PathLike | None = None,
     ) -> None:
         self.token = token
         self.connect_timeout = connect_timeout
+        self.timeout = timeout
+        self.tls = tls
+        self.tls_ca = tls_ca
         self.server: LocalServer | None = None
         self.connections: list[Connection] = []
         addresses = choose_addresses(address)
         if addresses is None:
+            # The local server is plaintext on loopback: TLS settings are for remote servers.
+            self.tls, self.tls_ca = False, None
             self.server = LocalServer(server_binary)
             addresses = [self.server.address]
         if pick is not None:
@@ -156,7 +191,14 @@ class Endpoint:
 
     def connect(self, address: str, connect_timeout: float | None = None) -> Connection:
         timeout = self.connect_timeout if connect_timeout is None else connect_timeout
-        return Connection(address, token=self.token, connect_timeout=timeout)
+        return Connection(
+            address,
+            token=self.token,
+            connect_timeout=timeout,
+            timeout=self.timeout,
+            tls=self.tls,
+            tls_ca=self.tls_ca,
+        )
 
     def reopen(
         self, index: int, create: Callable[[Connection], None], lost: str, timeout: float

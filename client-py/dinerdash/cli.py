@@ -7,7 +7,9 @@
     python -m dinerdash bench
 
 Every command takes ``--address host:port`` (several separated by commas); without it (and
-without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started and stopped.
+without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started and stopped. ``--tls`` (the
+system's roots) or ``--tls-ca PATH`` (``DINERDASH_TLS_CA``) connect to a server that serves TLS;
+``--timeout`` (``DINERDASH_TIMEOUT``) is every call's deadline in seconds.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -88,17 +90,19 @@ def evaluate_through_env(
     num_envs: int = 64,
     max_steps: int = 100_000,
     progress: Progress | None = None,
+    **connection: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plays ``policy`` through the client's vector env, episode ``i`` reset with ``seed + i``;
     returns the final scores and the lengths. The expert's actions are ``info["expert_action"]``;
-    the random policy draws uniformly from 0..56 on the client."""
+    the random policy draws uniformly from 0..56 on the client. ``connection``: ``timeout``,
+    ``tls``, ``tls_ca`` of the vector env."""
     from .vector import DinerDashVectorEnv
 
     n = max(1, min(num_envs, episodes))
     scores = np.zeros(episodes, dtype=np.int64)
     lengths = np.zeros(episodes, dtype=np.int64)
     rng = np.random.default_rng(seed)
-    envs = DinerDashVectorEnv(n, address, expert=policy == "expert")
+    envs = DinerDashVectorEnv(n, address, expert=policy == "expert", **connection)
     try:
         for first in range(0, episodes, n):
             # Seeds past the last episode only pad the batch; their episodes are ignored.
@@ -141,6 +145,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             seed=args.seed,
             address=args.address,
             max_steps=args.max_steps,
+            **_connection(args),
         ):
             scores.append(ep.score)
             lengths.append(ep.steps)
@@ -155,6 +160,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             num_envs=args.num_envs,
             max_steps=args.max_steps,
             progress=progress,
+            **_connection(args),
         )
         how = f"the client's vector env ({min(args.num_envs, args.episodes)} environments)"
     progress.close()
@@ -199,6 +205,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
         address=args.address,
         max_steps=args.max_steps,
         action_masks=True,
+        **_connection(args),
     ):
         episodes.append(ep)
         progress.update()
@@ -293,12 +300,17 @@ def _write_minari(episodes, out: Path, dataset_id: str) -> Path | None:
     return root
 
 
-def _bench_round_trip(address: str, calls: int = 2000) -> float:
+def _connection(args: argparse.Namespace) -> dict[str, Any]:
+    """The connection keywords of the environments and rollout(), from the command line."""
+    return {"timeout": args.timeout, "tls": args.tls, "tls_ca": args.tls_ca}
+
+
+def _bench_round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
     """Microseconds of one bare ``ServerInfo`` call: the floor under any single-env step."""
     from ._proto import pb
     from .connection import Connection
 
-    with Connection(address) as conn:
+    with Connection(address, **connection) as conn:
         request = pb.ServerInfoRequest()
         for _ in range(100):
             conn.call("ServerInfo", request)
@@ -308,10 +320,10 @@ def _bench_round_trip(address: str, calls: int = 2000) -> float:
         return (time.perf_counter() - start) / calls * 1e6
 
 
-def _bench_single(address: str | None, steps: int) -> float:
+def _bench_single(address: str | None, steps: int, **connection: Any) -> float:
     from .env import DinerDashEnv
 
-    env = DinerDashEnv(address)
+    env = DinerDashEnv(address, **connection)
     try:
         actions = np.random.default_rng(0).integers(0, 57, size=steps)
         env.reset(seed=0)
@@ -325,10 +337,10 @@ def _bench_single(address: str | None, steps: int) -> float:
         env.close()
 
 
-def _bench_vector(address, num_envs: int, steps: int) -> float:
+def _bench_vector(address, num_envs: int, steps: int, **connection: Any) -> float:
     from .vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address)
+    envs = DinerDashVectorEnv(num_envs, address, **connection)
     try:
         actions = np.random.default_rng(0).integers(0, 57, size=(steps, num_envs), dtype=np.int32)
         envs.reset(seed=0)
@@ -340,6 +352,43 @@ def _bench_vector(address, num_envs: int, steps: int) -> float:
         return num_envs * steps / (time.perf_counter() - start)
     finally:
         envs.close()
+
+
+def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
+    """One uniformly random legal action per row of ``masks``."""
+    return np.argmax(rng.random(masks.shape) * masks, axis=1)
+
+
+def _bench_sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, float]:
+    """Env-steps/s of SB3's ``DummyVecEnv`` of ``num_envs`` single envs and of
+    :func:`dinerdash.sb3.make_vec_env`, both stepped with random legal actions (the masks read
+    through ``env_method("action_masks")``, as MaskablePPO reads them)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from .env import DinerDashEnv
+    from .sb3 import make_vec_env
+
+    def run(vec) -> float:
+        rng = np.random.default_rng(0)
+        try:
+            vec.reset()
+            for _ in range(10):  # warm-up: connections, allocator
+                vec.step(_random_legal(rng, np.stack(vec.env_method("action_masks"))))
+            start = time.perf_counter()
+            for _ in range(steps):
+                vec.step(_random_legal(rng, np.stack(vec.env_method("action_masks"))))
+            return num_envs * steps / (time.perf_counter() - start)
+        finally:
+            vec.close()
+
+    first = address[0] if isinstance(address, list) else address
+    dummy = run(
+        DummyVecEnv(
+            [lambda: DinerDashEnv(first, **connection) for _ in range(num_envs)]  # type: ignore[misc]
+        )
+    )
+    adapter = run(make_vec_env(num_envs, address, monitor=False, **connection))
+    return dummy, adapter
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -355,20 +404,36 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         first = address[0] if isinstance(address, list) else address
         shown = address if address is not None else os.environ["DINERDASH_ADDRESS"]
         print(f"servers: {shown}; {os.cpu_count()} cores")
+        connection = _connection(args)
         if args.steps > 0:
-            micros = _bench_round_trip(first)
+            micros = _bench_round_trip(first, **connection)
             print(
                 f"gRPC round trip  : {micros:12,.0f} us/call      (ServerInfo, the floor of a step)"
             )
-            rate = _bench_single(first, args.steps)
+            rate = _bench_single(first, args.steps, **connection)
             print(f"single env       : {rate:12,.0f} steps/s      ({args.steps} random steps)")
         if args.vec_steps > 0:
-            rate = _bench_vector(address, args.num_envs, args.vec_steps)
+            rate = _bench_vector(address, args.num_envs, args.vec_steps, **connection)
             n = len(address) if isinstance(address, list) else 1
             print(
                 f"make_vec N={args.num_envs:<5}: {rate:12,.0f} env-steps/s  "
                 f"({args.vec_steps} steps of {args.num_envs} random actions, {n} server(s))"
             )
+        if args.sb3_steps > 0:
+            try:
+                dummy, adapter = _bench_sb3(address, args.sb3_envs, args.sb3_steps, **connection)
+            except ImportError:
+                print("sb3              : skipped (pip install 'dinerdash[sb3]')")
+            else:
+                n = args.sb3_envs
+                print(
+                    f"SB3 DummyVecEnv N={n:<3}: {dummy:10,.0f} env-steps/s  "
+                    f"({args.sb3_steps} steps, random legal actions, one call per env)"
+                )
+                print(
+                    f"dinerdash.sb3  N={n:<3}: {adapter:10,.0f} env-steps/s  "
+                    f"({adapter / dummy:.1f}x: one batched Step per server)"
+                )
     finally:
         for s in servers:
             s.stop()
@@ -386,6 +451,19 @@ def _parser() -> argparse.ArgumentParser:
             "--address",
             help="server host:port, several separated by commas (default: DINERDASH_ADDRESS, "
             "else a local server is started)",
+        )
+        p.add_argument(
+            "--tls", action="store_true", help="connect with TLS, trusting the system's roots"
+        )
+        p.add_argument(
+            "--tls-ca",
+            metavar="PATH",
+            help="connect with TLS, trusting this PEM CA certificate (default: DINERDASH_TLS_CA)",
+        )
+        p.add_argument(
+            "--timeout",
+            type=float,
+            help="deadline of every call in seconds (default: DINERDASH_TIMEOUT, else 60)",
         )
 
     p = sub.add_parser("evaluate", help="mean ± sd score of a policy over seeded episodes")
@@ -428,6 +506,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--vec-steps", type=int, default=2_000, help="vector steps (0: skip)")
     p.add_argument(
         "--servers", type=int, default=1, help="local servers to start when no address is given"
+    )
+    p.add_argument("--sb3-envs", type=int, default=8, help="environments of the SB3 comparison")
+    p.add_argument(
+        "--sb3-steps", type=int, default=2_000, help="steps of the SB3 comparison (0: skip)"
     )
     address(p)
     p.set_defaults(func=_cmd_bench)

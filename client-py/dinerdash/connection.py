@@ -2,8 +2,9 @@
 
 Everything about the network lives here: the channel options, the address rules (a ``host:port``,
 a comma-separated or Python list of them, or a DNS name that resolves to several replicas), the
-mapping from gRPC status codes to the typed exceptions of :mod:`dinerdash.errors`, and the retry
-policy: only ``UNAVAILABLE`` is retried, with exponential backoff and a bounded number of attempts.
+mapping from gRPC statuses to the typed exceptions of :mod:`dinerdash.errors`, the deadline every
+call carries, TLS, and the retry policy: only ``UNAVAILABLE`` is retried, with exponential backoff
+and a bounded number of attempts.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import socket
+import ssl
 import time
 from collections.abc import Iterator, Sequence
 from typing import Any
@@ -18,18 +20,31 @@ from typing import Any
 import grpc
 
 from ._proto import pb, pb_grpc
-from .errors import ServiceTransportError, error_for_status
+from .errors import (
+    EnvClosed,
+    ServiceTimeout,
+    ServiceTransportError,
+    TLSMismatch,
+    error_for_rpc,
+)
 
 __all__ = [
     "CHANNEL_OPTIONS",
     "DEFAULT_PORT",
+    "DEFAULT_TIMEOUT",
     "Connection",
+    "call_timeout",
     "parse_addresses",
     "resolve_replicas",
 ]
 
 #: The port a server listens on when none is given (and the one the docker image exposes).
 DEFAULT_PORT = 50051
+
+#: Seconds a call may take when neither ``timeout=`` nor ``DINERDASH_TIMEOUT`` says: finite, so
+#: that a stuck server becomes an error, and generous enough for a 1024-environment Step or a
+#: planner's Step on a loaded 2-core machine.
+DEFAULT_TIMEOUT = 60.0
 
 #: Calls never retried on UNAVAILABLE. A Step the server applied but whose reply was lost would
 #: be applied twice by a retry, silently changing the episode; it raises instead, and
@@ -57,7 +72,70 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     # Environment servers are on loopback or inside the cluster: never send them through an
     # http_proxy that happens to be set for the trainer's downloads.
     ("grpc.enable_http_proxy", 0),
+    # Keepalive pings while a call is in flight notice a peer that vanished without closing the
+    # connection (a dead host, a dropped route) before the deadline runs out.
+    ("grpc.keepalive_time_ms", 20_000),
+    ("grpc.keepalive_timeout_ms", 10_000),
+    ("grpc.keepalive_permit_without_calls", 0),
+    ("grpc.http2.max_pings_without_data", 0),
 ]
+
+
+def call_timeout(timeout: float | None) -> float:
+    """The deadline of each call, in seconds: ``timeout``, else ``DINERDASH_TIMEOUT``, else
+    :data:`DEFAULT_TIMEOUT`. Always finite and positive."""
+    if timeout is None:
+        text = os.environ.get("DINERDASH_TIMEOUT", "").strip()
+        if text:
+            try:
+                timeout = float(text)
+            except ValueError:
+                raise ValueError(f"DINERDASH_TIMEOUT: expected seconds, got {text!r}") from None
+        else:
+            timeout = DEFAULT_TIMEOUT
+    timeout = float(timeout)
+    if not 0 < timeout < float("inf"):
+        raise ValueError(f"timeout: expected a positive number of seconds, got {timeout!r}")
+    return timeout
+
+
+def tls_credentials(tls: bool, tls_ca: str | os.PathLike | None) -> grpc.ChannelCredentials | None:
+    """The channel credentials for ``tls`` / ``tls_ca`` (default ``DINERDASH_TLS_CA``): ``None``
+    means plaintext; a CA file means TLS trusting that CA, ``tls=True`` the system's roots."""
+    if tls_ca is None:
+        tls_ca = os.environ.get("DINERDASH_TLS_CA") or None
+    if tls_ca is not None:
+        try:
+            with open(tls_ca, "rb") as f:
+                pem = f.read()
+        except OSError as e:
+            raise FileNotFoundError(f"tls_ca: cannot read {os.fspath(tls_ca)!r}: {e}") from None
+        return grpc.ssl_channel_credentials(root_certificates=pem)
+    if tls:
+        return grpc.ssl_channel_credentials()
+    return None
+
+
+def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
+    """Whether the server at ``address`` completes a TLS handshake (certificate not checked):
+    ``None`` when nothing accepts a TCP connection there. Only asked after a failed connect, to
+    say why."""
+    host, port = _split_host_port(address)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.check_hostname = False
+    context.verify_mode = ssl.CERT_NONE
+    context.set_alpn_protocols(["h2"])
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout)
+    except OSError:
+        return None
+    try:
+        with context.wrap_socket(sock, server_hostname=host):
+            return True
+    except (OSError, ssl.SSLError):
+        return False
+    finally:
+        sock.close()
 
 
 def _split_host_port(address: str) -> tuple[str, int]:
@@ -143,7 +221,12 @@ class Connection:
             :class:`~dinerdash.errors.ServiceTransportError` says who could not be reached.
         retries: attempts after the first for a call that fails with ``UNAVAILABLE``.
         retry_backoff: seconds before the first retry; doubled after each one.
-        timeout: deadline of each call in seconds (``None``: no deadline).
+        timeout: deadline of each call in seconds (default: ``DINERDASH_TIMEOUT``, else
+            :data:`DEFAULT_TIMEOUT`); a call past it raises
+            :class:`~dinerdash.errors.ServiceTimeout`.
+        tls: connect with TLS, trusting the system's root certificates.
+        tls_ca: connect with TLS, trusting this PEM CA certificate (default:
+            ``DINERDASH_TLS_CA``); e.g. a self-signed server certificate.
     """
 
     def __init__(
@@ -155,17 +238,32 @@ class Connection:
         retries: int = 4,
         retry_backoff: float = 0.1,
         timeout: float | None = None,
+        tls: bool = False,
+        tls_ca: str | os.PathLike | None = None,
     ) -> None:
         self.address = parse_addresses(address)[0]
         self.retries = retries
         self.retry_backoff = retry_backoff
-        self.timeout = timeout
+        self.timeout = call_timeout(timeout)
         token = token if token is not None else os.environ.get("DINERDASH_AUTH_TOKEN")
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
-        self.channel = grpc.insecure_channel(self.address, options=CHANNEL_OPTIONS)
+        credentials = tls_credentials(tls, tls_ca)
+        self.tls = credentials is not None
+        if credentials is None:
+            self.channel = grpc.insecure_channel(self.address, options=CHANNEL_OPTIONS)
+        else:
+            self.channel = grpc.secure_channel(self.address, credentials, options=CHANNEL_OPTIONS)
         self.stub = pb_grpc.DinerDashStub(self.channel)
         self._closed = False
-        if not self.wait_ready(connect_timeout):
+        # A first short wait, then the TLS probe, then the rest: a TLS mismatch never gets an
+        # answer, and should say so at once rather than after the whole connect timeout.
+        first = min(connect_timeout, 1.0)
+        ready = self.wait_ready(first)
+        if not ready:
+            self._tls_mismatch(final=False)
+            ready = self.wait_ready(connect_timeout - first)
+        if not ready:
+            self._tls_mismatch(final=True)
             self.close()
             raise ServiceTransportError(
                 f"could not connect to a dinerdash-server at {self.address} within "
@@ -174,6 +272,32 @@ class Connection:
                 "(and DINERDASH_ADDRESS) to let the client start a local one",
                 address=self.address,
             )
+
+    def _tls_mismatch(self, final: bool) -> None:
+        """Closes the connection and raises :class:`TLSMismatch` when a failed connect is TLS
+        meeting plaintext, or (``final``: after the whole connect timeout, since a busy TLS server
+        looks the same at first) a certificate the client does not trust."""
+        speaks_tls = _speaks_tls(self.address)
+        if speaks_tls and not self.tls:
+            message = (
+                f"the server at {self.address} speaks TLS and this client connected in "
+                "plaintext; pass tls_ca=PATH (or DINERDASH_TLS_CA) for a private CA or a "
+                "self-signed certificate, or tls=True for one signed by a public CA"
+            )
+        elif speaks_tls is False and self.tls:
+            message = (
+                f"the server at {self.address} does not speak TLS and this client asked for it "
+                "(tls=True, tls_ca or DINERDASH_TLS_CA); connect in plaintext"
+            )
+        elif speaks_tls and self.tls and final:
+            message = (
+                f"TLS with the server at {self.address} failed: its certificate is not trusted "
+                "(check tls_ca / DINERDASH_TLS_CA) or does not name this host"
+            )
+        else:
+            return
+        self.close()
+        raise TLSMismatch(message, address=self.address)
 
     def wait_ready(self, timeout: float) -> bool:
         """Waits up to ``timeout`` seconds for the server to answer; True when it did.
@@ -207,6 +331,7 @@ class Connection:
         ``UNAVAILABLE``, at most ``retries`` times (default: the connection's) with exponential
         backoff.
         """
+        self._check_open(method)
         rpc = getattr(self.stub, method)
         timeout = self.timeout if timeout is None else timeout
         attempt = 0
@@ -214,11 +339,12 @@ class Connection:
             try:
                 return rpc(request, timeout=timeout, metadata=self._metadata)
             except grpc.RpcError as e:
-                code, details = e.code(), e.details()
-            attempt = self._retry_or_raise(method, code, details, attempt, retries)
+                error = e
+            attempt = self._retry_or_raise(method, error, attempt, retries, timeout)
 
     def future(self, method: str, request: Any) -> grpc.Future:
         """Starts ``method`` without waiting; pass the future to :meth:`result`."""
+        self._check_open(method)
         rpc = getattr(self.stub, method)
         return rpc.future(request, timeout=self.timeout, metadata=self._metadata)
 
@@ -228,9 +354,13 @@ class Connection:
         try:
             return future.result()
         except grpc.RpcError as e:
-            code, details = e.code(), e.details()
-        if code != grpc.StatusCode.UNAVAILABLE or self.retries <= 0 or method in NOT_RETRIED:
-            raise self._error(method, code, details, attempts=1) from None
+            error = e
+        if (
+            error.code() != grpc.StatusCode.UNAVAILABLE
+            or self.retries <= 0
+            or method in NOT_RETRIED
+        ):
+            raise self._error(method, error, attempts=1) from None
         time.sleep(self.retry_backoff)
         rpc = getattr(self.stub, method)
         attempt = 1
@@ -238,52 +368,77 @@ class Connection:
             try:
                 return rpc(request, timeout=self.timeout, metadata=self._metadata)
             except grpc.RpcError as e:
-                code, details = e.code(), e.details()
-            attempt = self._retry_or_raise(method, code, details, attempt)
+                error = e
+            attempt = self._retry_or_raise(method, error, attempt)
 
     def stream(self, method: str, request: Any) -> Iterator[Any]:
         """Iterates the replies of a server-streaming ``method``, mapping errors as :meth:`call`
-        does. Only the opening of the stream is retried: a stream broken half-way raises."""
+        does. Only the opening of the stream is retried: a stream broken half-way raises.
+
+        A stream has no overall deadline (a long rollout may rightly take many minutes): the
+        keepalive pings, which a stopped or vanished server cannot answer, end it instead."""
+        self._check_open(method)
         rpc = getattr(self.stub, method)
         attempt = 0
         received = False
         while True:
             try:
-                for reply in rpc(request, timeout=self.timeout, metadata=self._metadata):
+                for reply in rpc(request, metadata=self._metadata):
                     received = True
                     yield reply
                 return
             except grpc.RpcError as e:
-                code, details = e.code(), e.details()
+                error = e
             if received:
-                raise self._error(method, code, details, attempts=1) from None
-            attempt = self._retry_or_raise(method, code, details, attempt)
+                raise self._error(method, error, attempts=1) from None
+            attempt = self._retry_or_raise(method, error, attempt)
+
+    def _check_open(self, method: str) -> None:
+        if self._closed:
+            raise EnvClosed(
+                f"{method}: the connection to {self.address} is closed (the environment was "
+                "closed); reset() opens a new session",
+                address=self.address,
+            )
 
     def _retry_or_raise(
         self,
         method: str,
-        code: grpc.StatusCode,
-        details: str,
+        error: grpc.RpcError,
         attempt: int,
         retries: int | None = None,
+        timeout: float | None = None,
     ) -> int:
         retries = self.retries if retries is None else retries
         if method in NOT_RETRIED:
             retries = 0
-        if code == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
+        if error.code() == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
             time.sleep(self.retry_backoff * (2**attempt))
             return attempt + 1
-        raise self._error(method, code, details, attempts=attempt + 1) from None
+        raise self._error(method, error, attempts=attempt + 1, timeout=timeout) from None
 
-    def _error(self, method: str, code: grpc.StatusCode, details: str, attempts: int):
+    def _error(
+        self, method: str, error: grpc.RpcError, attempts: int, timeout: float | None = None
+    ):
+        code, details = error.code(), error.details()
         if code == grpc.StatusCode.UNAVAILABLE:
             details = (
                 f"{method}: the server at {self.address} is unavailable after {attempts} "
                 f"attempt{'s' if attempts != 1 else ''} ({details})"
             )
+        elif code == grpc.StatusCode.DEADLINE_EXCEEDED:
+            timeout = self.timeout if timeout is None else timeout
+            return ServiceTimeout(
+                f"{method}: no answer from the server at {self.address} within {timeout:g} s "
+                "(the timeout= keyword or DINERDASH_TIMEOUT sets this deadline)",
+                code=code,
+                address=self.address,
+            )
+        elif code == grpc.StatusCode.CANCELLED and self._closed:
+            return EnvClosed(f"{method}: the connection was closed during the call", code=code)
         else:
             details = f"{method}: {details}"
-        return error_for_status(code, details, self.address)
+        return error_for_rpc(error, details, self.address)
 
     def server_info(self) -> pb.ServerInfoResponse:
         """The server's version, ruleset and limits."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import random
 import struct
 from collections.abc import Sequence
@@ -12,21 +13,25 @@ from typing import Any, ClassVar, SupportsFloat
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
 
 from . import render as _render
+from ._core import SessionCore, Settings, check_actions, decode_one
 from ._proto import pb
 from ._session import (
     NUM_ACTIONS,
+    RENDER_MODES,
     Config,
     Endpoint,
     SessionOwner,
-    close_session,
+    check_options,
+    check_render_mode,
     make_arrivals,
     make_config,
 )
 from ._session import observation_space as _observation_space
-from .connection import Connection
-from .errors import InvalidArgument, ServiceError, ServiceTransportError, SessionNotFound
+from .connection import Connection, call_timeout
+from .errors import EnvClosed, SessionNotFound
 
 __all__ = ["DinerDashEnv", "Snapshot"]
 
@@ -130,19 +135,25 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     * ``config``: game configuration, e.g. ``{"lives": 3, "time_limit": 2000}`` (the GameConfig
       fields of the protocol; absent fields keep the ``v0`` rules).
     * ``render_mode``: ``"ansi"`` (the server's text board) or ``"rgb_array"`` (a picture).
+    * ``timeout``: deadline of every call in seconds (default ``DINERDASH_TIMEOUT``, else 60); a
+      stuck server raises :class:`~dinerdash.ServiceTimeout`.
+    * ``tls_ca``: connect with TLS trusting this PEM CA (or self-signed) certificate (default
+      ``DINERDASH_TLS_CA``); ``tls=True``: TLS trusting the system's roots.
     * ``token``: auth token (default ``DINERDASH_AUTH_TOKEN``); ``connect_timeout``,
       ``reconnect_timeout`` in seconds; ``server_binary`` for the local server; ``ansi_color``.
 
     Reset options: ``{"arrivals": [(customer_type, size), ...], "config": {...}}``.
 
-    Extras: :meth:`fork`, :meth:`snapshot` / :meth:`restore`.
+    Extras: :meth:`action_masks` (for sb3-contrib's MaskablePPO), :meth:`fork`,
+    :meth:`snapshot` / :meth:`restore`. ``close()`` frees the session; a later ``reset()`` opens a
+    new one.
 
     ## Version History
 
     * v0: ruleset ``v0`` of the DinerDash Gym benchmark, served over gRPC.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 8}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": list(RENDER_MODES), "render_fps": 8}
 
     def __init__(
         self,
@@ -157,70 +168,70 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         reconnect_timeout: float = 60.0,
         server_binary: str | None = None,
         ansi_color: bool = False,
+        timeout: float | None = None,
+        tls: bool = False,
+        tls_ca: str | os.PathLike | None = None,
     ) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(
-                f"render_mode must be one of {self.metadata['render_modes']}, got {render_mode!r}"
-            )
-        self.render_mode = render_mode
+        self.render_mode = check_render_mode(render_mode)
         self.expert = bool(expert)
         self.reconnect = bool(reconnect)
         self.reconnect_timeout = reconnect_timeout
         self.ansi_color = ansi_color
-        self._config = make_config(config)
-        self._session_id: str | None = None
+        self._settings = Settings(
+            num_envs=1,
+            autoreset_mode=AutoresetMode.DISABLED,
+            config=make_config(config),
+            expert=self.expert,
+            reconnect=self.reconnect,
+            reconnect_timeout=reconnect_timeout,
+        )
+        self._connect = {
+            "address": address,
+            "token": token,
+            "connect_timeout": connect_timeout,
+            "server_binary": server_binary,
+            "timeout": call_timeout(timeout),
+            "tls": tls,
+            "tls_ca": tls_ca,
+        }
         self._last_obs: np.ndarray | None = None
         self._last_info: dict[str, Any] = {}
-        # A list or a many-address DNS name: one replica at random, so that many single envs
-        # (e.g. under AsyncVectorEnv) spread over the replicas.
-        self._endpoint = Endpoint(
-            address,
-            token=token,
-            connect_timeout=connect_timeout,
-            server_binary=server_binary,
-            pick=random.randrange(1 << 30),
-        )
-        self._conn: Connection = self._endpoint.connections[0]
-        try:
-            self._create_session()
-        except BaseException:
-            self._endpoint.close()
-            raise
+        self._open()
         self.observation_space = _observation_space(self.spec_proto)
         self.action_space = spaces.Discrete(self.spec_proto.num_actions)
 
     # -- session --------------------------------------------------------------------------------
 
+    def _open(self) -> None:
+        """Connects and creates the session (at construction, and at a reset after close)."""
+        # A list or a many-address DNS name: one replica at random, so that many single envs
+        # (e.g. under AsyncVectorEnv) spread over the replicas.
+        self._endpoint = Endpoint(**self._connect, pick=random.randrange(1 << 30))
+        self._core = SessionCore(self._endpoint, 0, 0, 1, self._settings)
+        try:
+            self.spec_proto: pb.Spec = self._core.create()
+        except BaseException:
+            self._endpoint.close()
+            raise
+        self._closed = False
+
     @property
     def address(self) -> str:
         """``host:port`` of the server that holds this environment's session."""
-        return self._conn.address
+        return self._core.conn.address
 
     @property
     def session_id(self) -> str | None:
         """The server's id of this environment's session."""
-        return self._session_id
+        return self._core.session_id
 
-    def _create_session(self) -> None:
-        request = pb.CreateSessionRequest(
-            num_envs=1,
-            config=self._config,
-            autoreset_mode=pb.AUTORESET_MODE_DISABLED,
-            action_masks=True,
-            expert_actions=self.expert,
-        )
-        reply = self._conn.call("CreateSession", request)
-        self._session_id = reply.session_id
-        self.spec_proto: pb.Spec = reply.spec
+    @property
+    def _conn(self) -> Connection:
+        return self._core.conn
 
-    def _recover(self, error: ServiceError) -> None:
-        """Waits for the server to come back and opens a new session there (reconnect=True)."""
-
-        def create(conn: Connection) -> None:
-            self._conn = conn
-            self._create_session()
-
-        self._endpoint.reopen(0, create, f"the session ({error})", self.reconnect_timeout)
+    def _check_open(self, what: str) -> None:
+        if self._closed:
+            raise EnvClosed(f"{what} after close(); reset() opens a new session")
 
     # -- Gymnasium API ------------------------------------------------------------------------
 
@@ -228,31 +239,16 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
-        options = options or {}
-        unknown = sorted(set(options) - {"arrivals", "config"})
-        if unknown:
-            raise ValueError(
-                f"reset options: unknown key(s) {unknown}; known: 'arrivals', 'config'"
-            )
+        options = check_options(options, ("arrivals", "config"))
         arrivals = make_arrivals(options.get("arrivals"))
         config = make_config(options.get("config"))
         if config is not None:
-            self._config = config  # also the configuration of a session recreated later
-
-        def request() -> pb.ResetRequest:
-            r = pb.ResetRequest(session_id=self._session_id, arrivals=arrivals, config=config)
-            if seed is not None:
-                r.seed = seed
-            return r
-
-        try:
-            batch = self._conn.call("Reset", request())
-        except (ServiceTransportError, SessionNotFound) as e:
-            if not self.reconnect:
-                raise
-            self._recover(e)
-            batch = self._conn.call("Reset", request())
-        obs, info = self._decode(batch)
+            self._settings.config = config  # also the configuration of a session recreated later
+        if self._closed:
+            self._open()  # reuse after close: a new session (and a new local server if needed)
+        request = self._core.reset_request(seed=seed, arrivals=arrivals, config=config)
+        batch = self._core.reset(request)
+        obs, info = decode_one(batch, self.expert)
         info["seed"] = batch.seeds[0]
         self._last_obs, self._last_info = obs, info
         return obs.copy(), dict(info)
@@ -262,37 +258,25 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         if 0 <= a < NUM_ACTIONS:
             data = _ACTION_BYTES[a]
         else:
-            try:
-                data = struct.pack("<i", a)  # the server refuses it with INVALID_ARGUMENT
-            except struct.error:
-                raise InvalidArgument(f"action: {a} is out of 0..=56") from None
-        try:
-            batch = self._conn.call(
-                "Step", pb.StepRequest(session_id=self._session_id, actions=data)
-            )
-        except (ServiceTransportError, SessionNotFound) as e:
-            if not self.reconnect or self._last_obs is None:
-                raise
-            self._recover(e)
+            data = check_actions([a], 1).tobytes()  # raises, as for a vector env
+        self._check_open("step()")
+        batch = self._core.step(data)
+        if self._core.reconnected:
+            self._core.reconnected = False
             info = copy.deepcopy(self._last_info)
             info["reconnected"] = True
             return self._last_obs.copy(), 0.0, False, True, info
-        obs, info = self._decode(batch)
+        obs, info = decode_one(batch, self.expert)
         self._last_obs, self._last_info = obs, info
         reward = float(int.from_bytes(batch.rewards, "little", signed=True))
         return obs.copy(), reward, batch.terminated[0] != 0, batch.truncated[0] != 0, dict(info)
 
-    def _decode(self, batch: pb.Batch) -> tuple[np.ndarray, dict[str, Any]]:
-        obs = np.frombuffer(batch.observations, dtype=np.int8).astype(np.float32)
-        info: dict[str, Any] = {
-            "action_mask": np.frombuffer(batch.action_masks, dtype=np.bool_).copy(),
-            "score": int.from_bytes(batch.scores, "little", signed=True),
-            "lost": int.from_bytes(batch.lost, "little"),
-            "tick": int.from_bytes(batch.ticks, "little"),
-        }
-        if self.expert:
-            info["expert_action"] = batch.expert_actions[0]
-        return obs, info
+    def action_masks(self) -> np.ndarray:
+        """The 57 actions that have an effect in the current state, as a ``bool`` array: what
+        sb3-contrib's MaskablePPO asks for (``info["action_mask"]`` holds the same)."""
+        if self._last_obs is None:
+            raise gym.error.ResetNeeded("call reset() before action_masks()")
+        return self._last_info["action_mask"].copy()
 
     def render(self) -> str | np.ndarray | None:
         if self.render_mode is None:
@@ -301,10 +285,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             )
             return None
         if self.render_mode == "ansi":
-            request = pb.RenderRequest(
-                session_id=self._session_id, env_index=0, color=self.ansi_color
-            )
-            return self._conn.call("Render", request).text
+            self._check_open("render()")
+            return self._core.render_text(0, self.ansi_color)
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before render()")
         return _render.draw(
@@ -315,10 +297,12 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         )
 
     def close(self) -> None:
-        if self._session_id is not None:
-            close_session(self._conn, self._session_id)
-            self._session_id = None
-        self._endpoint.close()
+        """Closes the session (and the local server, if this env started one). A later
+        ``reset()`` opens a new session; other calls raise :class:`~dinerdash.EnvClosed`."""
+        if not self._closed:
+            self._core.close()
+            self._endpoint.close()
+            self._closed = True
         super().close()
 
     # -- extras from the server ---------------------------------------------------------------
@@ -327,15 +311,14 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         """A new environment in exactly this one's state (game, random stream), on the same
         server, with its own session. Close it when done; it lives on the server this env uses
         (if this env started a local server, closing this env stops it)."""
-        reply = self._conn.call("Fork", pb.ForkRequest(session_id=self._session_id))
+        self._check_open("fork()")
+        reply = self._conn.call("Fork", pb.ForkRequest(session_id=self.session_id))
         child = copy.copy(self)
-        child._endpoint = Endpoint(
-            self._conn.address,
-            token=self._endpoint.token,
-            connect_timeout=self._endpoint.connect_timeout,
-        )
-        child._conn = child._endpoint.connections[0]
-        child._session_id = reply.session_id
+        child._connect = dict(self._connect, address=self._conn.address, server_binary=None)
+        child._endpoint = Endpoint(**child._connect)
+        child._core = SessionCore(child._endpoint, 0, 0, 1, copy.copy(self._settings))
+        child._settings = child._core.settings
+        child._core.adopt(reply.session_id, reply.spec)
         child.spec_proto = reply.spec
         child._last_obs = None if self._last_obs is None else self._last_obs.copy()
         child._last_info = copy.deepcopy(self._last_info)
@@ -344,7 +327,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
 
     def snapshot(self) -> Snapshot:
         """Saves the session (game state and random stream); see :meth:`restore`."""
-        reply = self._conn.call("Snapshot", pb.SnapshotRequest(session_id=self._session_id))
+        self._check_open("snapshot()")
+        reply = self._conn.call("Snapshot", pb.SnapshotRequest(session_id=self.session_id))
         obs = (
             np.zeros(self.observation_space.shape, np.float32)
             if self._last_obs is None
@@ -356,9 +340,11 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         """Replaces this environment's session by one restored from ``snapshot`` (made by this
         env or any other, on any server of the same snapshot version) and returns the observation
         and info of the restored state."""
+        self._check_open("restore()")
         reply = self._conn.call("Restore", pb.RestoreRequest(snapshot=bytes(snapshot)))
-        old = self._session_id
-        self._session_id, self.spec_proto = reply.session_id, reply.spec
+        old = self.session_id
+        self._core.adopt(reply.session_id, reply.spec)
+        self.spec_proto = reply.spec
         if old is not None:
             try:
                 self._conn.call("CloseSession", pb.CloseSessionRequest(session_id=old))

@@ -1,17 +1,23 @@
 """The exceptions of the client.
 
 Every gRPC status the server returns becomes one of these, carrying the server's own message (which
-names the offending field and its allowed range)::
+names the offending field and its allowed range). The class and the attributes ``reason``,
+``field`` and ``env_index`` come from the status code and the structured details the server
+attaches (a ``google.rpc.Status`` in the ``grpc-status-details-bin`` trailer: ``ErrorInfo`` and
+``BadRequest``, listed in the proto's header), never from the message text::
 
     ServiceError                      any failure of a call to the server
     ├── SessionNotFound               NOT_FOUND: unknown, closed or expired session
     ├── InvalidArgument (ValueError)  INVALID_ARGUMENT: a bad action, seed, arrival list, config ...
     ├── FailedPrecondition            FAILED_PRECONDITION: e.g. stepping an episode that is over
+    │   └── EpisodeOver               reason EPISODE_OVER: autoreset DISABLED, an episode ended
     ├── ResourceExhausted             RESOURCE_EXHAUSTED: too many sessions, message too large
     ├── Unauthenticated               UNAUTHENTICATED: missing or wrong auth token
     ├── ServiceTimeout (TimeoutError) DEADLINE_EXCEEDED
     ├── ServiceInternalError          INTERNAL, UNKNOWN and any other code
-    └── ServiceTransportError (OSError)  UNAVAILABLE after the retries, or no connection
+    ├── ServiceTransportError (OSError)  UNAVAILABLE after the retries, or no connection
+    │   └── TLSMismatch               a plaintext client met a TLS server (or the other way round)
+    └── EnvClosed                     the env was closed; ``reset()`` opens a new session
 
 ``LocalServerError`` is about starting a local ``dinerdash-server``; ``ServerBinaryNotFound`` (also
 a ``FileNotFoundError``) says how to build one or point to one.
@@ -19,9 +25,13 @@ a ``FileNotFoundError``) says how to build one or point to one.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import grpc
 
 __all__ = [
+    "EnvClosed",
+    "EpisodeOver",
     "FailedPrecondition",
     "InvalidArgument",
     "LocalServerError",
@@ -32,9 +42,16 @@ __all__ = [
     "ServiceTimeout",
     "ServiceTransportError",
     "SessionNotFound",
+    "TLSMismatch",
     "Unauthenticated",
+    "error_for_rpc",
     "error_for_status",
 ]
+
+#: The ``ErrorInfo.domain`` of the DinerDash service's errors.
+ERROR_DOMAIN = "dinerdash.v1"
+#: The trailer that carries a serialized ``google.rpc.Status`` (the gRPC rich error model).
+_DETAILS_KEY = "grpc-status-details-bin"
 
 
 class ServiceError(Exception):
@@ -44,6 +61,13 @@ class ServiceError(Exception):
         code: the gRPC status code, or ``None`` when the failure happened before any call.
         details: the server's message.
         address: the ``host:port`` of the server that was called.
+        reason: the server's stable reason code (``ErrorInfo.reason``), e.g.
+            ``"SESSION_NOT_FOUND"``, ``"ACTION_OUT_OF_RANGE"``, ``"EPISODE_OVER"``; ``None`` when
+            the status carried no details.
+        field: the offending request field (``BadRequest``), e.g. ``"actions[3]"``, or ``None``.
+        env_index: the environment the error concerns, or ``None``. A vector env reports it as
+            the index in the vector env (not in one server's slice).
+        metadata: the rest of ``ErrorInfo.metadata``.
     """
 
     def __init__(
@@ -52,10 +76,18 @@ class ServiceError(Exception):
         *,
         code: grpc.StatusCode | None = None,
         address: str | None = None,
+        reason: str | None = None,
+        field: str | None = None,
+        env_index: int | None = None,
+        metadata: Mapping[str, str] | None = None,
     ) -> None:
         self.code = code
         self.details = details
         self.address = address
+        self.reason = reason
+        self.field = field
+        self.env_index = env_index
+        self.metadata = dict(metadata or {})
         where = f" ({address})" if address else ""
         name = f"{code.name}: " if code is not None else ""
         super().__init__(f"{name}{details}{where}")
@@ -71,6 +103,10 @@ class InvalidArgument(ServiceError, ValueError):
 
 class FailedPrecondition(ServiceError):
     """The call does not fit the session's state (e.g. an episode that is over; call reset)."""
+
+
+class EpisodeOver(FailedPrecondition):
+    """An autoreset-DISABLED environment (``env_index``) was stepped after its episode ended."""
 
 
 class ResourceExhausted(ServiceError):
@@ -91,6 +127,16 @@ class ServiceInternalError(ServiceError):
 
 class ServiceTransportError(ServiceError, OSError):
     """The server could not be reached: refused, lost, or still down after the retries."""
+
+
+class TLSMismatch(ServiceTransportError):
+    """The client and the server disagree about TLS: pass ``tls=True`` or ``tls_ca=PATH`` (or
+    ``DINERDASH_TLS_CA``) for a server started with ``--tls-cert``, and neither for a plaintext
+    one."""
+
+
+class EnvClosed(ServiceError):
+    """The environment was closed; ``reset()`` opens a new session."""
 
 
 class LocalServerError(RuntimeError):
@@ -114,9 +160,72 @@ _BY_CODE: dict[grpc.StatusCode, type[ServiceError]] = {
 }
 
 
+#: Reasons with a more precise class than their status code's.
+_BY_REASON: dict[str, type[ServiceError]] = {"EPISODE_OVER": EpisodeOver}
+
+
 def error_for_status(
-    code: grpc.StatusCode, details: str, address: str | None = None
+    code: grpc.StatusCode,
+    details: str,
+    address: str | None = None,
+    status_details: bytes | None = None,
 ) -> ServiceError:
-    """The typed exception for a gRPC status."""
-    cls = _BY_CODE.get(code, ServiceInternalError)
-    return cls(details or "(no message)", code=code, address=address)
+    """The typed exception for a gRPC status and its ``grpc-status-details-bin`` trailer."""
+    reason, field, env_index, metadata = _decode_details(status_details)
+    cls = _BY_REASON.get(reason or "") or _BY_CODE.get(code, ServiceInternalError)
+    return cls(
+        details or "(no message)",
+        code=code,
+        address=address,
+        reason=reason,
+        field=field,
+        env_index=env_index,
+        metadata=metadata,
+    )
+
+
+def status_details(error: grpc.RpcError) -> bytes | None:
+    """The serialized ``google.rpc.Status`` a failed call's trailers carry, if any."""
+    trailers = getattr(error, "trailing_metadata", None)
+    for key, value in (trailers() if trailers else None) or ():
+        if key == _DETAILS_KEY:
+            return value
+    return None
+
+
+def error_for_rpc(error: grpc.RpcError, details: str, address: str | None) -> ServiceError:
+    """The typed exception for a failed call, with ``details`` as its message."""
+    return error_for_status(error.code(), details, address, status_details(error))
+
+
+def _decode_details(
+    data: bytes | None,
+) -> tuple[str | None, str | None, int | None, dict[str, str]]:
+    """``(reason, field, env_index, other metadata)`` of a serialized ``google.rpc.Status``."""
+    if not data:
+        return None, None, None, {}
+    # Imported on first use: only failing calls pay for the google.rpc descriptors.
+    from google.rpc import error_details_pb2, status_pb2
+
+    status = status_pb2.Status()
+    try:
+        status.ParseFromString(data)
+    except Exception:  # a trailer we cannot read is no worse than none
+        return None, None, None, {}
+    reason = field = None
+    metadata: dict[str, str] = {}
+    for detail in status.details:
+        if detail.Is(error_details_pb2.ErrorInfo.DESCRIPTOR):
+            info = error_details_pb2.ErrorInfo()
+            detail.Unpack(info)
+            if info.domain == ERROR_DOMAIN:
+                reason = info.reason
+                metadata.update(info.metadata)
+        elif detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
+            bad = error_details_pb2.BadRequest()
+            detail.Unpack(bad)
+            if bad.field_violations:
+                field = bad.field_violations[0].field
+    index = metadata.pop("env_index", None)
+    env_index = int(index) if index is not None and index.isdigit() else None
+    return reason, field, env_index, metadata

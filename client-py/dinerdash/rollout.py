@@ -7,6 +7,7 @@ round trip per step.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -87,13 +88,18 @@ def rollout(
     token: str | None = None,
     connect_timeout: float = 10.0,
     server_binary: str | None = None,
+    timeout: float | None = None,
+    tls: bool = False,
+    tls_ca: str | os.PathLike | None = None,
 ) -> Iterator[Episode]:
     """Plays ``policy`` (``"expert"`` or ``"random"``) on the server, one episode per seed, and
     yields the :class:`Episode` objects in seed order as they arrive.
 
     Give either ``seeds`` or ``episodes`` (seeds ``seed .. seed + episodes - 1``). Long seed lists
     are sent in chunks of the server's ``max_rollout_episodes``. Without ``address`` (and
-    ``DINERDASH_ADDRESS``) a local server is started for the duration of the iteration::
+    ``DINERDASH_ADDRESS``) a local server is started for the duration of the iteration.
+    ``timeout``, ``tls`` and ``tls_ca`` are as for the environments (the stream itself has no
+    overall deadline; keepalive pings notice a dead server)::
 
         for ep in dinerdash.rollout("expert", episodes=10):
             print(ep.seed, ep.score, ep.steps)
@@ -106,7 +112,14 @@ def rollout(
         seeds = range(seed, seed + episodes)
     seeds = [int(s) for s in seeds]
     endpoint = Endpoint(
-        address, token=token, connect_timeout=connect_timeout, server_binary=server_binary, pick=0
+        address,
+        token=token,
+        connect_timeout=connect_timeout,
+        server_binary=server_binary,
+        pick=0,
+        timeout=timeout,
+        tls=tls,
+        tls_ca=tls_ca,
     )
     try:
         conn = endpoint.connections[0]

@@ -5,6 +5,7 @@
 use std::io::Write as _;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
@@ -13,6 +14,12 @@ use dinerdash_server::server::{self, ServerConfig, TlsPem};
 use dinerdash_server::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 use dinerdash_server::shutdown;
 use dinerdash_server::sim::Config;
+use tokio_rustls::rustls::client::WebPkiServerVerifier;
+use tokio_rustls::rustls::client::danger::{
+    HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier,
+};
+use tokio_rustls::rustls::pki_types::{CertificateDer, ServerName, UnixTime, pem::PemObject};
+use tokio_rustls::rustls::{self, DigitallySignedStruct, RootCertStore, SignatureScheme};
 
 /// DinerDash Gym environment server.
 #[derive(Debug, Parser)]
@@ -85,7 +92,8 @@ struct HealthArgs {
     /// The service to ask about; empty means the whole server.
     #[arg(long, default_value = "")]
     service: String,
-    /// Connect with TLS, trusting this PEM CA certificate.
+    /// Connect with TLS, trusting this PEM CA certificate (or a self-signed server certificate
+    /// itself).
     #[arg(long)]
     tls_ca: Option<PathBuf>,
 }
@@ -284,29 +292,23 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
 
 /// One grpc.health.v1 Check; Ok(true) when SERVING.
 async fn check_health(args: &HealthArgs) -> Result<bool, String> {
-    use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
+    use tonic::transport::Endpoint;
     use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
 
-    let scheme = if args.tls_ca.is_some() {
-        "https"
-    } else {
-        "http"
-    };
-    let mut endpoint = Endpoint::from_shared(format!("{scheme}://{}", args.address))
+    // With --tls-ca the TLS is ours (see `tls_connector`) and tonic speaks HTTP/2 over it.
+    let endpoint = Endpoint::from_shared(format!("http://{}", args.address))
         .map_err(|e| format!("bad address {:?}: {e}", args.address))?
         .connect_timeout(args.timeout)
         .timeout(args.timeout);
-    if let Some(ca) = &args.tls_ca {
-        let pem = std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display()))?;
-        endpoint = endpoint
-            .tls_config(ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem)))
-            .map_err(|e| format!("TLS: {e}"))?;
-    }
     let check = async {
-        let channel = endpoint
-            .connect()
-            .await
-            .map_err(|e| format!("cannot connect: {e}"))?;
+        let channel = match &args.tls_ca {
+            Some(ca) => {
+                let connector = tls_connector(&args.address, ca)?;
+                endpoint.connect_with_connector(connector).await
+            }
+            None => endpoint.connect().await,
+        }
+        .map_err(|e| format!("cannot connect: {}", error_chain(&e)))?;
         let reply = HealthClient::new(channel)
             .check(HealthCheckRequest {
                 service: args.service.clone(),
@@ -320,6 +322,148 @@ async fn check_health(args: &HealthArgs) -> Result<bool, String> {
     tokio::time::timeout(args.timeout, check)
         .await
         .map_err(|_| format!("no answer within {:?}", args.timeout))?
+}
+
+/// An error and its sources, so that "transport error" says which TLS check failed.
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        text.push_str(&format!(": {s}"));
+        source = s.source();
+    }
+    text
+}
+
+/// Opens TCP to `address` and TLS over it, trusting the PEM certificates of `ca`, for tonic's
+/// `connect_with_connector`.
+fn tls_connector(
+    address: &str,
+    ca: &std::path::Path,
+) -> Result<
+    impl tower::Service<
+        tonic::codegen::http::Uri,
+        Response = hyper_util::rt::TokioIo<tokio_rustls::client::TlsStream<tokio::net::TcpStream>>,
+        Error = std::io::Error,
+        Future = impl Send,
+    > + Clone
+    + Send
+    + 'static,
+    String,
+> {
+    let pem = std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display()))?;
+    let verifier = SelfSignedOrCa::new(&pem).map_err(|e| format!("{}: {e}", ca.display()))?;
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut config = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| format!("TLS: {e}"))?
+        .dangerous()
+        .with_custom_certificate_verifier(Arc::new(verifier))
+        .with_no_client_auth();
+    config.alpn_protocols = vec![b"h2".to_vec()];
+    let host = address
+        .rsplit_once(':')
+        .map_or(address, |(host, _)| host)
+        .trim_start_matches('[')
+        .trim_end_matches(']');
+    let name = ServerName::try_from(host.to_owned())
+        .map_err(|e| format!("bad host name {host:?}: {e}"))?;
+    let connector = tokio_rustls::TlsConnector::from(Arc::new(config));
+    let address = address.to_owned();
+    Ok(tower::service_fn(move |_: tonic::codegen::http::Uri| {
+        let (connector, name, address) = (connector.clone(), name.clone(), address.clone());
+        async move {
+            let tcp = tokio::net::TcpStream::connect(&address).await?;
+            let tls = connector.connect(name, tcp).await?;
+            Ok(hyper_util::rt::TokioIo::new(tls))
+        }
+    }))
+}
+
+/// The usual WebPKI checks against the --tls-ca certificates, plus one exception: a server
+/// certificate that is byte for byte one of them is trusted as is. webpki refuses a CA
+/// certificate as a server's own ("CaUsedAsEndEntity"), yet a self-signed certificate made with
+/// `openssl req -x509` is exactly that, and the operator who names it as the CA trusts it.
+#[derive(Debug)]
+struct SelfSignedOrCa {
+    webpki: Arc<WebPkiServerVerifier>,
+    pinned: Vec<CertificateDer<'static>>,
+}
+
+impl SelfSignedOrCa {
+    fn new(pem: &[u8]) -> Result<SelfSignedOrCa, String> {
+        let pinned = CertificateDer::pem_slice_iter(pem)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| format!("not PEM certificates: {e}"))?;
+        if pinned.is_empty() {
+            return Err("no PEM certificate in it".into());
+        }
+        let mut roots = RootCertStore::empty();
+        for cert in &pinned {
+            roots
+                .add(cert.clone())
+                .map_err(|e| format!("unusable certificate: {e}"))?;
+        }
+        let webpki = WebPkiServerVerifier::builder_with_provider(
+            Arc::new(roots),
+            Arc::new(rustls::crypto::ring::default_provider()),
+        )
+        .build()
+        .map_err(|e| format!("unusable certificates: {e}"))?;
+        Ok(SelfSignedOrCa { webpki, pinned })
+    }
+}
+
+impl ServerCertVerifier for SelfSignedOrCa {
+    fn verify_server_cert(
+        &self,
+        end_entity: &CertificateDer<'_>,
+        intermediates: &[CertificateDer<'_>],
+        server_name: &ServerName<'_>,
+        ocsp_response: &[u8],
+        now: UnixTime,
+    ) -> Result<ServerCertVerified, rustls::Error> {
+        match self.webpki.verify_server_cert(
+            end_entity,
+            intermediates,
+            server_name,
+            ocsp_response,
+            now,
+        ) {
+            Ok(verified) => Ok(verified),
+            Err(_)
+                if self
+                    .pinned
+                    .iter()
+                    .any(|c| c.as_ref() == end_entity.as_ref()) =>
+            {
+                Ok(ServerCertVerified::assertion())
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    fn verify_tls12_signature(
+        &self,
+        message: &[u8],
+        cert: &CertificateDer<'_>,
+        dss: &DigitallySignedStruct,
+    ) -> Result<HandshakeSignatureValid, rustls::Error> {
+        self.webpki.verify_tls12_signature(message, cert, dss)
+    }
+
+    fn verify_tls13_signature(
+        &self,
+        message: &[u8],
+        cert: &CertificateDer<'_>,
+        dss: &DigitallySignedStruct,
+    ) -> Result<HandshakeSignatureValid, rustls::Error> {
+        self.webpki.verify_tls13_signature(message, cert, dss)
+    }
+
+    fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
+        self.webpki.supported_verify_schemes()
+    }
 }
 
 fn main() -> ExitCode {

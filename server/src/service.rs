@@ -3,10 +3,12 @@
 //! `tonic::Status`, each [`SessionError`] mapped once in [`status`]; it also holds the bearer
 //! token interceptor.
 
+use std::collections::HashMap;
 use std::sync::Arc;
 
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::{Request, Response, Status};
+use tonic::{Code, Request, Response, Status};
+use tonic_types::{ErrorDetails, StatusExt};
 
 use crate::cpu::CpuPool;
 use crate::eval::PolicyKind;
@@ -25,18 +27,80 @@ pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 /// Rollout episodes buffered ahead of a slow reader.
 const ROLLOUT_BUFFER: usize = 2;
 
-/// Maps a session error to its gRPC status: the one place that decides the codes.
+/// `ErrorInfo.domain` of every error this server returns.
+pub const ERROR_DOMAIN: &str = "dinerdash.v1";
+
+/// Maps a session error to its gRPC status: the one place that decides the codes and the
+/// structured details (google.rpc `ErrorInfo`, and `BadRequest` for INVALID_ARGUMENT) that
+/// clients map from, never from the message text. The reasons are listed in the proto's header.
 pub fn status(e: SessionError) -> Status {
     let message = e.to_string();
-    match e {
-        SessionError::NotFound(_) => Status::not_found(message),
-        SessionError::InvalidArgument(_) => Status::invalid_argument(message),
-        SessionError::TooManySessions(_) => Status::resource_exhausted(message),
-        SessionError::NotReset | SessionError::EpisodeOver | SessionError::EnvEpisodeOver(_) => {
-            Status::failed_precondition(message)
+    let (code, reason, metadata) = match &e {
+        SessionError::NotFound(id) => (
+            Code::NotFound,
+            "SESSION_NOT_FOUND",
+            vec![("session_id", id.clone())],
+        ),
+        SessionError::InvalidArgument(_) => (Code::InvalidArgument, "INVALID_ARGUMENT", vec![]),
+        SessionError::KeptNeverReset(i) => (
+            Code::InvalidArgument,
+            "INVALID_ARGUMENT",
+            vec![("env_index", i.to_string())],
+        ),
+        SessionError::ActionOutOfRange { env, action } => (
+            Code::InvalidArgument,
+            "ACTION_OUT_OF_RANGE",
+            vec![
+                ("env_index", env.to_string()),
+                ("action", action.to_string()),
+            ],
+        ),
+        SessionError::TooManySessions(max) => (
+            Code::ResourceExhausted,
+            "TOO_MANY_SESSIONS",
+            vec![("max_sessions", max.to_string())],
+        ),
+        SessionError::NotReset => (Code::FailedPrecondition, "NOT_RESET", vec![]),
+        SessionError::EpisodeOver => (
+            Code::FailedPrecondition,
+            "EPISODE_OVER",
+            vec![("env_index", "0".to_string())],
+        ),
+        SessionError::EnvEpisodeOver(i) => (
+            Code::FailedPrecondition,
+            "EPISODE_OVER",
+            vec![("env_index", i.to_string())],
+        ),
+        SessionError::Internal(_) => (Code::Internal, "INTERNAL", vec![]),
+    };
+    let metadata: HashMap<String, String> = metadata
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+    let mut details = ErrorDetails::with_error_info(reason, ERROR_DOMAIN, metadata);
+    match &e {
+        SessionError::ActionOutOfRange { env, .. } => {
+            details.add_bad_request_violation(format!("actions[{env}]"), message.clone());
         }
-        SessionError::Internal(_) => Status::internal(message),
+        SessionError::KeptNeverReset(i) => {
+            details.add_bad_request_violation(format!("reset_mask[{i}]"), message.clone());
+        }
+        _ if code == Code::InvalidArgument => {
+            details.add_bad_request_violation(offending_field(&message), message.clone());
+        }
+        _ => {}
     }
+    Status::with_error_details(code, message, details)
+}
+
+/// The field an INVALID_ARGUMENT message is about: by the convention of every such message in
+/// this server, its leading path (`actions[3]`, `arrivals[0].groups[2].size`, `snapshot`,
+/// `lives`), up to the first character that cannot be part of one.
+fn offending_field(message: &str) -> &str {
+    let end = message
+        .find(|c: char| !(c.is_ascii_alphanumeric() || matches!(c, '_' | '.' | '[' | ']')))
+        .unwrap_or(message.len());
+    &message[..end]
 }
 
 /// The game configuration of a request: absent fields (or an absent message) keep `v0`.

@@ -34,9 +34,22 @@ pub enum SessionError {
     /// No session has this ID: never created, closed, or expired.
     #[error("session {0} not found (closed or expired)")]
     NotFound(String),
-    /// The request is malformed; the message names the field and its allowed range.
+    /// The request is malformed; the message starts with the field's path (`seeds`,
+    /// `arrivals[0].groups[2].size`) and gives its allowed range: the service reports that
+    /// leading path as the `BadRequest` field.
     #[error("{0}")]
     InvalidArgument(String),
+    /// Environment `env` of a Step was given an action outside the game's actions.
+    #[error("actions[{env}] must be in 0..={max}, got {action}", max = crate::sim::NUM_ACTIONS - 1)]
+    ActionOutOfRange {
+        /// Index of the environment in the session.
+        env: usize,
+        /// The action given.
+        action: i32,
+    },
+    /// A partial Reset would keep environment `i`, which has never been reset.
+    #[error("environment {0} has never been reset: include it in reset_mask")]
+    KeptNeverReset(usize),
     /// The server holds its maximum number of sessions.
     #[error("the server holds its maximum of {0} sessions; close one or raise --max-sessions")]
     TooManySessions(usize),

@@ -332,9 +332,7 @@ impl Envs {
             }
             let mut kept = args.reset_mask.iter().zip(&self.envs);
             if let Some(i) = kept.position(|(&reset, env)| !reset && !env.game.is_started()) {
-                return invalid(format!(
-                    "environment {i} has never been reset: include it in reset_mask"
-                ));
+                return Err(SessionError::KeptNeverReset(i));
             }
         }
 
@@ -385,10 +383,7 @@ impl Envs {
         for (i, a) in actions.chunks_exact(4).enumerate() {
             let a = i32::from_le_bytes([a[0], a[1], a[2], a[3]]);
             if !(0..NUM_ACTIONS as i32).contains(&a) {
-                return Err(SessionError::InvalidArgument(format!(
-                    "actions[{i}] must be in 0..={}, got {a}",
-                    NUM_ACTIONS - 1
-                )));
+                return Err(SessionError::ActionOutOfRange { env: i, action: a });
             }
         }
         if !self.envs.iter().all(|e| e.game.is_started()) {

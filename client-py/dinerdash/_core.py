@@ -1,0 +1,371 @@
+"""The session core: environments ``start:stop`` of an env, held in one batched session on one
+server, and everything both environments do with such a session.
+
+It creates the session, resets and steps it (blocking, or started on every server first and then
+collected), checks actions, decodes the packed replies, and, with ``reconnect=True``, waits for a
+lost server and reopens the session there. :class:`~dinerdash.DinerDashEnv` is one core of one
+environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Errors are the
+server's typed errors; a core of a vector env that is split over several servers reports an
+environment by its index in the vector env (from the error's structured ``env_index``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import grpc
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from ._proto import pb
+from ._session import NUM_ACTIONS, OBSERVATION_SIZE, Endpoint, close_session
+from .connection import Connection
+from .errors import InvalidArgument, ServiceError, ServiceTransportError, SessionNotFound
+
+_WIRE_AUTORESET = {
+    AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
+    AutoresetMode.SAME_STEP: pb.AUTORESET_MODE_SAME_STEP,
+    AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
+}
+_U64 = 1 << 64
+#: The errors after which ``reconnect=True`` waits for the server and opens a new session.
+LOST = (ServiceTransportError, SessionNotFound)
+
+
+@dataclass
+class Settings:
+    """What every core of one env shares; the env changes ``config`` on a reset with a config."""
+
+    num_envs: int
+    autoreset_mode: AutoresetMode
+    config: pb.GameConfig | None = None
+    expert: bool = False
+    reconnect: bool = False
+    reconnect_timeout: float = 60.0
+    #: Several cores: errors name the environments by their index in the whole env.
+    split: bool = field(default=False)
+
+
+def check_actions(actions: Any, num_envs: int) -> np.ndarray:
+    """``actions`` as ``num_envs`` little-endian int32, every one checked against the game's
+    actions before any server steps: int32 casting would wrap 2**32 + 1 into action 1, and over
+    several servers a step refused by one would have moved the others."""
+    acts = np.asarray(actions)
+    if acts.shape != (num_envs,):
+        raise ValueError(f"actions: expected shape ({num_envs},), got {acts.shape}")
+    bad = np.flatnonzero((acts < 0) | (acts >= NUM_ACTIONS))
+    if bad.size:
+        i = int(bad[0])
+        raise InvalidArgument(
+            f"actions[{i}] must be in 0..={NUM_ACTIONS - 1}, got {acts[i]}",
+            reason="ACTION_OUT_OF_RANGE",
+            field=f"actions[{i}]",
+            env_index=i,
+        )
+    return acts.astype("<i4", copy=False)
+
+
+class SessionCore:
+    """Environments ``start:stop`` of an env, in one session on server ``index`` of its
+    :class:`~dinerdash._session.Endpoint`."""
+
+    __slots__ = (
+        "endpoint",
+        "index",
+        "last",
+        "pending",
+        "reconnected",
+        "session_id",
+        "settings",
+        "spec",
+        "start",
+        "stop",
+    )
+
+    def __init__(
+        self, endpoint: Endpoint, index: int, start: int, stop: int, settings: Settings
+    ) -> None:
+        self.endpoint = endpoint
+        self.index = index
+        self.start = start
+        self.stop = stop
+        self.settings = settings
+        #: The session on the server, ``None`` before :meth:`create` and after :meth:`close`.
+        self.session_id: str | None = None
+        self.spec: pb.Spec | None = None
+        #: The last Batch received, kept for render(), action_masks() and a lost server.
+        self.last: pb.Batch | None = None
+        #: NEXT_STEP after a reconnect: the new session's first Batch, handed out at the next
+        #: step as that step's autoreset (Gymnasium's NEXT_STEP semantics).
+        self.pending: pb.Batch | None = None
+        #: The server was lost and the session reopened during the current step.
+        self.reconnected = False
+
+    @property
+    def conn(self) -> Connection:
+        return self.endpoint.connections[self.index]
+
+    @property
+    def size(self) -> int:
+        return self.stop - self.start
+
+    # -- the session ----------------------------------------------------------------------------
+
+    def create(self) -> pb.Spec:
+        """Opens the session (not reset yet) and returns the server's Spec."""
+        s = self.settings
+        request = pb.CreateSessionRequest(
+            num_envs=self.size,
+            config=s.config,
+            autoreset_mode=_WIRE_AUTORESET[s.autoreset_mode],
+            action_masks=True,
+            expert_actions=s.expert,
+        )
+        try:
+            reply = self.conn.call("CreateSession", request)
+        except ServiceError as e:
+            raise self.fail(e) from None
+        self.adopt(reply.session_id, reply.spec)
+        return reply.spec
+
+    def adopt(self, session_id: str, spec: pb.Spec) -> None:
+        """Makes ``session_id`` (created, forked or restored) this core's session."""
+        self.session_id, self.spec = session_id, spec
+        self.last = self.pending = None
+
+    def reopen(self, error: ServiceError) -> None:
+        """Waits for the lost server and opens a new session there (``reconnect=True``)."""
+
+        def create(conn: Connection) -> None:
+            self.create()
+
+        lost = (
+            f"environments {self.start}..{self.stop - 1} ({error})"
+            if self.settings.split or self.settings.num_envs > 1
+            else f"the session ({error})"
+        )
+        self.endpoint.reopen(self.index, create, lost, self.settings.reconnect_timeout)
+
+    def close(self) -> None:
+        if self.session_id is not None:
+            close_session(self.conn, self.session_id)
+            self.session_id = None
+
+    def fail(self, error: ServiceError) -> ServiceError:
+        """``error``, saying which environments it concerns when the env is split over several
+        servers: its ``env_index`` becomes the index in the whole env."""
+        if not self.settings.split:
+            return error
+        env_index = error.env_index
+        if env_index is not None:
+            where = (
+                f" [the server's environment {env_index} is environment {env_index + self.start}"
+                f" of the vector env, whose environments {self.start}..{self.stop - 1} it holds]"
+            )
+            env_index += self.start
+        else:
+            where = f" [environments {self.start}..{self.stop - 1} of the vector env]"
+        return type(error)(
+            error.details + where,
+            code=error.code,
+            address=error.address,
+            reason=error.reason,
+            field=error.field,
+            env_index=env_index,
+            metadata=error.metadata,
+        )
+
+    # -- Reset ----------------------------------------------------------------------------------
+
+    def reset_request(
+        self,
+        *,
+        seed: int | None = None,
+        seeds: list[int] | None = None,
+        arrivals: list[pb.ArrivalList] | None = None,
+        config: pb.GameConfig | None = None,
+        mask: np.ndarray | None = None,
+    ) -> pb.ResetRequest:
+        """This core's part of a reset of the whole env: environment ``i`` of the env is seeded
+        with ``seed + i`` (or ``seeds[i]``), gets ``arrivals[i]`` when there is one list per
+        environment (else the one list), and is reset when ``mask[i]`` (else all are)."""
+        r = pb.ResetRequest(session_id=self.session_id, config=config)
+        if mask is not None:
+            r.reset_mask = mask[self.start : self.stop].astype(np.uint8).tobytes()
+        if seeds is not None:
+            r.seeds.extend(seeds[self.start : self.stop])
+        elif seed is not None:
+            r.seed = (int(seed) + self.start) % _U64
+        if arrivals:
+            if len(arrivals) == 1 or not self.settings.split:
+                r.arrivals.extend(arrivals)
+            else:
+                r.arrivals.extend(arrivals[self.start : self.stop])
+        return r
+
+    def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> pb.Batch:
+        """The reply to ``request`` (started as ``future``, or called now). After a lost server
+        (``reconnect=True``) the new session is reset whole, as a new session must be."""
+        try:
+            if future is None:
+                batch = self.conn.call("Reset", request)
+            else:
+                batch = self.conn.result("Reset", request, future)
+        except LOST as e:
+            if not self.settings.reconnect:
+                raise self.fail(e) from None
+            self.reopen(e)
+            request.session_id = self.session_id
+            request.ClearField("reset_mask")
+            batch = self.conn.call("Reset", request)
+        except ServiceError as e:
+            raise self.fail(e) from None
+        self.last, self.pending = batch, None
+        return batch
+
+    # -- Step -----------------------------------------------------------------------------------
+
+    def step(self, actions: bytes) -> pb.Batch:
+        """One Step of this core's environments (their ``actions`` as packed int32), blocking."""
+        if self.pending is not None:
+            batch, self.pending = self.pending, None
+        else:
+            try:
+                batch = self.conn.call(
+                    "Step", pb.StepRequest(session_id=self.session_id, actions=actions)
+                )
+            except LOST as e:
+                batch = self.recover_step(e)
+            except ServiceError as e:
+                raise self.fail(e) from None
+        self.last = batch
+        return batch
+
+    def start_step(self, actions: bytes) -> tuple[pb.StepRequest, grpc.Future] | None:
+        """Sends a Step without waiting (``None``: a pending autoreset needs no call)."""
+        if self.pending is not None:
+            return None
+        request = pb.StepRequest(session_id=self.session_id, actions=actions)
+        return request, self.conn.future("Step", request)
+
+    def finish_step(self, started: tuple[pb.StepRequest, grpc.Future] | None) -> pb.Batch:
+        """The Batch of a Step begun by :meth:`start_step`."""
+        if started is None:
+            batch, self.pending = self.pending, None
+        else:
+            try:
+                batch = self.conn.result("Step", *started)
+            except LOST as e:
+                batch = self.recover_step(e)
+            except ServiceError as e:
+                raise self.fail(e) from None
+        self.last = batch
+        return batch
+
+    def recover_step(self, error: ServiceError) -> pb.Batch:
+        """A Batch that reports the interrupted episodes as truncated, after opening a new
+        session for them (``reconnect=True``); raises ``error`` otherwise."""
+        if not self.settings.reconnect or self.last is None:
+            raise self.fail(error) from None
+        last = self.last
+        self.reopen(error)
+        first = self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id))
+        n = self.size
+        out = pb.Batch()
+        if self.settings.autoreset_mode != AutoresetMode.SAME_STEP:
+            # This step ends the episodes (last state, truncated). NEXT_STEP: the next step
+            # hands out the new session's first observations as the autoreset. DISABLED: the
+            # caller resets them; the new session's episodes have already started.
+            out.CopyFrom(last)
+            out.reset = bytes(n)
+            del out.seeds[:]
+            out.seeds.extend([0] * n)
+            if self.settings.autoreset_mode == AutoresetMode.NEXT_STEP:
+                self.pending = first
+        else:
+            # SAME_STEP: the new episodes start in this very step; the old ones are final_*.
+            out.CopyFrom(first)
+            out.final_observations = last.observations
+            out.final_scores = last.scores
+            out.final_lost = last.lost
+            out.final_ticks = last.ticks
+            out.final_action_masks = last.action_masks
+            out.final_expert_actions = last.expert_actions
+        out.rewards = bytes(4 * n)
+        out.terminated = bytes(n)
+        out.truncated = b"\x01" * n
+        out.ClearField("stream_episodes")
+        self.reconnected = True
+        return out
+
+    # -- the rest -------------------------------------------------------------------------------
+
+    def render_text(self, env_index: int, color: bool) -> str:
+        request = pb.RenderRequest(session_id=self.session_id, env_index=env_index, color=color)
+        try:
+            return self.conn.call("Render", request).text
+        except ServiceError as e:
+            raise self.fail(e) from None
+
+
+# -- decoding -------------------------------------------------------------------------------------
+
+
+def join(batches: list[pb.Batch], name: str) -> bytes:
+    """Field ``name`` of every core's Batch, in environment order."""
+    if len(batches) == 1:
+        return getattr(batches[0], name)
+    return b"".join([getattr(b, name) for b in batches])
+
+
+def seeds(batches: list[pb.Batch]) -> np.ndarray:
+    if len(batches) == 1:
+        return np.array(batches[0].seeds, dtype=np.uint64)
+    return np.array([s for b in batches for s in b.seeds], dtype=np.uint64)
+
+
+def decode(
+    batches: list[pb.Batch],
+    num_envs: int,
+    expert: bool,
+    prefix: str = "",
+    present: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Observations ``(N, 40)`` and infos of the state the batches return, or with
+    ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
+    Gymnasium ``_key`` mask."""
+    n = num_envs
+    if present is None:
+        present = np.ones(n, dtype=np.bool_)
+
+    def field(name: str, dtype: str) -> np.ndarray:
+        return np.frombuffer(join(batches, prefix + name), dtype=dtype)
+
+    obs = field("observations", "i1").reshape(n, OBSERVATION_SIZE).astype(np.float32)
+    info: dict[str, Any] = {
+        "action_mask": field("action_masks", "?").reshape(n, NUM_ACTIONS).copy(),
+        "score": field("scores", "<i4").astype(np.int64),
+        "lost": field("lost", "<u4").astype(np.int64),
+        "tick": field("ticks", "<u4").astype(np.int64),
+    }
+    if expert:
+        info["expert_action"] = field("expert_actions", "u1").astype(np.int64)
+    for key in list(info):
+        info[f"_{key}"] = present.copy()
+    return obs, info
+
+
+def decode_one(batch: pb.Batch, expert: bool) -> tuple[np.ndarray, dict[str, Any]]:
+    """The observation ``(40,)`` and info of a one-environment Batch: :func:`decode` without the
+    batch axis, with plain ``int`` values (cheaper than numpy for one environment)."""
+    obs = np.frombuffer(batch.observations, dtype=np.int8).astype(np.float32)
+    info: dict[str, Any] = {
+        "action_mask": np.frombuffer(batch.action_masks, dtype=np.bool_).copy(),
+        "score": int.from_bytes(batch.scores, "little", signed=True),
+        "lost": int.from_bytes(batch.lost, "little"),
+        "tick": int.from_bytes(batch.ticks, "little"),
+    }
+    if expert:
+        info["expert_action"] = batch.expert_actions[0]
+    return obs, info
