@@ -8,7 +8,8 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
-use dinerdash_server::eval::{PolicyKind, evaluate};
+use dinerdash_server::eval::evaluate;
+use dinerdash_server::expert::PolicyKind;
 use dinerdash_server::server::{self, ServerConfig, TlsPem};
 use dinerdash_server::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 use dinerdash_server::shutdown;
@@ -115,8 +116,12 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum PolicyArg {
+    /// The reference heuristic.
     Expert,
+    /// Uniformly random actions.
     Random,
+    /// The look-ahead planner over sampled futures (about a millisecond a decision).
+    Planner,
 }
 
 #[derive(Debug, clap::Args)]
@@ -142,6 +147,7 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
     let kind = match args.policy {
         PolicyArg::Expert => PolicyKind::Expert,
         PolicyArg::Random => PolicyKind::Random,
+        PolicyArg::Planner => PolicyKind::Planner,
     };
     let threads = args
         .threads

@@ -9,7 +9,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
 use crate::cpu::CpuPool;
-use crate::eval::PolicyKind;
+use crate::expert::PolicyKind;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, Recording};
