@@ -33,6 +33,7 @@ from ._session import (
     Endpoint,
     SessionOwner,
     close_session,
+    expert_fields,
     make_arrivals,
     make_config,
 )
@@ -96,7 +97,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         address: a server, a list of servers, or a DNS name resolving to several; with several,
             the environments are split into contiguous slices, one per server (at most N servers).
             Default: ``DINERDASH_ADDRESS``, else a local server is started and stopped on close.
-        expert: add ``expert_action`` to the infos.
+        expert: add ``expert_action`` to the infos: ``True`` the reference heuristic's choices,
+            ``"planner"`` the look-ahead planner's.
         reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
             its session and report its environments' episodes as truncated.
         autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
@@ -118,7 +120,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         num_envs: int = 1,
         address: str | Sequence[str] | None = None,
         *,
-        expert: bool = False,
+        expert: bool | str = False,
         reconnect: bool = False,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         config: Config = None,
@@ -143,7 +145,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.autoreset_mode = mode
         self.render_mode = render_mode
         self.num_envs = int(num_envs)
-        self.expert = bool(expert)
+        self._expert_fields = expert_fields(expert)
+        self.expert = self._expert_fields["expert_actions"]
         self.reconnect = bool(reconnect)
         self.reconnect_timeout = reconnect_timeout
         self.ansi_color = ansi_color
@@ -206,7 +209,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             config=self._config,
             autoreset_mode=_WIRE_AUTORESET[self.autoreset_mode],
             action_masks=True,
-            expert_actions=self.expert,
+            **self._expert_fields,
         )
         reply = shard.conn.call("CreateSession", request)
         shard.session_id = reply.session_id

@@ -172,9 +172,9 @@ fn candidates(r: &Restaurant) -> ([u8; NUM_ACTIONS], usize) {
     }
     for (g, group) in r.queue().iter().enumerate() {
         let mut seen = [false; 7];
-        for t in 0..NUM_TABLES {
+        for (t, &capacity) in TABLE_CAPACITIES.iter().enumerate() {
             let a = FIRST_SEAT + 6 * g + t;
-            let capacity = usize::from(TABLE_CAPACITIES[t]);
+            let capacity = usize::from(capacity);
             if !may_seat(group, t) {
                 continue;
             }
@@ -220,8 +220,8 @@ pub fn greedy_waiter(r: &Restaurant) -> u8 {
             best = (gain, a as u8);
         }
     };
-    for t in 1..=NUM_TABLES {
-        if mask[t] {
+    for (t, &legal) in mask.iter().enumerate().take(NUM_TABLES + 1).skip(1) {
+        if legal {
             let gain = match r.table_status(t) {
                 status::READY_TO_ORDER => 20 + urgency(patience(t), 10),
                 status::WAITING_FOR_FOOD => 30 + urgency(patience(t), 10),
