@@ -1,10 +1,12 @@
-//! A step and an expert decision allocate nothing: counted with a wrapping global allocator.
+//! A step, an expert decision and a planner decision allocate nothing: counted with a wrapping
+//! global allocator.
 #![allow(unsafe_code)]
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use dinerdash_server::expert::expert_action;
+use dinerdash_server::planner::Planner;
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS};
 
 struct Counting;
@@ -53,6 +55,29 @@ fn steps_and_expert_decisions_do_not_allocate() {
         after - before,
         0,
         "{} allocations in {steps} steps",
+        after - before
+    );
+}
+
+#[test]
+fn planner_decisions_do_not_allocate() {
+    let planner = Planner::default();
+    let mut game = Game::new(Config::default()).unwrap();
+    game.reset(Some(4), None).unwrap();
+    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    let mut decisions = 0u32;
+    for _ in 0..300 {
+        let action = planner.choose(&game);
+        decisions += 1;
+        if game.step(i64::from(action)).unwrap().terminated {
+            break;
+        }
+    }
+    let after = ALLOCATIONS.load(Ordering::Relaxed);
+    assert_eq!(
+        after - before,
+        0,
+        "{} allocations in {decisions} planner decisions",
         after - before
     );
 }
