@@ -125,7 +125,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
       one of them is chosen at random). Default: ``DINERDASH_ADDRESS``, else a local server is
       started on a free port and stopped by ``close()``.
     * ``expert``: add ``expert_action`` to every info: ``True`` the reference heuristic's choice,
-      ``"planner"`` the look-ahead planner's (about 0.1 ms a step more on the server).
+      ``"planner"`` the look-ahead planner's (0.1-0.2 ms a step more on the server).
     * ``reconnect``: when the server is lost (unreachable after the retries, or restarted and no
       longer knowing the session), wait up to ``reconnect_timeout`` seconds for it, recreate the
       session and report the interrupted episode as truncated instead of raising.

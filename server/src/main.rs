@@ -168,11 +168,14 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
     };
     let score = result.score();
     let length = result.length();
+    let lost: u64 = result.episodes.iter().map(|e| u64::from(e.lost)).sum();
+    let ended = result.episodes.iter().filter(|e| e.terminated).count();
     let secs = result.elapsed.as_secs_f64().max(1e-9);
     let report = format!(
         "policy {:?}: {} episodes (seeds {}..={})\n\
          score  {:.1} ± {:.1} (sample sd {:.1})\n\
          length {:.1} ± {:.1} steps\n\
+         lost   {} groups, {:.2} per 1000 steps; {} of {} episodes ended by losing groups\n\
          {} steps in {:.3} s on {} threads: {:.0} steps/s\n",
         args.policy,
         result.episodes.len(),
@@ -184,6 +187,10 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
         score.sample_std,
         length.mean,
         length.std,
+        lost,
+        1000.0 * lost as f64 / result.total_steps().max(1) as f64,
+        ended,
+        result.episodes.len(),
         result.total_steps(),
         secs,
         threads,

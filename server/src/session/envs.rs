@@ -47,7 +47,7 @@ pub enum ExpertActions {
     None,
     /// The reference heuristic's choices.
     Reference,
-    /// The look-ahead planner's choices: ~0.1 ms each, so Reset and Step of such a session run
+    /// The look-ahead planner's choices: 0.1-0.2 ms each, so Reset and Step of such a session run
     /// on the service's bounded CPU pool.
     Planner,
 }
