@@ -41,6 +41,8 @@ class Settings:
     autoreset_mode: AutoresetMode
     config: pb.GameConfig | None = None
     expert: bool = False
+    #: Which expert fills ``expert_action`` (``pb.POLICY_EXPERT`` or ``pb.POLICY_PLANNER``).
+    expert_policy: int = pb.POLICY_EXPERT
     reconnect: bool = False
     reconnect_timeout: float = 60.0
     #: Several cores: errors name the environments by their index in the whole env.
@@ -121,6 +123,7 @@ class SessionCore:
             autoreset_mode=_WIRE_AUTORESET[s.autoreset_mode],
             action_masks=True,
             expert_actions=s.expert,
+            expert_policy=s.expert_policy,
         )
         try:
             reply = self.conn.call("CreateSession", request)

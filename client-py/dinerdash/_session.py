@@ -29,6 +29,20 @@ Config = Mapping[str, int] | pb.GameConfig | None
 Arrivals = Sequence[tuple[int, int]] | Sequence[Mapping[str, int]]
 
 
+#: The ``expert=`` values that name a server-side expert, and the policy the server plays for them.
+EXPERTS = {"expert": pb.POLICY_EXPERT, "planner": pb.POLICY_PLANNER}
+
+
+def expert_fields(expert: bool | str) -> dict[str, Any]:
+    """The CreateSession fields for ``expert=``: ``False`` (no ``expert_action``), ``True`` or
+    ``"expert"`` (the reference heuristic), or ``"planner"`` (the look-ahead planner)."""
+    if isinstance(expert, str):
+        if expert not in EXPERTS:
+            raise ValueError(f"expert must be a bool or one of {sorted(EXPERTS)}, got {expert!r}")
+        return {"expert_actions": True, "expert_policy": EXPERTS[expert]}
+    return {"expert_actions": bool(expert), "expert_policy": pb.POLICY_EXPERT}
+
+
 def make_config(config: Config) -> pb.GameConfig | None:
     """A GameConfig from a mapping such as ``{"lives": 3, "time_limit": 1000}``."""
     if config is None or isinstance(config, pb.GameConfig):

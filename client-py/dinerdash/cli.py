@@ -2,8 +2,8 @@
 
 ::
 
-    python -m dinerdash evaluate --policy expert --episodes 100
-    python -m dinerdash collect --episodes 274 --out demos/
+    python -m dinerdash evaluate --policy expert --episodes 100   # or --policy planner
+    python -m dinerdash collect --episodes 274 --out demos/       # --policy planner: its demos
     python -m dinerdash bench
 
 Every command takes ``--address host:port`` (several separated by commas); without it (and
@@ -25,6 +25,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
+
+from ._session import EXPERTS
 
 __all__ = ["Progress", "main"]
 
@@ -102,7 +104,8 @@ def evaluate_through_env(
     scores = np.zeros(episodes, dtype=np.int64)
     lengths = np.zeros(episodes, dtype=np.int64)
     rng = np.random.default_rng(seed)
-    envs = DinerDashVectorEnv(n, address, expert=policy == "expert", **connection)
+    expert = policy in EXPERTS
+    envs = DinerDashVectorEnv(n, address, expert=policy if expert else False, **connection)
     try:
         for first in range(0, episodes, n):
             # Seeds past the last episode only pad the batch; their episodes are ignored.
@@ -113,7 +116,7 @@ def evaluate_through_env(
             done[want:] = True
             steps = 0
             while not done.all():
-                if policy == "expert":
+                if expert:
                     actions = info["expert_action"]
                 else:
                     actions = rng.integers(0, 57, size=n)
@@ -199,7 +202,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     progress = Progress(args.episodes, "collect")
     episodes = []
     for ep in rollout(
-        "expert",
+        args.policy,
         episodes=args.episodes,
         seed=args.seed,
         address=args.address,
@@ -213,7 +216,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     lengths = np.array([ep.steps for ep in episodes], dtype=np.int64)
     terminations = np.concatenate([_last_flag(ep.steps, ep.terminated) for ep in episodes])
     truncations = np.concatenate([_last_flag(ep.steps, ep.truncated) for ep in episodes])
-    path = out / "dinerdash_expert.npz"
+    path = out / f"dinerdash_{args.policy}.npz"
     np.savez_compressed(
         path,
         observations=np.concatenate([ep.observations[:-1] for ep in episodes]),
@@ -234,12 +237,13 @@ def _cmd_collect(args: argparse.Namespace) -> int:
         f"score {mean:.1f} ± {sd:.1f}"
     )
     try:
-        minari_path = _write_minari(episodes, out, args.dataset_id)
+        dataset_id = args.dataset_id or f"dinerdash/{args.policy}-v0"
+        minari_path = _write_minari(episodes, out, dataset_id, args.policy)
     except Exception as e:  # minari is optional: say why its dataset is missing, keep the .npz
         print(f"error: could not write the Minari dataset: {e!r}", file=sys.stderr)
         return 1
     if minari_path is not None:
-        print(f"wrote Minari dataset {args.dataset_id} to {minari_path}")
+        print(f"wrote Minari dataset {dataset_id} to {minari_path}")
     else:
         print(
             "minari is not installed: skipped the Minari dataset (pip install 'dinerdash[minari]')"
@@ -254,7 +258,7 @@ def _last_flag(steps: int, value: bool) -> np.ndarray:
     return flags
 
 
-def _write_minari(episodes, out: Path, dataset_id: str) -> Path | None:
+def _write_minari(episodes, out: Path, dataset_id: str, policy: str = "expert") -> Path | None:
     """A Minari dataset of the episodes, when ``minari`` is importable; its files go under
     ``out/minari`` unless ``MINARI_DATASETS_PATH`` says otherwise."""
     try:
@@ -293,9 +297,13 @@ def _write_minari(episodes, out: Path, dataset_id: str) -> Path | None:
         eval_env=gymnasium.spec("DinerDash-v0"),
         observation_space=spaces.Box(low, high, dtype=np.float32),
         action_space=spaces.Discrete(NUM_ACTIONS),
-        algorithm_name="reference expert (docs/rules.md section 8), server-side rollout",
+        algorithm_name=(
+            "reference expert (docs/rules.md section 8), server-side rollout"
+            if policy == "expert"
+            else "look-ahead planner, server-side rollout"
+        ),
         author="dinerdash",
-        description=f"{len(episodes)} expert episodes of {DinerDashEnv.__name__}, ruleset v0",
+        description=f"{len(episodes)} {policy} episodes of {DinerDashEnv.__name__}, ruleset v0",
     )
     return root
 
@@ -467,7 +475,7 @@ def _parser() -> argparse.ArgumentParser:
         )
 
     p = sub.add_parser("evaluate", help="mean ± sd score of a policy over seeded episodes")
-    p.add_argument("--policy", choices=["expert", "random"], default="expert")
+    p.add_argument("--policy", choices=["expert", "random", "planner"], default="expert")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument(
         "--seed", type=int, default=0, help="seed of the first episode (episode i: seed + i)"
@@ -492,11 +500,19 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "collect", help="expert demonstrations (.npz; a Minari dataset when installed)"
     )
+    p.add_argument(
+        "--policy",
+        choices=sorted(EXPERTS),
+        default="expert",
+        help="whose demonstrations: the reference heuristic or the look-ahead planner",
+    )
     p.add_argument("--episodes", type=int, default=274)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--max-steps", type=int, default=None)
-    p.add_argument("--dataset-id", default="dinerdash/expert-v0", help="Minari dataset id")
+    p.add_argument(
+        "--dataset-id", default=None, help="Minari dataset id (default: dinerdash/<policy>-v0)"
+    )
     address(p)
     p.set_defaults(func=_cmd_collect)
 

@@ -18,7 +18,7 @@ from ._session import NUM_ACTIONS, OBSERVATION_SIZE, Config, Endpoint, make_conf
 
 __all__ = ["Episode", "rollout"]
 
-_POLICIES = {"expert": pb.POLICY_EXPERT, "random": pb.POLICY_RANDOM}
+_POLICIES = {"expert": pb.POLICY_EXPERT, "random": pb.POLICY_RANDOM, "planner": pb.POLICY_PLANNER}
 
 
 @dataclass(frozen=True)
@@ -92,8 +92,8 @@ def rollout(
     tls: bool = False,
     tls_ca: str | os.PathLike | None = None,
 ) -> Iterator[Episode]:
-    """Plays ``policy`` (``"expert"`` or ``"random"``) on the server, one episode per seed, and
-    yields the :class:`Episode` objects in seed order as they arrive.
+    """Plays ``policy`` (``"expert"``, ``"random"`` or ``"planner"``) on the server, one episode
+    per seed, and yields the :class:`Episode` objects in seed order as they arrive.
 
     Give either ``seeds`` or ``episodes`` (seeds ``seed .. seed + episodes - 1``). Long seed lists
     are sent in chunks of the server's ``max_rollout_episodes``. Without ``address`` (and

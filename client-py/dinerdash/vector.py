@@ -34,6 +34,7 @@ from ._session import (
     SessionOwner,
     check_options,
     check_render_mode,
+    expert_fields,
     make_arrivals,
     make_config,
 )
@@ -66,7 +67,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         address: a server, a list of servers, or a DNS name resolving to several; with several,
             the environments are split into contiguous slices, one per server (at most N servers).
             Default: ``DINERDASH_ADDRESS``, else a local server is started and stopped on close.
-        expert: add ``expert_action`` to the infos.
+        expert: add ``expert_action`` to the infos: ``True`` the reference heuristic's choices,
+            ``"planner"`` the look-ahead planner's.
         reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
             its session and report its environments' episodes as truncated.
         autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
@@ -93,7 +95,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         num_envs: int = 1,
         address: str | Sequence[str] | None = None,
         *,
-        expert: bool = False,
+        expert: bool | str = False,
         reconnect: bool = False,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         config: Config = None,
@@ -117,7 +119,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.autoreset_mode = mode
         self.render_mode = check_render_mode(render_mode)
         self.num_envs = int(num_envs)
-        self.expert = bool(expert)
+        expert_request = expert_fields(expert)
+        self.expert = expert_request["expert_actions"]
         self.reconnect = bool(reconnect)
         self.reconnect_timeout = reconnect_timeout
         self.ansi_color = ansi_color
@@ -133,6 +136,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             autoreset_mode=mode,
             config=config,
             expert=self.expert,
+            expert_policy=expert_request["expert_policy"],
             reconnect=self.reconnect,
             reconnect_timeout=reconnect_timeout,
         )

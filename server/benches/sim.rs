@@ -1,13 +1,16 @@
 #![allow(missing_docs)] // criterion_group! generates undocumented items.
 
-//! Simulator and expert speed: one random step, one expert decision, a whole expert episode,
-//! and the benchmark's 274 expert episodes end to end. Each bench also checks its result.
+//! Simulator, expert and planner speed: one random step, one expert decision, a whole expert
+//! episode, the benchmark's 274 expert episodes end to end, and planner decisions (the mean over
+//! an episode and the state with the most legal actions). Each bench also checks its result.
 
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use dinerdash_server::eval::{PolicyKind, evaluate, run_episode};
+use dinerdash_server::eval::{evaluate, run_episode};
+use dinerdash_server::expert::PolicyKind;
 use dinerdash_server::expert::expert_action;
+use dinerdash_server::planner::Planner;
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS, Restaurant};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
@@ -109,6 +112,51 @@ fn expert(c: &mut Criterion) {
     group.finish();
 }
 
+/// The games a planner episode passes through (capped: planner episodes are long).
+fn planner_states(seed: u64, cap: usize) -> Vec<Game> {
+    let planner = Planner::default();
+    let mut game = Game::new(Config::default()).expect("v0 is valid");
+    game.reset(Some(seed), None).expect("drawn arrivals");
+    let mut states = vec![game.clone()];
+    while !game.restaurant().is_terminated() && states.len() < cap {
+        let action = planner.choose(&game);
+        game.step(i64::from(action)).expect("a legal action");
+        states.push(game.clone());
+    }
+    states
+}
+
+fn planner(c: &mut Criterion) {
+    let states = planner_states(0, 2000);
+    assert!(states.len() > 100, "a whole planner episode");
+    let planner = Planner::default();
+    let legal = |g: &Game| g.restaurant().action_mask().iter().filter(|&&m| m).count();
+    let busiest = states
+        .iter()
+        .max_by_key(|g| legal(g))
+        .expect("states")
+        .clone();
+    let mut group = c.benchmark_group("planner");
+    group.sample_size(10);
+    group.throughput(Throughput::Elements(states.len() as u64));
+    group.bench_function("decision_over_one_episode_of_states", |b| {
+        b.iter(|| {
+            let mut sum = 0u32;
+            for g in &states {
+                let action = planner.choose(black_box(g));
+                assert!(g.restaurant().action_mask()[usize::from(action)]);
+                sum += u32::from(action);
+            }
+            sum
+        })
+    });
+    group.throughput(Throughput::Elements(1));
+    group.bench_function("decision_with_the_most_legal_actions", |b| {
+        b.iter(|| planner.choose(black_box(&busiest)))
+    });
+    group.finish();
+}
+
 fn reset_and_snapshot(c: &mut Criterion) {
     let mut game = Game::new(Config::default()).unwrap();
     game.reset(Some(0), None).unwrap();
@@ -125,5 +173,5 @@ fn reset_and_snapshot(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, step, expert, reset_and_snapshot);
+criterion_group!(benches, step, expert, planner, reset_and_snapshot);
 criterion_main!(benches);

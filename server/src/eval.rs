@@ -3,28 +3,8 @@
 
 use std::time::{Duration, Instant};
 
-use crate::expert::{Expert, Policy, RandomPolicy};
+use crate::expert::PolicyKind;
 use crate::sim::{Config, Game};
-
-/// The policies the command line and the Rollout RPC know.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PolicyKind {
-    /// The reference heuristic expert.
-    Expert,
-    /// Uniformly random actions.
-    Random,
-}
-
-impl PolicyKind {
-    /// A fresh policy for the episode of `seed` (the random policy is seeded from it, so an
-    /// evaluation is reproducible).
-    pub fn build(self, seed: u64) -> Box<dyn Policy + Send> {
-        match self {
-            PolicyKind::Expert => Box::new(Expert),
-            PolicyKind::Random => Box::new(RandomPolicy::new(seed ^ 0x9e37_79b9_7f4a_7c15)),
-        }
-    }
-}
 
 /// How one episode ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -55,7 +35,7 @@ pub fn run_episode(
     let mut steps = 0;
     let mut terminated = false;
     while steps < max_steps {
-        let action = policy.act(game.restaurant());
+        let action = policy.act(&game);
         let Ok(outcome) = game.step(i64::from(action)) else {
             break;
         };

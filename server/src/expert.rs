@@ -1,14 +1,40 @@
-//! Policies that read the game: the benchmark's reference heuristic expert (docs/rules.md §8) and
-//! a uniformly random policy. Further experts (deeper look-ahead) implement [`Policy`] beside them.
+//! Policies that read the game: the benchmark's reference heuristic expert (docs/rules.md §8), a
+//! uniformly random policy, and [`PolicyKind`], the names by which the command line, Rollout and
+//! sessions choose among them and the look-ahead planner ([`crate::planner`]).
 
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
-use crate::sim::{NUM_ACTIONS, Restaurant};
+use crate::planner::Planner;
+use crate::sim::{Game, NUM_ACTIONS, Restaurant};
 
-/// Something that picks an action in a state.
+/// Something that picks an action in a game's current state.
 pub trait Policy {
-    /// The action to take in `restaurant`.
-    fn act(&mut self, restaurant: &Restaurant) -> u8;
+    /// The action to take in `game`'s current episode. A policy may read what a player sees and
+    /// the seed that names the episode, never the episode's arrival list.
+    fn act(&mut self, game: &Game) -> u8;
+}
+
+/// The policies the command line, the Rollout RPC and sessions know.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PolicyKind {
+    /// The reference heuristic expert.
+    Expert,
+    /// Uniformly random actions.
+    Random,
+    /// The look-ahead planner over sampled futures.
+    Planner,
+}
+
+impl PolicyKind {
+    /// A fresh policy for the episode of `seed` (the random policy is seeded from it, so an
+    /// evaluation is reproducible; the planner seeds itself from the game it plays).
+    pub fn build(self, seed: u64) -> Box<dyn Policy + Send> {
+        match self {
+            PolicyKind::Expert => Box::new(Expert),
+            PolicyKind::Random => Box::new(RandomPolicy::new(seed ^ 0x9e37_79b9_7f4a_7c15)),
+            PolicyKind::Planner => Box::new(Planner::default()),
+        }
+    }
 }
 
 /// The reference expert: one-step greedy on the shaped score, first best action, 0 unless the
@@ -36,8 +62,8 @@ pub fn expert_action(restaurant: &Restaurant) -> u8 {
 }
 
 impl Policy for Expert {
-    fn act(&mut self, restaurant: &Restaurant) -> u8 {
-        expert_action(restaurant)
+    fn act(&mut self, game: &Game) -> u8 {
+        expert_action(game.restaurant())
     }
 }
 
@@ -58,7 +84,7 @@ impl RandomPolicy {
 }
 
 impl Policy for RandomPolicy {
-    fn act(&mut self, _restaurant: &Restaurant) -> u8 {
+    fn act(&mut self, _game: &Game) -> u8 {
         self.rng.random_range(0..NUM_ACTIONS as u8)
     }
 }

@@ -3,7 +3,9 @@
 //!
 //! # Layout
 //! - [`sim`]: the game itself, pure and synchronous (docs/rules.md).
-//! - [`expert`]: policies that read the game: the reference heuristic, random.
+//! - [`expert`]: policies that read the game: the reference heuristic, random, and
+//!   [`expert::PolicyKind`], the names that choose a policy.
+//! - [`planner`]: the look-ahead planner over sampled futures, which never reads what arrives next.
 //! - [`eval`]: runs a policy over many episodes and summarises scores (the `eval` command).
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
@@ -21,6 +23,7 @@ pub mod cpu;
 pub mod eval;
 pub mod expert;
 pub mod metrics;
+pub mod planner;
 pub mod rollout;
 pub mod server;
 pub mod service;

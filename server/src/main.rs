@@ -9,7 +9,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
-use dinerdash_server::eval::{PolicyKind, evaluate};
+use dinerdash_server::eval::evaluate;
+use dinerdash_server::expert::PolicyKind;
 use dinerdash_server::server::{self, ServerConfig, TlsPem};
 use dinerdash_server::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 use dinerdash_server::shutdown;
@@ -123,8 +124,12 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum PolicyArg {
+    /// The reference heuristic.
     Expert,
+    /// Uniformly random actions.
     Random,
+    /// The look-ahead planner over sampled futures (about a millisecond a decision).
+    Planner,
 }
 
 #[derive(Debug, clap::Args)]
@@ -150,6 +155,7 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
     let kind = match args.policy {
         PolicyArg::Expert => PolicyKind::Expert,
         PolicyArg::Random => PolicyKind::Random,
+        PolicyArg::Planner => PolicyKind::Planner,
     };
     let threads = args
         .threads
@@ -170,11 +176,14 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
     };
     let score = result.score();
     let length = result.length();
+    let lost: u64 = result.episodes.iter().map(|e| u64::from(e.lost)).sum();
+    let ended = result.episodes.iter().filter(|e| e.terminated).count();
     let secs = result.elapsed.as_secs_f64().max(1e-9);
     let report = format!(
         "policy {:?}: {} episodes (seeds {}..={})\n\
          score  {:.1} ± {:.1} (sample sd {:.1})\n\
          length {:.1} ± {:.1} steps\n\
+         lost   {} groups, {:.2} per 1000 steps; {} of {} episodes ended by losing groups\n\
          {} steps in {:.3} s on {} threads: {:.0} steps/s\n",
         args.policy,
         result.episodes.len(),
@@ -186,6 +195,10 @@ fn run_eval(args: &EvalArgs) -> ExitCode {
         score.sample_std,
         length.mean,
         length.std,
+        lost,
+        1000.0 * lost as f64 / result.total_steps().max(1) as f64,
+        ended,
+        result.episodes.len(),
         result.total_steps(),
         secs,
         threads,

@@ -2,7 +2,7 @@
 //! then per step the expert's choice in the state before it, the action, the reward and the new
 //! observation. Synchronous and CPU-bound: the service runs it on a blocking thread.
 
-use crate::eval::PolicyKind;
+use crate::expert::PolicyKind;
 use crate::expert::expert_action;
 use crate::sim::{Config, ConfigError, Game, NUM_ACTIONS, OBSERVATION_SIZE};
 
@@ -74,7 +74,7 @@ pub fn record(
         let action = match policy {
             // The expert's choice is already known; asking again would repeat the look-ahead.
             PolicyKind::Expert => expert,
-            PolicyKind::Random => player.act(game.restaurant()),
+            PolicyKind::Random | PolicyKind::Planner => player.act(&game),
         };
         let Ok(outcome) = game.step(i64::from(action)) else {
             break;

@@ -11,12 +11,13 @@ use tonic::{Code, Request, Response, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use crate::cpu::CpuPool;
-use crate::eval::PolicyKind;
+use crate::expert::PolicyKind;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, Recording};
 use crate::session::{
-    Autoreset, Batch, ResetArgs, SessionError, SessionId, SessionOptions, SessionSpec, Store,
+    Autoreset, Batch, ExpertActions, ResetArgs, SessionError, SessionId, SessionOptions,
+    SessionSpec, Store,
 };
 use crate::sim::{self, Config, NUM_ACTIONS, OBSERVATION_SIZE, SNAPSHOT_VERSION};
 
@@ -164,6 +165,21 @@ fn autoreset_from(value: i32, num_envs: u32) -> Result<Autoreset, SessionError> 
     }
 }
 
+/// Which expert fills a session's `expert_actions`: the reference unless the request asks for the
+/// planner.
+fn expert_actions_from(enabled: bool, policy: i32) -> Result<ExpertActions, SessionError> {
+    let expert = match pb::Policy::try_from(policy) {
+        Ok(pb::Policy::Unspecified | pb::Policy::Expert) => ExpertActions::Reference,
+        Ok(pb::Policy::Planner) => ExpertActions::Planner,
+        _ => {
+            return Err(SessionError::InvalidArgument(format!(
+                "expert_policy must be POLICY_UNSPECIFIED (0), POLICY_EXPERT (1) or POLICY_PLANNER (3), got {policy}"
+            )));
+        }
+    };
+    Ok(if enabled { expert } else { ExpertActions::None })
+}
+
 /// Packed uint8 flags of the wire (each 0 or 1).
 fn flags(field: &str, bytes: &[u8]) -> Result<Vec<bool>, SessionError> {
     match bytes.iter().position(|&b| b > 1) {
@@ -189,7 +205,13 @@ fn spec_to(spec: &SessionSpec) -> pb::Spec {
         autoreset_mode: autoreset_to(spec.options.autoreset).into(),
         config: Some(config_to(&spec.config)),
         action_masks: spec.options.action_masks,
-        expert_actions: spec.options.expert_actions,
+        expert_actions: spec.options.expert_actions.enabled(),
+        expert_policy: match spec.options.expert_actions {
+            ExpertActions::None => pb::Policy::Unspecified,
+            ExpertActions::Reference => pb::Policy::Expert,
+            ExpertActions::Planner => pb::Policy::Planner,
+        }
+        .into(),
     }
 }
 
@@ -247,8 +269,9 @@ pub struct DinerDashService {
     store: Store,
     /// Counts failed RPCs by code.
     metrics: Arc<Metrics>,
-    /// Where Rollout episodes are recorded: one worker per core, off the async workers, so
-    /// that streaming demonstrations cannot starve the Step path of every other client.
+    /// Where Rollout episodes are recorded, and Reset and Step of sessions whose expert actions
+    /// come from the planner: one worker per core, off the async workers, so that neither can
+    /// starve the Step path of every other client.
     cpu: CpuPool,
 }
 
@@ -260,6 +283,24 @@ impl DinerDashService {
             metrics,
             cpu: CpuPool::per_core(),
         }
+    }
+
+    /// Runs `job` (a Reset or Step of session `id`) here, or on the CPU pool when the session's
+    /// expert actions come from the planner: its decisions cost too much for an async worker.
+    async fn heavy_if_planner<F>(&self, id: &str, job: F) -> Result<Batch, Status>
+    where
+        F: FnOnce() -> Result<Batch, SessionError> + Send + 'static,
+    {
+        let expert = self.store.expert_actions(id).map_err(|e| self.fail(e))?;
+        let result = if expert == ExpertActions::Planner {
+            self.cpu
+                .run(job)
+                .await
+                .unwrap_or_else(|e| Err(SessionError::Internal(e.to_string())))
+        } else {
+            job()
+        };
+        result.map_err(|e| self.fail(e))
     }
 
     /// The status for `e`, counted.
@@ -282,7 +323,8 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         let options = SessionOptions {
             autoreset: autoreset_from(r.autoreset_mode, r.num_envs).map_err(|e| self.fail(e))?,
             action_masks: r.action_masks,
-            expert_actions: r.expert_actions,
+            expert_actions: expert_actions_from(r.expert_actions, r.expert_policy)
+                .map_err(|e| self.fail(e))?,
         };
         let config = config_from(r.config.as_ref());
         let (id, spec) = self
@@ -327,20 +369,23 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             config: r.config.as_ref().map(|c| config_from(Some(c))),
             reset_mask: flags("reset_mask", &r.reset_mask).map_err(|e| self.fail(e))?,
         };
+        let store = self.store.clone();
+        let id = r.session_id;
         let batch = self
-            .store
-            .reset(&r.session_id, &args)
-            .map_err(|e| self.fail(e))?;
+            .heavy_if_planner(&id.clone(), move || store.reset(&id, &args))
+            .await?;
         Ok(Response::new(batch_to(batch)))
     }
 
     #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
     async fn step(&self, request: Request<pb::StepRequest>) -> Result<Response<pb::Batch>, Status> {
-        let r = request.get_ref();
+        let r = request.into_inner();
+        let store = self.store.clone();
+        let id = r.session_id;
+        let actions = r.actions;
         let batch = self
-            .store
-            .step(&r.session_id, &r.actions)
-            .map_err(|e| self.fail(e))?;
+            .heavy_if_planner(&id.clone(), move || store.step(&id, &actions))
+            .await?;
         Ok(Response::new(batch_to(batch)))
     }
 
@@ -407,9 +452,10 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         let policy = match pb::Policy::try_from(r.policy) {
             Ok(pb::Policy::Expert) => PolicyKind::Expert,
             Ok(pb::Policy::Random) => PolicyKind::Random,
+            Ok(pb::Policy::Planner) => PolicyKind::Planner,
             _ => {
                 return Err(invalid(format!(
-                    "policy must be POLICY_EXPERT (1) or POLICY_RANDOM (2), got {}",
+                    "policy must be POLICY_EXPERT (1), POLICY_RANDOM (2) or POLICY_PLANNER (3), got {}",
                     r.policy
                 )));
             }

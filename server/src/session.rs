@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
-pub use envs::{Autoreset, Batch, Envs, ResetArgs, SessionOptions};
+pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions};
 
 use crate::metrics::Metrics;
 use crate::shutdown::Shutdown;
@@ -318,6 +318,12 @@ impl Store {
         Ok(batch)
     }
 
+    /// Which expert fills a session's expert actions (the service runs planner sessions on its
+    /// CPU pool).
+    pub fn expert_actions(&self, id: &str) -> Result<ExpertActions, SessionError> {
+        Ok(self.get(id)?.lock().options().expert_actions)
+    }
+
     /// Steps every environment of a session.
     pub fn step(&self, id: &str, actions: &[u8]) -> Result<Batch, SessionError> {
         let batch = self.get(id)?.lock().step(actions)?;
@@ -409,7 +415,7 @@ mod tests {
         SessionOptions {
             autoreset: Autoreset::NextStep,
             action_masks: false,
-            expert_actions: false,
+            expert_actions: ExpertActions::None,
         }
     }
 

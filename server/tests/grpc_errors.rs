@@ -415,7 +415,7 @@ async fn bad_render_restore_and_rollout_requests_are_refused() {
         c.rollout(rollout(pb::Policy::Unspecified, vec![1], None))
             .await,
         Code::InvalidArgument,
-        "policy must be POLICY_EXPERT (1) or POLICY_RANDOM (2), got 0",
+        "policy must be POLICY_EXPERT (1), POLICY_RANDOM (2) or POLICY_PLANNER (3), got 0",
     );
     assert_status(
         c.rollout(rollout(pb::Policy::Random, vec![1], Some(0)))

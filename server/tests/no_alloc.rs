@@ -1,20 +1,32 @@
-//! A step and an expert decision allocate nothing: counted with a wrapping global allocator.
+//! A step, an expert decision and a planner decision allocate nothing: counted with a wrapping
+//! global allocator.
 #![allow(unsafe_code)]
 
 use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::cell::Cell;
 
 use dinerdash_server::expert::expert_action;
+use dinerdash_server::planner::Planner;
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS};
 
 struct Counting;
 
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    /// Allocations made by this thread: the test harness runs tests (and its own bookkeeping) on
+    /// other threads at the same time, and their allocations are not the code under test's.
+    static ALLOCATIONS: Cell<usize> = const { Cell::new(0) };
+}
+
+/// Allocations made so far by the calling thread.
+fn allocations() -> usize {
+    ALLOCATIONS.with(Cell::get)
+}
 
 // SAFETY: forwards to the system allocator unchanged, only counting calls.
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        // `try_with`: a thread being torn down may still allocate.
+        let _ = ALLOCATIONS.try_with(|n| n.set(n.get() + 1));
         // SAFETY: same contract as the caller's.
         unsafe { System.alloc(layout) }
     }
@@ -31,7 +43,7 @@ static GLOBAL: Counting = Counting;
 fn steps_and_expert_decisions_do_not_allocate() {
     let mut game = Game::new(Config::default()).unwrap();
     game.reset(Some(3), None).unwrap();
-    let before = ALLOCATIONS.load(Ordering::Relaxed);
+    let before = allocations();
     let mut steps = 0u32;
     for i in 0..20_000u32 {
         let r = game.restaurant();
@@ -47,12 +59,39 @@ fn steps_and_expert_decisions_do_not_allocate() {
         }
         steps += 1;
     }
-    let after = ALLOCATIONS.load(Ordering::Relaxed);
+    let after = allocations();
     assert!(steps > 100);
     assert_eq!(
         after - before,
         0,
         "{} allocations in {steps} steps",
+        after - before
+    );
+}
+
+#[test]
+fn planner_decisions_do_not_allocate() {
+    // The counter sees this thread's allocations.
+    let n = allocations();
+    drop(std::hint::black_box(vec![1u8; 16]));
+    assert_eq!(allocations(), n + 1);
+    let planner = Planner::default();
+    let mut game = Game::new(Config::default()).unwrap();
+    game.reset(Some(4), None).unwrap();
+    let before = allocations();
+    let mut decisions = 0u32;
+    for _ in 0..300 {
+        let action = planner.choose(&game);
+        decisions += 1;
+        if game.step(i64::from(action)).unwrap().terminated {
+            break;
+        }
+    }
+    let after = allocations();
+    assert_eq!(
+        after - before,
+        0,
+        "{} allocations in {decisions} planner decisions",
         after - before
     );
 }

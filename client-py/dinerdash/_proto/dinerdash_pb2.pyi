@@ -19,6 +19,7 @@ class Policy(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     POLICY_UNSPECIFIED: _ClassVar[Policy]
     POLICY_EXPERT: _ClassVar[Policy]
     POLICY_RANDOM: _ClassVar[Policy]
+    POLICY_PLANNER: _ClassVar[Policy]
 AUTORESET_MODE_UNSPECIFIED: AutoresetMode
 AUTORESET_MODE_NEXT_STEP: AutoresetMode
 AUTORESET_MODE_SAME_STEP: AutoresetMode
@@ -26,6 +27,7 @@ AUTORESET_MODE_DISABLED: AutoresetMode
 POLICY_UNSPECIFIED: Policy
 POLICY_EXPERT: Policy
 POLICY_RANDOM: Policy
+POLICY_PLANNER: Policy
 
 class GameConfig(_message.Message):
     __slots__ = ("arrival_interval", "patience_type1", "patience_type2", "decay_type1", "decay_type2", "reading_ticks", "cooking_ticks", "eating_ticks", "lives", "time_limit")
@@ -52,20 +54,22 @@ class GameConfig(_message.Message):
     def __init__(self, arrival_interval: _Optional[int] = ..., patience_type1: _Optional[int] = ..., patience_type2: _Optional[int] = ..., decay_type1: _Optional[int] = ..., decay_type2: _Optional[int] = ..., reading_ticks: _Optional[int] = ..., cooking_ticks: _Optional[int] = ..., eating_ticks: _Optional[int] = ..., lives: _Optional[int] = ..., time_limit: _Optional[int] = ...) -> None: ...
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("num_envs", "config", "seed", "autoreset_mode", "action_masks", "expert_actions")
+    __slots__ = ("num_envs", "config", "seed", "autoreset_mode", "action_masks", "expert_actions", "expert_policy")
     NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
     CONFIG_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     AUTORESET_MODE_FIELD_NUMBER: _ClassVar[int]
     ACTION_MASKS_FIELD_NUMBER: _ClassVar[int]
     EXPERT_ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    EXPERT_POLICY_FIELD_NUMBER: _ClassVar[int]
     num_envs: int
     config: GameConfig
     seed: int
     autoreset_mode: AutoresetMode
     action_masks: bool
     expert_actions: bool
-    def __init__(self, num_envs: _Optional[int] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ..., seed: _Optional[int] = ..., autoreset_mode: _Optional[_Union[AutoresetMode, str]] = ..., action_masks: _Optional[bool] = ..., expert_actions: _Optional[bool] = ...) -> None: ...
+    expert_policy: Policy
+    def __init__(self, num_envs: _Optional[int] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ..., seed: _Optional[int] = ..., autoreset_mode: _Optional[_Union[AutoresetMode, str]] = ..., action_masks: _Optional[bool] = ..., expert_actions: _Optional[bool] = ..., expert_policy: _Optional[_Union[Policy, str]] = ...) -> None: ...
 
 class CreateSessionResponse(_message.Message):
     __slots__ = ("session_id", "spec")
@@ -76,7 +80,7 @@ class CreateSessionResponse(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., spec: _Optional[_Union[Spec, _Mapping]] = ...) -> None: ...
 
 class Spec(_message.Message):
-    __slots__ = ("num_envs", "observation_size", "observation_low", "observation_high", "observation_dtype", "num_actions", "ruleset", "server_version", "autoreset_mode", "config", "action_masks", "expert_actions")
+    __slots__ = ("num_envs", "observation_size", "observation_low", "observation_high", "observation_dtype", "num_actions", "ruleset", "server_version", "autoreset_mode", "config", "action_masks", "expert_actions", "expert_policy")
     NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_SIZE_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_LOW_FIELD_NUMBER: _ClassVar[int]
@@ -89,6 +93,7 @@ class Spec(_message.Message):
     CONFIG_FIELD_NUMBER: _ClassVar[int]
     ACTION_MASKS_FIELD_NUMBER: _ClassVar[int]
     EXPERT_ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    EXPERT_POLICY_FIELD_NUMBER: _ClassVar[int]
     num_envs: int
     observation_size: int
     observation_low: _containers.RepeatedScalarFieldContainer[int]
@@ -101,7 +106,8 @@ class Spec(_message.Message):
     config: GameConfig
     action_masks: bool
     expert_actions: bool
-    def __init__(self, num_envs: _Optional[int] = ..., observation_size: _Optional[int] = ..., observation_low: _Optional[_Iterable[int]] = ..., observation_high: _Optional[_Iterable[int]] = ..., observation_dtype: _Optional[str] = ..., num_actions: _Optional[int] = ..., ruleset: _Optional[str] = ..., server_version: _Optional[str] = ..., autoreset_mode: _Optional[_Union[AutoresetMode, str]] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ..., action_masks: _Optional[bool] = ..., expert_actions: _Optional[bool] = ...) -> None: ...
+    expert_policy: Policy
+    def __init__(self, num_envs: _Optional[int] = ..., observation_size: _Optional[int] = ..., observation_low: _Optional[_Iterable[int]] = ..., observation_high: _Optional[_Iterable[int]] = ..., observation_dtype: _Optional[str] = ..., num_actions: _Optional[int] = ..., ruleset: _Optional[str] = ..., server_version: _Optional[str] = ..., autoreset_mode: _Optional[_Union[AutoresetMode, str]] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ..., action_masks: _Optional[bool] = ..., expert_actions: _Optional[bool] = ..., expert_policy: _Optional[_Union[Policy, str]] = ...) -> None: ...
 
 class CloseSessionRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -92,7 +92,7 @@ class DinerDashServicer:
     def CreateSession(self, request, context):
         """Creates a session of `num_envs` environments. The environments are not reset yet: call Reset.
         Errors: INVALID_ARGUMENT (num_envs out of 1..=max_envs_per_session, bad config, bad
-        autoreset mode), RESOURCE_EXHAUSTED (the server holds max_sessions sessions).
+        autoreset mode, expert_policy not EXPERT or PLANNER), RESOURCE_EXHAUSTED (the server holds max_sessions sessions).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

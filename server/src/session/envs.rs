@@ -9,9 +9,9 @@ use serde::{Deserialize, Serialize};
 
 use super::SessionError;
 use crate::expert::expert_action;
+use crate::planner::Planner;
 use crate::sim::{
-    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, Restaurant, render,
-    snapshot,
+    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, render, snapshot,
 };
 
 /// Kind tag of a whole-session snapshot (a single game's is `DDgm`).
@@ -35,8 +35,37 @@ pub struct SessionOptions {
     pub autoreset: Autoreset,
     /// Whether every Batch carries the action masks.
     pub action_masks: bool,
-    /// Whether every Batch carries the expert's choices.
-    pub expert_actions: bool,
+    /// Which expert's choices every Batch carries, if any.
+    pub expert_actions: ExpertActions,
+}
+
+/// Which expert fills a Batch's `expert_actions`. Encoded like the `bool` it replaces (no, the
+/// reference = 0, 1), so session snapshots written before the planner still restore.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ExpertActions {
+    /// No expert actions.
+    None,
+    /// The reference heuristic's choices.
+    Reference,
+    /// The look-ahead planner's choices: 0.1-0.2 ms each, so Reset and Step of such a session run
+    /// on the service's bounded CPU pool.
+    Planner,
+}
+
+impl ExpertActions {
+    /// Whether Batches carry expert actions at all.
+    pub fn enabled(self) -> bool {
+        self != ExpertActions::None
+    }
+
+    /// The chosen expert's action in `game`'s current state.
+    fn choose(self, game: &Game) -> u8 {
+        match self {
+            ExpertActions::None => 0,
+            ExpertActions::Reference => expert_action(game.restaurant()),
+            ExpertActions::Planner => Planner::default().choose(game),
+        }
+    }
 }
 
 /// What a Reset asks for, as decoded from the request.
@@ -109,7 +138,7 @@ impl Batch {
     fn with_capacity(n: usize, options: &SessionOptions, finals: bool) -> Batch {
         let finals_of = |width: usize| Vec::with_capacity(if finals { n * width } else { 0 });
         let mask_width = if options.action_masks { NUM_ACTIONS } else { 0 };
-        let expert_width = usize::from(options.expert_actions);
+        let expert_width = usize::from(options.expert_actions.enabled());
         Batch {
             num_envs: n as u32,
             observations: Vec::with_capacity(n * OBSERVATION_SIZE),
@@ -140,9 +169,10 @@ impl Batch {
         terminated: bool,
         truncated: bool,
         reset: Option<ResetInfo>,
-        r: &Restaurant,
+        game: &Game,
         options: &SessionOptions,
     ) {
+        let r = game.restaurant();
         self.rewards
             .extend_from_slice(&to_i32(reward).to_le_bytes());
         self.terminated.push(u8::from(terminated));
@@ -161,25 +191,28 @@ impl Batch {
             self.action_masks
                 .extend(r.action_mask().iter().map(|&m| u8::from(m)));
         }
-        if options.expert_actions {
-            self.expert_actions.push(expert_action(r));
+        if options.expert_actions.enabled() {
+            self.expert_actions
+                .push(options.expert_actions.choose(game));
         }
     }
 
     /// An environment that was just reset: reward 0, not done.
-    fn push_reset(&mut self, info: ResetInfo, r: &Restaurant, options: &SessionOptions) {
-        self.push(0, false, false, Some(info), r, options);
+    fn push_reset(&mut self, info: ResetInfo, game: &Game, options: &SessionOptions) {
+        self.push(0, false, false, Some(info), game, options);
     }
 
     /// An environment that a partial Reset left alone: its current state, reward 0.
-    fn push_unchanged(&mut self, r: &Restaurant, options: &SessionOptions) {
-        self.push(0, r.is_terminated(), r.is_truncated(), None, r, options);
+    fn push_unchanged(&mut self, game: &Game, options: &SessionOptions) {
+        let r = game.restaurant();
+        self.push(0, r.is_terminated(), r.is_truncated(), None, game, options);
     }
 
     /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
-    fn push_final(&mut self, ended: Option<&Restaurant>, options: &SessionOptions) {
+    fn push_final(&mut self, ended: Option<&Game>, options: &SessionOptions) {
         match ended {
-            Some(r) => {
+            Some(game) => {
+                let r = game.restaurant();
                 self.final_observations
                     .extend(r.observation().iter().map(|&v| v as u8));
                 self.final_scores
@@ -190,8 +223,9 @@ impl Batch {
                     self.final_action_masks
                         .extend(r.action_mask().iter().map(|&m| u8::from(m)));
                 }
-                if options.expert_actions {
-                    self.final_expert_actions.push(expert_action(r));
+                if options.expert_actions.enabled() {
+                    self.final_expert_actions
+                        .push(options.expert_actions.choose(game));
                 }
             }
             None => {
@@ -203,7 +237,7 @@ impl Batch {
                 if options.action_masks {
                     self.final_action_masks.extend_from_slice(&[0; NUM_ACTIONS]);
                 }
-                if options.expert_actions {
+                if options.expert_actions.enabled() {
                     self.final_expert_actions.push(0);
                 }
             }
@@ -345,7 +379,7 @@ impl Envs {
         let mut batch = Batch::with_capacity(n, &self.options, false);
         for (i, env) in self.envs.iter_mut().enumerate() {
             if partial && !args.reset_mask[i] {
-                batch.push_unchanged(env.game.restaurant(), &self.options);
+                batch.push_unchanged(&env.game, &self.options);
                 continue;
             }
             if let Some(config) = args.config {
@@ -365,7 +399,7 @@ impl Envs {
                 .reset(seed, arrivals.map(Vec::as_slice))
                 .map_err(internal)?;
             env.autoreset_pending = false;
-            batch.push_reset(info, env.game.restaurant(), &self.options);
+            batch.push_reset(info, &env.game, &self.options);
         }
         Ok(batch)
     }
@@ -407,7 +441,7 @@ impl Envs {
                 // NEXT_STEP: this Step resets the environment and ignores its action.
                 let info = env.game.reset(None, None).map_err(internal)?;
                 env.autoreset_pending = false;
-                batch.push_reset(info, env.game.restaurant(), &self.options);
+                batch.push_reset(info, &env.game, &self.options);
                 continue;
             }
             let outcome = env.game.step(action).map_err(internal)?;
@@ -416,7 +450,7 @@ impl Envs {
             match mode {
                 Autoreset::NextStep => env.autoreset_pending = ended,
                 Autoreset::SameStep if ended => {
-                    batch.push_final(Some(env.game.restaurant()), &self.options);
+                    batch.push_final(Some(&env.game), &self.options);
                     reset = Some(env.game.reset(None, None).map_err(internal)?);
                 }
                 Autoreset::SameStep => batch.push_final(None, &self.options),
@@ -427,7 +461,7 @@ impl Envs {
                 outcome.terminated,
                 outcome.truncated,
                 reset,
-                env.game.restaurant(),
+                &env.game,
                 &self.options,
             );
         }
@@ -518,7 +552,7 @@ mod tests {
         SessionOptions {
             autoreset,
             action_masks: true,
-            expert_actions: true,
+            expert_actions: ExpertActions::Reference,
         }
     }
 

@@ -140,6 +140,13 @@ impl Game {
         Ok(self.restaurant.step(action as u8))
     }
 
+    /// The seed of the random stream and how many arrival lists it has drawn since: together
+    /// they name the current episode, so a policy that needs randomness of its own (the planner)
+    /// seeds it from them and replays with the episode.
+    pub fn stream_position(&self) -> (u64, u32) {
+        (self.seed, self.stream_episodes)
+    }
+
     /// Whether `reset` has been called.
     pub fn is_started(&self) -> bool {
         self.started

@@ -359,6 +359,32 @@ impl Restaurant {
         }
     }
 
+    /// A copy of this restaurant in which the groups still to arrive are `future` (in order,
+    /// then repeating) instead of the rest of the episode's arrival list: everything a player can
+    /// see (tables, queue, counters, hands, clock) is unchanged. A planner simulates such copies,
+    /// with futures drawn from its own generator, so that it never reads the hidden list.
+    pub fn with_future_arrivals(&self, future: &[(u8, u8)]) -> Result<Restaurant, ArrivalError> {
+        if future.is_empty() || future.len() > MAX_ARRIVALS {
+            return Err(ArrivalError::Length(future.len()));
+        }
+        let mut copy = *self;
+        for (index, &(customer_type, size)) in future.iter().enumerate() {
+            if !(1..=2).contains(&customer_type) || !(1..=6).contains(&size) {
+                return Err(ArrivalError::Group {
+                    index,
+                    customer_type: u32::from(customer_type),
+                    size: u32::from(size),
+                });
+            }
+            copy.arrivals[index] = customer_type << 4 | size;
+        }
+        // The rest of the real list must not survive in the copy, even where it is never read.
+        copy.arrivals[future.len()..].fill(0);
+        copy.arrivals_len = future.len() as u8;
+        copy.arrived = 0;
+        Ok(copy)
+    }
+
     /// The expert's look-ahead: the score change of one step with the shaping of docs/rules.md §8.
     pub(crate) fn shaped_step_gain(&self, action: u8) -> i64 {
         let mut copy = *self;

@@ -124,6 +124,7 @@ pub fn create_request(
         autoreset_mode: mode.into(),
         action_masks: true,
         expert_actions: true,
+        ..pb::CreateSessionRequest::default()
     }
 }
 
