@@ -7,9 +7,17 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
+use std::sync::Arc;
+
 use clap::{Parser, Subcommand, ValueEnum};
+use dinerdash_server::budget::{
+    DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share, Tenant, parse_tenants,
+};
+use dinerdash_server::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use dinerdash_server::eval::{PolicyKind, evaluate};
+use dinerdash_server::health::{self, Probe};
 use dinerdash_server::server::{self, ServerConfig, TlsPem};
+use dinerdash_server::service::Token;
 use dinerdash_server::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 use dinerdash_server::shutdown;
 use dinerdash_server::sim::Config;
@@ -60,12 +68,36 @@ struct ServeArgs {
     /// Log line format on stderr (the level comes from RUST_LOG, default info).
     #[arg(long, value_enum, default_value = "text")]
     log_format: LogFormat,
-    /// Serve Prometheus metrics over HTTP on this port of --host.
+    /// Most bytes sessions and Rollout streams may hold: bytes, or with KiB, MiB, GiB ("2GiB").
+    /// Requests that would pass it are refused with RESOURCE_EXHAUSTED.
+    #[arg(long, default_value_t = DEFAULT_MAX_MEMORY, value_parser = parse_bytes)]
+    max_memory: u64,
+    /// Most environments one tenant may hold: a token of --auth-tokens-file (unless its line
+    /// says otherwise), or else one connection.
+    #[arg(long, default_value_t = DEFAULT_TENANT_ENVS)]
+    max_envs_per_tenant: u64,
+    /// Most Rollout streams one tenant (or connection) may run at once.
+    #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
+    max_rollouts_per_tenant: u64,
+    /// Most client connections; more are answered RESOURCE_EXHAUSTED and closed.
+    #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS as u32, value_parser = clap::value_parser!(u32).range(1..))]
+    max_connections: u32,
+    /// Close connections silent this long (live clients answer keepalive pings every 30 s).
+    #[arg(long, default_value = "120", value_parser = parse_duration)]
+    idle_timeout: Duration,
+    /// Serve Prometheus metrics over HTTP on this port of --metrics-host.
     #[arg(long)]
     metrics_port: Option<u16>,
+    /// Address of the metrics endpoint: local only by default, whatever --host is.
+    #[arg(long, default_value = "127.0.0.1")]
+    metrics_host: String,
     /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
     auth_token: Option<String>,
+    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`. Each token is
+    /// accepted like --auth-token, and its requests count against its tenant's share.
+    #[arg(long)]
+    auth_tokens_file: Option<PathBuf>,
     /// PEM certificate chain: serve TLS (needs --tls-key).
     #[arg(long, requires = "tls_key")]
     tls_cert: Option<PathBuf>,
@@ -111,6 +143,35 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
         return Err("must be greater than zero".into());
     }
     Ok(duration)
+}
+
+/// "1073741824", "512MiB", "2GiB", "64KiB" (also KB, MB, GB as powers of 1000) as bytes.
+fn parse_bytes(text: &str) -> Result<u64, String> {
+    let text = text.trim();
+    let split = text
+        .find(|c: char| !c.is_ascii_digit())
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let n: u64 = number
+        .parse()
+        .map_err(|_| format!("expected a number of bytes or e.g. 2GiB, got {text:?}"))?;
+    let scale: u64 = match unit.trim() {
+        "" | "B" => 1,
+        "KiB" => 1 << 10,
+        "MiB" => 1 << 20,
+        "GiB" => 1 << 30,
+        "KB" => 1_000,
+        "MB" => 1_000_000,
+        "GB" => 1_000_000_000,
+        other => return Err(format!("unknown unit {other:?}: use KiB, MiB or GiB")),
+    };
+    let bytes = n
+        .checked_mul(scale)
+        .ok_or_else(|| format!("{text} is too large"))?;
+    if bytes == 0 {
+        return Err("must be greater than zero".into());
+    }
+    Ok(bytes)
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -219,14 +280,42 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
         }),
         _ => None,
     };
+    let share = Share {
+        max_envs: args.max_envs_per_tenant,
+        max_sessions: u64::MAX,
+        max_rollouts: args.max_rollouts_per_tenant,
+    };
+    let tenants = match &args.auth_tokens_file {
+        Some(path) => {
+            let text = String::from_utf8(read(path)?)
+                .map_err(|_| format!("{} is not UTF-8", path.display()))?;
+            parse_tenants(&text, share)
+                .map_err(|e| format!("{}: {e}", path.display()))?
+                .into_iter()
+                .map(|line| Token {
+                    token: line.token,
+                    tenant: Some(Arc::new(Tenant::new(
+                        format!("tenant {}", line.name),
+                        line.share,
+                    ))),
+                })
+                .collect()
+        }
+        None => Vec::new(),
+    };
     let listener = tokio::net::TcpListener::bind((args.host.as_str(), args.port))
         .await
         .map_err(|e| format!("cannot listen on {}:{}: {e}", args.host, args.port))?;
     let metrics_listener = match args.metrics_port {
         Some(port) => Some(
-            tokio::net::TcpListener::bind((args.host.as_str(), port))
+            tokio::net::TcpListener::bind((args.metrics_host.as_str(), port))
                 .await
-                .map_err(|e| format!("cannot listen on {}:{port} for metrics: {e}", args.host))?,
+                .map_err(|e| {
+                    format!(
+                        "cannot listen on {}:{port} for metrics: {e}",
+                        args.metrics_host
+                    )
+                })?,
         ),
         None => None,
     };
@@ -238,17 +327,27 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
             max_sessions: args.max_sessions as usize,
             max_envs_per_session: args.max_envs_per_session as usize,
             session_ttl: args.session_ttl,
+            max_memory: args.max_memory,
         },
         auth_token: args.auth_token.filter(|t| !t.is_empty()),
+        tenants,
+        connection_share: share,
+        connections: connections::Limits {
+            max_connections: args.max_connections as usize,
+            idle_timeout: args.idle_timeout,
+        },
         tls,
         metrics_listener,
     };
     tracing::info!(
         %addr,
         tls = config.tls.is_some(),
-        auth = config.auth_token.is_some(),
+        auth = config.auth_token.is_some() || !config.tenants.is_empty(),
+        tenants = config.tenants.len(),
         max_sessions = config.limits.max_sessions,
         max_envs_per_session = config.limits.max_envs_per_session,
+        max_memory = config.limits.max_memory,
+        max_connections = config.connections.max_connections,
         session_ttl_s = config.limits.session_ttl.as_secs_f64(),
         "serving"
     );
@@ -258,68 +357,9 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
     let _ = stdout.flush();
     drop(stdout);
 
-    let (signalled, drain) = tokio::sync::oneshot::channel();
-    let stop = async move {
-        shutdown::signal().await;
-        let _ = signalled.send(());
-    };
-    let deadline = async move {
-        if drain.await.is_ok() {
-            tokio::time::sleep(shutdown::DRAIN_DEADLINE).await;
-        } else {
-            std::future::pending::<()>().await;
-        }
-    };
-    tokio::select! {
-        served = server::run(listener, config, stop) => served.map_err(|e| e.to_string()),
-        () = deadline => {
-            tracing::warn!(
-                "RPCs still running {} s after the signal; exiting anyway",
-                shutdown::DRAIN_DEADLINE.as_secs()
-            );
-            Ok(())
-        }
-    }
-}
-
-/// One grpc.health.v1 Check; Ok(true) when SERVING.
-async fn check_health(args: &HealthArgs) -> Result<bool, String> {
-    use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
-    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
-
-    let scheme = if args.tls_ca.is_some() {
-        "https"
-    } else {
-        "http"
-    };
-    let mut endpoint = Endpoint::from_shared(format!("{scheme}://{}", args.address))
-        .map_err(|e| format!("bad address {:?}: {e}", args.address))?
-        .connect_timeout(args.timeout)
-        .timeout(args.timeout);
-    if let Some(ca) = &args.tls_ca {
-        let pem = std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display()))?;
-        endpoint = endpoint
-            .tls_config(ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem)))
-            .map_err(|e| format!("TLS: {e}"))?;
-    }
-    let check = async {
-        let channel = endpoint
-            .connect()
-            .await
-            .map_err(|e| format!("cannot connect: {e}"))?;
-        let reply = HealthClient::new(channel)
-            .check(HealthCheckRequest {
-                service: args.service.clone(),
-            })
-            .await
-            .map_err(|s| format!("{:?}: {}", s.code(), s.message()))?;
-        let status = reply.into_inner().status();
-        println!("{}", status.as_str_name());
-        Ok(status == tonic_health::pb::health_check_response::ServingStatus::Serving)
-    };
-    tokio::time::timeout(args.timeout, check)
+    shutdown::serve_until_signal(|stop| server::run(listener, config, stop))
         .await
-        .map_err(|_| format!("no answer within {:?}", args.timeout))?
+        .map_err(|e| e.to_string())
 }
 
 fn main() -> ExitCode {
@@ -327,12 +367,32 @@ fn main() -> ExitCode {
     match cli.command {
         Some(Command::Eval(args)) => run_eval(&args),
         Some(Command::Health(args)) => {
-            let result = runtime()
-                .map_err(|e| e.to_string())
-                .and_then(|rt| rt.block_on(check_health(&args)));
+            let probe = |tls_ca: Option<Vec<u8>>| Probe {
+                address: args.address.clone(),
+                timeout: args.timeout,
+                service: args.service.clone(),
+                tls_ca,
+            };
+            let result = args
+                .tls_ca
+                .as_ref()
+                .map(|ca| {
+                    std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display()))
+                })
+                .transpose()
+                .and_then(|ca| {
+                    let rt = runtime().map_err(|e| e.to_string())?;
+                    rt.block_on(health::check(&probe(ca)))
+                });
             match result {
-                Ok(true) => ExitCode::SUCCESS,
-                Ok(false) => ExitCode::FAILURE,
+                Ok(status) => {
+                    println!("{}", status.as_str_name());
+                    if status == health::ServingStatus::Serving {
+                        ExitCode::SUCCESS
+                    } else {
+                        ExitCode::FAILURE
+                    }
+                }
                 Err(e) => {
                     eprintln!("error: {e}");
                     ExitCode::FAILURE

@@ -49,8 +49,19 @@ pub struct Metrics {
     pub sessions_closed: AtomicU64,
     /// Sessions evicted for being idle longer than the TTL.
     pub sessions_expired: AtomicU64,
-    /// Live sessions right now (a gauge the session store keeps).
+    /// Live sessions right now: the one counter the session limit is checked against
+    /// ([`crate::budget::Budget`] keeps it).
     pub live_sessions: AtomicU64,
+    /// Bytes sessions and Rollout streams hold now, as the memory budget counts them.
+    pub memory_used_bytes: AtomicU64,
+    /// The memory budget, `--max-memory`.
+    pub memory_budget_bytes: AtomicU64,
+    /// Rollout streams running now.
+    pub live_rollouts: AtomicU64,
+    /// Connections open now.
+    pub open_connections: AtomicU64,
+    /// Connections accepted over the connection limit, open now (answered RESOURCE_EXHAUSTED).
+    pub over_limit_connections: AtomicU64,
     /// Step RPCs that succeeded.
     pub step_calls: AtomicU64,
     /// Environment steps: a Step of N environments counts N.
@@ -115,13 +126,38 @@ impl Metrics {
             let _ = writeln!(out, "# TYPE {name} counter");
             let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
         }
-        let _ = writeln!(out, "# HELP dinerdash_live_sessions Sessions alive now.");
-        let _ = writeln!(out, "# TYPE dinerdash_live_sessions gauge");
-        let _ = writeln!(
-            out,
-            "dinerdash_live_sessions {}",
-            self.live_sessions.load(Ordering::Relaxed)
-        );
+        let gauges: [(&str, &str, &AtomicU64); 5] = [
+            (
+                "dinerdash_live_sessions",
+                "Sessions alive now.",
+                &self.live_sessions,
+            ),
+            (
+                "dinerdash_memory_used_bytes",
+                "Bytes sessions and Rollout streams hold now, as the memory budget counts them.",
+                &self.memory_used_bytes,
+            ),
+            (
+                "dinerdash_memory_budget_bytes",
+                "The memory budget (--max-memory).",
+                &self.memory_budget_bytes,
+            ),
+            (
+                "dinerdash_live_rollouts",
+                "Rollout streams running now.",
+                &self.live_rollouts,
+            ),
+            (
+                "dinerdash_open_connections",
+                "Client connections open now.",
+                &self.open_connections,
+            ),
+        ];
+        for (name, help, value) in gauges {
+            let _ = writeln!(out, "# HELP {name} {help}");
+            let _ = writeln!(out, "# TYPE {name} gauge");
+            let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
+        }
         let _ = writeln!(
             out,
             "# HELP dinerdash_rpc_errors_total RPCs that failed, by gRPC status code."

@@ -245,6 +245,10 @@ pub struct Envs {
 }
 
 impl Envs {
+    /// What one environment holds: a game is plain fixed-size data (random stream included), so
+    /// this is all of it; the memory budget charges sessions by it.
+    pub const BYTES_PER_ENV: u64 = std::mem::size_of::<Env>() as u64;
+
     /// `n >= 1` environments with `config`, not reset yet.
     pub fn new(
         n: usize,
