@@ -380,3 +380,31 @@ async fn a_draining_server_answers_new_calls_unavailable() {
     assert!(matches!(ended, Some(Code::Unavailable) | None), "{ended:?}");
     server.stop().await;
 }
+
+#[tokio::test]
+async fn unreachable_snapshots_are_refused() {
+    use dinerdash_server::session::Envs;
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let id = create(&mut c, big(2)).await;
+    reset(&mut c, &id, Some(4)).await;
+    step(&mut c, &id, &[0, 0]).await;
+    let taken = snapshot(&mut c, &id).await;
+    let mut v = serde_json::to_value(Envs::restore(&taken, 2).unwrap()).unwrap();
+    v["envs"][1]["game"]["restaurant"]["queue"][0]["patience"] = i32::MAX.into();
+    let bad: Envs = serde_json::from_value(v).unwrap();
+    let refused = c
+        .restore(pb::RestoreRequest {
+            snapshot: bad.snapshot(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(refused.code(), Code::InvalidArgument);
+    assert_eq!(
+        refused.message(),
+        "snapshot: environment 1: inconsistent game state: queue"
+    );
+    // The untouched snapshot is still welcome.
+    restore(&mut c, taken).await;
+    server.stop().await;
+}
