@@ -88,7 +88,8 @@ struct ServeArgs {
     /// Serve Prometheus metrics over HTTP on this port of --metrics-host.
     #[arg(long)]
     metrics_port: Option<u16>,
-    /// Address of the metrics endpoint: local only by default, whatever --host is.
+    /// Address of the metrics endpoint: local only by default, whatever --host is. Any other
+    /// address needs --auth-token or --auth-tokens-file, whose tokens the endpoint then asks for.
     #[arg(long, default_value = "127.0.0.1")]
     metrics_host: String,
     /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
@@ -303,6 +304,18 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
         }
         None => Vec::new(),
     };
+    let has_token = args.auth_token.as_ref().is_some_and(|t| !t.is_empty()) || !tenants.is_empty();
+    let local_metrics = matches!(
+        args.metrics_host.as_str(),
+        "127.0.0.1" | "::1" | "localhost"
+    );
+    if args.metrics_port.is_some() && !local_metrics && !has_token {
+        return Err(format!(
+            "--metrics-host {} publishes the metrics beyond this machine: give --auth-token or \
+             --auth-tokens-file too (scrapers then send the token as a bearer token)",
+            args.metrics_host
+        ));
+    }
     let listener = tokio::net::TcpListener::bind((args.host.as_str(), args.port))
         .await
         .map_err(|e| format!("cannot listen on {}:{}: {e}", args.host, args.port))?;

@@ -173,16 +173,25 @@ impl Metrics {
     }
 }
 
-/// Answers every HTTP request on `listener` with the metrics until `shutdown` fires.
-pub async fn serve(listener: TcpListener, metrics: Arc<Metrics>, mut shutdown: Shutdown) {
+/// Answers every HTTP request on `listener` with the metrics until `shutdown` fires. When
+/// `tokens` holds any `Bearer <token>` value, a request must send one of them in its
+/// `Authorization` header (Prometheus' `authorization` / `bearer_token` settings), or is
+/// answered 401.
+pub async fn serve(
+    listener: TcpListener,
+    metrics: Arc<Metrics>,
+    tokens: Arc<[Box<[u8]>]>,
+    mut shutdown: Shutdown,
+) {
     loop {
         tokio::select! {
             () = shutdown.wait() => return,
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
                     let metrics = Arc::clone(&metrics);
+                    let tokens = Arc::clone(&tokens);
                     tokio::spawn(async move {
-                        if let Err(e) = answer(stream, &metrics).await {
+                        if let Err(e) = answer(stream, &metrics, &tokens).await {
                             tracing::debug!("metrics request failed: {e}");
                         }
                     });
@@ -198,7 +207,11 @@ pub async fn serve(listener: TcpListener, metrics: Arc<Metrics>, mut shutdown: S
 }
 
 /// Reads one request head and writes one response, then closes the connection.
-async fn answer(mut stream: TcpStream, metrics: &Metrics) -> std::io::Result<()> {
+async fn answer(
+    mut stream: TcpStream,
+    metrics: &Metrics,
+    tokens: &[Box<[u8]>],
+) -> std::io::Result<()> {
     let mut head = Vec::with_capacity(512);
     let mut buf = [0u8; 1024];
     let read_head = async {
@@ -218,7 +231,11 @@ async fn answer(mut stream: TcpStream, metrics: &Metrics) -> std::io::Result<()>
         .await
         .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "request head"))??;
     let line = head.split(|&b| b == b'\n').next().unwrap_or_default();
-    let response = if line.starts_with(b"GET ") || line.starts_with(b"HEAD ") {
+    let response = if !tokens.is_empty() && !authorized(&head, tokens) {
+        "HTTP/1.1 401 Unauthorized\r\nWWW-Authenticate: Bearer\r\nContent-Length: 0\r\n\
+         Connection: close\r\n\r\n"
+            .to_owned()
+    } else if line.starts_with(b"GET ") || line.starts_with(b"HEAD ") {
         let body = metrics.render();
         format!(
             "HTTP/1.1 200 OK\r\nContent-Type: text/plain; version=0.0.4; charset=utf-8\r\n\
@@ -236,4 +253,22 @@ async fn answer(mut stream: TcpStream, metrics: &Metrics) -> std::io::Result<()>
     };
     stream.write_all(response.as_bytes()).await?;
     stream.shutdown().await
+}
+
+/// Whether the request head carries `Authorization: <one of tokens>` (`Bearer <token>`).
+fn authorized(head: &[u8], tokens: &[Box<[u8]>]) -> bool {
+    head.split(|&b| b == b'\n').any(|line| {
+        let line = line.strip_suffix(b"\r").unwrap_or(line);
+        let Some(colon) = line.iter().position(|&b| b == b':') else {
+            return false;
+        };
+        let (name, value) = line.split_at(colon);
+        name.eq_ignore_ascii_case(b"authorization") && {
+            let value = value[1..].trim_ascii();
+            // Every token compared, so that the time taken does not reveal which one matched.
+            tokens
+                .iter()
+                .fold(false, |hit, t| hit | crate::service::same_bytes(value, t))
+        }
+    })
 }

@@ -47,7 +47,8 @@ pub struct ServerConfig {
     pub connections: connections::Limits,
     /// Serve TLS with this identity; `None` serves plaintext.
     pub tls: Option<TlsPem>,
-    /// Serve Prometheus metrics on this listener; `None` serves none.
+    /// Serve Prometheus metrics on this listener (asking for the same tokens as the RPCs);
+    /// `None` serves none.
     pub metrics_listener: Option<TcpListener>,
 }
 
@@ -74,13 +75,6 @@ pub async fn run(
     let (trigger, stopping) = shutdown::channel();
 
     let sweeper = tokio::spawn(store.clone().sweep_until(stopping.clone()));
-    let metrics_task = config.metrics_listener.map(|l| {
-        if let Ok(addr) = l.local_addr() {
-            tracing::info!("metrics on http://{addr}/metrics");
-        }
-        tokio::spawn(metrics::serve(l, Arc::clone(&metrics), stopping.clone()))
-    });
-
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<DinerDashServer<DinerDashService>>()
@@ -97,6 +91,20 @@ pub async fn run(
         });
     }
     let auth = AuthInterceptor::new(&tokens, stopping.clone());
+    // The metrics ask for the same tokens as the RPCs, so that a server that needs a token
+    // does not publish its load to whoever reaches the metrics port.
+    let metrics_task = config.metrics_listener.map(|l| {
+        if let Ok(addr) = l.local_addr() {
+            tracing::info!("metrics on http://{addr}/metrics");
+        }
+        let serve = metrics::serve(
+            l,
+            Arc::clone(&metrics),
+            auth.bearer_values(),
+            stopping.clone(),
+        );
+        tokio::spawn(serve)
+    });
     let service = DinerDashService::new(
         store,
         Arc::clone(&metrics),

@@ -616,6 +616,12 @@ pub struct AuthInterceptor {
 }
 
 impl AuthInterceptor {
+    /// The accepted `authorization` values, `Bearer <token>` (the metrics endpoint takes them
+    /// too).
+    pub fn bearer_values(&self) -> Arc<[Box<[u8]>]> {
+        self.tokens.iter().map(|(value, _)| value.clone()).collect()
+    }
+
     /// An interceptor accepting `tokens` (none: an open server).
     pub fn new(tokens: &[Token], stopping: Shutdown) -> AuthInterceptor {
         let tokens = tokens
@@ -632,7 +638,7 @@ impl AuthInterceptor {
 }
 
 /// Compares without returning early, so that the time taken does not reveal the token.
-fn same_bytes(a: &[u8], b: &[u8]) -> bool {
+pub(crate) fn same_bytes(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 

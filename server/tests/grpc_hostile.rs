@@ -408,3 +408,35 @@ async fn unreachable_snapshots_are_refused() {
     restore(&mut c, taken).await;
     server.stop().await;
 }
+
+/// One raw HTTP request to the metrics endpoint; the whole response.
+async fn get_metrics(addr: std::net::SocketAddr, header: &str) -> String {
+    use tokio::io::AsyncWriteExt;
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let request = format!("GET /metrics HTTP/1.1\r\nHost: localhost\r\n{header}\r\n");
+    stream.write_all(request.as_bytes()).await.unwrap();
+    let mut text = String::new();
+    tokio::time::timeout(PATIENCE, stream.read_to_string(&mut text))
+        .await
+        .unwrap()
+        .unwrap();
+    text
+}
+
+#[tokio::test]
+async fn metrics_ask_for_the_servers_token() {
+    let config = ServerConfig {
+        auth_token: Some("s3cret".into()),
+        ..ServerConfig::default()
+    };
+    let server = TestServer::start_with(config, true).await;
+    let addr = server.metrics_addr.unwrap();
+    let without = get_metrics(addr, "").await;
+    assert!(without.starts_with("HTTP/1.1 401"), "{without}");
+    let wrong = get_metrics(addr, "Authorization: Bearer nope\r\n").await;
+    assert!(wrong.starts_with("HTTP/1.1 401"), "{wrong}");
+    let with = get_metrics(addr, "authorization: Bearer s3cret\r\n").await;
+    assert!(with.starts_with("HTTP/1.1 200 OK"), "{with}");
+    assert_eq!(metric(&with, "dinerdash_live_sessions"), 0);
+    server.stop().await;
+}
