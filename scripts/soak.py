@@ -228,6 +228,65 @@ def _closed(s: socket.socket) -> bool:
             s.setblocking(True)
 
 
+def step_latency(address: str, seconds: float) -> list[float]:
+    """Single-environment Step round trips for `seconds`, one after another."""
+    channel, dd = stub(address)
+    sid = dd.CreateSession(
+        pb.CreateSessionRequest(num_envs=1, seed=5), timeout=30
+    ).session_id
+    dd.Reset(pb.ResetRequest(session_id=sid), timeout=30)
+    wait = (0).to_bytes(4, "little")
+    out = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        started = time.perf_counter()
+        batch = dd.Step(pb.StepRequest(session_id=sid, actions=wait), timeout=30)
+        out.append(time.perf_counter() - started)
+        if batch.terminated != b"\x00" or batch.truncated != b"\x00":
+            dd.Reset(pb.ResetRequest(session_id=sid), timeout=30)
+    dd.CloseSession(pb.CloseSessionRequest(session_id=sid), timeout=30)
+    channel.close()
+    return out
+
+
+def reader(address: str, stop: threading.Event) -> None:
+    """Reads expert Rollout episodes as fast as they come until told to stop."""
+    channel, dd = stub(address)
+    stream = dd.Rollout(pb.RolloutRequest(policy=pb.POLICY_EXPERT, seeds=range(10_000)))
+    try:
+        for _ in stream:
+            if stop.is_set():
+                break
+    except grpc.RpcError:
+        pass
+    finally:
+        stream.cancel()
+        channel.close()
+
+
+def rollout_latency(address: str, seconds: float) -> None:
+    """Prints Step p50/p99 alone, then beside two Rollout streams being read."""
+
+    def summary(xs: list[float]) -> str:
+        xs = sorted(xs)
+        p99 = xs[min(len(xs) - 1, int(0.99 * len(xs)))]
+        return f"{len(xs)} calls, p50 {statistics.median(xs) * 1e3:.2f} ms, p99 {p99 * 1e3:.2f} ms"
+
+    print(f"Step alone: {summary(step_latency(address, seconds))}", flush=True)
+    stop = threading.Event()
+    readers = [threading.Thread(target=reader, args=(address, stop)) for _ in range(2)]
+    for t in readers:
+        t.start()
+    time.sleep(1)
+    print(
+        f"Step beside two Rollouts read: {summary(step_latency(address, seconds))}",
+        flush=True,
+    )
+    stop.set()
+    for t in readers:
+        t.join(timeout=60)
+
+
 def rss_mib(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -260,6 +319,14 @@ def main() -> int:
         )
         line = proc.stdout.readline()
         address = line.strip().rsplit(" ", 1)[-1]
+    if args.rollout_latency:
+        try:
+            rollout_latency(address, args.duration)
+        finally:
+            if proc is not None:
+                proc.terminate()
+                proc.wait(timeout=60)
+        return 0
     print(f"soak: {args.duration:.0f} s against {address}", flush=True)
 
     stop = threading.Event()

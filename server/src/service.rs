@@ -420,7 +420,8 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         };
         tokio::spawn(async move {
             produce.run(r.seeds, tx).await;
-            // The stream's bytes are given back only once it can hold no more episodes.
+            // The producer is done: what it charged is given back (an episode still waiting in
+            // the channel for its reader is within the transport's share of the estimate).
             drop(charge);
         });
         Ok(Response::new(ReceiverStream::new(rx)))
