@@ -605,13 +605,16 @@ pub struct Token {
     pub tenant: Option<Arc<Tenant>>,
 }
 
+/// An accepted `authorization` value (`Bearer <token>`) and the tenant it stands for.
+type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
+
 /// Stands in front of every RPC but health checks: answers `UNAVAILABLE` once the server drains,
 /// `RESOURCE_EXHAUSTED` on a connection over the connection limit, and, when the server has
 /// tokens, checks `authorization: Bearer <token>` and tags the request with the token's tenant.
 #[derive(Debug, Clone)]
 pub struct AuthInterceptor {
     /// Accepted `Bearer <token>` values and their tenants; empty lets every request in.
-    tokens: Arc<[(Box<[u8]>, Option<Arc<Tenant>>)]>,
+    tokens: Arc<[Accepted]>,
     /// Fires when the server drains.
     stopping: Shutdown,
 }
