@@ -306,6 +306,11 @@ def main() -> int:
     parser.add_argument(
         "--server", default=str(ROOT / "target/release/dinerdash-server")
     )
+    parser.add_argument(
+        "--rollout-latency",
+        action="store_true",
+        help="instead: Step p50/p99 alone and beside two Rollouts being read (--duration each)",
+    )
     args = parser.parse_args()
 
     proc = None
