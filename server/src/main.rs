@@ -16,6 +16,7 @@ use dinerdash_server::budget::{
 use dinerdash_server::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use dinerdash_server::eval::{PolicyKind, evaluate};
 use dinerdash_server::health::{self, Probe};
+use dinerdash_server::rollout::MAX_ROLLOUT_WORK_STEPS;
 use dinerdash_server::server::{self, ServerConfig, TlsPem};
 use dinerdash_server::service::Token;
 use dinerdash_server::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
@@ -76,6 +77,9 @@ struct ServeArgs {
     /// says otherwise), or else one connection.
     #[arg(long, default_value_t = DEFAULT_TENANT_ENVS)]
     max_envs_per_tenant: u64,
+    /// Most steps one Rollout request may record over all its episodes.
+    #[arg(long, default_value_t = MAX_ROLLOUT_WORK_STEPS, value_parser = clap::value_parser!(u64).range(1..))]
+    max_rollout_work_steps: u64,
     /// Most Rollout streams one tenant (or connection) may run at once.
     #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
     max_rollouts_per_tenant: u64,
@@ -341,6 +345,7 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
             max_envs_per_session: args.max_envs_per_session as usize,
             session_ttl: args.session_ttl,
             max_memory: args.max_memory,
+            max_rollout_work_steps: args.max_rollout_work_steps,
         },
         auth_token: args.auth_token.filter(|t| !t.is_empty()),
         tenants,

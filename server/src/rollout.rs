@@ -12,8 +12,8 @@ use crate::sim::{Config, ConfigError, Game, NUM_ACTIONS, OBSERVATION_SIZE};
 pub const MAX_ROLLOUT_STEPS: u32 = 100_000;
 /// Most episodes one Rollout request may ask for.
 pub const MAX_ROLLOUT_EPISODES: u32 = 10_000;
-/// Most steps one Rollout request may record over all its episodes (~1 GB of output, minutes of
-/// a worker): the request's work cap. 10,000 seeds of no-decay games would otherwise ask for
+/// Default most steps one Rollout request may record over all its episodes (~1 GB of output,
+/// seconds to minutes of a worker): the request's work cap (`Limits::max_rollout_work_steps`). 10,000 seeds of no-decay games would otherwise ask for
 /// ~10^9 steps.
 pub const MAX_ROLLOUT_WORK_STEPS: u64 = 10_000_000;
 /// Bytes one recorded step takes at most: observation, action, reward, expert action, mask.

@@ -17,8 +17,7 @@ use crate::eval::PolicyKind;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::rollout::{
-    self, MAX_BYTES_PER_STEP, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, MAX_ROLLOUT_WORK_STEPS,
-    Recording,
+    self, MAX_BYTES_PER_STEP, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, Recording,
 };
 use crate::session::{
     Autoreset, Batch, ResetArgs, SessionError, SessionId, SessionOptions, SessionSpec, Store,
@@ -417,6 +416,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             config,
             max_steps,
             masks: r.action_masks,
+            work_cap: self.store.limits().max_rollout_work_steps,
         };
         tokio::spawn(async move {
             produce.run(r.seeds, tx).await;
@@ -442,7 +442,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             max_rollout_episodes: MAX_ROLLOUT_EPISODES,
             max_memory_bytes: self.store.budget().max_bytes(),
             memory_used_bytes: self.store.budget().used_bytes(),
-            max_rollout_work_steps: MAX_ROLLOUT_WORK_STEPS,
+            max_rollout_work_steps: limits.max_rollout_work_steps,
             max_message_bytes: MAX_MESSAGE_BYTES as u64,
             snapshot_version: u32::from(SNAPSHOT_VERSION),
         }))
@@ -465,6 +465,8 @@ struct Produce {
     max_steps: u32,
     /// Whether episodes carry action masks.
     masks: bool,
+    /// Most steps over all the stream's episodes.
+    work_cap: u64,
 }
 
 /// How a stream's next episode ended up.
@@ -492,7 +494,8 @@ impl Produce {
             tokio::time::sleep(STREAM_DRAIN_DEADLINE).await;
         };
         tokio::pin!(drained);
-        let mut work_left = MAX_ROLLOUT_WORK_STEPS;
+        let cap = self.work_cap;
+        let mut work_left = cap;
         for (done, seed) in seeds.into_iter().enumerate() {
             let slot = tokio::select! {
                 slot = tokio::time::timeout(ROLLOUT_UNREAD_TIMEOUT, tx.reserve()) => slot,
@@ -514,7 +517,7 @@ impl Produce {
             };
             if work_left == 0 {
                 slot.send(Err(Status::resource_exhausted(format!(
-                    "this Rollout reached its work cap of {MAX_ROLLOUT_WORK_STEPS} steps after \
+                    "this Rollout reached its work cap of {cap} steps after \
                      {done} episodes; ask for fewer seeds or a smaller max_steps"
                 ))));
                 return;
@@ -536,7 +539,7 @@ impl Produce {
                 {
                     // Cut short by the work cap, not by the game: not a real episode.
                     slot.send(Err(Status::resource_exhausted(format!(
-                        "this Rollout reached its work cap of {MAX_ROLLOUT_WORK_STEPS} steps \
+                        "this Rollout reached its work cap of {cap} steps \
                          after {done} episodes; ask for fewer seeds or a smaller max_steps"
                     ))));
                     return;

@@ -95,6 +95,8 @@ pub struct Limits {
     pub session_ttl: Duration,
     /// Bytes sessions and Rollout streams may hold (the memory budget).
     pub max_memory: u64,
+    /// Most steps one Rollout request may record over all its episodes (its work cap).
+    pub max_rollout_work_steps: u64,
 }
 
 impl Default for Limits {
@@ -104,6 +106,7 @@ impl Default for Limits {
             max_envs_per_session: DEFAULT_MAX_ENVS_PER_SESSION as usize,
             session_ttl: DEFAULT_SESSION_TTL,
             max_memory: DEFAULT_MAX_MEMORY,
+            max_rollout_work_steps: crate::rollout::MAX_ROLLOUT_WORK_STEPS,
         }
     }
 }

@@ -179,3 +179,58 @@ async fn at_the_open_file_limit_the_accept_loop_backs_off() {
         "no warning logged:\n{stderr}"
     );
 }
+
+#[tokio::test]
+async fn tokens_file_tenants_and_a_public_metrics_port() {
+    let exe = env!("CARGO_BIN_EXE_dinerdash-server");
+    // Metrics beyond this machine without a token: refused at start, with the reason.
+    let refused = tokio::task::spawn_blocking(move || {
+        Command::new(exe)
+            .args([
+                "--port",
+                "0",
+                "--metrics-port",
+                "0",
+                "--metrics-host",
+                "0.0.0.0",
+            ])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("--auth-tokens-file"), "{stderr}");
+
+    let dir = std::env::temp_dir().join(format!("dinerdash-tenants-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("tenants");
+    std::fs::write(&file, "# two trainers\nteam-a aaa envs=8\nteam-b bbb\n").unwrap();
+    let server = Process::start("", &format!("--auth-tokens-file '{}'", file.display()));
+    let mut c = DinerDashClient::connect(format!("http://{}", server.addr))
+        .await
+        .unwrap();
+    let create = |token: &str, num_envs: u32| {
+        let mut request = tonic::Request::new(pb::CreateSessionRequest {
+            num_envs,
+            ..Default::default()
+        });
+        let value = format!("Bearer {token}").parse().unwrap();
+        request.metadata_mut().insert("authorization", value);
+        request
+    };
+    c.create_session(create("aaa", 8)).await.unwrap();
+    let over = c.create_session(create("aaa", 1)).await.unwrap_err();
+    assert_eq!(over.code(), Code::ResourceExhausted);
+    assert!(over.message().starts_with("tenant team-a"), "{over:?}");
+    c.create_session(create("bbb", 64)).await.unwrap();
+    let stranger = c.create_session(create("ccc", 1)).await.unwrap_err();
+    assert_eq!(stranger.code(), Code::Unauthenticated);
+    server.signal("-TERM");
+    let (status, _) = tokio::task::spawn_blocking(move || server.wait())
+        .await
+        .unwrap();
+    assert_eq!(status.code(), Some(0));
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -440,3 +440,40 @@ async fn metrics_ask_for_the_servers_token() {
     assert_eq!(metric(&with, "dinerdash_live_sessions"), 0);
     server.stop().await;
 }
+
+#[tokio::test]
+async fn a_rollout_stops_at_its_work_cap() {
+    let config = ServerConfig {
+        limits: Limits {
+            max_rollout_work_steps: 1000,
+            ..Limits::default()
+        },
+        ..ServerConfig::default()
+    };
+    let server = TestServer::start_with(config, false).await;
+    let mut c = server.client().await;
+    assert_eq!(info(&mut c).await.max_rollout_work_steps, 1000);
+    let mut stream = c.rollout(rollout(100, None)).await.unwrap().into_inner();
+    let mut steps = 0;
+    let status = loop {
+        match stream.message().await {
+            Ok(Some(episode)) => {
+                assert!(
+                    episode.terminated,
+                    "a whole episode, not one cut by the cap"
+                );
+                steps += episode.steps;
+            }
+            Ok(None) => panic!("100 expert episodes fit in 1,000 steps?"),
+            Err(status) => break status,
+        }
+    };
+    assert!(steps <= 1000);
+    assert_eq!(status.code(), Code::ResourceExhausted);
+    assert!(
+        status.message().contains("work cap of 1000 steps"),
+        "{}",
+        status.message()
+    );
+    server.stop().await;
+}
