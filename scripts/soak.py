@@ -287,6 +287,36 @@ def rollout_latency(address: str, seconds: float) -> None:
         t.join(timeout=60)
 
 
+def rss_per_env(address: str, pid: int) -> None:
+    """Prints the server's RSS growth for 100 reset sessions of 1024 environments beside what
+    the memory budget counts for them (two connections: one's share is 65,536 environments)."""
+    stubs = [stub(address) for _ in range(2)]
+    stubs[0][1].ServerInfo(pb.ServerInfoRequest(), timeout=30)
+    time.sleep(0.5)
+    before = rss_mib(pid)
+    for i in range(100):
+        dd = stubs[i % 2][1]
+        sid = dd.CreateSession(
+            pb.CreateSessionRequest(num_envs=1024, seed=i), timeout=30
+        )
+        dd.Reset(pb.ResetRequest(session_id=sid.session_id), timeout=30)
+    time.sleep(0.5)
+    grown = rss_mib(pid) - before
+    counted = (
+        stubs[0][1].ServerInfo(pb.ServerInfoRequest(), timeout=30).memory_used_bytes
+    )
+    envs = 100 * 1024
+    per_env = grown * 2**20 / envs
+    print(
+        f"100 sessions of 1024 environments: RSS +{grown:.1f} MiB ({per_env:.0f} B an env);"
+    )
+    print(
+        f"the budget counts {counted / 2**20:.1f} MiB ({counted / envs:.0f} B an env)"
+    )
+    for channel, _ in stubs:
+        channel.close()
+
+
 def rss_mib(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -311,6 +341,11 @@ def main() -> int:
         action="store_true",
         help="instead: Step p50/p99 alone and beside two Rollouts being read (--duration each)",
     )
+    parser.add_argument(
+        "--rss-per-env",
+        action="store_true",
+        help="instead: RSS growth per environment beside the budget's count (starts a server)",
+    )
     args = parser.parse_args()
 
     proc = None
@@ -324,6 +359,13 @@ def main() -> int:
         )
         line = proc.stdout.readline()
         address = line.strip().rsplit(" ", 1)[-1]
+    if args.rss_per_env and proc is not None:
+        try:
+            rss_per_env(address, proc.pid)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=60)
+        return 0
     if args.rollout_latency:
         try:
             rollout_latency(address, args.duration)
