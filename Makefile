@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVER := target/release/dinerdash-server
 
-.PHONY: serve build build-server test test-rust test-python test-agents lint bench docker-smoke venv clean
+.PHONY: serve build build-server test test-rust test-python test-agents lint bench soak docker-smoke venv clean
 
 ## Start the gRPC server on port 50051 (Ctrl-C stops it).
 serve:
@@ -45,13 +45,18 @@ test-agents: build-server venv
 lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
-	$(VENV)/bin/ruff check client-py tests agents
-	$(VENV)/bin/ruff format --check client-py tests agents
+	$(VENV)/bin/ruff check client-py tests agents scripts
+	$(VENV)/bin/ruff format --check client-py tests agents scripts
 
 ## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench.
 bench: build venv
 	cargo bench -p dinerdash-server
 	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m dinerdash bench
+
+## Ten minutes of well-behaved trainers beside hostile clients against one server; prints the
+## server's peak RSS, Step p50/p99, errors and sessions lost (SOAK_ARGS="--duration 60" to shorten).
+soak: build-server venv
+	$(PY) scripts/soak.py --server $(abspath $(SERVER)) $(SOAK_ARGS)
 
 ## The docker image end to end (needs a Docker engine with compose): build it, start three
 ## healthy replicas and run the example trainer over all three; exit status is the trainer's.

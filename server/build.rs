@@ -12,7 +12,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let fds = protox::compile([&proto], [&root])?;
     let out = PathBuf::from(std::env::var("OUT_DIR")?);
     std::fs::write(out.join("dinerdash_descriptor.bin"), fds.encode_to_vec())?;
+    // Undecodable requests are INVALID_ARGUMENT, not prost's INTERNAL (src/codec.rs).
     tonic_prost_build::configure()
+        .codec_path("crate::codec::StrictCodec")
         .emit_rerun_if_changed(false)
         .compile_fds(fds)?;
     Ok(())

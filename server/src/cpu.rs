@@ -42,6 +42,13 @@ impl CpuPool {
         CpuPool::new(std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
 
+    /// A pool that leaves one core to the async workers serving Step and Reset (one worker on
+    /// one or two cores): Rollouts being read must not raise other clients' Step latency.
+    pub fn beside_steps() -> CpuPool {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        CpuPool::new(cores.saturating_sub(1))
+    }
+
     /// How many jobs may run at once.
     pub fn workers(&self) -> usize {
         self.workers

@@ -10,18 +10,26 @@
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
+//! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments, Rollouts).
+//! - [`connections`]: the accept loop (backoff, limit, idle timeout) and each connection's info.
+//! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
 //! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
 //! - [`rollout`]: records whole episodes of a server-side policy (the Rollout RPC).
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status`; the auth interceptor.
 //! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and metrics together
 //!   on a listener until a shutdown future completes.
-//! - [`shutdown`]: SIGINT/SIGTERM and the shutdown deadline.
+//! - [`shutdown`]: SIGINT/SIGTERM, the drain deadlines and the shutdown handles.
+//! - [`health`]: the `health` command's grpc.health.v1 client.
 //! - [`metrics`]: counters and the Prometheus text endpoint.
 
+pub mod budget;
+pub mod codec;
+pub mod connections;
 pub mod cpu;
 pub mod eval;
 pub mod expert;
+pub mod health;
 pub mod metrics;
 pub mod planner;
 pub mod rollout;

@@ -9,18 +9,19 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use dinerdash_server::budget::{
+    DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share, Tenant, parse_tenants,
+};
+use dinerdash_server::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use dinerdash_server::eval::evaluate;
 use dinerdash_server::expert::PolicyKind;
+use dinerdash_server::health::{self, Probe};
+use dinerdash_server::rollout::MAX_ROLLOUT_WORK_STEPS;
 use dinerdash_server::server::{self, ServerConfig, TlsPem};
+use dinerdash_server::service::Token;
 use dinerdash_server::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 use dinerdash_server::shutdown;
 use dinerdash_server::sim::Config;
-use tokio_rustls::rustls::client::WebPkiServerVerifier;
-use tokio_rustls::rustls::client::danger::{
-    HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier,
-};
-use tokio_rustls::rustls::pki_types::{CertificateDer, ServerName, UnixTime, pem::PemObject};
-use tokio_rustls::rustls::{self, DigitallySignedStruct, RootCertStore, SignatureScheme};
 
 /// DinerDash Gym environment server.
 #[derive(Debug, Parser)]
@@ -68,12 +69,40 @@ struct ServeArgs {
     /// Log line format on stderr (the level comes from RUST_LOG, default info).
     #[arg(long, value_enum, default_value = "text")]
     log_format: LogFormat,
-    /// Serve Prometheus metrics over HTTP on this port of --host.
+    /// Most bytes sessions and Rollout streams may hold: bytes, or with KiB, MiB, GiB ("2GiB").
+    /// Requests that would pass it are refused with RESOURCE_EXHAUSTED.
+    #[arg(long, default_value_t = DEFAULT_MAX_MEMORY, value_parser = parse_bytes)]
+    max_memory: u64,
+    /// Most environments one tenant may hold: a token of --auth-tokens-file (unless its line
+    /// says otherwise), or else one connection.
+    #[arg(long, default_value_t = DEFAULT_TENANT_ENVS)]
+    max_envs_per_tenant: u64,
+    /// Most steps one Rollout request may record over all its episodes.
+    #[arg(long, default_value_t = MAX_ROLLOUT_WORK_STEPS, value_parser = clap::value_parser!(u64).range(1..))]
+    max_rollout_work_steps: u64,
+    /// Most Rollout streams one tenant (or connection) may run at once.
+    #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
+    max_rollouts_per_tenant: u64,
+    /// Most client connections; more are answered RESOURCE_EXHAUSTED and closed.
+    #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS as u32, value_parser = clap::value_parser!(u32).range(1..))]
+    max_connections: u32,
+    /// Close connections silent this long (live clients answer keepalive pings every 30 s).
+    #[arg(long, default_value = "120", value_parser = parse_duration)]
+    idle_timeout: Duration,
+    /// Serve Prometheus metrics over HTTP on this port of --metrics-host.
     #[arg(long)]
     metrics_port: Option<u16>,
+    /// Address of the metrics endpoint: local only by default, whatever --host is. Any other
+    /// address needs --auth-token or --auth-tokens-file, whose tokens the endpoint then asks for.
+    #[arg(long, default_value = "127.0.0.1")]
+    metrics_host: String,
     /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
     auth_token: Option<String>,
+    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`. Each token is
+    /// accepted like --auth-token, and its requests count against its tenant's share.
+    #[arg(long)]
+    auth_tokens_file: Option<PathBuf>,
     /// PEM certificate chain: serve TLS (needs --tls-key).
     #[arg(long, requires = "tls_key")]
     tls_cert: Option<PathBuf>,
@@ -120,6 +149,35 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
         return Err("must be greater than zero".into());
     }
     Ok(duration)
+}
+
+/// "1073741824", "512MiB", "2GiB", "64KiB" (also KB, MB, GB as powers of 1000) as bytes.
+fn parse_bytes(text: &str) -> Result<u64, String> {
+    let text = text.trim();
+    let split = text
+        .find(|c: char| !c.is_ascii_digit())
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let n: u64 = number
+        .parse()
+        .map_err(|_| format!("expected a number of bytes or e.g. 2GiB, got {text:?}"))?;
+    let scale: u64 = match unit.trim() {
+        "" | "B" => 1,
+        "KiB" => 1 << 10,
+        "MiB" => 1 << 20,
+        "GiB" => 1 << 30,
+        "KB" => 1_000,
+        "MB" => 1_000_000,
+        "GB" => 1_000_000_000,
+        other => return Err(format!("unknown unit {other:?}: use KiB, MiB or GiB")),
+    };
+    let bytes = n
+        .checked_mul(scale)
+        .ok_or_else(|| format!("{text} is too large"))?;
+    if bytes == 0 {
+        return Err("must be greater than zero".into());
+    }
+    Ok(bytes)
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -240,14 +298,54 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
         }),
         _ => None,
     };
+    let share = Share {
+        max_envs: args.max_envs_per_tenant,
+        max_sessions: u64::MAX,
+        max_rollouts: args.max_rollouts_per_tenant,
+    };
+    let tenants = match &args.auth_tokens_file {
+        Some(path) => {
+            let text = String::from_utf8(read(path)?)
+                .map_err(|_| format!("{} is not UTF-8", path.display()))?;
+            parse_tenants(&text, share)
+                .map_err(|e| format!("{}: {e}", path.display()))?
+                .into_iter()
+                .map(|line| Token {
+                    token: line.token,
+                    tenant: Some(Arc::new(Tenant::new(
+                        format!("tenant {}", line.name),
+                        line.share,
+                    ))),
+                })
+                .collect()
+        }
+        None => Vec::new(),
+    };
+    let has_token = args.auth_token.as_ref().is_some_and(|t| !t.is_empty()) || !tenants.is_empty();
+    let local_metrics = matches!(
+        args.metrics_host.as_str(),
+        "127.0.0.1" | "::1" | "localhost"
+    );
+    if args.metrics_port.is_some() && !local_metrics && !has_token {
+        return Err(format!(
+            "--metrics-host {} publishes the metrics beyond this machine: give --auth-token or \
+             --auth-tokens-file too (scrapers then send the token as a bearer token)",
+            args.metrics_host
+        ));
+    }
     let listener = tokio::net::TcpListener::bind((args.host.as_str(), args.port))
         .await
         .map_err(|e| format!("cannot listen on {}:{}: {e}", args.host, args.port))?;
     let metrics_listener = match args.metrics_port {
         Some(port) => Some(
-            tokio::net::TcpListener::bind((args.host.as_str(), port))
+            tokio::net::TcpListener::bind((args.metrics_host.as_str(), port))
                 .await
-                .map_err(|e| format!("cannot listen on {}:{port} for metrics: {e}", args.host))?,
+                .map_err(|e| {
+                    format!(
+                        "cannot listen on {}:{port} for metrics: {e}",
+                        args.metrics_host
+                    )
+                })?,
         ),
         None => None,
     };
@@ -259,17 +357,28 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
             max_sessions: args.max_sessions as usize,
             max_envs_per_session: args.max_envs_per_session as usize,
             session_ttl: args.session_ttl,
+            max_memory: args.max_memory,
+            max_rollout_work_steps: args.max_rollout_work_steps,
         },
         auth_token: args.auth_token.filter(|t| !t.is_empty()),
+        tenants,
+        connection_share: share,
+        connections: connections::Limits {
+            max_connections: args.max_connections as usize,
+            idle_timeout: args.idle_timeout,
+        },
         tls,
         metrics_listener,
     };
     tracing::info!(
         %addr,
         tls = config.tls.is_some(),
-        auth = config.auth_token.is_some(),
+        auth = config.auth_token.is_some() || !config.tenants.is_empty(),
+        tenants = config.tenants.len(),
         max_sessions = config.limits.max_sessions,
         max_envs_per_session = config.limits.max_envs_per_session,
+        max_memory = config.limits.max_memory,
+        max_connections = config.connections.max_connections,
         session_ttl_s = config.limits.session_ttl.as_secs_f64(),
         "serving"
     );
@@ -279,204 +388,9 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
     let _ = stdout.flush();
     drop(stdout);
 
-    let (signalled, drain) = tokio::sync::oneshot::channel();
-    let stop = async move {
-        shutdown::signal().await;
-        let _ = signalled.send(());
-    };
-    let deadline = async move {
-        if drain.await.is_ok() {
-            tokio::time::sleep(shutdown::DRAIN_DEADLINE).await;
-        } else {
-            std::future::pending::<()>().await;
-        }
-    };
-    tokio::select! {
-        served = server::run(listener, config, stop) => served.map_err(|e| e.to_string()),
-        () = deadline => {
-            tracing::warn!(
-                "RPCs still running {} s after the signal; exiting anyway",
-                shutdown::DRAIN_DEADLINE.as_secs()
-            );
-            Ok(())
-        }
-    }
-}
-
-/// One grpc.health.v1 Check; Ok(true) when SERVING.
-async fn check_health(args: &HealthArgs) -> Result<bool, String> {
-    use tonic::transport::Endpoint;
-    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
-
-    // With --tls-ca the TLS is ours (see `tls_connector`) and tonic speaks HTTP/2 over it.
-    let endpoint = Endpoint::from_shared(format!("http://{}", args.address))
-        .map_err(|e| format!("bad address {:?}: {e}", args.address))?
-        .connect_timeout(args.timeout)
-        .timeout(args.timeout);
-    let check = async {
-        let channel = match &args.tls_ca {
-            Some(ca) => {
-                let connector = tls_connector(&args.address, ca)?;
-                endpoint.connect_with_connector(connector).await
-            }
-            None => endpoint.connect().await,
-        }
-        .map_err(|e| format!("cannot connect: {}", error_chain(&e)))?;
-        let reply = HealthClient::new(channel)
-            .check(HealthCheckRequest {
-                service: args.service.clone(),
-            })
-            .await
-            .map_err(|s| format!("{:?}: {}", s.code(), s.message()))?;
-        let status = reply.into_inner().status();
-        println!("{}", status.as_str_name());
-        Ok(status == tonic_health::pb::health_check_response::ServingStatus::Serving)
-    };
-    tokio::time::timeout(args.timeout, check)
+    shutdown::serve_until_signal(|stop| server::run(listener, config, stop))
         .await
-        .map_err(|_| format!("no answer within {:?}", args.timeout))?
-}
-
-/// An error and its sources, so that "transport error" says which TLS check failed.
-fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        text.push_str(&format!(": {s}"));
-        source = s.source();
-    }
-    text
-}
-
-/// Opens TCP to `address` and TLS over it, trusting the PEM certificates of `ca`, for tonic's
-/// `connect_with_connector`.
-fn tls_connector(
-    address: &str,
-    ca: &std::path::Path,
-) -> Result<
-    impl tower::Service<
-        tonic::codegen::http::Uri,
-        Response = hyper_util::rt::TokioIo<tokio_rustls::client::TlsStream<tokio::net::TcpStream>>,
-        Error = std::io::Error,
-        Future = impl Send,
-    > + Clone
-    + Send
-    + 'static,
-    String,
-> {
-    let pem = std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display()))?;
-    let verifier = SelfSignedOrCa::new(&pem).map_err(|e| format!("{}: {e}", ca.display()))?;
-    let provider = Arc::new(rustls::crypto::ring::default_provider());
-    let mut config = rustls::ClientConfig::builder_with_provider(provider)
-        .with_safe_default_protocol_versions()
-        .map_err(|e| format!("TLS: {e}"))?
-        .dangerous()
-        .with_custom_certificate_verifier(Arc::new(verifier))
-        .with_no_client_auth();
-    config.alpn_protocols = vec![b"h2".to_vec()];
-    let host = address
-        .rsplit_once(':')
-        .map_or(address, |(host, _)| host)
-        .trim_start_matches('[')
-        .trim_end_matches(']');
-    let name = ServerName::try_from(host.to_owned())
-        .map_err(|e| format!("bad host name {host:?}: {e}"))?;
-    let connector = tokio_rustls::TlsConnector::from(Arc::new(config));
-    let address = address.to_owned();
-    Ok(tower::service_fn(move |_: tonic::codegen::http::Uri| {
-        let (connector, name, address) = (connector.clone(), name.clone(), address.clone());
-        async move {
-            let tcp = tokio::net::TcpStream::connect(&address).await?;
-            let tls = connector.connect(name, tcp).await?;
-            Ok(hyper_util::rt::TokioIo::new(tls))
-        }
-    }))
-}
-
-/// The usual WebPKI checks against the --tls-ca certificates, plus one exception: a server
-/// certificate that is byte for byte one of them is trusted as is. webpki refuses a CA
-/// certificate as a server's own ("CaUsedAsEndEntity"), yet a self-signed certificate made with
-/// `openssl req -x509` is exactly that, and the operator who names it as the CA trusts it.
-#[derive(Debug)]
-struct SelfSignedOrCa {
-    webpki: Arc<WebPkiServerVerifier>,
-    pinned: Vec<CertificateDer<'static>>,
-}
-
-impl SelfSignedOrCa {
-    fn new(pem: &[u8]) -> Result<SelfSignedOrCa, String> {
-        let pinned = CertificateDer::pem_slice_iter(pem)
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| format!("not PEM certificates: {e}"))?;
-        if pinned.is_empty() {
-            return Err("no PEM certificate in it".into());
-        }
-        let mut roots = RootCertStore::empty();
-        for cert in &pinned {
-            roots
-                .add(cert.clone())
-                .map_err(|e| format!("unusable certificate: {e}"))?;
-        }
-        let webpki = WebPkiServerVerifier::builder_with_provider(
-            Arc::new(roots),
-            Arc::new(rustls::crypto::ring::default_provider()),
-        )
-        .build()
-        .map_err(|e| format!("unusable certificates: {e}"))?;
-        Ok(SelfSignedOrCa { webpki, pinned })
-    }
-}
-
-impl ServerCertVerifier for SelfSignedOrCa {
-    fn verify_server_cert(
-        &self,
-        end_entity: &CertificateDer<'_>,
-        intermediates: &[CertificateDer<'_>],
-        server_name: &ServerName<'_>,
-        ocsp_response: &[u8],
-        now: UnixTime,
-    ) -> Result<ServerCertVerified, rustls::Error> {
-        match self.webpki.verify_server_cert(
-            end_entity,
-            intermediates,
-            server_name,
-            ocsp_response,
-            now,
-        ) {
-            Ok(verified) => Ok(verified),
-            Err(_)
-                if self
-                    .pinned
-                    .iter()
-                    .any(|c| c.as_ref() == end_entity.as_ref()) =>
-            {
-                Ok(ServerCertVerified::assertion())
-            }
-            Err(e) => Err(e),
-        }
-    }
-
-    fn verify_tls12_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        self.webpki.verify_tls12_signature(message, cert, dss)
-    }
-
-    fn verify_tls13_signature(
-        &self,
-        message: &[u8],
-        cert: &CertificateDer<'_>,
-        dss: &DigitallySignedStruct,
-    ) -> Result<HandshakeSignatureValid, rustls::Error> {
-        self.webpki.verify_tls13_signature(message, cert, dss)
-    }
-
-    fn supported_verify_schemes(&self) -> Vec<SignatureScheme> {
-        self.webpki.supported_verify_schemes()
-    }
+        .map_err(|e| e.to_string())
 }
 
 fn main() -> ExitCode {
@@ -484,12 +398,32 @@ fn main() -> ExitCode {
     match cli.command {
         Some(Command::Eval(args)) => run_eval(&args),
         Some(Command::Health(args)) => {
-            let result = runtime()
-                .map_err(|e| e.to_string())
-                .and_then(|rt| rt.block_on(check_health(&args)));
+            let probe = |tls_ca: Option<Vec<u8>>| Probe {
+                address: args.address.clone(),
+                timeout: args.timeout,
+                service: args.service.clone(),
+                tls_ca,
+            };
+            let result = args
+                .tls_ca
+                .as_ref()
+                .map(|ca| {
+                    std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display()))
+                })
+                .transpose()
+                .and_then(|ca| {
+                    let rt = runtime().map_err(|e| e.to_string())?;
+                    rt.block_on(health::check(&probe(ca)))
+                });
             match result {
-                Ok(true) => ExitCode::SUCCESS,
-                Ok(false) => ExitCode::FAILURE,
+                Ok(status) => {
+                    println!("{}", status.as_str_name());
+                    if status == health::ServingStatus::Serving {
+                        ExitCode::SUCCESS
+                    } else {
+                        ExitCode::FAILURE
+                    }
+                }
                 Err(e) => {
                     eprintln!("error: {e}");
                     ExitCode::FAILURE

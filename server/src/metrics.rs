@@ -49,8 +49,19 @@ pub struct Metrics {
     pub sessions_closed: AtomicU64,
     /// Sessions evicted for being idle longer than the TTL.
     pub sessions_expired: AtomicU64,
-    /// Live sessions right now (a gauge the session store keeps).
+    /// Live sessions right now: the one counter the session limit is checked against
+    /// ([`crate::budget::Budget`] keeps it).
     pub live_sessions: AtomicU64,
+    /// Bytes sessions and Rollout streams hold now, as the memory budget counts them.
+    pub memory_used_bytes: AtomicU64,
+    /// The memory budget, `--max-memory`.
+    pub memory_budget_bytes: AtomicU64,
+    /// Rollout streams running now.
+    pub live_rollouts: AtomicU64,
+    /// Connections open now.
+    pub open_connections: AtomicU64,
+    /// Connections accepted over the connection limit, open now (answered RESOURCE_EXHAUSTED).
+    pub over_limit_connections: AtomicU64,
     /// Step RPCs that succeeded.
     pub step_calls: AtomicU64,
     /// Environment steps: a Step of N environments counts N.
@@ -115,13 +126,38 @@ impl Metrics {
             let _ = writeln!(out, "# TYPE {name} counter");
             let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
         }
-        let _ = writeln!(out, "# HELP dinerdash_live_sessions Sessions alive now.");
-        let _ = writeln!(out, "# TYPE dinerdash_live_sessions gauge");
-        let _ = writeln!(
-            out,
-            "dinerdash_live_sessions {}",
-            self.live_sessions.load(Ordering::Relaxed)
-        );
+        let gauges: [(&str, &str, &AtomicU64); 5] = [
+            (
+                "dinerdash_live_sessions",
+                "Sessions alive now.",
+                &self.live_sessions,
+            ),
+            (
+                "dinerdash_memory_used_bytes",
+                "Bytes sessions and Rollout streams hold now, as the memory budget counts them.",
+                &self.memory_used_bytes,
+            ),
+            (
+                "dinerdash_memory_budget_bytes",
+                "The memory budget (--max-memory).",
+                &self.memory_budget_bytes,
+            ),
+            (
+                "dinerdash_live_rollouts",
+                "Rollout streams running now.",
+                &self.live_rollouts,
+            ),
+            (
+                "dinerdash_open_connections",
+                "Client connections open now.",
+                &self.open_connections,
+            ),
+        ];
+        for (name, help, value) in gauges {
+            let _ = writeln!(out, "# HELP {name} {help}");
+            let _ = writeln!(out, "# TYPE {name} gauge");
+            let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
+        }
         let _ = writeln!(
             out,
             "# HELP dinerdash_rpc_errors_total RPCs that failed, by gRPC status code."
@@ -137,16 +173,25 @@ impl Metrics {
     }
 }
 
-/// Answers every HTTP request on `listener` with the metrics until `shutdown` fires.
-pub async fn serve(listener: TcpListener, metrics: Arc<Metrics>, mut shutdown: Shutdown) {
+/// Answers every HTTP request on `listener` with the metrics until `shutdown` fires. When
+/// `tokens` holds any `Bearer <token>` value, a request must send one of them in its
+/// `Authorization` header (Prometheus' `authorization` / `bearer_token` settings), or is
+/// answered 401.
+pub async fn serve(
+    listener: TcpListener,
+    metrics: Arc<Metrics>,
+    tokens: Arc<[Box<[u8]>]>,
+    mut shutdown: Shutdown,
+) {
     loop {
         tokio::select! {
             () = shutdown.wait() => return,
             accepted = listener.accept() => match accepted {
                 Ok((stream, _)) => {
                     let metrics = Arc::clone(&metrics);
+                    let tokens = Arc::clone(&tokens);
                     tokio::spawn(async move {
-                        if let Err(e) = answer(stream, &metrics).await {
+                        if let Err(e) = answer(stream, &metrics, &tokens).await {
                             tracing::debug!("metrics request failed: {e}");
                         }
                     });
@@ -162,7 +207,11 @@ pub async fn serve(listener: TcpListener, metrics: Arc<Metrics>, mut shutdown: S
 }
 
 /// Reads one request head and writes one response, then closes the connection.
-async fn answer(mut stream: TcpStream, metrics: &Metrics) -> std::io::Result<()> {
+async fn answer(
+    mut stream: TcpStream,
+    metrics: &Metrics,
+    tokens: &[Box<[u8]>],
+) -> std::io::Result<()> {
     let mut head = Vec::with_capacity(512);
     let mut buf = [0u8; 1024];
     let read_head = async {
@@ -182,7 +231,11 @@ async fn answer(mut stream: TcpStream, metrics: &Metrics) -> std::io::Result<()>
         .await
         .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "request head"))??;
     let line = head.split(|&b| b == b'\n').next().unwrap_or_default();
-    let response = if line.starts_with(b"GET ") || line.starts_with(b"HEAD ") {
+    let response = if !tokens.is_empty() && !authorized(&head, tokens) {
+        "HTTP/1.1 401 Unauthorized\r\nWWW-Authenticate: Bearer\r\nContent-Length: 0\r\n\
+         Connection: close\r\n\r\n"
+            .to_owned()
+    } else if line.starts_with(b"GET ") || line.starts_with(b"HEAD ") {
         let body = metrics.render();
         format!(
             "HTTP/1.1 200 OK\r\nContent-Type: text/plain; version=0.0.4; charset=utf-8\r\n\
@@ -200,4 +253,22 @@ async fn answer(mut stream: TcpStream, metrics: &Metrics) -> std::io::Result<()>
     };
     stream.write_all(response.as_bytes()).await?;
     stream.shutdown().await
+}
+
+/// Whether the request head carries `Authorization: <one of tokens>` (`Bearer <token>`).
+fn authorized(head: &[u8], tokens: &[Box<[u8]>]) -> bool {
+    head.split(|&b| b == b'\n').any(|line| {
+        let line = line.strip_suffix(b"\r").unwrap_or(line);
+        let Some(colon) = line.iter().position(|&b| b == b':') else {
+            return false;
+        };
+        let (name, value) = line.split_at(colon);
+        name.eq_ignore_ascii_case(b"authorization") && {
+            let value = value[1..].trim_ascii();
+            // Every token compared, so that the time taken does not reveal which one matched.
+            tokens
+                .iter()
+                .fold(false, |hit, t| hit | crate::service::same_bytes(value, t))
+        }
+    })
 }

@@ -2,6 +2,8 @@
 //! then per step the expert's choice in the state before it, the action, the reward and the new
 //! observation. Synchronous and CPU-bound: the service runs it on a blocking thread.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+
 use crate::expert::PolicyKind;
 use crate::expert::expert_action;
 use crate::sim::{Config, ConfigError, Game, NUM_ACTIONS, OBSERVATION_SIZE};
@@ -10,6 +12,12 @@ use crate::sim::{Config, ConfigError, Game, NUM_ACTIONS, OBSERVATION_SIZE};
 pub const MAX_ROLLOUT_STEPS: u32 = 100_000;
 /// Most episodes one Rollout request may ask for.
 pub const MAX_ROLLOUT_EPISODES: u32 = 10_000;
+/// Default most steps one Rollout request may record over all its episodes (~1 GB of output,
+/// seconds to minutes of a worker): the request's work cap (`Limits::max_rollout_work_steps`). 10,000 seeds of no-decay games would otherwise ask for
+/// ~10^9 steps.
+pub const MAX_ROLLOUT_WORK_STEPS: u64 = 10_000_000;
+/// Bytes one recorded step takes at most: observation, action, reward, expert action, mask.
+pub const MAX_BYTES_PER_STEP: u64 = (OBSERVATION_SIZE + 1 + 4 + 1 + NUM_ACTIONS) as u64;
 
 /// One recorded episode, in the packed layout of `dinerdash.v1.Episode`.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -46,6 +54,21 @@ pub fn record(
     max_steps: u32,
     action_masks: bool,
 ) -> Result<Recording, ConfigError> {
+    let never = AtomicBool::new(false);
+    record_until(policy, config, seed, max_steps, action_masks, &never)
+        .map(Option::unwrap_or_default)
+}
+
+/// [`record`], abandoned (`Ok(None)`) as soon as `stop` is set: checked every step, so a
+/// cancelled request frees its worker within microseconds, not after a whole episode.
+pub fn record_until(
+    policy: PolicyKind,
+    config: Config,
+    seed: u64,
+    max_steps: u32,
+    action_masks: bool,
+    stop: &AtomicBool,
+) -> Result<Option<Recording>, ConfigError> {
     let mut game = Game::new(config)?;
     // A drawn arrival list cannot be refused.
     let _ = game.reset(Some(seed), None);
@@ -70,6 +93,9 @@ pub fn record(
     push_state(&mut rec, &game);
     let mut ended = false;
     while rec.steps < max_steps && !ended {
+        if stop.load(Ordering::Relaxed) {
+            return Ok(None);
+        }
         let expert = expert_action(game.restaurant());
         let action = match policy {
             // The expert's choice is already known; asking again would repeat the look-ahead.
@@ -97,7 +123,7 @@ pub fn record(
     let r = game.restaurant();
     rec.score = r.score();
     rec.lost = r.lost();
-    Ok(rec)
+    Ok(Some(rec))
 }
 
 #[cfg(test)]
@@ -120,6 +146,13 @@ mod tests {
             assert_eq!(rec.rewards.len(), 4 * t);
             assert!(rec.terminated);
         }
+    }
+
+    #[test]
+    fn a_set_stop_flag_abandons_the_episode() {
+        let stop = AtomicBool::new(true);
+        let rec = record_until(PolicyKind::Expert, Config::default(), 0, 100, false, &stop);
+        assert_eq!(rec, Ok(None));
     }
 
     #[test]

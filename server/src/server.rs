@@ -10,13 +10,14 @@ use std::sync::Arc;
 
 use tokio::net::TcpListener;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 
+use crate::budget::Share;
+use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT};
 use crate::metrics::{self, Metrics};
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
-use crate::service::{AuthInterceptor, DinerDashService, MAX_MESSAGE_BYTES};
+use crate::service::{AuthInterceptor, DinerDashService, MAX_MESSAGE_BYTES, Token};
 use crate::session::{Limits, Store};
 use crate::shutdown;
 
@@ -34,11 +35,20 @@ pub struct TlsPem {
 pub struct ServerConfig {
     /// Session limits and the idle TTL.
     pub limits: Limits,
-    /// The bearer token clients must send; `None` serves everyone.
+    /// The bearer token clients must send; `None` serves everyone (unless `tenants` is given).
+    /// Each connection is then its own tenant.
     pub auth_token: Option<String>,
+    /// Tenant tokens (`--auth-tokens-file`): each token's requests count against its tenant's
+    /// share. Given with `auth_token`, either token is accepted.
+    pub tenants: Vec<Token>,
+    /// What each connection may hold when its requests carry no tenant token.
+    pub connection_share: Share,
+    /// Connection limit and idle timeout.
+    pub connections: connections::Limits,
     /// Serve TLS with this identity; `None` serves plaintext.
     pub tls: Option<TlsPem>,
-    /// Serve Prometheus metrics on this listener; `None` serves none.
+    /// Serve Prometheus metrics on this listener (asking for the same tokens as the RPCs);
+    /// `None` serves none.
     pub metrics_listener: Option<TcpListener>,
 }
 
@@ -65,13 +75,6 @@ pub async fn run(
     let (trigger, stopping) = shutdown::channel();
 
     let sweeper = tokio::spawn(store.clone().sweep_until(stopping.clone()));
-    let metrics_task = config.metrics_listener.map(|l| {
-        if let Ok(addr) = l.local_addr() {
-            tracing::info!("metrics on http://{addr}/metrics");
-        }
-        tokio::spawn(metrics::serve(l, Arc::clone(&metrics), stopping.clone()))
-    });
-
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<DinerDashServer<DinerDashService>>()
@@ -80,18 +83,55 @@ pub async fn run(
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let auth = AuthInterceptor::new(config.auth_token.as_deref());
-    let dinerdash = DinerDashServer::new(DinerDashService::new(store, Arc::clone(&metrics)))
+    let mut tokens = config.tenants.clone();
+    if let Some(token) = &config.auth_token {
+        tokens.push(Token {
+            token: token.clone(),
+            tenant: None,
+        });
+    }
+    let auth = AuthInterceptor::new(&tokens, stopping.clone());
+    // The metrics ask for the same tokens as the RPCs, so that a server that needs a token
+    // does not publish its load to whoever reaches the metrics port.
+    let metrics_task = config.metrics_listener.map(|l| {
+        if let Ok(addr) = l.local_addr() {
+            tracing::info!("metrics on http://{addr}/metrics");
+        }
+        let serve = metrics::serve(
+            l,
+            Arc::clone(&metrics),
+            auth.bearer_values(),
+            stopping.clone(),
+        );
+        tokio::spawn(serve)
+    });
+    let service = DinerDashService::new(
+        store,
+        Arc::clone(&metrics),
+        config.connection_share,
+        stopping.clone(),
+    );
+    let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
 
-    let mut builder = Server::builder();
+    // Live clients answer the keepalive pings, which keeps their connections out of the idle
+    // timeout; dead ones do not, and are closed.
+    let mut builder = Server::builder()
+        .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
+        .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
     if let Some(tls) = &config.tls {
         builder = builder
             .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key)))?;
     }
-    // Small request/reply pairs are the hot path: Nagle's algorithm would hold them back.
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    // The accept loop stops (and closes the port) when the trigger fires.
+    let incoming = connections::accept(
+        listener,
+        config.connections,
+        config.connection_share,
+        Arc::clone(&metrics),
+        stopping.clone(),
+    );
     let served = builder
         // Health stays open without the token, so that orchestrators can probe it.
         .add_service(health_service)
@@ -99,6 +139,8 @@ pub async fn run(
         .add_service(InterceptedService::new(dinerdash, auth))
         .serve_with_incoming_shutdown(incoming, async {
             shutdown.await;
+            // First of all: close the port and answer new calls UNAVAILABLE.
+            trigger.fire();
             tracing::info!("shutting down: finishing the RPCs in flight");
             health
                 .set_not_serving::<DinerDashServer<DinerDashService>>()
@@ -106,7 +148,6 @@ pub async fn run(
             health
                 .set_service_status("", tonic_health::ServingStatus::NotServing)
                 .await;
-            trigger.fire();
         })
         .await;
 

@@ -5,28 +5,40 @@
 
 use std::collections::HashMap;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
 
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Code, Request, Response, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
+use crate::budget::{BudgetError, Share, Tenant};
+use crate::connections::conn_info;
 use crate::cpu::CpuPool;
 use crate::expert::PolicyKind;
 use crate::metrics::Metrics;
 use crate::pb;
-use crate::rollout::{self, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, Recording};
+use crate::rollout::{
+    self, MAX_BYTES_PER_STEP, MAX_ROLLOUT_EPISODES, MAX_ROLLOUT_STEPS, Recording,
+};
 use crate::session::{
     Autoreset, Batch, ExpertActions, ResetArgs, SessionError, SessionId, SessionOptions,
     SessionSpec, Store,
 };
+use crate::shutdown::{STREAM_DRAIN_DEADLINE, Shutdown};
 use crate::sim::{self, Config, NUM_ACTIONS, OBSERVATION_SIZE, SNAPSHOT_VERSION};
 
 /// Largest message the server reads or writes. The biggest legitimate ones are a Restore of a
 /// 1024-environment session (~3.5 MB) and a Rollout episode of 100,000 steps with action masks
 /// (~10 MB); anything larger is refused by this limit before it is buffered.
 pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
-/// Rollout episodes buffered ahead of a slow reader.
-const ROLLOUT_BUFFER: usize = 2;
+/// Rollout episodes recorded ahead of the reader: one, so that a stream is produced on demand.
+const ROLLOUT_BUFFER: usize = 1;
+/// Episodes a Rollout stream may hold at once, for the memory budget: the one buffered, one in
+/// the transport's send buffer, and the one being recorded.
+const ROLLOUT_EPISODES_HELD: u64 = ROLLOUT_BUFFER as u64 + 2;
+/// A Rollout stream whose reader takes no episode for this long is cancelled.
+pub const ROLLOUT_UNREAD_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// `ErrorInfo.domain` of every error this server returns.
 pub const ERROR_DOMAIN: &str = "dinerdash.v1";
@@ -61,6 +73,34 @@ pub fn status(e: SessionError) -> Status {
             "TOO_MANY_SESSIONS",
             vec![("max_sessions", max.to_string())],
         ),
+        SessionError::OverBudget(b) => {
+            let (reason, metadata) = match b {
+                BudgetError::Memory { needed, used, max } => (
+                    "MEMORY_BUDGET",
+                    vec![
+                        ("needed_bytes", needed.to_string()),
+                        ("used_bytes", used.to_string()),
+                        ("max_bytes", max.to_string()),
+                    ],
+                ),
+                BudgetError::TenantEnvs { tenant, max, .. } => (
+                    "TENANT_ENVS",
+                    vec![("tenant", tenant.clone()), ("max", max.to_string())],
+                ),
+                BudgetError::TenantSessions { tenant, max } => (
+                    "TENANT_SESSIONS",
+                    vec![("tenant", tenant.clone()), ("max", max.to_string())],
+                ),
+                BudgetError::TenantRollouts { tenant, max } => (
+                    "TENANT_ROLLOUTS",
+                    vec![("tenant", tenant.clone()), ("max", max.to_string())],
+                ),
+                BudgetError::Sessions(max) => {
+                    ("TOO_MANY_SESSIONS", vec![("max_sessions", max.to_string())])
+                }
+            };
+            (Code::ResourceExhausted, reason, metadata)
+        }
         SessionError::NotReset => (Code::FailedPrecondition, "NOT_RESET", vec![]),
         SessionError::EpisodeOver => (
             Code::FailedPrecondition,
@@ -270,18 +310,30 @@ pub struct DinerDashService {
     /// Counts failed RPCs by code.
     metrics: Arc<Metrics>,
     /// Where Rollout episodes are recorded, and Reset and Step of sessions whose expert actions
-    /// come from the planner: one worker per core, off the async workers, so that neither can
+    /// come from the planner: off the async workers and leaving them a core, so that neither can
     /// starve the Step path of every other client.
     cpu: CpuPool,
+    /// The tenant of requests that came neither with a tenant token nor on a connection this
+    /// server accepted (an embedding that serves its own listener).
+    unknown: Arc<Tenant>,
+    /// Fires when the server starts draining: Rollout streams then get a short deadline.
+    stopping: Shutdown,
 }
 
 impl DinerDashService {
-    /// A service over `store`.
-    pub fn new(store: Store, metrics: Arc<Metrics>) -> DinerDashService {
+    /// A service over `store`; connections of no known tenant get `share`.
+    pub fn new(
+        store: Store,
+        metrics: Arc<Metrics>,
+        share: Share,
+        stopping: Shutdown,
+    ) -> DinerDashService {
         DinerDashService {
             store,
             metrics,
-            cpu: CpuPool::per_core(),
+            cpu: CpuPool::beside_steps(),
+            unknown: Arc::new(Tenant::new("an unknown connection".into(), share)),
+            stopping,
         }
     }
 
@@ -303,6 +355,14 @@ impl DinerDashService {
         result.map_err(|e| self.fail(e))
     }
 
+    /// Whose share a request counts against: its token's tenant, else its connection.
+    fn tenant<T>(&self, request: &Request<T>) -> Arc<Tenant> {
+        if let Some(tenant) = request.extensions().get::<Arc<Tenant>>() {
+            return Arc::clone(tenant);
+        }
+        conn_info(request).map_or_else(|| Arc::clone(&self.unknown), |c| Arc::clone(&c.tenant))
+    }
+
     /// The status for `e`, counted.
     fn fail(&self, e: SessionError) -> Status {
         let status = status(e);
@@ -319,6 +379,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::CreateSessionRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let tenant = self.tenant(&request);
         let r = request.into_inner();
         let options = SessionOptions {
             autoreset: autoreset_from(r.autoreset_mode, r.num_envs).map_err(|e| self.fail(e))?,
@@ -329,7 +390,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         let config = config_from(r.config.as_ref());
         let (id, spec) = self
             .store
-            .create(r.num_envs, config, options, r.seed)
+            .create(&tenant, r.num_envs, config, options, r.seed)
             .map_err(|e| self.fail(e))?;
         tracing::info!(session = %id, "session created");
         Ok(Response::new(created(id, &spec)))
@@ -396,7 +457,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
         let (id, spec) = self
             .store
-            .fork(&request.get_ref().session_id)
+            .fork(&self.tenant(&request), &request.get_ref().session_id)
             .map_err(|e| self.fail(e))?;
         tracing::info!(fork = %id, "session forked");
         Ok(Response::new(created(id, &spec)))
@@ -421,7 +482,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
         let (id, spec) = self
             .store
-            .restore(&request.get_ref().snapshot)
+            .restore(&self.tenant(&request), &request.get_ref().snapshot)
             .map_err(|e| self.fail(e))?;
         tracing::info!(session = %id, "session restored");
         Ok(Response::new(created(id, &spec)))
@@ -447,6 +508,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::RolloutRequest>,
     ) -> Result<Response<Self::RolloutStream>, Status> {
+        let tenant = self.tenant(&request);
         let r = request.into_inner();
         let invalid = |msg: String| self.fail(SessionError::InvalidArgument(msg));
         let policy = match pb::Policy::try_from(r.policy) {
@@ -474,35 +536,29 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         }
         let config = config_from(r.config.as_ref());
         config.validate().map_err(|e| invalid(e.to_string()))?;
+        let episode_bytes = (u64::from(max_steps) + 1) * MAX_BYTES_PER_STEP;
+        let charge = self
+            .store
+            .budget()
+            .charge_rollout(&tenant, ROLLOUT_EPISODES_HELD * episode_bytes)
+            .map_err(|e| self.fail(e.into()))?;
 
         let (tx, rx) = tokio::sync::mpsc::channel(ROLLOUT_BUFFER);
-        let cpu = self.cpu.clone();
-        let metrics = Arc::clone(&self.metrics);
-        let masks = r.action_masks;
-        let seeds = r.seeds;
+        let produce = Produce {
+            cpu: self.cpu.clone(),
+            metrics: Arc::clone(&self.metrics),
+            stopping: self.stopping.clone(),
+            policy,
+            config,
+            max_steps,
+            masks: r.action_masks,
+            work_cap: self.store.limits().max_rollout_work_steps,
+        };
         tokio::spawn(async move {
-            let work = cpu.run(move || {
-                for seed in seeds {
-                    let sent = match rollout::record(policy, config, seed, max_steps, masks) {
-                        Ok(rec) => {
-                            metrics
-                                .rollout_episodes
-                                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                            tx.blocking_send(Ok(episode_to(rec)))
-                        }
-                        Err(e) => tx.blocking_send(Err(status(SessionError::InvalidArgument(
-                            e.to_string(),
-                        )))),
-                    };
-                    if sent.is_err() {
-                        // The client went away: stop recording.
-                        return;
-                    }
-                }
-            });
-            if let Err(e) = work.await {
-                tracing::error!("rollout worker failed: {e}");
-            }
+            produce.run(r.seeds, tx).await;
+            // The producer is done: what it charged is given back (an episode still waiting in
+            // the channel for its reader is within the transport's share of the estimate).
+            drop(charge);
         });
         Ok(Response::new(ReceiverStream::new(rx)))
     }
@@ -520,44 +576,249 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             session_ttl_seconds: limits.session_ttl.as_secs(),
             live_sessions: self.store.live() as u64,
             max_rollout_episodes: MAX_ROLLOUT_EPISODES,
+            max_memory_bytes: self.store.budget().max_bytes(),
+            memory_used_bytes: self.store.budget().used_bytes(),
+            max_rollout_work_steps: limits.max_rollout_work_steps,
             max_message_bytes: MAX_MESSAGE_BYTES as u64,
             snapshot_version: u32::from(SNAPSHOT_VERSION),
         }))
     }
 }
 
-/// Checks `authorization: Bearer <token>` on every request when the server has a token.
-#[derive(Debug, Clone)]
-pub struct AuthInterceptor {
-    /// The expected `authorization` value, `Bearer <token>`; `None` lets every request in.
-    expected: Option<Arc<[u8]>>,
+/// What one Rollout stream records, and where.
+struct Produce {
+    /// The bounded pool episodes are recorded on.
+    cpu: CpuPool,
+    /// Counts recorded episodes.
+    metrics: Arc<Metrics>,
+    /// Fires when the server drains.
+    stopping: Shutdown,
+    /// Who plays.
+    policy: PolicyKind,
+    /// The game.
+    config: Config,
+    /// Per episode.
+    max_steps: u32,
+    /// Whether episodes carry action masks.
+    masks: bool,
+    /// Most steps over all the stream's episodes.
+    work_cap: u64,
 }
 
-impl AuthInterceptor {
-    /// An interceptor for `token` (`None`: open server).
-    pub fn new(token: Option<&str>) -> AuthInterceptor {
-        AuthInterceptor {
-            expected: token.map(|t| Arc::from(format!("Bearer {t}").into_bytes())),
+/// How a stream's next episode ended up.
+enum Next {
+    /// Recorded; send it.
+    Episode(Recording),
+    /// The reader left or never read: stop quietly.
+    Gone,
+    /// End the stream with this status.
+    Fail(Status),
+}
+
+impl Produce {
+    /// Records one episode per seed, each only once the reader has room for it: a stream that is
+    /// not read holds no worker, and is cancelled after [`ROLLOUT_UNREAD_TIMEOUT`]. A reader that
+    /// leaves stops the episode being recorded within a step; one still queued never starts.
+    async fn run(
+        self,
+        seeds: Vec<u64>,
+        tx: tokio::sync::mpsc::Sender<Result<pb::Episode, Status>>,
+    ) {
+        let mut stopping = self.stopping.clone();
+        let drained = async move {
+            stopping.wait().await;
+            tokio::time::sleep(STREAM_DRAIN_DEADLINE).await;
+        };
+        tokio::pin!(drained);
+        let cap = self.work_cap;
+        let mut work_left = cap;
+        for (done, seed) in seeds.into_iter().enumerate() {
+            let slot = tokio::select! {
+                slot = tokio::time::timeout(ROLLOUT_UNREAD_TIMEOUT, tx.reserve()) => slot,
+                () = &mut drained => {
+                    let _ = tx.try_send(Err(shutting_down()));
+                    return;
+                }
+            };
+            let slot = match slot {
+                Ok(Ok(slot)) => slot,
+                Ok(Err(_)) => return,
+                Err(_) => {
+                    tracing::info!(
+                        "Rollout stream unread for {} s: cancelled",
+                        ROLLOUT_UNREAD_TIMEOUT.as_secs()
+                    );
+                    return;
+                }
+            };
+            if work_left == 0 {
+                slot.send(Err(Status::resource_exhausted(format!(
+                    "this Rollout reached its work cap of {cap} steps after \
+                     {done} episodes; ask for fewer seeds or a smaller max_steps"
+                ))));
+                return;
+            }
+            let steps = self
+                .max_steps
+                .min(u32::try_from(work_left).unwrap_or(u32::MAX));
+            let next = tokio::select! {
+                next = self.record(seed, steps) => next,
+                () = tx.closed() => Next::Gone,
+                () = &mut drained => Next::Fail(shutting_down()),
+            };
+            match next {
+                Next::Episode(rec)
+                    if rec.truncated
+                        && !rec.terminated
+                        && rec.steps < self.max_steps
+                        && u64::from(rec.steps) == work_left =>
+                {
+                    // Cut short by the work cap, not by the game: not a real episode.
+                    slot.send(Err(Status::resource_exhausted(format!(
+                        "this Rollout reached its work cap of {cap} steps \
+                         after {done} episodes; ask for fewer seeds or a smaller max_steps"
+                    ))));
+                    return;
+                }
+                Next::Episode(rec) => {
+                    work_left -= u64::from(rec.steps);
+                    self.metrics
+                        .rollout_episodes
+                        .fetch_add(1, Ordering::Relaxed);
+                    slot.send(Ok(episode_to(rec)));
+                }
+                Next::Gone => return,
+                Next::Fail(status) => {
+                    slot.send(Err(status));
+                    return;
+                }
+            }
+        }
+    }
+
+    /// Records one episode on the pool. Dropping the returned future (the reader left, the
+    /// server drains) stops the recording at its next step.
+    async fn record(&self, seed: u64, max_steps: u32) -> Next {
+        let stop = Arc::new(AtomicBool::new(false));
+        // Set on every way out of this function, the early ones included.
+        let _stop_on_drop = StopOnDrop(Arc::clone(&stop));
+        let Ok(worker) = self.cpu.acquire().await else {
+            return Next::Fail(shutting_down());
+        };
+        let (policy, config, masks) = (self.policy, self.config, self.masks);
+        let job = CpuPool::run_with(worker, move || {
+            rollout::record_until(policy, config, seed, max_steps, masks, &stop)
+        });
+        match job.await {
+            Ok(Ok(Some(rec))) => Next::Episode(rec),
+            Ok(Ok(None)) => Next::Gone,
+            Ok(Err(e)) => Next::Fail(status(SessionError::InvalidArgument(e.to_string()))),
+            Err(e) => {
+                tracing::error!("rollout worker failed: {e}");
+                Next::Fail(Status::internal(format!("rollout worker failed: {e}")))
+            }
         }
     }
 }
 
+/// Sets its flag when dropped.
+struct StopOnDrop(Arc<AtomicBool>);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+}
+
+/// The answer to calls that arrive, or streams still running, once the server drains.
+fn shutting_down() -> Status {
+    Status::unavailable("the server is shutting down; retry on another server")
+}
+
+/// A token clients may send, and the tenant it stands for.
+#[derive(Debug, Clone)]
+pub struct Token {
+    /// The secret, sent as `authorization: Bearer <token>`.
+    pub token: String,
+    /// Whose share its requests count against; `None`: each connection's own (`--auth-token`).
+    pub tenant: Option<Arc<Tenant>>,
+}
+
+/// An accepted `authorization` value (`Bearer <token>`) and the tenant it stands for.
+type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
+
+/// Stands in front of every RPC but health checks: answers `UNAVAILABLE` once the server drains,
+/// `RESOURCE_EXHAUSTED` on a connection over the connection limit, and, when the server has
+/// tokens, checks `authorization: Bearer <token>` and tags the request with the token's tenant.
+#[derive(Debug, Clone)]
+pub struct AuthInterceptor {
+    /// Accepted `Bearer <token>` values and their tenants; empty lets every request in.
+    tokens: Arc<[Accepted]>,
+    /// Fires when the server drains.
+    stopping: Shutdown,
+}
+
+impl AuthInterceptor {
+    /// The accepted `authorization` values, `Bearer <token>` (the metrics endpoint takes them
+    /// too).
+    pub fn bearer_values(&self) -> Arc<[Box<[u8]>]> {
+        self.tokens.iter().map(|(value, _)| value.clone()).collect()
+    }
+
+    /// An interceptor accepting `tokens` (none: an open server).
+    pub fn new(tokens: &[Token], stopping: Shutdown) -> AuthInterceptor {
+        let tokens = tokens
+            .iter()
+            .map(|t| {
+                let expected = format!("Bearer {}", t.token)
+                    .into_bytes()
+                    .into_boxed_slice();
+                (expected, t.tenant.clone())
+            })
+            .collect();
+        AuthInterceptor { tokens, stopping }
+    }
+}
+
 /// Compares without returning early, so that the time taken does not reveal the token.
-fn same_bytes(a: &[u8], b: &[u8]) -> bool {
+pub(crate) fn same_bytes(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 impl tonic::service::Interceptor for AuthInterceptor {
-    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
-        let Some(expected) = &self.expected else {
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        if self.stopping.is_stopping() {
+            return Err(shutting_down());
+        }
+        if let Some(max) = conn_info(&request).and_then(|c| c.over_limit) {
+            return Err(Status::resource_exhausted(format!(
+                "the server serves its maximum of {max} connections; retry later or raise \
+                 --max-connections"
+            )));
+        }
+        if self.tokens.is_empty() {
             return Ok(request);
-        };
-        match request.metadata().get("authorization") {
-            None => Err(Status::unauthenticated(
+        }
+        let Some(value) = request.metadata().get("authorization") else {
+            return Err(Status::unauthenticated(
                 "missing authorization metadata: send `authorization: Bearer <token>`",
-            )),
-            Some(value) if same_bytes(value.as_bytes(), expected) => Ok(request),
-            Some(_) => Err(Status::unauthenticated("invalid auth token")),
+            ));
+        };
+        // Every token is compared, so that the time taken does not reveal which one matched.
+        let mut found = None;
+        for (expected, tenant) in self.tokens.iter() {
+            if same_bytes(value.as_bytes(), expected) {
+                found = Some(tenant.clone());
+            }
+        }
+        match found {
+            None => Err(Status::unauthenticated("invalid auth token")),
+            Some(tenant) => {
+                if let Some(tenant) = tenant {
+                    request.extensions_mut().insert(tenant);
+                }
+                Ok(request)
+            }
         }
     }
 }

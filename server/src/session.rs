@@ -12,12 +12,13 @@
 pub mod envs;
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions};
 
+use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
 use crate::metrics::Metrics;
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
@@ -62,9 +63,23 @@ pub enum SessionError {
     /// Environment i of an autoreset DISABLED session stepped after its episode ended.
     #[error("environment {0}: episode is over; call reset")]
     EnvEpisodeOver(usize),
+    /// The memory budget or the tenant's share would be passed.
+    #[error(transparent)]
+    OverBudget(BudgetError),
     /// A state the checks rule out.
     #[error("internal error: {0}")]
     Internal(String),
+}
+
+impl From<BudgetError> for SessionError {
+    fn from(e: BudgetError) -> SessionError {
+        match e {
+            BudgetError::Sessions(max) => {
+                SessionError::TooManySessions(usize::try_from(max).unwrap_or(usize::MAX))
+            }
+            other => SessionError::OverBudget(other),
+        }
+    }
 }
 
 /// Default most live sessions: an idle single-environment session costs ~3.5 KB, so 100,000
@@ -74,6 +89,13 @@ pub const DEFAULT_MAX_SESSIONS: u32 = 100_000;
 pub const DEFAULT_MAX_ENVS_PER_SESSION: u32 = 1024;
 /// Default idle time after which a session is closed.
 pub const DEFAULT_SESSION_TTL: Duration = Duration::from_secs(300);
+/// What a session costs besides its environments: the `Session`, its `Arc`, its map entry.
+const SESSION_OVERHEAD_BYTES: u64 = 256;
+
+/// The bytes the memory budget charges a session of `num_envs` environments.
+pub fn session_bytes(num_envs: usize) -> u64 {
+    (num_envs as u64).saturating_mul(Envs::BYTES_PER_ENV) + SESSION_OVERHEAD_BYTES
+}
 
 /// The limits a server enforces.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -84,6 +106,10 @@ pub struct Limits {
     pub max_envs_per_session: usize,
     /// A session unused for this long is closed.
     pub session_ttl: Duration,
+    /// Bytes sessions and Rollout streams may hold (the memory budget).
+    pub max_memory: u64,
+    /// Most steps one Rollout request may record over all its episodes (its work cap).
+    pub max_rollout_work_steps: u64,
 }
 
 impl Default for Limits {
@@ -92,6 +118,8 @@ impl Default for Limits {
             max_sessions: DEFAULT_MAX_SESSIONS as usize,
             max_envs_per_session: DEFAULT_MAX_ENVS_PER_SESSION as usize,
             session_ttl: DEFAULT_SESSION_TTL,
+            max_memory: DEFAULT_MAX_MEMORY,
+            max_rollout_work_steps: crate::rollout::MAX_ROLLOUT_WORK_STEPS,
         }
     }
 }
@@ -149,6 +177,9 @@ pub struct SessionSpec {
 /// One session: its environments behind their own lock, and when it was last used.
 #[derive(Debug)]
 pub struct Session {
+    /// Its bytes in the memory budget and its slot in its tenant's share, given back when the
+    /// last reference goes (closed or expired, and no request still using it).
+    _charge: Charge,
     /// Milliseconds since the store's epoch at the last lookup; the sweeper reads it.
     last_used_ms: AtomicU64,
     /// The environments. Locked for the whole of one Reset or Step.
@@ -185,8 +216,8 @@ pub struct Store {
 struct Shared {
     /// Session maps, by [`SessionId::shard`].
     shards: Vec<Mutex<HashMap<SessionId, Arc<Session>>>>,
-    /// Live sessions: the limit is checked against this, not by locking every shard.
-    live: AtomicUsize,
+    /// The memory budget and the live-session count (checked without locking every shard).
+    budget: Arc<Budget>,
     /// The limits.
     limits: Limits,
     /// Zero of `Session::last_used_ms`.
@@ -201,7 +232,11 @@ impl Store {
         Store {
             shared: Arc::new(Shared {
                 shards: (0..SHARDS).map(|_| Mutex::new(HashMap::new())).collect(),
-                live: AtomicUsize::new(0),
+                budget: Arc::new(Budget::new(
+                    limits.max_memory,
+                    limits.max_sessions as u64,
+                    Arc::clone(&metrics),
+                )),
                 limits,
                 epoch: Instant::now(),
                 metrics,
@@ -216,7 +251,12 @@ impl Store {
 
     /// Live sessions.
     pub fn live(&self) -> usize {
-        self.shared.live.load(Ordering::Relaxed)
+        self.shared.budget.live_sessions() as usize
+    }
+
+    /// The memory budget, which Rollout streams are charged to as well.
+    pub fn budget(&self) -> &Arc<Budget> {
+        &self.shared.budget
     }
 
     fn now_ms(&self) -> u64 {
@@ -241,28 +281,25 @@ impl Store {
         Ok(session)
     }
 
-    /// Adds a session within the session limit and returns its ID and spec.
-    fn insert(&self, envs: Envs) -> Result<(SessionId, SessionSpec), SessionError> {
-        let max = self.shared.limits.max_sessions;
-        self.shared
-            .live
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |live| {
-                (live < max).then_some(live + 1)
-            })
-            .map_err(|_| SessionError::TooManySessions(max))?;
+    /// Charges a session of `num_envs` environments to `tenant`, before they are allocated.
+    fn charge(&self, tenant: &Arc<Tenant>, num_envs: usize) -> Result<Charge, SessionError> {
+        Ok(self
+            .shared
+            .budget
+            .charge_session(tenant, num_envs as u64, session_bytes(num_envs))?)
+    }
+
+    /// Adds a session already charged and returns its ID and spec.
+    fn insert(&self, envs: Envs, charge: Charge) -> Result<(SessionId, SessionSpec), SessionError> {
         let session = Arc::new(Session {
+            _charge: charge,
             last_used_ms: AtomicU64::new(self.now_ms()),
             envs: Mutex::new(envs),
         });
         let spec = session.spec();
         let id = loop {
-            let id = match SessionId::random() {
-                Ok(id) => id,
-                Err(e) => {
-                    self.shared.live.fetch_sub(1, Ordering::AcqRel);
-                    return Err(e);
-                }
-            };
+            // On an error the session is dropped, and its charge with it.
+            let id = SessionId::random()?;
             let mut shard = self.shard(id);
             // 128 random bits do not collide, but a collision must not replace a session.
             if let std::collections::hash_map::Entry::Vacant(slot) = shard.entry(id) {
@@ -270,9 +307,10 @@ impl Store {
                 break id;
             }
         };
-        let m = &self.shared.metrics;
-        m.sessions_created.fetch_add(1, Ordering::Relaxed);
-        m.live_sessions.fetch_add(1, Ordering::Relaxed);
+        self.shared
+            .metrics
+            .sessions_created
+            .fetch_add(1, Ordering::Relaxed);
         tracing::debug!(session = %id, num_envs = spec.num_envs, "session created");
         Ok((id, spec))
     }
@@ -280,6 +318,7 @@ impl Store {
     /// Creates a session of `num_envs` environments, not reset yet.
     pub fn create(
         &self,
+        tenant: &Arc<Tenant>,
         num_envs: u32,
         config: Config,
         options: SessionOptions,
@@ -292,7 +331,11 @@ impl Store {
                 "num_envs must be in 1..={max}, got {num_envs}"
             )));
         }
-        self.insert(Envs::new(n, config, options, seed)?)
+        config
+            .validate()
+            .map_err(|e| SessionError::InvalidArgument(e.to_string()))?;
+        let charge = self.charge(tenant, n)?;
+        self.insert(Envs::new(n, config, options, seed)?, charge)
     }
 
     /// Closes a session.
@@ -301,10 +344,10 @@ impl Store {
         self.shard(key)
             .remove(&key)
             .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
-        self.shared.live.fetch_sub(1, Ordering::AcqRel);
-        let m = &self.shared.metrics;
-        m.sessions_closed.fetch_add(1, Ordering::Relaxed);
-        m.live_sessions.fetch_sub(1, Ordering::Relaxed);
+        self.shared
+            .metrics
+            .sessions_closed
+            .fetch_add(1, Ordering::Relaxed);
         tracing::debug!(session = %key, "session closed");
         Ok(())
     }
@@ -339,9 +382,18 @@ impl Store {
     }
 
     /// A new session identical to this one, random streams included.
-    pub fn fork(&self, id: &str) -> Result<(SessionId, SessionSpec), SessionError> {
-        let copy = self.get(id)?.lock().clone();
-        self.insert(copy)
+    pub fn fork(
+        &self,
+        tenant: &Arc<Tenant>,
+        id: &str,
+    ) -> Result<(SessionId, SessionSpec), SessionError> {
+        let session = self.get(id)?;
+        let envs = session.lock();
+        // Charged before the copy is made: a refused Fork allocates nothing.
+        let charge = self.charge(tenant, envs.len())?;
+        let copy = envs.clone();
+        drop(envs);
+        self.insert(copy, charge)
     }
 
     /// The session as versioned bytes.
@@ -350,9 +402,16 @@ impl Store {
     }
 
     /// A new session from snapshot bytes.
-    pub fn restore(&self, bytes: &[u8]) -> Result<(SessionId, SessionSpec), SessionError> {
+    pub fn restore(
+        &self,
+        tenant: &Arc<Tenant>,
+        bytes: &[u8],
+    ) -> Result<(SessionId, SessionSpec), SessionError> {
+        // Decoding holds at most max_envs_per_session environments for a moment; they are kept
+        // only once charged.
         let envs = Envs::restore(bytes, self.shared.limits.max_envs_per_session)?;
-        self.insert(envs)
+        let charge = self.charge(tenant, envs.len())?;
+        self.insert(envs, charge)
     }
 
     /// One environment of a session drawn as text.
@@ -378,11 +437,10 @@ impl Store {
             });
         }
         if evicted > 0 {
-            self.shared.live.fetch_sub(evicted, Ordering::AcqRel);
-            let m = &self.shared.metrics;
-            m.sessions_expired
+            self.shared
+                .metrics
+                .sessions_expired
                 .fetch_add(evicted as u64, Ordering::Relaxed);
-            m.live_sessions.fetch_sub(evicted as u64, Ordering::Relaxed);
             tracing::info!(evicted, "closed idle sessions");
         }
         evicted
@@ -411,6 +469,10 @@ impl Store {
 mod tests {
     use super::*;
 
+    fn tenant() -> Arc<Tenant> {
+        Arc::new(Tenant::new("test".into(), crate::budget::Share::default()))
+    }
+
     fn options() -> SessionOptions {
         SessionOptions {
             autoreset: Autoreset::NextStep,
@@ -436,16 +498,22 @@ mod tests {
             ..Limits::default()
         };
         let store = Store::new(limits, Arc::default());
-        let (a, _) = store.create(1, Config::default(), options(), None).unwrap();
-        store.create(1, Config::default(), options(), None).unwrap();
+        let (a, _) = store
+            .create(&tenant(), 1, Config::default(), options(), None)
+            .unwrap();
+        store
+            .create(&tenant(), 1, Config::default(), options(), None)
+            .unwrap();
         assert_eq!(
-            store.create(1, Config::default(), options(), None),
+            store.create(&tenant(), 1, Config::default(), options(), None),
             Err(SessionError::TooManySessions(2))
         );
         store.close(&a.to_string()).unwrap();
         assert_eq!(store.live(), 1);
         assert!(store.close(&a.to_string()).is_err());
-        store.create(1, Config::default(), options(), None).unwrap();
+        store
+            .create(&tenant(), 1, Config::default(), options(), None)
+            .unwrap();
     }
 
     #[test]
@@ -455,7 +523,9 @@ mod tests {
             ..Limits::default()
         };
         let store = Store::new(limits, Arc::default());
-        let (id, _) = store.create(1, Config::default(), options(), None).unwrap();
+        let (id, _) = store
+            .create(&tenant(), 1, Config::default(), options(), None)
+            .unwrap();
         std::thread::sleep(Duration::from_millis(5));
         assert_eq!(store.sweep(), 1);
         assert_eq!(store.live(), 0);

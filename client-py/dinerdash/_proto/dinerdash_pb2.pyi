@@ -284,7 +284,7 @@ class ServerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class ServerInfoResponse(_message.Message):
-    __slots__ = ("server_version", "ruleset", "max_sessions", "max_envs_per_session", "session_ttl_seconds", "live_sessions", "max_rollout_episodes", "max_message_bytes", "snapshot_version")
+    __slots__ = ("server_version", "ruleset", "max_sessions", "max_envs_per_session", "session_ttl_seconds", "live_sessions", "max_rollout_episodes", "max_message_bytes", "snapshot_version", "max_memory_bytes", "memory_used_bytes", "max_rollout_work_steps")
     SERVER_VERSION_FIELD_NUMBER: _ClassVar[int]
     RULESET_FIELD_NUMBER: _ClassVar[int]
     MAX_SESSIONS_FIELD_NUMBER: _ClassVar[int]
@@ -294,6 +294,9 @@ class ServerInfoResponse(_message.Message):
     MAX_ROLLOUT_EPISODES_FIELD_NUMBER: _ClassVar[int]
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
     SNAPSHOT_VERSION_FIELD_NUMBER: _ClassVar[int]
+    MAX_MEMORY_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MEMORY_USED_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_ROLLOUT_WORK_STEPS_FIELD_NUMBER: _ClassVar[int]
     server_version: str
     ruleset: str
     max_sessions: int
@@ -303,4 +306,7 @@ class ServerInfoResponse(_message.Message):
     max_rollout_episodes: int
     max_message_bytes: int
     snapshot_version: int
-    def __init__(self, server_version: _Optional[str] = ..., ruleset: _Optional[str] = ..., max_sessions: _Optional[int] = ..., max_envs_per_session: _Optional[int] = ..., session_ttl_seconds: _Optional[int] = ..., live_sessions: _Optional[int] = ..., max_rollout_episodes: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., snapshot_version: _Optional[int] = ...) -> None: ...
+    max_memory_bytes: int
+    memory_used_bytes: int
+    max_rollout_work_steps: int
+    def __init__(self, server_version: _Optional[str] = ..., ruleset: _Optional[str] = ..., max_sessions: _Optional[int] = ..., max_envs_per_session: _Optional[int] = ..., session_ttl_seconds: _Optional[int] = ..., live_sessions: _Optional[int] = ..., max_rollout_episodes: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., snapshot_version: _Optional[int] = ..., max_memory_bytes: _Optional[int] = ..., memory_used_bytes: _Optional[int] = ..., max_rollout_work_steps: _Optional[int] = ...) -> None: ...

@@ -92,7 +92,9 @@ class DinerDashServicer:
     def CreateSession(self, request, context):
         """Creates a session of `num_envs` environments. The environments are not reset yet: call Reset.
         Errors: INVALID_ARGUMENT (num_envs out of 1..=max_envs_per_session, bad config, bad
-        autoreset mode, expert_policy not EXPERT or PLANNER), RESOURCE_EXHAUSTED (the server holds max_sessions sessions).
+        autoreset mode, expert_policy not EXPERT or PLANNER), RESOURCE_EXHAUSTED (the server holds
+        max_sessions sessions, the memory budget or the tenant's share of environments would be
+        passed).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -127,7 +129,7 @@ class DinerDashServicer:
 
     def Fork(self, request, context):
         """Clones a session (game states, random streams, autoreset state) into a new session.
-        Errors: NOT_FOUND, RESOURCE_EXHAUSTED.
+        Errors: NOT_FOUND, RESOURCE_EXHAUSTED (as CreateSession).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -143,7 +145,8 @@ class DinerDashServicer:
 
     def Restore(self, request, context):
         """Creates a new session from Snapshot bytes. Errors: INVALID_ARGUMENT (corrupt bytes, unknown
-        snapshot version, too many environments), RESOURCE_EXHAUSTED.
+        snapshot version, too many environments, a state the game cannot reach), RESOURCE_EXHAUSTED
+        (as CreateSession).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -159,9 +162,12 @@ class DinerDashServicer:
 
     def Rollout(self, request, context):
         """Runs a server-side policy for one episode per seed and streams the trajectories back, one
-        message per episode, in seed order. Needs no session.
+        message per episode, in seed order. Needs no session. Episodes are recorded as the client
+        reads them: a stream left unread holds no worker and is cancelled after 60 s.
         Errors: INVALID_ARGUMENT (no seeds, more than max_rollout_episodes seeds, unknown policy,
-        bad config, max_steps of 0).
+        bad config, max_steps of 0), RESOURCE_EXHAUSTED (the tenant runs its share of Rollouts, the
+        memory budget is spent; or, ending the stream, max_rollout_work_steps were recorded),
+        UNAVAILABLE (ending the stream: the server is shutting down).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -279,6 +279,10 @@ pub struct Envs {
 }
 
 impl Envs {
+    /// What one environment holds: a game is plain fixed-size data (random stream included), so
+    /// this is all of it; the memory budget charges sessions by it.
+    pub const BYTES_PER_ENV: u64 = std::mem::size_of::<Env>() as u64;
+
     /// `n >= 1` environments with `config`, not reset yet.
     pub fn new(
         n: usize,
@@ -389,6 +393,8 @@ impl Envs {
                 Some(&s) => Some(s),
                 None => base.map(|s| s.wrapping_add(i as u64)),
             };
+            // A game never seeded gets a fresh seed of its own, reported in the Batch.
+            let seed = seed.or_else(|| (!env.game.is_seeded()).then(entropy_seed));
             let arrivals = match args.arrivals.len() {
                 0 => None,
                 1 => args.arrivals.first(),
@@ -514,6 +520,20 @@ impl Envs {
         }
         Ok(envs)
     }
+}
+
+/// A seed for a game that was never given one: 63 bits of system entropy. Drawn here, above
+/// the simulator, which stays pure.
+fn entropy_seed() -> u64 {
+    use rand::TryRngCore;
+    let bits = rand::rngs::OsRng.try_next_u64().unwrap_or_else(|_| {
+        // No OS entropy: the clock still gives distinct seeds, and the seed is reported anyway.
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(0)
+    });
+    bits >> 1
 }
 
 /// Checks explicit arrival list `i` of a Reset.

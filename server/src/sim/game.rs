@@ -48,19 +48,6 @@ pub struct Game {
     started: bool,
 }
 
-/// A seed for a game that was never given one: 63 bits of system entropy.
-fn entropy_seed() -> u64 {
-    use rand::TryRngCore;
-    let bits = rand::rngs::OsRng.try_next_u64().unwrap_or_else(|_| {
-        // No OS entropy: the clock still gives distinct seeds, and the seed is reported anyway.
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_nanos() as u64)
-            .unwrap_or(0)
-    });
-    bits >> 1
-}
-
 impl Game {
     /// A game with the given configuration, not reset yet.
     pub fn new(config: Config) -> Result<Game, ConfigError> {
@@ -89,7 +76,8 @@ impl Game {
     }
 
     /// Starts an episode (docs/rules.md §3). With a seed the random stream restarts from it; without
-    /// one it continues (and a game never seeded seeds itself from entropy). An explicit
+    /// one it continues (a game never seeded starts from seed 0: the simulator draws no entropy,
+    /// so callers that want a fresh game draw a seed themselves, as sessions do). An explicit
     /// arrival list replaces the drawn one and consumes no random numbers.
     pub fn reset(
         &mut self,
@@ -103,9 +91,9 @@ impl Game {
             self.stream_episodes = 0;
         }
         let rng = self.rng.get_or_insert_with(|| {
-            self.seed = entropy_seed();
+            self.seed = 0;
             self.stream_episodes = 0;
-            Mt19937::from_seed(self.seed)
+            Mt19937::from_seed(0)
         });
         let info = ResetInfo {
             seed: self.seed,
@@ -147,6 +135,11 @@ impl Game {
         (self.seed, self.stream_episodes)
     }
 
+    /// Whether the random stream was ever seeded (by a reset).
+    pub fn is_seeded(&self) -> bool {
+        self.rng.is_some()
+    }
+
     /// Whether `reset` has been called.
     pub fn is_started(&self) -> bool {
         self.started
@@ -176,6 +169,10 @@ impl Game {
             .map_err(|_| StateError("configuration out of range"))?;
         if self.rng.as_ref().is_some_and(|r| !r.is_consistent()) {
             return Err(StateError("random stream"));
+        }
+        // Counted up by each drawn arrival list; the maximum could not be counted past.
+        if self.stream_episodes == u32::MAX {
+            return Err(StateError("random stream episodes"));
         }
         self.restaurant.check()
     }

@@ -28,6 +28,10 @@ pub const NUM_ACTIONS: usize = 57;
 /// again only after its food was served or the group ran away, which drops its order), so six
 /// would do; the spare slots make that an argument rather than a crash.
 const ORDER_CAPACITY: usize = 8;
+/// The longest episode, in ticks, even without a time limit (a game without patience decay
+/// never ends by itself). Far beyond any real episode; it keeps the clock far from overflowing
+/// and gives a restored clock a bound that stepping respects.
+pub const MAX_EPISODE_TICKS: u32 = 1 << 30;
 
 /// One observation: 40 small integers (docs/rules.md §6).
 pub type Observation = [i8; OBSERVATION_SIZE];
@@ -301,9 +305,11 @@ impl Restaurant {
         self.lost >= self.config.lives
     }
 
-    /// Whether the configured time limit has been reached.
+    /// Whether the configured time limit, or the longest episode any game allows
+    /// ([`MAX_EPISODE_TICKS`]), has been reached.
     pub fn is_truncated(&self) -> bool {
-        self.config.time_limit != 0 && self.now >= self.config.time_limit
+        (self.config.time_limit != 0 && self.now >= self.config.time_limit)
+            || self.now >= MAX_EPISODE_TICKS
     }
 
     /// The episode's arrival list as `(type, size)` pairs.
@@ -708,20 +714,43 @@ impl Restaurant {
         obs
     }
 
-    /// Checks what a deserialised state must satisfy so that no later step can misbehave.
+    /// Checks what a deserialised state must satisfy so that no later step can misbehave and
+    /// every observation stays inside [`super::observation_bounds`]: each field within what play
+    /// can reach from a reset with this configuration.
     pub(crate) fn check(&self) -> Result<(), StateError> {
-        self.config
+        let config = &self.config;
+        config
             .validate()
             .map_err(|_| StateError("configuration out of range"))?;
-        // Far below u32::MAX, so that no tick arithmetic of a restored game can overflow.
-        if self.now > 1 << 30 || self.next_arrival > self.now + self.config.arrival_interval {
+        // Far below u32::MAX, so that no tick arithmetic of a restored game can overflow. (A
+        // game may be stepped past its time limit, and past its last life, so neither bounds
+        // the clock or the groups lost; sessions never do.)
+        let clock_ok = self.now <= MAX_EPISODE_TICKS
+            && self.next_arrival <= self.now + config.arrival_interval;
+        if !clock_ok {
             return Err(StateError("clock"));
+        }
+        // One arrival at reset and at most one a tick; every group lost had arrived.
+        if !(1..=self.now + 1).contains(&self.arrived) || self.lost > self.arrived {
+            return Err(StateError("arrivals or groups lost"));
+        }
+        // A step gains at most 50 and loses at most 500 for each of the six tables.
+        if self.score.unsigned_abs() > 4000 * u64::from(self.now) {
+            return Err(StateError("score"));
         }
         if !(1..=MAX_ARRIVALS).contains(&usize::from(self.arrivals_len)) {
             return Err(StateError("arrival list length"));
         }
         let valid_group =
             |g: &Group| (1..=2).contains(&g.customer_type) && (1..=6).contains(&g.size);
+        // Patience starts at its type's and only falls; a group at 0 is gone. The buffer starts
+        // at 100 and gains 100 when seated, ordering and served: never above 400.
+        let waiting = |g: &Group| {
+            valid_group(g)
+                && (1..=config.patience[usize::from(g.customer_type - 1)] as i32)
+                    .contains(&g.patience)
+                && (0..=400).contains(&g.buffer)
+        };
         let arrivals_ok = self.arrivals().all(|(customer_type, size)| {
             valid_group(&Group {
                 customer_type,
@@ -732,14 +761,17 @@ impl Restaurant {
         if !arrivals_ok {
             return Err(StateError("arrival list entry"));
         }
-        if usize::from(self.queue_len) > QUEUE_CAPACITY || !self.queue().iter().all(valid_group) {
+        if usize::from(self.queue_len) > QUEUE_CAPACITY || !self.queue().iter().all(waiting) {
             return Err(StateError("queue"));
         }
-        for table in &self.tables {
-            if table.status > 6
-                || (table.is_seated() && !valid_group(&table.group))
-                || table.since > self.now
-            {
+        for (t, table) in self.tables.iter().enumerate() {
+            // A table that is not seated keeps its last group (or none) until the next seat.
+            let group_ok = if table.is_seated() {
+                waiting(&table.group) && table.group.size <= TABLE_CAPACITIES[t]
+            } else {
+                table.group == Group::default() || waiting(&table.group)
+            };
+            if table.status > 6 || !group_ok || table.since > self.now {
                 return Err(StateError("table"));
             }
         }

@@ -1,0 +1,437 @@
+//! What clients may hold: the server's memory budget (`--max-memory`) and each tenant's share of
+//! it. A tenant is one token of `--auth-tokens-file`, or, without that file, one connection, so
+//! that a single buggy worker cannot take every session slot or every byte.
+//!
+//! Everything is charged before it is allocated: a session its environments' bytes, a Rollout
+//! stream the episodes it may buffer. A [`Charge`] gives its bytes and slots back when it is
+//! dropped (the session closed or expired, the stream ended), so the counters can never drift
+//! from what is held. The live-session and memory counters are the metrics' gauges themselves:
+//! one counter each, not a copy kept in lockstep.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::metrics::Metrics;
+
+/// Default `--max-memory`: what sessions and Rollout streams may hold. Measured RSS is about
+/// 1.1x the accounted bytes plus ~20 MiB of runtime (README, "Limits"), so one server stays
+/// under ~2 GiB whatever clients do.
+pub const DEFAULT_MAX_MEMORY: u64 = 1 << 30;
+/// Default share of one tenant (or connection): environments it may hold at once.
+pub const DEFAULT_TENANT_ENVS: u64 = 65_536;
+/// Default share of one tenant (or connection): Rollout streams it may run at once.
+pub const DEFAULT_TENANT_ROLLOUTS: u64 = 4;
+
+/// What one tenant may hold at once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Share {
+    /// Environments over all its sessions.
+    pub max_envs: u64,
+    /// Sessions.
+    pub max_sessions: u64,
+    /// Rollout streams running at once.
+    pub max_rollouts: u64,
+}
+
+impl Default for Share {
+    fn default() -> Self {
+        Share {
+            max_envs: DEFAULT_TENANT_ENVS,
+            max_sessions: u64::MAX,
+            max_rollouts: DEFAULT_TENANT_ROLLOUTS,
+        }
+    }
+}
+
+/// Why a request was refused for want of room. Every variant is `RESOURCE_EXHAUSTED`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BudgetError {
+    /// The server holds its maximum number of sessions.
+    #[error("the server holds its maximum of {0} sessions; close one or raise --max-sessions")]
+    Sessions(u64),
+    /// The memory budget would be passed.
+    #[error(
+        "the server's memory budget is spent: this needs {needed} bytes and {used} of {max} are \
+         held; close sessions or raise --max-memory"
+    )]
+    Memory {
+        /// Bytes the request needs.
+        needed: u64,
+        /// Bytes held now.
+        used: u64,
+        /// The budget.
+        max: u64,
+    },
+    /// The tenant (or connection) would pass its share of environments.
+    #[error(
+        "{tenant} holds {held} environments and may hold {max}; this needs {needed} more: close \
+         sessions"
+    )]
+    TenantEnvs {
+        /// Who.
+        tenant: String,
+        /// Environments held now.
+        held: u64,
+        /// The share.
+        max: u64,
+        /// Environments the request needs.
+        needed: u64,
+    },
+    /// The tenant (or connection) holds its share of sessions.
+    #[error("{tenant} holds its maximum of {max} sessions; close one")]
+    TenantSessions {
+        /// Who.
+        tenant: String,
+        /// The share.
+        max: u64,
+    },
+    /// The tenant (or connection) runs its share of Rollout streams.
+    #[error("{tenant} already runs its maximum of {max} Rollout streams; read or cancel one")]
+    TenantRollouts {
+        /// Who.
+        tenant: String,
+        /// The share.
+        max: u64,
+    },
+}
+
+/// One tenant: a name for messages and logs, its share, and what it holds now.
+#[derive(Debug)]
+pub struct Tenant {
+    /// "tenant NAME" or "connection ADDRESS".
+    name: String,
+    /// What it may hold.
+    share: Share,
+    /// Environments held.
+    envs: AtomicU64,
+    /// Sessions held.
+    sessions: AtomicU64,
+    /// Rollout streams running.
+    rollouts: AtomicU64,
+}
+
+impl Tenant {
+    /// A tenant holding nothing yet. `name` is how messages refer to it.
+    pub fn new(name: String, share: Share) -> Tenant {
+        Tenant {
+            name,
+            share,
+            envs: AtomicU64::new(0),
+            sessions: AtomicU64::new(0),
+            rollouts: AtomicU64::new(0),
+        }
+    }
+
+    /// How messages refer to it.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Environments it holds now.
+    pub fn envs(&self) -> u64 {
+        self.envs.load(Ordering::Relaxed)
+    }
+}
+
+/// Adds `n` to `counter` unless that passes `max`; on refusal returns what it holds.
+fn take(counter: &AtomicU64, n: u64, max: u64) -> Result<(), u64> {
+    counter
+        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |held| {
+            held.checked_add(n).filter(|&after| after <= max)
+        })
+        .map(drop)
+}
+
+fn give(counter: &AtomicU64, n: u64) {
+    counter.fetch_sub(n, Ordering::AcqRel);
+}
+
+/// The server-wide limits and the gauges that count against them.
+#[derive(Debug)]
+pub struct Budget {
+    /// `--max-memory`.
+    max_bytes: u64,
+    /// `--max-sessions`.
+    max_sessions: u64,
+    /// Holds the live-session and memory gauges this budget counts with.
+    metrics: Arc<Metrics>,
+}
+
+/// What a [`Charge`] holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Holding {
+    /// A session of this many environments.
+    Session { envs: u64 },
+    /// A Rollout stream.
+    Rollout,
+}
+
+/// Bytes and slots held for a session or a Rollout stream; given back when dropped.
+#[derive(Debug)]
+pub struct Charge {
+    /// Where the bytes are counted.
+    budget: Arc<Budget>,
+    /// Whose share it counts against.
+    tenant: Arc<Tenant>,
+    /// What it holds.
+    holding: Holding,
+    /// Bytes counted in the budget.
+    bytes: u64,
+}
+
+impl Drop for Charge {
+    fn drop(&mut self) {
+        let m = &self.budget.metrics;
+        give(&m.memory_used_bytes, self.bytes);
+        match self.holding {
+            Holding::Session { envs } => {
+                give(&m.live_sessions, 1);
+                give(&self.tenant.sessions, 1);
+                give(&self.tenant.envs, envs);
+            }
+            Holding::Rollout => {
+                give(&m.live_rollouts, 1);
+                give(&self.tenant.rollouts, 1);
+            }
+        }
+    }
+}
+
+impl Budget {
+    /// A budget of `max_bytes` and `max_sessions`, counted in `metrics`' gauges.
+    pub fn new(max_bytes: u64, max_sessions: u64, metrics: Arc<Metrics>) -> Budget {
+        metrics
+            .memory_budget_bytes
+            .store(max_bytes, Ordering::Relaxed);
+        Budget {
+            max_bytes,
+            max_sessions,
+            metrics,
+        }
+    }
+
+    /// `--max-memory`.
+    pub fn max_bytes(&self) -> u64 {
+        self.max_bytes
+    }
+
+    /// Bytes held now.
+    pub fn used_bytes(&self) -> u64 {
+        self.metrics.memory_used_bytes.load(Ordering::Relaxed)
+    }
+
+    /// Live sessions.
+    pub fn live_sessions(&self) -> u64 {
+        self.metrics.live_sessions.load(Ordering::Relaxed)
+    }
+
+    fn take_bytes(&self, bytes: u64) -> Result<(), BudgetError> {
+        take(&self.metrics.memory_used_bytes, bytes, self.max_bytes).map_err(|used| {
+            BudgetError::Memory {
+                needed: bytes,
+                used,
+                max: self.max_bytes,
+            }
+        })
+    }
+
+    /// Charges a session of `envs` environments of `bytes` to `tenant`, or refuses it.
+    pub fn charge_session(
+        self: &Arc<Self>,
+        tenant: &Arc<Tenant>,
+        envs: u64,
+        bytes: u64,
+    ) -> Result<Charge, BudgetError> {
+        let (share, m) = (tenant.share, &self.metrics);
+        take(&m.live_sessions, 1, self.max_sessions)
+            .map_err(|_| BudgetError::Sessions(self.max_sessions))?;
+        if take(&tenant.sessions, 1, share.max_sessions).is_err() {
+            give(&m.live_sessions, 1);
+            return Err(BudgetError::TenantSessions {
+                tenant: tenant.name.clone(),
+                max: share.max_sessions,
+            });
+        }
+        if let Err(held) = take(&tenant.envs, envs, share.max_envs) {
+            give(&m.live_sessions, 1);
+            give(&tenant.sessions, 1);
+            return Err(BudgetError::TenantEnvs {
+                tenant: tenant.name.clone(),
+                held,
+                max: share.max_envs,
+                needed: envs,
+            });
+        }
+        if let Err(e) = self.take_bytes(bytes) {
+            give(&m.live_sessions, 1);
+            give(&tenant.sessions, 1);
+            give(&tenant.envs, envs);
+            return Err(e);
+        }
+        Ok(Charge {
+            budget: Arc::clone(self),
+            tenant: Arc::clone(tenant),
+            holding: Holding::Session { envs },
+            bytes,
+        })
+    }
+
+    /// Charges a Rollout stream that may buffer `bytes` to `tenant`, or refuses it.
+    pub fn charge_rollout(
+        self: &Arc<Self>,
+        tenant: &Arc<Tenant>,
+        bytes: u64,
+    ) -> Result<Charge, BudgetError> {
+        take(&tenant.rollouts, 1, tenant.share.max_rollouts).map_err(|_| {
+            BudgetError::TenantRollouts {
+                tenant: tenant.name.clone(),
+                max: tenant.share.max_rollouts,
+            }
+        })?;
+        if let Err(e) = self.take_bytes(bytes) {
+            give(&tenant.rollouts, 1);
+            return Err(e);
+        }
+        self.metrics.live_rollouts.fetch_add(1, Ordering::AcqRel);
+        Ok(Charge {
+            budget: Arc::clone(self),
+            tenant: Arc::clone(tenant),
+            holding: Holding::Rollout,
+            bytes,
+        })
+    }
+}
+
+/// One line of `--auth-tokens-file`: a tenant, its token and its share.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TenantLine {
+    /// The tenant's name, for messages and logs.
+    pub name: String,
+    /// Its bearer token.
+    pub token: String,
+    /// What it may hold.
+    pub share: Share,
+}
+
+/// Reads `--auth-tokens-file`: one tenant a line, `NAME TOKEN [envs=N] [sessions=N]
+/// [rollouts=N]`; what a line does not give is `default`'s. Blank lines and `#` comments are
+/// skipped. Names and tokens must be unique.
+pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, String> {
+    let mut tenants: Vec<TenantLine> = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.split('#').next().unwrap_or_default().trim();
+        if line.is_empty() {
+            continue;
+        }
+        let at = |msg: String| format!("line {}: {msg}", i + 1);
+        let mut words = line.split_whitespace();
+        let (Some(name), Some(token)) = (words.next(), words.next()) else {
+            return Err(at(
+                "expected `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`".into(),
+            ));
+        };
+        let mut share = default;
+        for word in words {
+            let (key, value) = word
+                .split_once('=')
+                .ok_or_else(|| at(format!("expected key=value, got {word:?}")))?;
+            let value: u64 = value
+                .parse()
+                .map_err(|_| at(format!("{key} must be a whole number, got {value:?}")))?;
+            match key {
+                "envs" => share.max_envs = value,
+                "sessions" => share.max_sessions = value,
+                "rollouts" => share.max_rollouts = value,
+                other => {
+                    return Err(at(format!(
+                        "unknown quota {other:?}: use envs, sessions or rollouts"
+                    )));
+                }
+            }
+        }
+        if tenants.iter().any(|t| t.name == name || t.token == token) {
+            return Err(at(format!("tenant {name:?} or its token is given twice")));
+        }
+        tenants.push(TenantLine {
+            name: name.to_owned(),
+            token: token.to_owned(),
+            share,
+        });
+    }
+    if tenants.is_empty() {
+        return Err("no tenant in the file".into());
+    }
+    Ok(tenants)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn charges_are_refused_before_a_limit_and_given_back_on_drop() {
+        let metrics = Arc::new(Metrics::default());
+        let budget = Arc::new(Budget::new(1000, 3, Arc::clone(&metrics)));
+        let share = Share {
+            max_envs: 10,
+            max_sessions: 2,
+            max_rollouts: 1,
+        };
+        let tenant = Arc::new(Tenant::new("connection a".into(), share));
+        let a = budget.charge_session(&tenant, 4, 400).unwrap();
+        assert_eq!(
+            budget.charge_session(&tenant, 7, 10).unwrap_err(),
+            BudgetError::TenantEnvs {
+                tenant: "connection a".into(),
+                held: 4,
+                max: 10,
+                needed: 7
+            }
+        );
+        assert!(matches!(
+            budget.charge_session(&tenant, 1, 700),
+            Err(BudgetError::Memory {
+                needed: 700,
+                used: 400,
+                max: 1000
+            })
+        ));
+        let b = budget.charge_session(&tenant, 6, 600).unwrap();
+        assert_eq!(budget.used_bytes(), 1000);
+        let other = Arc::new(Tenant::new("connection b".into(), share));
+        assert!(matches!(
+            budget.charge_rollout(&other, 1),
+            Err(BudgetError::Memory { .. })
+        ));
+        drop(b);
+        assert!(matches!(
+            budget.charge_session(&tenant, 1, 1).map(drop),
+            Ok(())
+        ));
+        let r = budget.charge_rollout(&other, 100).unwrap();
+        assert!(matches!(
+            budget.charge_rollout(&other, 1),
+            Err(BudgetError::TenantRollouts { max: 1, .. })
+        ));
+        drop((a, r));
+        assert_eq!((budget.used_bytes(), budget.live_sessions()), (0, 0));
+        assert_eq!(tenant.envs(), 0);
+        assert_eq!(metrics.live_rollouts.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn tenants_file_lines() {
+        let text = "# trainers\nteam-a s3cret envs=100 rollouts=1\n\nteam-b other # no quota\n";
+        let tenants = parse_tenants(text, Share::default()).unwrap();
+        assert_eq!(tenants.len(), 2);
+        assert_eq!(tenants[0].share.max_envs, 100);
+        assert_eq!(tenants[0].share.max_rollouts, 1);
+        assert_eq!(tenants[1].share, Share::default());
+        assert_eq!(
+            parse_tenants("a t envs=x", Share::default()),
+            Err("line 1: envs must be a whole number, got \"x\"".into())
+        );
+        assert!(parse_tenants("a t\nb t", Share::default()).is_err());
+        assert!(parse_tenants("lonely", Share::default()).is_err());
+    }
+}
