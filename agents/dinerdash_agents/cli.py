@@ -71,37 +71,37 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from dinerdash.cli import Progress
+    import time
+
+    from dinerdash.cli import Progress, print_evaluation
 
     from .checkpoint import load
-    from .play import evaluate_policy, print_evaluation, timed
+    from .play import evaluate_policy
 
     policy = load(args.checkpoint)
     if args.episodes < 1:
         print("error: --episodes must be at least 1", file=sys.stderr)
         return 2
     progress = Progress(args.episodes, policy.name)
-    scores, lengths, elapsed = timed(
-        lambda: evaluate_policy(
-            policy.act,
-            args.episodes,
-            seed=args.seed,
-            address=args.address,
-            num_envs=args.num_envs,
-            max_steps=args.max_steps,
-            use_mask=not args.no_mask,
-            progress=progress,
-        )
+    start = time.monotonic()
+    scores, lengths = evaluate_policy(
+        policy.act,
+        args.episodes,
+        seed=args.seed,
+        address=args.address,
+        num_envs=args.num_envs,
+        max_steps=args.max_steps,
+        use_mask=not args.no_mask,
+        progress=progress,
     )
     progress.close()
-    name = policy.name + (" (no mask)" if args.no_mask else "")
     print_evaluation(
-        name,
+        policy.name + (" (no mask)" if args.no_mask else ""),
         scores,
         lengths,
         seed=args.seed,
-        num_envs=args.num_envs,
-        elapsed=elapsed,
+        how=f"the client's vector env ({min(args.num_envs, args.episodes)} environments)",
+        elapsed=time.monotonic() - start,
         as_json=args.json,
     )
     return 0

@@ -20,7 +20,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -28,7 +28,7 @@ import numpy as np
 
 from ._session import EXPERTS
 
-__all__ = ["Progress", "main"]
+__all__ = ["Progress", "evaluate_through_env", "main", "play_seeded", "print_evaluation"]
 
 
 class Progress:
@@ -101,37 +101,55 @@ def evaluate_through_env(
     from .vector import DinerDashVectorEnv
 
     n = max(1, min(num_envs, episodes))
-    scores = np.zeros(episodes, dtype=np.int64)
-    lengths = np.zeros(episodes, dtype=np.int64)
     rng = np.random.default_rng(seed)
     expert = policy in EXPERTS
+
+    def act(obs: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        return info["expert_action"] if expert else rng.integers(0, 57, size=n)
+
     envs = DinerDashVectorEnv(n, address, expert=policy if expert else False, **connection)
     try:
-        for first in range(0, episodes, n):
-            # Seeds past the last episode only pad the batch; their episodes are ignored.
-            seeds = [seed + first + i for i in range(n)]
-            want = min(n, episodes - first)
-            _, info = envs.reset(seed=seeds)
-            done = np.zeros(n, dtype=np.bool_)
-            done[want:] = True
-            steps = 0
-            while not done.all():
-                if expert:
-                    actions = info["expert_action"]
-                else:
-                    actions = rng.integers(0, 57, size=n)
-                _, _, terminated, truncated, info = envs.step(actions)
-                steps += 1
-                ended = (terminated | truncated | (steps >= max_steps)) & ~done
-                if ended.any():
-                    idx = np.flatnonzero(ended)
-                    scores[first + idx] = info["score"][idx]
-                    lengths[first + idx] = steps
-                    done |= ended
-                    if progress is not None:
-                        progress.update(len(idx))
+        return play_seeded(envs, act, episodes, seed=seed, max_steps=max_steps, progress=progress)
     finally:
         envs.close()
+
+
+def play_seeded(
+    envs: Any,
+    act: Callable[[np.ndarray, dict[str, Any]], np.ndarray],
+    episodes: int,
+    *,
+    seed: int,
+    max_steps: int,
+    progress: Progress | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Plays ``act(obs, info)`` on the vector env ``envs`` for ``episodes`` episodes, episode
+    ``i`` reset with ``seed + i`` (batches of ``envs.num_envs``), each cut at ``max_steps``;
+    returns the final scores and the lengths. Every evaluation (the expert, random play, a
+    trained agent's checkpoint) plays through this loop, so the same seeds give the same
+    episodes."""
+    n = envs.num_envs
+    scores = np.zeros(episodes, dtype=np.int64)
+    lengths = np.zeros(episodes, dtype=np.int64)
+    for first in range(0, episodes, n):
+        # Seeds past the last episode only pad the batch; their episodes are ignored.
+        seeds = [seed + first + i for i in range(n)]
+        want = min(n, episodes - first)
+        obs, info = envs.reset(seed=seeds)
+        done = np.zeros(n, dtype=np.bool_)
+        done[want:] = True
+        steps = 0
+        while not done.all():
+            obs, _, terminated, truncated, info = envs.step(act(obs, info))
+            steps += 1
+            ended = (terminated | truncated | (steps >= max_steps)) & ~done
+            if ended.any():
+                idx = np.flatnonzero(ended)
+                scores[first + idx] = info["score"][idx]
+                lengths[first + idx] = steps
+                done |= ended
+                if progress is not None:
+                    progress.update(len(idx))
     return scores, lengths
 
 
@@ -167,23 +185,46 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         )
         how = f"the client's vector env ({min(args.num_envs, args.episodes)} environments)"
     progress.close()
-    elapsed = time.monotonic() - start
+    print_evaluation(
+        args.policy,
+        scores,
+        lengths,
+        seed=args.seed,
+        how=how,
+        elapsed=time.monotonic() - start,
+        as_json=args.json,
+    )
+    return 0
+
+
+def print_evaluation(
+    policy: str,
+    scores: Sequence[int],
+    lengths: Sequence[int],
+    *,
+    seed: int,
+    how: str,
+    elapsed: float,
+    as_json: bool,
+) -> None:
+    """What ``evaluate`` prints: the episodes, score and length mean ± sd, the speed, and with
+    ``as_json`` a last line of JSON (policy, seed, scores, lengths, mean, sd)."""
+    episodes = len(scores)
     mean, sd, sample = _stats(scores)
     lmean, lsd, _ = _stats(lengths)
     total = int(np.sum(lengths))
     print(
-        f"policy {args.policy}: {args.episodes} episodes "
-        f"(seeds {args.seed}..={args.seed + args.episodes - 1}) through {how}"
+        f"policy {policy}: {episodes} episodes (seeds {seed}..={seed + episodes - 1}) through {how}"
     )
     print(f"score  {mean:.1f} ± {sd:.1f} (sample sd {sample:.1f})")
     print(f"length {lmean:.1f} ± {lsd:.1f} steps")
     print(f"{total} steps in {elapsed:.3f} s: {total / max(elapsed, 1e-9):.0f} steps/s")
-    if args.json:
+    if as_json:
         print(
             json.dumps(
                 {
-                    "policy": args.policy,
-                    "seed": args.seed,
+                    "policy": policy,
+                    "seed": seed,
                     "scores": [int(s) for s in scores],
                     "lengths": [int(x) for x in lengths],
                     "mean": mean,
@@ -191,7 +232,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                 }
             )
         )
-    return 0
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
