@@ -128,8 +128,14 @@ struct HealthArgs {
     tls_ca: Option<PathBuf>,
 }
 
-/// "300", "300s", "500ms", "5m", "1h" as a non-zero duration.
-fn parse_duration(text: &str) -> Result<Duration, String> {
+/// A non-zero whole number followed by one of `units` (name, scale); `what` and `example` word
+/// the errors.
+fn parse_scaled(
+    text: &str,
+    units: &[(&str, u64)],
+    what: &str,
+    example: &str,
+) -> Result<u64, String> {
     let text = text.trim();
     let split = text
         .find(|c: char| !c.is_ascii_digit())
@@ -137,47 +143,53 @@ fn parse_duration(text: &str) -> Result<Duration, String> {
     let (number, unit) = text.split_at(split);
     let n: u64 = number
         .parse()
-        .map_err(|_| format!("expected a number of seconds or e.g. 5m, got {text:?}"))?;
-    let duration = match unit.trim() {
-        "" | "s" => Duration::from_secs(n),
-        "ms" => Duration::from_millis(n),
-        "m" => Duration::from_secs(n.saturating_mul(60)),
-        "h" => Duration::from_secs(n.saturating_mul(3600)),
-        other => return Err(format!("unknown unit {other:?}: use ms, s, m or h")),
-    };
-    if duration.is_zero() {
+        .map_err(|_| format!("expected a number of {what} or e.g. {example}, got {text:?}"))?;
+    let unit = unit.trim();
+    let scale = units
+        .iter()
+        .find_map(|&(name, scale)| (name == unit).then_some(scale))
+        .ok_or_else(|| {
+            let names: Vec<&str> = units
+                .iter()
+                .map(|&(name, _)| name)
+                .filter(|n| !n.is_empty())
+                .collect();
+            format!("unknown unit {unit:?}: use {}", names.join(", "))
+        })?;
+    let value = n
+        .checked_mul(scale)
+        .ok_or_else(|| format!("{text} is too large"))?;
+    if value == 0 {
         return Err("must be greater than zero".into());
     }
-    Ok(duration)
+    Ok(value)
+}
+
+/// "300", "300s", "500ms", "5m", "1h" as a non-zero duration.
+fn parse_duration(text: &str) -> Result<Duration, String> {
+    const MS: &[(&str, u64)] = &[
+        ("", 1000),
+        ("s", 1000),
+        ("ms", 1),
+        ("m", 60_000),
+        ("h", 3_600_000),
+    ];
+    parse_scaled(text, MS, "seconds", "5m").map(Duration::from_millis)
 }
 
 /// "1073741824", "512MiB", "2GiB", "64KiB" (also KB, MB, GB as powers of 1000) as bytes.
 fn parse_bytes(text: &str) -> Result<u64, String> {
-    let text = text.trim();
-    let split = text
-        .find(|c: char| !c.is_ascii_digit())
-        .unwrap_or(text.len());
-    let (number, unit) = text.split_at(split);
-    let n: u64 = number
-        .parse()
-        .map_err(|_| format!("expected a number of bytes or e.g. 2GiB, got {text:?}"))?;
-    let scale: u64 = match unit.trim() {
-        "" | "B" => 1,
-        "KiB" => 1 << 10,
-        "MiB" => 1 << 20,
-        "GiB" => 1 << 30,
-        "KB" => 1_000,
-        "MB" => 1_000_000,
-        "GB" => 1_000_000_000,
-        other => return Err(format!("unknown unit {other:?}: use KiB, MiB or GiB")),
-    };
-    let bytes = n
-        .checked_mul(scale)
-        .ok_or_else(|| format!("{text} is too large"))?;
-    if bytes == 0 {
-        return Err("must be greater than zero".into());
-    }
-    Ok(bytes)
+    const UNITS: &[(&str, u64)] = &[
+        ("", 1),
+        ("B", 1),
+        ("KiB", 1 << 10),
+        ("MiB", 1 << 20),
+        ("GiB", 1 << 30),
+        ("KB", 1_000),
+        ("MB", 1_000_000),
+        ("GB", 1_000_000_000),
+    ];
+    parse_scaled(text, UNITS, "bytes", "2GiB")
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -444,5 +456,38 @@ fn main() -> ExitCode {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_and_sizes_parse_with_their_units() {
+        assert_eq!(parse_duration("300"), Ok(Duration::from_secs(300)));
+        assert_eq!(parse_duration("500ms"), Ok(Duration::from_millis(500)));
+        assert_eq!(parse_duration(" 5m "), Ok(Duration::from_secs(300)));
+        assert_eq!(parse_duration("1h"), Ok(Duration::from_secs(3600)));
+        assert_eq!(parse_bytes("2GiB"), Ok(2 << 30));
+        assert_eq!(parse_bytes("64KB"), Ok(64_000));
+        assert_eq!(parse_bytes("1048576"), Ok(1 << 20));
+        assert!(
+            parse_duration("0s")
+                .unwrap_err()
+                .contains("greater than zero")
+        );
+        assert!(
+            parse_duration("5d")
+                .unwrap_err()
+                .contains("use s, ms, m, h")
+        );
+        assert!(parse_bytes("1TiB").unwrap_err().contains("unknown unit"));
+        assert!(parse_bytes("x").unwrap_err().contains("number of bytes"));
+        assert!(
+            parse_bytes("99999999999GiB")
+                .unwrap_err()
+                .contains("too large")
+        );
     }
 }
