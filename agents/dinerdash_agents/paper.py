@@ -36,6 +36,9 @@ class Agent:
     episodes: int  # demonstrations used (0: none, RL on the game's reward)
     loss: str  # imitation agents: "masked" or "plain"; RL agents: "masked" or "unmasked" policy
     paper: float | None  # the paper's Fig. 5 value, where it has one
+    #: Whose demonstrations: the reference "expert" (the paper's), or the look-ahead "planner"
+    #: (beyond the paper).
+    teacher: str = "expert"
 
     @property
     def rl(self) -> bool:
@@ -49,7 +52,8 @@ class Agent:
             return f"PPO, policy {'over legal actions' if self.loss == 'masked' else 'over all 57'}"
         loss = "plain cross-entropy" if self.loss == "plain" else "cross-entropy over legal actions"
         what = "BC" if self.algorithm == "bc" else "DPGM"
-        return f"{what}, {self.episodes} demos, {loss}"
+        demos = "demos" if self.teacher == "expert" else "planner demos (beyond the paper)"
+        return f"{what}, {self.episodes} {demos}, {loss}"
 
 
 AGENTS = [
@@ -59,6 +63,8 @@ AGENTS = [
     Agent("dpgm-70", "dpgm", 70, "masked", 7064.3),
     Agent("bc-70", "bc", 70, "masked", 6343.8),
     Agent("bc-plain-70", "bc", 70, "plain", 6343.8),
+    Agent("bc-planner-274", "bc", 274, "masked", None, teacher="planner"),
+    Agent("dpgm-planner-274", "dpgm", 274, "masked", None, teacher="planner"),
     Agent("ppo-masked", "ppo-masked", 0, "masked", 8799.1),
     Agent("ppo", "ppo", 0, "unmasked", 8799.1),
     Agent("gail-274", "gail", 274, "masked", 8254.4),
@@ -88,26 +94,29 @@ def run_paper(
     try:
         with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
             if demos is None:
-                demos = _collect(Path(tmp), address)
-            return _experiment(out, Path(demos), address, seed, rl_steps)
+                demos = _collect(Path(tmp), address, "expert")
+            planner_demos = _collect(Path(tmp), address, "planner")
+            return _experiment(out, Path(demos), planner_demos, address, seed, rl_steps)
     finally:
         if server is not None:
             server.stop()
 
 
-def _collect(directory: Path, address: str | list[str]) -> Path:
+def _collect(directory: Path, address: str | list[str], policy: str) -> Path:
     from dinerdash.cli import main as dinerdash_main
 
     from .errors import AgentsError
 
     addr = address if isinstance(address, str) else ",".join(address)
     argv = ["collect", "--episodes", str(DEMO_EPISODES), "--seed", "0", "--out", str(directory)]
-    if dinerdash_main([*argv, "--address", addr]) != 0:
-        raise AgentsError("collecting the expert demonstrations failed (see above)")
-    return directory / "dinerdash_expert.npz"
+    if dinerdash_main([*argv, "--policy", policy, "--address", addr]) != 0:
+        raise AgentsError(f"collecting the {policy}'s demonstrations failed (see above)")
+    return directory / f"dinerdash_{policy}.npz"
 
 
-def _experiment(out: Path, demos: Path, address, seed: int, rl_steps: int | None) -> dict[str, Any]:
+def _experiment(
+    out: Path, demos: Path, planner_demos: Path, address, seed: int, rl_steps: int | None
+) -> dict[str, Any]:
     from dinerdash.cli import Progress, evaluate_through_env
 
     from .play import evaluate_policy
@@ -134,6 +143,9 @@ def _experiment(out: Path, demos: Path, address, seed: int, rl_steps: int | None
     random = evaluate(
         "random", lambda p: evaluate_through_env("random", EVAL_EPISODES, progress=p, **common)
     )
+    planner = evaluate(
+        "planner", lambda p: evaluate_through_env("planner", EVAL_EPISODES, progress=p, **common)
+    )
     for agent in AGENTS:
         if agent.rl:
             policy, description = _train_rl(agent, out, demos, address, seed, rl_steps)
@@ -141,7 +153,7 @@ def _experiment(out: Path, demos: Path, address, seed: int, rl_steps: int | None
             config = default_config(agent.algorithm, loss=agent.loss)
             policy, description = train_checkpoint(
                 agent.algorithm,
-                demos,
+                demos if agent.teacher == "expert" else planner_demos,
                 out / "checkpoints" / agent.name,
                 episodes=agent.episodes,
                 seed=seed,
@@ -177,7 +189,11 @@ def _experiment(out: Path, demos: Path, address, seed: int, rl_steps: int | None
             )
     results = {
         "command": "python -m dinerdash_agents paper --out docs/results",
-        "demonstrations": {"file": demos.name, "seeds": f"0..{DEMO_EPISODES - 1}"},
+        "demonstrations": {
+            "file": demos.name,
+            "planner_file": planner_demos.name,
+            "seeds": f"0..{DEMO_EPISODES - 1}",
+        },
         "evaluation": {"seeds": f"{EVAL_SEED}..{EVAL_SEED + EVAL_EPISODES - 1}"},
         "machine": {
             "cores": os.cpu_count(),
@@ -188,6 +204,7 @@ def _experiment(out: Path, demos: Path, address, seed: int, rl_steps: int | None
         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
         "expert": expert,
         "random": {**random, "paper": PAPER_RANDOM, "fraction": random["mean"] / expert["mean"]},
+        "planner": {**planner, "fraction": planner["mean"] / expert["mean"]},
         "agents": rows,
     }
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
@@ -232,7 +249,10 @@ def _markdown(r: dict[str, Any]) -> str:
         "",
         f"Written by `{r['command']}` on {r['date_utc']} UTC ({r['machine']['cores']} cores). "
         f"Demonstrations: expert episodes of seeds {r['demonstrations']['seeds']} (the first 274 "
-        f"or the first 70 of them). Evaluation: {EVAL_EPISODES} unseen seeds "
+        "or the first 70 of them; the planner's rows: the look-ahead planner's episodes of the "
+        "same seeds). RL agents: PPO on the game's reward, GAIL on a discriminator's, "
+        "environment steps in the training column. "
+        f"Evaluation: {EVAL_EPISODES} unseen seeds "
         f"{r['evaluation']['seeds']}, greedy actions, final score per episode. Fractions are of "
         "the expert's mean on the same seeds (the paper's of its expert's 9,921). Training: wall "
         "clock, and CPU seconds of all threads in brackets; the 1-minute load average was "
@@ -242,13 +262,17 @@ def _markdown(r: dict[str, Any]) -> str:
         "|---|---:|---:|---:|---:|---:|",
         f"| reference expert | {PAPER_EXPERT:,.1f} | 100.0 % | {e['mean']:,.1f} ± {e['sd']:,.1f} "
         "| 100.0 % | |",
+        f"| look-ahead planner (beyond the paper) | | | {r['planner']['mean']:,.1f} ± "
+        f"{r['planner']['sd']:,.1f} | {_pct(r['planner']['fraction'])} | |",
     ]
     for row in r["agents"]:
         paper = "" if row["paper"] is None else f"{row['paper']:,.1f}"
+        env_steps = row.get("environment_steps")
+        steps = f", {env_steps:,} env steps" if env_steps else ""
         lines.append(
             f"| `{row['name']}`: {row['label']} | {paper} | {_pct(row['paper_fraction'])} "
             f"| {row['mean']:,.1f} ± {row['sd']:,.1f} | {_pct(row['fraction'])} "
-            f"| {row['training_seconds']:.1f} s ({row['training_cpu_seconds']:.1f} s) |"
+            f"| {row['training_seconds']:.1f} s ({row['training_cpu_seconds']:.1f} s){steps} |"
         )
     rnd = r["random"]
     lines.append(
@@ -272,9 +296,10 @@ def _figure(r: dict[str, Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = ["expert"] + [row["name"] for row in r["agents"]] + ["random"]
-    ours = [r["expert"]["mean"]] + [row["mean"] for row in r["agents"]] + [r["random"]["mean"]]
-    paper = [PAPER_EXPERT] + [row["paper"] for row in r["agents"]] + [PAPER_RANDOM]
+    names = ["expert", "planner"] + [row["name"] for row in r["agents"]] + ["random"]
+    ours = [r["expert"]["mean"], r["planner"]["mean"]]
+    ours += [row["mean"] for row in r["agents"]] + [r["random"]["mean"]]
+    paper = [PAPER_EXPERT, None] + [row["paper"] for row in r["agents"]] + [PAPER_RANDOM]
     y = np.arange(len(names))[::-1]
     fig, ax = plt.subplots(figsize=(8, 0.55 * len(names) + 1.2), dpi=110)
     ax.barh(y + 0.2, ours, height=0.4, color="#3b7dd8", label="ours (seeds 1000..1099)")

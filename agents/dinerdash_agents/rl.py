@@ -93,7 +93,7 @@ def _write_curve(directory: Path, curve: list[tuple[int, float, float]], title: 
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
     ax.plot(steps, scores)
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("mean score, last 100 episodes")
+    ax.set_ylabel("mean score, last 100 training episodes")
     ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -106,7 +106,8 @@ def _save(trainer: ppo.Trainer, out: Path, algorithm: str, spent: _Spent) -> Non
 
     def extra(tmp: Path) -> None:
         eqx.tree_serialise_leaves(tmp / TRAINER_STATE, trainer.state())
-        _write_curve(tmp, trainer.curve, f"{algorithm}: {out.name}")
+        title = algorithm if out.name == algorithm else f"{algorithm}: {out.name}"
+        _write_curve(tmp, trainer.curve, title)
 
     checkpoint.save(out, trainer.model, description, extra=extra)
 
