@@ -10,8 +10,8 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 /// Why a job did not run to completion.
 #[derive(Debug, thiserror::Error)]
 pub enum CpuError {
-    /// The pool was closed (the server is shutting down).
-    #[error("the server is shutting down")]
+    /// The pool's semaphore was closed (nothing closes it today; tokio's API can fail so).
+    #[error("the worker pool is closed")]
     Closed,
     /// The job panicked; the panic was caught on its blocking thread.
     #[error("a worker failed: {0}")]
@@ -23,23 +23,14 @@ pub enum CpuError {
 pub struct CpuPool {
     /// One permit per job allowed to run at once.
     permits: Arc<Semaphore>,
-    /// The number of permits, for reports.
-    workers: usize,
 }
 
 impl CpuPool {
     /// A pool running at most `workers` jobs at once (at least one).
     pub fn new(workers: usize) -> CpuPool {
-        let workers = workers.max(1);
         CpuPool {
-            permits: Arc::new(Semaphore::new(workers)),
-            workers,
+            permits: Arc::new(Semaphore::new(workers.max(1))),
         }
-    }
-
-    /// A pool of one worker per core.
-    pub fn per_core() -> CpuPool {
-        CpuPool::new(std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
 
     /// A pool that leaves one core to the async workers serving Step and Reset (one worker on
@@ -47,11 +38,6 @@ impl CpuPool {
     pub fn beside_steps() -> CpuPool {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         CpuPool::new(cores.saturating_sub(1))
-    }
-
-    /// How many jobs may run at once.
-    pub fn workers(&self) -> usize {
-        self.workers
     }
 
     /// Waits for a free worker. Holding the permit is what reserves the worker: pass it into
@@ -90,11 +76,6 @@ impl CpuPool {
         .await
         .map_err(|e| CpuError::Failed(e.to_string()))
     }
-
-    /// Refuses every job not yet running (on shutdown).
-    pub fn close(&self) {
-        self.permits.close();
-    }
 }
 
 #[cfg(test)]
@@ -126,13 +107,12 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn a_closed_pool_refuses_and_a_panic_is_an_error() {
+    async fn a_panic_is_an_error_and_frees_its_worker() {
         let pool = CpuPool::new(1);
         assert!(matches!(
             pool.run(|| panic!("boom")).await,
             Err(CpuError::Failed(_))
         ));
-        pool.close();
-        assert!(matches!(pool.run(|| 1).await, Err(CpuError::Closed)));
+        assert_eq!(pool.run(|| 1).await.unwrap(), 1);
     }
 }
