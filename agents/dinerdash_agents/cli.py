@@ -198,17 +198,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    if getattr(args, "address", None) and "," in args.address:
-        args.address = [a for a in args.address.split(",") if a]
-    from dinerdash.errors import LocalServerError, ServiceError
+    from dinerdash.cli import run_command
 
     from .errors import AgentsError
 
-    try:
-        return args.func(args)
-    except (AgentsError, ServiceError, LocalServerError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
+    return run_command(_parser().parse_args(argv), (AgentsError,))

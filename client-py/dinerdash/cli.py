@@ -28,7 +28,14 @@ import numpy as np
 
 from ._session import EXPERTS
 
-__all__ = ["Progress", "evaluate_through_env", "main", "play_seeded", "print_evaluation"]
+__all__ = [
+    "Progress",
+    "evaluate_through_env",
+    "main",
+    "play_seeded",
+    "print_evaluation",
+    "run_command",
+]
 
 
 class Progress:
@@ -573,14 +580,20 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    return run_command(_parser().parse_args(argv))
+
+
+def run_command(args: argparse.Namespace, errors: tuple[type[Exception], ...] = ()) -> int:
+    """Runs a parsed command (``args.func(args)``) as every ``python -m`` command of this
+    project does: ``--address a,b`` becomes a list; the client's errors, and ``errors``, print
+    ``error: ...`` and give exit status 1; Ctrl-C gives 130."""
     if getattr(args, "address", None) and "," in args.address:
         args.address = [a for a in args.address.split(",") if a]
     from .errors import LocalServerError, ServiceError
 
     try:
         return args.func(args)
-    except (ServiceError, LocalServerError) as e:
+    except (ServiceError, LocalServerError, *errors) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
