@@ -195,6 +195,11 @@ def _train(
         demo_data = load_demos(demos, None)
     if resume is not None:
         trainer, spent = _resume(Path(resume), algorithm, steps, demo_data)
+        if num_envs is not None and num_envs != trainer.config.num_envs:
+            raise AgentsError(
+                f"--num-envs {num_envs}: the run in {resume} has {trainer.config.num_envs} "
+                "environments, and a resumed run keeps them"
+            )
     else:
         if steps is None:
             raise AgentsError("--steps is needed (or --resume DIR)")
