@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from dinerdash import DinerDashEnv, DinerDashVectorEnv, ServiceTransportError
 
+from .trajectories import async_step, plain_step
+
 
 def test_killed_server_gives_a_clear_error(start_server) -> None:
     server = start_server()
@@ -98,23 +100,24 @@ def test_vector_env_killed_server(start_server) -> None:
         envs.close()
 
 
-def test_vector_env_reconnects_next_step(start_server) -> None:
+@pytest.mark.parametrize("step", [plain_step, async_step], ids=["step", "step_async"])
+def test_vector_env_reconnects_next_step(start_server, step) -> None:
     server = start_server()
     envs = DinerDashVectorEnv(4, server.address, reconnect=True, reconnect_timeout=30)
     try:
         envs.reset(seed=0)
         for _ in range(3):
-            envs.step(np.zeros(4, dtype=np.int64))
+            step(envs, np.zeros(4, dtype=np.int64))
         server.kill()
         start_server.started.append(server.restart())
-        obs, reward, terminated, truncated, info = envs.step(np.zeros(4, dtype=np.int64))
+        obs, reward, terminated, truncated, info = step(envs, np.zeros(4, dtype=np.int64))
         assert truncated.all() and not terminated.any() and (reward == 0).all()
         assert info["reconnected"].all()
         np.testing.assert_array_equal(info["tick"], [3] * 4)  # the interrupted episodes' last state
         # NEXT_STEP: the following step is the autoreset into the new session's episodes.
-        obs, reward, terminated, truncated, info = envs.step(np.zeros(4, dtype=np.int64))
+        obs, reward, terminated, truncated, info = step(envs, np.zeros(4, dtype=np.int64))
         assert info["_seed"].all() and (info["tick"] == 0).all() and not truncated.any()
-        _, _, _, _, info = envs.step(np.zeros(4, dtype=np.int64))
+        _, _, _, _, info = step(envs, np.zeros(4, dtype=np.int64))
         assert (info["tick"] == 1).all()
     finally:
         envs.close()

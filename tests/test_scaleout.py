@@ -18,51 +18,14 @@ from dinerdash import (
 from dinerdash.connection import resolve_replicas
 from gymnasium.vector import AutoresetMode
 
+from .trajectories import assert_same, trajectory
+
 N = 7  # uneven on purpose: slices of 3, 2 and 2
-STEPS = 300
 
 
 @pytest.fixture
 def three(start_server):
     return [start_server() for _ in range(3)]
-
-
-def trajectory(envs: DinerDashVectorEnv, steps: int = STEPS) -> list:
-    rng = np.random.default_rng(3)
-    out = [envs.reset(seed=50)]
-    info = out[0][1]
-    for _ in range(steps):
-        actions = np.where(
-            rng.random(envs.num_envs) < 0.6,
-            info["expert_action"],
-            rng.integers(0, 57, envs.num_envs),
-        )
-        out.append(envs.step(actions))
-        info = out[-1][4]
-        done = out[-1][2] | out[-1][3]
-        if envs.autoreset_mode == AutoresetMode.DISABLED and done.any():
-            out.append(envs.reset(seed=int(rng.integers(0, 1000)), options={"reset_mask": done}))
-            info = out[-1][1]
-    return out
-
-
-def assert_same(a: list, b: list) -> None:
-    def eq(x, y, where):
-        if isinstance(x, dict):
-            assert x.keys() == y.keys(), where
-            for k in x:
-                eq(x[k], y[k], f"{where}.{k}")
-        elif isinstance(x, np.ndarray) and x.dtype == object:
-            for u, v in zip(x, y, strict=True):
-                eq(u, v, where)
-        elif x is None:
-            assert y is None, where
-        else:
-            np.testing.assert_array_equal(x, y, err_msg=where)
-
-    for t, (x, y) in enumerate(zip(a, b, strict=True)):
-        for i, (u, v) in enumerate(zip(x, y, strict=True)):
-            eq(u, v, f"step {t} item {i}")
 
 
 @pytest.mark.parametrize(("mode", "n"), [(mode, N) for mode in AutoresetMode] + [(None, 3)])

@@ -29,6 +29,9 @@ _WIRE_AUTORESET = {
     AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
 }
 _U64 = 1 << 64
+#: A Step sent by :meth:`SessionCore.start_step`: its request and call, or ``None`` when the
+#: step needs no call (a pending autoreset after a reconnect).
+Started = tuple[pb.StepRequest, grpc.Future] | None
 #: The errors after which ``reconnect=True`` waits for the server and opens a new session.
 LOST = (ServiceTransportError, SessionNotFound)
 
@@ -245,14 +248,14 @@ class SessionCore:
         self.last = batch
         return batch
 
-    def start_step(self, actions: bytes) -> tuple[pb.StepRequest, grpc.Future] | None:
+    def start_step(self, actions: bytes) -> Started:
         """Sends a Step without waiting (``None``: a pending autoreset needs no call)."""
         if self.pending is not None:
             return None
         request = pb.StepRequest(session_id=self.session_id, actions=actions)
         return request, self.conn.future("Step", request)
 
-    def finish_step(self, started: tuple[pb.StepRequest, grpc.Future] | None) -> pb.Batch:
+    def finish_step(self, started: Started) -> pb.Batch:
         """The Batch of a Step begun by :meth:`start_step`."""
         if started is None:
             batch, self.pending = self.pending, None
@@ -265,6 +268,12 @@ class SessionCore:
                 raise self.fail(e) from None
         self.last = batch
         return batch
+
+    def abandon_step(self, started: Started) -> None:
+        """Cancels a Step begun by :meth:`start_step` whose reply nobody will read (the env is
+        closing): the server may or may not have applied it."""
+        if started is not None:
+            started[1].cancel()
 
     def recover_step(self, error: ServiceError) -> pb.Batch:
         """A Batch that reports the interrupted episodes as truncated, after opening a new

@@ -14,18 +14,22 @@ always go to the server that created it.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import time
 from collections.abc import Sequence
 from typing import Any
 
+import grpc
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import AlreadyPendingCallError, NoAsyncCallError
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import render as _render
-from ._core import SessionCore, Settings, check_actions, decode, join, seeds
+from ._core import SessionCore, Settings, Started, check_actions, decode, join, seeds
 from ._proto import pb
 from ._session import (
     RENDER_MODES,
@@ -43,6 +47,17 @@ from .connection import call_timeout
 from .errors import EnvClosed, InvalidArgument
 
 __all__ = ["DinerDashVectorEnv"]
+
+
+def _done_by(future: grpc.Future, deadline: float) -> bool:
+    """True when ``future`` has its outcome (a reply or an error) by ``deadline``."""
+    try:
+        future.exception(timeout=max(0.0, deadline - time.monotonic()))
+    except grpc.FutureTimeoutError:
+        return False
+    except grpc.FutureCancelledError:
+        pass
+    return True
 
 
 class DinerDashVectorEnv(SessionOwner, VectorEnv):
@@ -84,6 +99,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     as in Gymnasium) only those environments are reset, environment ``i`` still with ``s + i``;
     the others keep their episode, and the observations and infos returned are their current ones
     (``info["_seed"]`` is the mask of environments reset). A ``config`` needs a full reset.
+
+    Pipelining: :meth:`step_async` sends a step and returns at once, :meth:`step_wait` returns
+    its results (Gymnasium's ``AsyncVectorEnv`` names; ``step()`` is the two in a row). A trainer
+    that alternates two vector envs keeps one step on the wire while it works on the other.
 
     :meth:`action_masks` gives the ``(N, 57)`` masks of the current states. Errors that concern
     one environment carry its index in this vector env as ``env_index``. ``close()`` frees the
@@ -178,6 +197,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._close_sessions()
             self._endpoint.close()
             raise
+        #: The calls of a step_async() that step_wait() has not collected yet.
+        self._pending: list[Started] | None = None
         self._closed = False
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
@@ -217,6 +238,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                     f"seed: expected an int or {self.num_envs} seeds, got {len(seed_list)}"
                 )
         options = check_options(options, ("arrivals", "config", "reset_mask"))
+        self._check_idle("reset()")
         if self._closed:
             if options.get("reset_mask") is not None:
                 raise EnvClosed("a reset_mask after close(): the new sessions need a full reset")
@@ -291,19 +313,95 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def step(
         self, actions: Any
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One step of every environment: :meth:`step_async` and :meth:`step_wait` in a row."""
         wire = check_actions(actions, self.num_envs)
+        self._check_idle("step()")
         self._check_open("step()")
         cores = self._cores
         if len(cores) == 1:
+            # One blocking call: cheaper than a future (no hand-off to gRPC's completion thread).
             return self._decode_step([cores[0].step(wire.tobytes())])
-        # Every server's Step is sent before any reply is awaited: the servers work in parallel.
-        started = [c.start_step(wire[c.start : c.stop].tobytes()) for c in cores]
-        batches = [c.finish_step(s) for c, s in zip(cores, started, strict=True)]
-        return self._decode_step(batches)
+        return self._decode_step(self._finish(self._start(wire)))
+
+    def step_async(self, actions: Any) -> None:
+        """Sends this step's ``actions`` to the server(s) and returns at once; :meth:`step_wait`
+        returns the step's results. Meanwhile the caller works (e.g. steps a second vector env),
+        so the server is never idle waiting for the caller, nor the caller for the network.
+
+        The actions are checked here, before anything is sent, as :meth:`step` checks them.
+        Another ``step_async``, a ``step()``, ``reset()``, ``render()`` or ``action_masks()``
+        before the ``step_wait`` raises ``gymnasium.error.AlreadyPendingCallError``;
+        ``close()`` cancels the pending step."""
+        wire = check_actions(actions, self.num_envs)
+        self._check_idle("step_async()")
+        self._check_open("step_async()")
+        self._pending = self._start(wire)
+
+    def step_wait(
+        self, timeout: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """The results of the step sent by :meth:`step_async`: exactly what :meth:`step` would
+        have returned, errors, autoreset and ``reconnect=True`` included.
+
+        Without a pending ``step_async`` it raises ``gymnasium.error.NoAsyncCallError``. With a
+        ``timeout`` (seconds) and no reply by then it raises ``multiprocessing.TimeoutError`` and,
+        unlike Gymnasium's ``AsyncVectorEnv``, the step stays pending: call ``step_wait`` again
+        (its calls are in flight and each has the env's ``timeout=`` deadline)."""
+        if self._pending is None:
+            raise NoAsyncCallError("step_wait() without a step_async() before it", "step")
+        if timeout is not None:
+            deadline = time.monotonic() + timeout
+            for started in self._pending:
+                if started is not None and not _done_by(started[1], deadline):
+                    raise multiprocessing.TimeoutError(
+                        f"step_wait(): no reply within {timeout:g} s; the step is still "
+                        "pending, call step_wait() again"
+                    )
+        started, self._pending = self._pending, None
+        return self._decode_step(self._finish(started))
+
+    def _check_idle(self, what: str) -> None:
+        if self._pending is not None:
+            raise AlreadyPendingCallError(
+                f"{what} while a step_async() awaits its step_wait(); call step_wait() first",
+                "step",
+            )
+
+    def _start(self, wire: np.ndarray) -> list[Started]:
+        """Every server's Step is sent before any reply is awaited: the servers work in
+        parallel, and with the caller."""
+        started: list[Started] = []
+        try:
+            for core in self._cores:
+                started.append(core.start_step(wire[core.start : core.stop].tobytes()))
+        except BaseException:
+            # Collect the steps already sent, so that every core stays in step with its server.
+            for core, call in zip(self._cores, started, strict=False):
+                try:
+                    core.finish_step(call)
+                except Exception:  # the first error is the one to report
+                    pass
+            raise
+        return started
+
+    def _finish(self, started: list[Started]) -> list[pb.Batch]:
+        """Every core's Batch of the step ``started``. Every reply is awaited (and every core
+        updated) before the first error, if any, is raised: no server's step goes unrecorded."""
+        batches, error = [], None
+        for core, call in zip(self._cores, started, strict=True):
+            try:
+                batches.append(core.finish_step(call))
+            except BaseException as e:
+                if error is None:
+                    error = e
+        if error is not None:
+            raise error
+        return batches
 
     def action_masks(self) -> np.ndarray:
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
         (what sb3-contrib's MaskablePPO asks for; ``info["action_mask"]`` holds the same)."""
+        self._check_idle("action_masks()")
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         masks = np.frombuffer(join([c.last for c in self._cores], "action_masks"), np.bool_)
@@ -345,6 +443,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
             )
             return None
+        self._check_idle("render()")
         if self.render_mode == "ansi":
             self._check_open("render()")
             return tuple(
@@ -371,6 +470,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """Closes the sessions (and the local server, if this env started one). A later full
         ``reset()`` opens new sessions; other calls raise :class:`~dinerdash.EnvClosed`."""
         if not self._closed:
+            if self._pending is not None:
+                for core, call in zip(self._cores, self._pending, strict=True):
+                    core.abandon_step(call)
+                self._pending = None
             self._close_sessions()
             self._endpoint.close()
             self._closed = True
