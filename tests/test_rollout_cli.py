@@ -132,9 +132,12 @@ def test_cli_collect_writes_a_minari_dataset_when_minari_is_installed(
 
 
 def test_cli_bench_runs(address: str) -> None:
-    args = "bench --steps 200 --vec-steps 20 --num-envs 8 --sb3-envs 4 --sb3-steps 20".split()
-    out = run_cli(*args, "--address", address)
-    assert "single env" in out and "make_vec N=8" in out
+    args = "bench --steps 200 --vec-steps 20 --num-envs 8 --sb3-envs 4 --sb3-steps 20 --pipeline"
+    out = run_cli(*args.split(), "--reference-steps", "2000", "--address", address)
+    for line in ("loopback TCP floor", "reference", "gRPC round trip", "single env"):
+        assert line in out
+    assert "make_vec N=8" in out and "decode N=8" in out and "pipelined 2 x N=8" in out
+    assert "x the reference" in out
     # The SB3 comparison runs when the sb3 extra is installed, and says so when it is not.
     assert "SB3 DummyVecEnv N=4" in out or "skipped (pip install 'dinerdash[sb3]')" in out
 

@@ -4,8 +4,11 @@ clear error."""
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import signal
+import threading
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -176,3 +179,26 @@ def test_close_cancels_a_pending_step_and_reset_reopens(address: str) -> None:
         assert (envs.step_wait()[4]["tick"] == 1).all()
     finally:
         envs.close()
+
+
+def test_the_step_threads_end_with_the_env(address: str) -> None:
+    def step_threads() -> list[str]:
+        return [t.name for t in threading.enumerate() if t.name.startswith("dinerdash-step")]
+
+    before = len(step_threads())
+    envs = DinerDashVectorEnv(2, address)
+    envs.reset(seed=0)
+    envs.step_async(np.zeros(2, dtype=np.int64))
+    envs.step_wait()
+    assert len(step_threads()) == before + 1
+    envs.close()
+    dropped = DinerDashVectorEnv(2, address)  # dropped without close(): held weakly
+    dropped.reset(seed=0)
+    dropped.step_async(np.zeros(2, dtype=np.int64))
+    dropped.step_wait()
+    del dropped
+    gc.collect()
+    deadline = time.monotonic() + 10
+    while len(step_threads()) > before:
+        assert time.monotonic() < deadline, step_threads()
+        time.sleep(0.01)

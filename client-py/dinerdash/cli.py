@@ -360,138 +360,10 @@ def _connection(args: argparse.Namespace) -> dict[str, Any]:
     return {"timeout": args.timeout, "tls": args.tls, "tls_ca": args.tls_ca}
 
 
-def _bench_round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
-    """Microseconds of one bare ``ServerInfo`` call: the floor under any single-env step."""
-    from ._proto import pb
-    from .connection import Connection
-
-    with Connection(address, **connection) as conn:
-        request = pb.ServerInfoRequest()
-        for _ in range(100):
-            conn.call("ServerInfo", request)
-        start = time.perf_counter()
-        for _ in range(calls):
-            conn.call("ServerInfo", request)
-        return (time.perf_counter() - start) / calls * 1e6
-
-
-def _bench_single(address: str | None, steps: int, **connection: Any) -> float:
-    from .env import DinerDashEnv
-
-    env = DinerDashEnv(address, **connection)
-    try:
-        actions = np.random.default_rng(0).integers(0, 57, size=steps)
-        env.reset(seed=0)
-        start = time.perf_counter()
-        for a in actions:
-            _, _, terminated, truncated, _ = env.step(a)
-            if terminated or truncated:
-                env.reset()
-        return steps / (time.perf_counter() - start)
-    finally:
-        env.close()
-
-
-def _bench_vector(address, num_envs: int, steps: int, **connection: Any) -> float:
-    from .vector import DinerDashVectorEnv
-
-    envs = DinerDashVectorEnv(num_envs, address, **connection)
-    try:
-        actions = np.random.default_rng(0).integers(0, 57, size=(steps, num_envs), dtype=np.int32)
-        envs.reset(seed=0)
-        for a in actions[:10]:  # warm-up: connections, allocator
-            envs.step(a)
-        start = time.perf_counter()
-        for a in actions:
-            envs.step(a)
-        return num_envs * steps / (time.perf_counter() - start)
-    finally:
-        envs.close()
-
-
-def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
-    """One uniformly random legal action per row of ``masks``."""
-    return np.argmax(rng.random(masks.shape) * masks, axis=1)
-
-
-def _bench_sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, float]:
-    """Env-steps/s of SB3's ``DummyVecEnv`` of ``num_envs`` single envs and of
-    :func:`dinerdash.sb3.make_vec_env`, both stepped with random legal actions (the masks read
-    through ``env_method("action_masks")``, as MaskablePPO reads them)."""
-    from stable_baselines3.common.vec_env import DummyVecEnv
-
-    from .env import DinerDashEnv
-    from .sb3 import make_vec_env
-
-    def run(vec) -> float:
-        rng = np.random.default_rng(0)
-        try:
-            vec.reset()
-            for _ in range(10):  # warm-up: connections, allocator
-                vec.step(_random_legal(rng, np.stack(vec.env_method("action_masks"))))
-            start = time.perf_counter()
-            for _ in range(steps):
-                vec.step(_random_legal(rng, np.stack(vec.env_method("action_masks"))))
-            return num_envs * steps / (time.perf_counter() - start)
-        finally:
-            vec.close()
-
-    first = address[0] if isinstance(address, list) else address
-    dummy = run(
-        DummyVecEnv(
-            [lambda: DinerDashEnv(first, **connection) for _ in range(num_envs)]  # type: ignore[misc]
-        )
-    )
-    adapter = run(make_vec_env(num_envs, address, monitor=False, **connection))
-    return dummy, adapter
-
-
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from .server import LocalServer
+    from .bench import run
 
-    servers = []
-    try:
-        if args.address is None and not os.environ.get("DINERDASH_ADDRESS"):
-            servers = [LocalServer() for _ in range(args.servers)]
-            address = [s.address for s in servers]
-        else:
-            address = args.address
-        first = address[0] if isinstance(address, list) else address
-        shown = address if address is not None else os.environ["DINERDASH_ADDRESS"]
-        print(f"servers: {shown}; {os.cpu_count()} cores")
-        connection = _connection(args)
-        if args.steps > 0:
-            micros = _bench_round_trip(first, **connection)
-            print(
-                f"gRPC round trip  : {micros:12,.0f} us/call      (ServerInfo, the floor of a step)"
-            )
-            rate = _bench_single(first, args.steps, **connection)
-            print(f"single env       : {rate:12,.0f} steps/s      ({args.steps} random steps)")
-        if args.vec_steps > 0:
-            rate = _bench_vector(address, args.num_envs, args.vec_steps, **connection)
-            n = len(address) if isinstance(address, list) else 1
-            print(
-                f"make_vec N={args.num_envs:<5}: {rate:12,.0f} env-steps/s  "
-                f"({args.vec_steps} steps of {args.num_envs} random actions, {n} server(s))"
-            )
-        if args.sb3_steps > 0:
-            try:
-                dummy, adapter = _bench_sb3(address, args.sb3_envs, args.sb3_steps, **connection)
-            except ImportError:
-                print("sb3              : skipped (pip install 'dinerdash[sb3]')")
-            else:
-                n = args.sb3_envs
-                print(
-                    f"SB3 DummyVecEnv N={n:<3}: {dummy:10,.0f} env-steps/s  "
-                    f"({args.sb3_steps} steps, random legal actions, one call per env)"
-                )
-                print(
-                    f"dinerdash.sb3  N={n:<3}: {adapter:10,.0f} env-steps/s  "
-                    f"({adapter / dummy:.1f}x: one batched Step per server)"
-                )
-    finally:
-        for s in servers:
-            s.stop()
+    run(args, _connection(args))
     return 0
 
 
@@ -563,10 +435,23 @@ def _parser() -> argparse.ArgumentParser:
     address(p)
     p.set_defaults(func=_cmd_collect)
 
-    p = sub.add_parser("bench", help="steps/s of a single env and of make_vec")
+    p = sub.add_parser(
+        "bench", help="steps/s of a single env and of make_vec, beside the machine's floors"
+    )
     p.add_argument("--steps", type=int, default=20_000, help="single-env steps (0: skip)")
     p.add_argument("--num-envs", type=int, default=256)
     p.add_argument("--vec-steps", type=int, default=2_000, help="vector steps (0: skip)")
+    p.add_argument(
+        "--pipeline",
+        action="store_true",
+        help="also two vector envs of --num-envs stepped with step_async/step_wait",
+    )
+    p.add_argument(
+        "--reference-steps",
+        type=int,
+        default=100_000,
+        help="random steps of the in-process pure-Python reference (0: skip)",
+    )
     p.add_argument(
         "--servers", type=int, default=1, help="local servers to start when no address is given"
     )

@@ -20,7 +20,6 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-import grpc
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -29,7 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import render as _render
-from ._core import SessionCore, Settings, Started, check_actions, decode, join, seeds
+from ._core import SessionCore, Settings, check_actions, decode, join, seeds
 from ._proto import pb
 from ._session import (
     RENDER_MODES,
@@ -47,17 +46,6 @@ from .connection import call_timeout
 from .errors import EnvClosed, InvalidArgument
 
 __all__ = ["DinerDashVectorEnv"]
-
-
-def _done_by(future: grpc.Future, deadline: float) -> bool:
-    """True when ``future`` has its outcome (a reply or an error) by ``deadline``."""
-    try:
-        future.exception(timeout=max(0.0, deadline - time.monotonic()))
-    except grpc.FutureTimeoutError:
-        return False
-    except grpc.FutureCancelledError:
-        pass
-    return True
 
 
 class DinerDashVectorEnv(SessionOwner, VectorEnv):
@@ -197,8 +185,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._close_sessions()
             self._endpoint.close()
             raise
-        #: The calls of a step_async() that step_wait() has not collected yet.
-        self._pending: list[Started] | None = None
+        #: A step_async() was sent and step_wait() has not collected it yet.
+        self._pending = False
         self._closed = False
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
@@ -321,21 +309,23 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         if len(cores) == 1:
             # One blocking call: cheaper than a future (no hand-off to gRPC's completion thread).
             return self._decode_step([cores[0].step(wire.tobytes())])
-        return self._decode_step(self._finish(self._start(wire)))
+        self._start(wire)
+        return self._decode_step(self._finish())
 
     def step_async(self, actions: Any) -> None:
         """Sends this step's ``actions`` to the server(s) and returns at once; :meth:`step_wait`
         returns the step's results. Meanwhile the caller works (e.g. steps a second vector env),
-        so the server is never idle waiting for the caller, nor the caller for the network.
+        so that neither the server waits for the caller nor the caller for the network.
 
         The actions are checked here, before anything is sent, as :meth:`step` checks them.
         Another ``step_async``, a ``step()``, ``reset()``, ``render()`` or ``action_masks()``
         before the ``step_wait`` raises ``gymnasium.error.AlreadyPendingCallError``;
-        ``close()`` cancels the pending step."""
+        ``close()`` drops the pending step (the server may or may not have applied it). Each
+        server's calls are made by a thread of this env, started at the first ``step_async``."""
         wire = check_actions(actions, self.num_envs)
         self._check_idle("step_async()")
         self._check_open("step_async()")
-        self._pending = self._start(wire)
+        self._start(wire)
 
     def step_wait(
         self, timeout: float | None = None
@@ -347,50 +337,39 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         ``timeout`` (seconds) and no reply by then it raises ``multiprocessing.TimeoutError`` and,
         unlike Gymnasium's ``AsyncVectorEnv``, the step stays pending: call ``step_wait`` again
         (its calls are in flight and each has the env's ``timeout=`` deadline)."""
-        if self._pending is None:
+        if not self._pending:
             raise NoAsyncCallError("step_wait() without a step_async() before it", "step")
         if timeout is not None:
             deadline = time.monotonic() + timeout
-            for started in self._pending:
-                if started is not None and not _done_by(started[1], deadline):
-                    raise multiprocessing.TimeoutError(
-                        f"step_wait(): no reply within {timeout:g} s; the step is still "
-                        "pending, call step_wait() again"
-                    )
-        started, self._pending = self._pending, None
-        return self._decode_step(self._finish(started))
+            if not all(core.step_ready(deadline) for core in self._cores):
+                raise multiprocessing.TimeoutError(
+                    f"step_wait(): no reply within {timeout:g} s; the step is still "
+                    "pending, call step_wait() again"
+                )
+        return self._decode_step(self._finish())
 
     def _check_idle(self, what: str) -> None:
-        if self._pending is not None:
+        if self._pending:
             raise AlreadyPendingCallError(
                 f"{what} while a step_async() awaits its step_wait(); call step_wait() first",
                 "step",
             )
 
-    def _start(self, wire: np.ndarray) -> list[Started]:
-        """Every server's Step is sent before any reply is awaited: the servers work in
-        parallel, and with the caller."""
-        started: list[Started] = []
-        try:
-            for core in self._cores:
-                started.append(core.start_step(wire[core.start : core.stop].tobytes()))
-        except BaseException:
-            # Collect the steps already sent, so that every core stays in step with its server.
-            for core, call in zip(self._cores, started, strict=False):
-                try:
-                    core.finish_step(call)
-                except Exception:  # the first error is the one to report
-                    pass
-            raise
-        return started
+    def _start(self, wire: np.ndarray) -> None:
+        """Every server's Step is sent (by its core's thread) before any reply is awaited: the
+        servers work in parallel, and with the caller."""
+        for core in self._cores:
+            core.start_step(wire[core.start : core.stop].tobytes())
+        self._pending = True
 
-    def _finish(self, started: list[Started]) -> list[pb.Batch]:
-        """Every core's Batch of the step ``started``. Every reply is awaited (and every core
+    def _finish(self) -> list[pb.Batch]:
+        """Every core's Batch of the pending step. Every reply is awaited (and every core
         updated) before the first error, if any, is raised: no server's step goes unrecorded."""
+        self._pending = False
         batches, error = [], None
-        for core, call in zip(self._cores, started, strict=True):
+        for core in self._cores:
             try:
-                batches.append(core.finish_step(call))
+                batches.append(core.finish_step())
             except BaseException as e:
                 if error is None:
                     error = e
@@ -470,10 +449,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """Closes the sessions (and the local server, if this env started one). A later full
         ``reset()`` opens new sessions; other calls raise :class:`~dinerdash.EnvClosed`."""
         if not self._closed:
-            if self._pending is not None:
-                for core, call in zip(self._cores, self._pending, strict=True):
-                    core.abandon_step(call)
-                self._pending = None
+            self._pending = False  # the cores' threads end as the sessions close
             self._close_sessions()
             self._endpoint.close()
             self._closed = True

@@ -1,0 +1,278 @@
+"""``python -m dinerdash bench``: what stepping through the client costs, beside the floors of the
+machine it runs on, all measured in one run so that anyone can rerun the comparison.
+
+- **Loopback TCP floor**: a one-byte ping-pong between this process and a child Python process
+  (``TCP_NODELAY``), the least any request/reply between two processes costs here.
+- **Reference**: :mod:`dinerdash.pysim`, the rules in plain Python, stepped with uniformly random
+  actions in this process: the benchmark's own way of running the game, and the unit of every
+  ``x`` below.
+- **gRPC round trip** (a bare ``ServerInfo``), a **single env**, a **vector env** of N stepped with
+  ``step()``, and with ``--pipeline`` **two vector envs** of N with one step always on the wire
+  (``step_async`` on one while ``step_wait`` collects the other).
+- With the ``sb3`` extra: SB3's ``DummyVecEnv`` of single envs against
+  :func:`dinerdash.sb3.make_vec_env`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+__all__ = ["run", "tcp_floor"]
+
+# The echo side of the TCP floor: a child process, so that the ping-pong crosses processes (and
+# cores) as a call to a server does; it prints its port, then echoes until the socket closes.
+_ECHO = """
+import socket
+s = socket.socket()
+s.bind(("127.0.0.1", 0))
+s.listen(1)
+print(s.getsockname()[1], flush=True)
+c, _ = s.accept()
+c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+while True:
+    d = c.recv(64)
+    if not d:
+        break
+    c.sendall(d)
+"""
+
+
+def tcp_floor(round_trips: int = 5000) -> float:
+    """Microseconds of one loopback TCP round trip (one byte each way) to a child process."""
+    child = subprocess.Popen(
+        [sys.executable, "-c", _ECHO], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True
+    )
+    try:
+        port = int(child.stdout.readline())
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            for _ in range(200):  # warm-up
+                sock.sendall(b"x")
+                sock.recv(64)
+            start = time.perf_counter()
+            for _ in range(round_trips):
+                sock.sendall(b"x")
+                sock.recv(64)
+            return (time.perf_counter() - start) / round_trips * 1e6
+    finally:
+        try:
+            child.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+
+
+def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
+    """Microseconds of one bare ``ServerInfo`` call: the floor under any single-env step."""
+    from ._proto import pb
+    from .connection import Connection
+
+    with Connection(address, **connection) as conn:
+        request = pb.ServerInfoRequest()
+        for _ in range(100):
+            conn.call("ServerInfo", request)
+        start = time.perf_counter()
+        for _ in range(calls):
+            conn.call("ServerInfo", request)
+        return (time.perf_counter() - start) / calls * 1e6
+
+
+def _single(address: str | None, steps: int, **connection: Any) -> float:
+    from .env import DinerDashEnv
+
+    env = DinerDashEnv(address, **connection)
+    try:
+        actions = np.random.default_rng(0).integers(0, 57, size=steps)
+        env.reset(seed=0)
+        start = time.perf_counter()
+        for a in actions:
+            _, _, terminated, truncated, _ = env.step(a)
+            if terminated or truncated:
+                env.reset()
+        return steps / (time.perf_counter() - start)
+    finally:
+        env.close()
+
+
+def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: Any) -> float:
+    """Env-steps/s of one vector env of ``num_envs`` stepped with ``step()``, or (``pipelined``)
+    of two, each one's ``step_async`` sent before the other's ``step_wait``."""
+    from .vector import DinerDashVectorEnv
+
+    count = 2 if pipelined else 1
+    pair = [DinerDashVectorEnv(num_envs, address, **connection) for _ in range(count)]
+    try:
+        rng = np.random.default_rng(0)
+        actions = rng.integers(0, 57, size=(steps + 10, count, num_envs), dtype=np.int32)
+        for envs in pair:
+            envs.reset(seed=0)
+            for a in actions[:10, 0]:  # warm-up: connections, allocator
+                envs.step(a)
+        actions = actions[10:]
+        start = time.perf_counter()
+        if not pipelined:
+            step = pair[0].step
+            for a in actions[:, 0]:
+                step(a)
+        else:
+            first, second = pair
+            first.step_async(actions[0, 0])
+            for t in range(steps):
+                second.step_async(actions[t, 1])
+                first.step_wait()
+                if t + 1 < steps:
+                    first.step_async(actions[t + 1, 0])
+                second.step_wait()
+        return count * num_envs * steps / (time.perf_counter() - start)
+    finally:
+        for envs in pair:
+            envs.close()
+
+
+def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> float:
+    """Microseconds the client spends on one Step reply of ``num_envs`` environments once it has
+    arrived: parsing the Batch message and building the numpy arrays and infos. Measured on the
+    replies of ``steps`` random steps (episodes ending and resetting among them)."""
+    from ._proto import pb
+    from .vector import DinerDashVectorEnv
+
+    envs = DinerDashVectorEnv(num_envs, address, **connection)
+    try:
+        rng = np.random.default_rng(0)
+        envs.reset(seed=0)
+        replies = []
+        for _ in range(steps):
+            envs.step(rng.integers(0, 57, size=num_envs))
+            replies.append([core.last.SerializeToString() for core in envs._cores])
+        start = time.perf_counter()
+        for raw in replies:
+            envs._decode_step([pb.Batch.FromString(r) for r in raw])
+        return (time.perf_counter() - start) / steps * 1e6
+    finally:
+        envs.close()
+
+
+def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
+    """One uniformly random legal action per row of ``masks``."""
+    return np.argmax(rng.random(masks.shape) * masks, axis=1)
+
+
+def _sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, float]:
+    """Env-steps/s of SB3's ``DummyVecEnv`` of ``num_envs`` single envs and of
+    :func:`dinerdash.sb3.make_vec_env`, both stepped with random legal actions (the masks read
+    through ``env_method("action_masks")``, as MaskablePPO reads them)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from .env import DinerDashEnv
+    from .sb3 import make_vec_env
+
+    def run(vec) -> float:
+        rng = np.random.default_rng(0)
+        try:
+            vec.reset()
+            for _ in range(10):  # warm-up: connections, allocator
+                vec.step(_random_legal(rng, np.stack(vec.env_method("action_masks"))))
+            start = time.perf_counter()
+            for _ in range(steps):
+                vec.step(_random_legal(rng, np.stack(vec.env_method("action_masks"))))
+            return num_envs * steps / (time.perf_counter() - start)
+        finally:
+            vec.close()
+
+    first = address[0] if isinstance(address, list) else address
+    dummy = run(
+        DummyVecEnv(
+            [lambda: DinerDashEnv(first, **connection) for _ in range(num_envs)]  # type: ignore[misc]
+        )
+    )
+    adapter = run(make_vec_env(num_envs, address, monitor=False, **connection))
+    return dummy, adapter
+
+
+def run(args: argparse.Namespace, connection: dict[str, Any]) -> None:
+    """The ``bench`` command: prints one line per measurement."""
+    from .server import LocalServer
+
+    reference = None
+
+    def times(rate: float) -> str:
+        return f"{rate / reference:.1f}x the reference" if reference else "no reference run"
+
+    # The floors first, before any gRPC thread competes with them.
+    floor = tcp_floor()
+    print(f"loopback TCP floor : {floor:12,.1f} us/round trip  (1 byte each way, two processes)")
+    if args.reference_steps > 0:
+        from .pysim import random_steps_per_second
+
+        reference = random_steps_per_second(args.reference_steps)
+        print(
+            f"reference          : {reference:12,.0f} steps/s       (dinerdash.pysim in process, "
+            "random actions)"
+        )
+    servers = []
+    try:
+        if args.address is None and not os.environ.get("DINERDASH_ADDRESS"):
+            servers = [LocalServer() for _ in range(args.servers)]
+            address = [s.address for s in servers]
+        else:
+            address = args.address
+        first = address[0] if isinstance(address, list) else address
+        shown = address if address is not None else os.environ["DINERDASH_ADDRESS"]
+        print(f"servers: {shown}; {os.cpu_count()} cores")
+        n = args.num_envs
+        replicas = len(address) if isinstance(address, list) else 1
+        if args.steps > 0:
+            micros = _round_trip(first, **connection)
+            print(
+                f"gRPC round trip    : {micros:12,.1f} us/call        (ServerInfo; "
+                f"{micros / floor:.1f}x the TCP floor)"
+            )
+            rate = _single(first, args.steps, **connection)
+            print(
+                f"single env         : {rate:12,.0f} steps/s       ({args.steps} random steps; "
+                f"{times(rate)})"
+            )
+        if args.vec_steps > 0:
+            rate = _vector(address, n, args.vec_steps, False, **connection)
+            print(
+                f"make_vec N={n:<8}: {rate:12,.0f} env-steps/s   ({args.vec_steps} step() calls, "
+                f"{replicas} server(s); {times(rate)})"
+            )
+        if args.vec_steps > 0:
+            micros = _decode(address, n, **connection)
+            print(
+                f"decode N={n:<10}: {micros:12,.1f} us/step       (parse the reply, build the "
+                "arrays and infos)"
+            )
+        if args.vec_steps > 0 and args.pipeline:
+            rate = _vector(address, n, args.vec_steps, True, **connection)
+            print(
+                f"pipelined 2 x N={n:<3}: {rate:12,.0f} env-steps/s   (two vector envs, one step "
+                f"on the wire; {times(rate)})"
+            )
+        if args.sb3_steps > 0:
+            try:
+                dummy, adapter = _sb3(address, args.sb3_envs, args.sb3_steps, **connection)
+            except ImportError:
+                print("sb3                : skipped (pip install 'dinerdash[sb3]')")
+            else:
+                k = args.sb3_envs
+                print(
+                    f"SB3 DummyVecEnv N={k:<2}: {dummy:12,.0f} env-steps/s   "
+                    f"({args.sb3_steps} steps, random legal actions, one call per env)"
+                )
+                print(
+                    f"dinerdash.sb3  N={k:<3}: {adapter:12,.0f} env-steps/s   "
+                    f"({adapter / dummy:.1f}x: one batched Step per server)"
+                )
+    finally:
+        for s in servers:
+            s.stop()
