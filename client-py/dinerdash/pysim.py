@@ -1,7 +1,7 @@
 """A plain-Python simulator of Diner Dash, ruleset ``v0``: the baseline of ``python -m dinerdash
 bench``.
 
-Issue 14 states its speed targets as multiples of "the reference simulator's in-process random
+The server's speed targets are multiples of "the reference simulator's in-process random
 steps/s, measured in the same run". The reference is the small Python simulator of the published
 benchmark, which this repository does not ship; this module stands in for it. It implements the
 rules of ``docs/rules.md`` (a port of the Rust simulator in ``server/src/sim/``) the way a
@@ -281,7 +281,7 @@ class Restaurant:
                     self.orders.append(Order(item.table, self.now))
             self.hands = [item for item in self.hands if item.kind != "order"]
             self.score += 10
-        elif action < DROP_DISHES:
+        elif FIRST_PICK_UP <= action < DROP_DISHES:
             t = action - FIRST_PICK_UP + 1
             self.score += 10
             self.counters[self.counters.index(t)] = 0
@@ -363,7 +363,8 @@ class Restaurant:
                 pending.append(order)
                 continue
             if order.table in self.counters:
-                # Quirk: this order and every later one are dropped.
+                # Quirk: this order and every later one are dropped. (Play never gets here: a
+                # table has one order or plate at a time. No recorded trajectory checks it.)
                 break
             # Quirk: with no empty slot the food is lost.
             if 0 in self.counters:
@@ -480,8 +481,8 @@ def random_steps_per_second(steps: int, seed: int = 0) -> float:
         raise ValueError(f"steps must be positive, got {steps}")
     game = Game(seed)
     game.reset()
-    # The policy's own stream, apart from the game's, as the reference's agent has its own.
-    policy = random.Random(seed)
+    # The policy's own stream, apart from the game's (a string seed keeps the two unrelated).
+    policy = random.Random(f"random policy {seed}")
 
     def play(n: int) -> None:
         for _ in range(n):
