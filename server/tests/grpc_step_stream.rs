@@ -1,0 +1,263 @@
+//! StepStream against unary Step on one real server: the same seeds and actions give
+//! byte-identical Batches in every autoreset mode, a refused request ends the stream with
+//! exactly the Status the unary call returns, and a shutdown ends an open stream UNAVAILABLE.
+
+mod grpc_support;
+
+use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
+use grpc_support::*;
+use prost::Message as _;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::transport::Channel;
+use tonic::{Code, Status, Streaming};
+
+/// One open StepStream: requests go in through `tx`, replies come out of `replies`.
+struct Stream {
+    tx: mpsc::Sender<pb::StepRequest>,
+    replies: Streaming<pb::Batch>,
+}
+
+impl Stream {
+    async fn open(c: &mut DinerDashClient<Channel>) -> Stream {
+        // Room for every request a test pipelines ahead of its reads.
+        let (tx, rx) = mpsc::channel(64);
+        let replies = tokio::time::timeout(PATIENCE, c.step_stream(ReceiverStream::new(rx)))
+            .await
+            .expect("StepStream did not open")
+            .unwrap()
+            .into_inner();
+        Stream { tx, replies }
+    }
+
+    async fn send(&self, id: &str, actions: &[i32]) {
+        self.tx
+            .send(pb::StepRequest {
+                session_id: id.to_owned(),
+                actions: pack(actions),
+            })
+            .await
+            .unwrap();
+    }
+
+    /// The next reply: a Batch, an error, or `Ok(None)` once the stream ended.
+    async fn next(&mut self) -> Result<Option<pb::Batch>, Status> {
+        tokio::time::timeout(PATIENCE, self.replies.message())
+            .await
+            .expect("no reply")
+    }
+
+    async fn step(&mut self, id: &str, actions: &[i32]) -> Result<pb::Batch, Status> {
+        self.send(id, actions).await;
+        self.next().await.map(|b| b.expect("stream ended early"))
+    }
+}
+
+/// A session of `n` environments, reset with `seed`.
+async fn session(
+    c: &mut DinerDashClient<Channel>,
+    n: u32,
+    mode: pb::AutoresetMode,
+    expert: bool,
+    seed: u64,
+) -> String {
+    let mut request = create_request(n, mode, None);
+    request.action_masks = expert;
+    request.expert_actions = expert;
+    // One life and a short time limit: episodes end often, by termination and by truncation.
+    request.config = Some(pb::GameConfig {
+        lives: Some(1),
+        time_limit: Some(60),
+        ..Default::default()
+    });
+    let id = create(c, request).await;
+    reset(c, &id, Some(seed)).await;
+    id
+}
+
+/// Steps twin sessions, one through unary Step and one through a StepStream, with the same
+/// actions; every pair of Batches must encode to the same bytes. With autoreset DISABLED, both
+/// are reset (by unary Reset, the stream staying open) once an episode ends.
+async fn twins(n: u32, mode: pb::AutoresetMode, expert: bool) {
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let unary = session(&mut c, n, mode, expert, 77).await;
+    let streamed = session(&mut c, n, mode, expert, 77).await;
+    let mut stream = Stream::open(&mut c).await;
+    let mut actions = Actions::new(u64::from(n) + 5);
+    let mut ended = 0;
+    for s in 0..300 {
+        let a: Vec<i32> = (0..n).map(|_| actions.next()).collect();
+        let want = step(&mut c, &unary, &a).await;
+        let got = stream.step(&streamed, &a).await.unwrap();
+        assert_eq!(
+            got.encode_to_vec(),
+            want.encode_to_vec(),
+            "{mode:?} step {s}"
+        );
+        let over = got
+            .terminated
+            .iter()
+            .zip(&got.truncated)
+            .any(|(&t, &u)| t == 1 || u == 1);
+        if over {
+            ended += 1;
+            if mode == pb::AutoresetMode::Disabled {
+                let seed = Some(1000 + s);
+                assert_eq!(
+                    reset(&mut c, &streamed, seed).await,
+                    reset(&mut c, &unary, seed).await
+                );
+            }
+        }
+    }
+    assert!(ended > 1, "{mode:?}: only {ended} episodes ended");
+    // The client closing its side ends the stream with OK.
+    drop(stream.tx);
+    assert_eq!(stream.replies.message().await.unwrap(), None);
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn step_stream_matches_unary_step_in_every_autoreset_mode() {
+    for mode in [
+        pb::AutoresetMode::NextStep,
+        pb::AutoresetMode::SameStep,
+        pb::AutoresetMode::Disabled,
+    ] {
+        for expert in [true, false] {
+            twins(1, mode, expert).await;
+            twins(8, mode, expert).await;
+        }
+    }
+}
+
+/// Requests sent ahead of the replies are answered in order, one Batch each, and one stream may
+/// step several sessions.
+#[tokio::test]
+async fn pipelined_requests_over_two_sessions_are_answered_in_order() {
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let mode = pb::AutoresetMode::NextStep;
+    let ids = [
+        session(&mut c, 2, mode, true, 5).await,
+        session(&mut c, 3, mode, true, 6).await,
+    ];
+    let twins = [
+        session(&mut c, 2, mode, true, 5).await,
+        session(&mut c, 3, mode, true, 6).await,
+    ];
+    let mut stream = Stream::open(&mut c).await;
+    let mut actions = Actions::new(9);
+    let mut sent = Vec::new();
+    for k in 0..40 {
+        let which = k % 2;
+        let a: Vec<i32> = (0..2 + which).map(|_| actions.next()).collect();
+        stream.send(&ids[which], &a).await;
+        sent.push((which, a));
+    }
+    for (k, (which, a)) in sent.iter().enumerate() {
+        let got = stream.next().await.unwrap().expect("a reply per request");
+        let want = step(&mut c, &twins[*which], a).await;
+        assert_eq!(got, want, "request {k}");
+    }
+    drop(stream.tx);
+    assert_eq!(stream.replies.message().await.unwrap(), None);
+    server.stop().await;
+}
+
+/// Asserts that a StepStream request refused by the server ends the stream with the very Status
+/// that a unary Step of the same request returns on the same session state.
+async fn same_refusal(
+    c: &mut DinerDashClient<Channel>,
+    stream: &mut Stream,
+    id: &str,
+    actions: &[i32],
+    code: Code,
+) -> Status {
+    let unary = c
+        .step(pb::StepRequest {
+            session_id: id.to_owned(),
+            actions: pack(actions),
+        })
+        .await
+        .expect_err("the unary Step must be refused");
+    let streamed = stream
+        .step(id, actions)
+        .await
+        .expect_err("the streamed Step must be refused");
+    assert_eq!(unary.code(), code, "{}", unary.message());
+    assert_eq!(streamed.code(), unary.code());
+    assert_eq!(streamed.message(), unary.message());
+    assert_eq!(streamed.details(), unary.details());
+    assert!(!streamed.details().is_empty(), "refusals carry details");
+    // The error ended the stream.
+    assert_eq!(stream.next().await.unwrap(), None);
+    streamed
+}
+
+#[tokio::test]
+async fn refusals_end_the_stream_with_the_unary_status() {
+    let server = TestServer::start().await;
+    let mut c = server.client().await;
+    let mode = pb::AutoresetMode::Disabled;
+    let id = session(&mut c, 2, mode, true, 3).await;
+
+    let ghost = "0123456789abcdef0123456789abcdef";
+    let mut stream = Stream::open(&mut c).await;
+    // Replies before the refusal stand.
+    stream.step(&id, &[0, 0]).await.unwrap();
+    same_refusal(&mut c, &mut stream, ghost, &[0], Code::NotFound).await;
+
+    let mut stream = Stream::open(&mut c).await;
+    let status = same_refusal(&mut c, &mut stream, &id, &[0, 57], Code::InvalidArgument).await;
+    assert!(
+        status.message().contains("actions[1]"),
+        "{}",
+        status.message()
+    );
+
+    let mut stream = Stream::open(&mut c).await;
+    same_refusal(&mut c, &mut stream, &id, &[0, 0, 0], Code::InvalidArgument).await;
+
+    let fresh = create(&mut c, create_request(1, mode, Some(1))).await;
+    let mut stream = Stream::open(&mut c).await;
+    same_refusal(&mut c, &mut stream, &fresh, &[0], Code::FailedPrecondition).await;
+
+    // Step both environments to the end of their episode (a time limit of 60 ticks), then once
+    // more: with autoreset DISABLED that is EPISODE_OVER.
+    let mut stream = Stream::open(&mut c).await;
+    let mut over = false;
+    for _ in 0..1000 {
+        let b = stream.step(&id, &[0, 0]).await.unwrap();
+        if b.truncated.contains(&1) || b.terminated.contains(&1) {
+            over = true;
+            break;
+        }
+    }
+    assert!(over, "the episode never ended");
+    same_refusal(&mut c, &mut stream, &id, &[0, 0], Code::FailedPrecondition).await;
+
+    // The refused requests were not applied: the session still steps after a reset.
+    reset(&mut c, &id, Some(4)).await;
+    step(&mut c, &id, &[0, 0]).await;
+    server.stop().await;
+}
+
+/// A shutdown ends a stream that waits for its next request with UNAVAILABLE, so that the drain
+/// does not wait for it, and the server then stops.
+#[tokio::test]
+async fn shutdown_ends_an_open_stream_unavailable() {
+    let mut server = TestServer::start().await;
+    let mut c = server.client().await;
+    let id = session(&mut c, 1, pb::AutoresetMode::NextStep, false, 8).await;
+    let mut stream = Stream::open(&mut c).await;
+    stream.step(&id, &[0]).await.unwrap();
+    server.trigger_stop();
+    let status = stream
+        .next()
+        .await
+        .expect_err("the stream must end with an error");
+    assert_eq!(status.code(), Code::Unavailable, "{}", status.message());
+    server.stop().await;
+}
