@@ -1,7 +1,8 @@
 //! The tonic glue of `dinerdash.v1.DinerDash`: decode a request, call the session store (or the
 //! rollout recorder), encode the reply. This is the only module where errors become
 //! `tonic::Status`, each [`SessionError`] mapped once in [`status`]; it also holds the bearer
-//! token interceptor.
+//! token interceptor. StepStream steps each request exactly as the unary Step does
+//! ([`StepReplies`]).
 
 use std::collections::HashMap;
 use std::future::Future;

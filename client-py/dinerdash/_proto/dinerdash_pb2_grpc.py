@@ -135,13 +135,16 @@ class DinerDashServicer:
     def StepStream(self, request_iterator, context):
         """Step for a session's hot path: one long-lived stream, one StepRequest in and one Batch out
         per step, in order, without per-call headers and trailers. Each request is handled exactly as
-        a unary Step (it may name any session the caller may use); the reply to request k is sent
-        before request k + 1 is read, so a client that does not read its replies stops the stream.
+        a unary Step (it may name any session the caller may use); the reply to request k is handed
+        to HTTP/2 before request k + 1 is read, so a client that does not read its replies stops
+        the stream once flow control is full.
         The client ends the stream by closing its side (the server then ends it with OK).
         Errors, each ending the stream (replies to earlier requests stay valid): those of Step, with
         the same code, message and details, for the request that caused it (a refused step is not
         applied); UNAVAILABLE once the server shuts down, also on a stream waiting for its next
-        request. Authentication is checked once, when the stream opens.
+        request. Authentication is checked once, when the stream opens. An idle stream is an idle
+        connection: kept open while the client answers the server's keepalive pings, closed when it
+        does not; a session left unstepped still expires after the session TTL (then NOT_FOUND).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
