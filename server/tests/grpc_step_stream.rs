@@ -346,3 +346,37 @@ async fn unread_replies_stop_the_stream() {
     assert_eq!(stream.replies.message().await.unwrap(), None);
     server.stop().await;
 }
+
+/// The server announces its per-connection stream limit in its HTTP/2 SETTINGS, so that one
+/// connection cannot hold unboundedly many idle StepStreams: read with a bare HTTP/2 handshake.
+#[tokio::test]
+async fn the_server_limits_streams_per_connection() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let server = TestServer::start().await;
+    let mut tcp = tokio::net::TcpStream::connect(server.addr).await.unwrap();
+    // The client preface, then an empty SETTINGS frame (length 0, type 4, no flags, stream 0).
+    tcp.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n\0\0\0\x04\0\0\0\0\0")
+        .await
+        .unwrap();
+    let mut header = [0u8; 9];
+    tokio::time::timeout(PATIENCE, tcp.read_exact(&mut header))
+        .await
+        .unwrap()
+        .unwrap();
+    // The server's first frame is its SETTINGS.
+    assert_eq!(header[3], 4, "frame type");
+    let len = u32::from_be_bytes([0, header[0], header[1], header[2]]) as usize;
+    let mut payload = vec![0u8; len];
+    tcp.read_exact(&mut payload).await.unwrap();
+    // Settings are 6 bytes each: a 16-bit identifier, a 32-bit value. 0x3: MAX_CONCURRENT_STREAMS.
+    let max_streams = payload.chunks_exact(6).find_map(|s| {
+        (u16::from_be_bytes([s[0], s[1]]) == 3)
+            .then(|| u32::from_be_bytes([s[2], s[3], s[4], s[5]]))
+    });
+    assert_eq!(
+        max_streams,
+        Some(dinerdash_server::connections::MAX_STREAMS_PER_CONNECTION)
+    );
+    drop(tcp);
+    server.stop().await;
+}
