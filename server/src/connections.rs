@@ -8,6 +8,7 @@
 //! - Beyond [`Limits::max_connections`] a connection is still accepted, but only to be answered
 //!   `RESOURCE_EXHAUSTED` (see [`ConnInfo::over_limit`]) and closed after a short grace; beyond
 //!   twice the limit it is closed at once.
+//! - A connection may have [`MAX_STREAMS_PER_CONNECTION`] requests open at once.
 //! - Each connection is its own [`Tenant`] when the server has no tenant tokens: what it may hold
 //!   is that tenant's share.
 //! - On shutdown the loop drops the listener at once, so new connections are refused while the
@@ -39,6 +40,11 @@ pub const DEFAULT_IDLE_TIMEOUT: Duration = Duration::from_secs(120);
 pub const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(30);
 /// A keepalive ping unanswered this long closes the connection.
 pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
+/// Most requests (HTTP/2 streams) open at once on one connection, announced in the server's
+/// SETTINGS: a client that opens more waits for one to end. Without it, one connection could
+/// hold any number of idle StepStreams (or unary calls whose body never comes), each holding
+/// buffers and a task.
+pub const MAX_STREAMS_PER_CONNECTION: u32 = 256;
 /// How long a connection over the limit lives to receive its `RESOURCE_EXHAUSTED`.
 const OVER_LIMIT_GRACE: Duration = Duration::from_secs(2);
 /// First and longest pause after an accept error.

@@ -13,7 +13,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 
 use crate::budget::Share;
-use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT};
+use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
 use crate::metrics::{self, Metrics};
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
@@ -118,6 +118,7 @@ pub async fn run(
     // Live clients answer the keepalive pings, which keeps their connections out of the idle
     // timeout; dead ones do not, and are closed.
     let mut builder = Server::builder()
+        .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
         .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));
     if let Some(tls) = &config.tls {

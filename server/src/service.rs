@@ -1,15 +1,19 @@
 //! The tonic glue of `dinerdash.v1.DinerDash`: decode a request, call the session store (or the
 //! rollout recorder), encode the reply. This is the only module where errors become
 //! `tonic::Status`, each [`SessionError`] mapped once in [`status`]; it also holds the bearer
-//! token interceptor.
+//! token interceptor. StepStream steps each request exactly as the unary Step does
+//! ([`StepReplies`]).
 
 use std::collections::HashMap;
+use std::future::Future;
+use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::task::{Context, Poll};
 use std::time::Duration;
 
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::{Code, Request, Response, Status};
+use tonic::{Code, Request, Response, Status, Streaming};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use crate::budget::{BudgetError, Share, Tenant};
@@ -355,6 +359,17 @@ impl DinerDashService {
         result.map_err(|e| self.fail(e))
     }
 
+    /// One Step, as the unary call and each message of a StepStream do it.
+    async fn step_one(&self, r: pb::StepRequest) -> Result<pb::Batch, Status> {
+        let store = self.store.clone();
+        let id = r.session_id;
+        let actions = r.actions;
+        let batch = self
+            .heavy_if_planner(&id.clone(), move || store.step(&id, &actions))
+            .await?;
+        Ok(batch_to(batch))
+    }
+
     /// Whose share a request counts against: its token's tenant, else its connection.
     fn tenant<T>(&self, request: &Request<T>) -> Arc<Tenant> {
         if let Some(tenant) = request.extensions().get::<Arc<Tenant>>() {
@@ -440,14 +455,25 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
 
     #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
     async fn step(&self, request: Request<pb::StepRequest>) -> Result<Response<pb::Batch>, Status> {
-        let r = request.into_inner();
-        let store = self.store.clone();
-        let id = r.session_id;
-        let actions = r.actions;
-        let batch = self
-            .heavy_if_planner(&id.clone(), move || store.step(&id, &actions))
-            .await?;
-        Ok(Response::new(batch_to(batch)))
+        self.step_one(request.into_inner()).await.map(Response::new)
+    }
+
+    type StepStreamStream = StepReplies;
+
+    #[tracing::instrument(level = "debug", skip_all)]
+    async fn step_stream(
+        &self,
+        request: Request<Streaming<pb::StepRequest>>,
+    ) -> Result<Response<StepReplies>, Status> {
+        let inbound = Inbound {
+            service: self.clone(),
+            requests: request.into_inner(),
+            stopping: self.stopping.clone(),
+        };
+        Ok(Response::new(StepReplies {
+            next: Some(Box::pin(inbound.next())),
+            handed: false,
+        }))
     }
 
     #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
@@ -582,6 +608,88 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             max_message_bytes: MAX_MESSAGE_BYTES as u64,
             snapshot_version: u32::from(SNAPSHOT_VERSION),
         }))
+    }
+}
+
+/// The reply of one StepStream request and the stream's state for the next; `None`: the client
+/// closed its side.
+type NextReply = Option<(Result<pb::Batch, Status>, Inbound)>;
+
+/// The replies of one StepStream, computed one at a time as the transport asks for them: the
+/// next request is read only once the previous reply has been handed on (see
+/// [`StepReplies::poll_next`]), so a client that does not read its replies holds at most one
+/// reply beyond HTTP/2 flow control, and stops the server reading its requests.
+pub struct StepReplies {
+    /// Reads the next request and steps it; `None` once the stream has ended.
+    next: Option<Pin<Box<dyn Future<Output = NextReply> + Send>>>,
+    /// A reply was just yielded and not yet handed to the transport.
+    handed: bool,
+}
+
+/// What a StepStream reads from.
+struct Inbound {
+    /// Steps each request as the unary Step does.
+    service: DinerDashService,
+    /// The client's requests.
+    requests: Streaming<pb::StepRequest>,
+    /// Fires when the server drains.
+    stopping: Shutdown,
+}
+
+impl Inbound {
+    /// Waits for the next request (or the server's shutdown) and steps it.
+    async fn next(mut self) -> NextReply {
+        let message = tokio::select! {
+            // A draining server answers UNAVAILABLE, as it does new unary calls; a stream waiting
+            // for a request ends at once rather than holding the drain until its deadline.
+            biased;
+            () = self.stopping.wait() => return Some((Err(shutting_down()), self)),
+            message = self.requests.message() => message,
+        };
+        match message {
+            Ok(Some(request)) => {
+                let reply = self.service.step_one(request).await;
+                Some((reply, self))
+            }
+            Ok(None) => None,
+            // Undecodable or oversized (the codec's and transport's statuses, as for Step), or
+            // the client reset the stream.
+            Err(status) => Some((Err(status), self)),
+        }
+    }
+}
+
+impl tokio_stream::Stream for StepReplies {
+    type Item = Result<pb::Batch, Status>;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        // tonic's encoder polls again right after a reply, to pack more into one frame: answer
+        // Pending once (waking ourselves), so that the reply goes to the transport before the
+        // next request is read. Without this, a client pipelining requests without reading
+        // would have up to the encoder's 32 KiB of replies computed ahead of flow control.
+        if std::mem::take(&mut self.handed) {
+            cx.waker().wake_by_ref();
+            return Poll::Pending;
+        }
+        let Some(next) = self.next.as_mut() else {
+            return Poll::Ready(None);
+        };
+        match next.as_mut().poll(cx) {
+            Poll::Pending => Poll::Pending,
+            Poll::Ready(None) => {
+                self.next = None;
+                Poll::Ready(None)
+            }
+            Poll::Ready(Some((reply, inbound))) => {
+                // An error ends the stream, as it ends a unary call.
+                self.next = match reply {
+                    Ok(_) => Some(Box::pin(inbound.next())),
+                    Err(_) => None,
+                };
+                self.handed = true;
+                Poll::Ready(Some(reply))
+            }
+        }
     }
 }
 

@@ -54,6 +54,11 @@ class DinerDashStub:
                 request_serializer=dinerdash_dot_v1_dot_dinerdash__pb2.StepRequest.SerializeToString,
                 response_deserializer=dinerdash_dot_v1_dot_dinerdash__pb2.Batch.FromString,
                 _registered_method=True)
+        self.StepStream = channel.stream_stream(
+                '/dinerdash.v1.DinerDash/StepStream',
+                request_serializer=dinerdash_dot_v1_dot_dinerdash__pb2.StepRequest.SerializeToString,
+                response_deserializer=dinerdash_dot_v1_dot_dinerdash__pb2.Batch.FromString,
+                _registered_method=True)
         self.Fork = channel.unary_unary(
                 '/dinerdash.v1.DinerDash/Fork',
                 request_serializer=dinerdash_dot_v1_dot_dinerdash__pb2.ForkRequest.SerializeToString,
@@ -122,6 +127,24 @@ class DinerDashServicer:
         Errors: NOT_FOUND, INVALID_ARGUMENT (actions not N little-endian int32, an action outside
         0..=56), FAILED_PRECONDITION (never reset; or, with autoreset DISABLED, an episode is over:
         "episode is over; call reset").
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def StepStream(self, request_iterator, context):
+        """Step for a session's hot path: one long-lived stream, one StepRequest in and one Batch out
+        per step, in order, without per-call headers and trailers. Each request is handled exactly as
+        a unary Step (it may name any session the caller may use); the reply to request k is handed
+        to HTTP/2 before request k + 1 is read, so a client that does not read its replies stops
+        the stream once flow control is full.
+        The client ends the stream by closing its side (the server then ends it with OK).
+        Errors, each ending the stream (replies to earlier requests stay valid): those of Step, with
+        the same code, message and details, for the request that caused it (a refused step is not
+        applied); UNAVAILABLE once the server shuts down, also on a stream waiting for its next
+        request. Authentication is checked once, when the stream opens. An idle stream is an idle
+        connection: kept open while the client answers the server's keepalive pings, closed when it
+        does not; a session left unstepped still expires after the session TTL (then NOT_FOUND).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -200,6 +223,11 @@ def add_DinerDashServicer_to_server(servicer, server):
             ),
             'Step': grpc.unary_unary_rpc_method_handler(
                     servicer.Step,
+                    request_deserializer=dinerdash_dot_v1_dot_dinerdash__pb2.StepRequest.FromString,
+                    response_serializer=dinerdash_dot_v1_dot_dinerdash__pb2.Batch.SerializeToString,
+            ),
+            'StepStream': grpc.stream_stream_rpc_method_handler(
+                    servicer.StepStream,
                     request_deserializer=dinerdash_dot_v1_dot_dinerdash__pb2.StepRequest.FromString,
                     response_serializer=dinerdash_dot_v1_dot_dinerdash__pb2.Batch.SerializeToString,
             ),
@@ -340,6 +368,33 @@ class DinerDash:
             request,
             target,
             '/dinerdash.v1.DinerDash/Step',
+            dinerdash_dot_v1_dot_dinerdash__pb2.StepRequest.SerializeToString,
+            dinerdash_dot_v1_dot_dinerdash__pb2.Batch.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def StepStream(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/dinerdash.v1.DinerDash/StepStream',
             dinerdash_dot_v1_dot_dinerdash__pb2.StepRequest.SerializeToString,
             dinerdash_dot_v1_dot_dinerdash__pb2.Batch.FromString,
             options,
