@@ -84,12 +84,20 @@ impl Mt19937 {
     }
 
     fn regenerate(&mut self) {
+        // The reference's three loops: no index wraps inside a loop, so no `% N` per word (a
+        // reset draws ~470 words: this ran once per reset and a half).
+        let twist = |this: u32, next: u32, far: u32| {
+            let y = (this & UPPER_MASK) | (next & LOWER_MASK);
+            far ^ (y >> 1) ^ (y & 1).wrapping_neg() & MATRIX_A
+        };
         let s = &mut self.state;
-        for k in 0..N {
-            let y = (s[k] & UPPER_MASK) | (s[(k + 1) % N] & LOWER_MASK);
-            let mag = if y & 1 == 1 { MATRIX_A } else { 0 };
-            s[k] = s[(k + M) % N] ^ (y >> 1) ^ mag;
+        for k in 0..N - M {
+            s[k] = twist(s[k], s[k + 1], s[k + M]);
         }
+        for k in N - M..N - 1 {
+            s[k] = twist(s[k], s[k + 1], s[k + M - N]);
+        }
+        s[N - 1] = twist(s[N - 1], s[0], s[M - 1]);
         self.index = 0;
     }
 
