@@ -157,7 +157,9 @@ criterion_group!(benches, batch);
 
 fn main() {
     if let Ok(steps) = std::env::var("DD_BATCH_PROFILE") {
-        let steps: usize = steps.parse().expect("DD_BATCH_PROFILE is a number of Steps");
+        let steps: usize = steps
+            .parse()
+            .expect("DD_BATCH_PROFILE is a number of Steps");
         let actions = random_actions(1);
         let mut envs = envs(&actions);
         let bytes = profile_loop(&mut envs, &actions, steps);
