@@ -138,18 +138,10 @@ fn put<const W: usize>(array: &mut [u8], i: usize, bytes: [u8; W]) {
     array[i * W..][..W].copy_from_slice(&bytes);
 }
 
-/// Writes `values` as row `i` of an array of rows of `W` bytes, each as its byte on the wire
-/// (int8 observations, 0/1 mask flags). Converted in place: an array `map` first was a call of
-/// its own per row.
-fn put_as_bytes<T: Copy, const W: usize>(
-    array: &mut [u8],
-    i: usize,
-    values: &[T; W],
-    byte: impl Fn(T) -> u8,
-) {
-    for (out, &v) in array[i * W..][..W].iter_mut().zip(values) {
-        *out = byte(v);
-    }
+/// Row `i` of an array of rows of `W` bytes, for the simulator to write the observation or the
+/// mask into in place (an array returned and copied stalls on the store buffer).
+fn row<const W: usize>(array: &mut [u8], i: usize) -> &mut [u8; W] {
+    <&mut [u8; W]>::try_from(&mut array[i * W..][..W]).expect("a slice of W bytes")
 }
 
 impl Batch {
@@ -204,12 +196,12 @@ impl Batch {
             self.seeds[i] = info.seed;
             self.stream_episodes[i] = info.stream_episodes;
         }
-        put_as_bytes(&mut self.observations, i, &r.observation(), |v| v as u8);
+        r.write_observation(row(&mut self.observations, i), |v| v as u8);
         put(&mut self.scores, i, to_i32(r.score()).to_le_bytes());
         put(&mut self.lost, i, r.lost().to_le_bytes());
         put(&mut self.ticks, i, r.tick().to_le_bytes());
         if options.action_masks {
-            put_as_bytes(&mut self.action_masks, i, &r.action_mask(), u8::from);
+            r.write_action_mask(row(&mut self.action_masks, i));
         }
         if options.expert_actions.enabled() {
             self.expert_actions[i] = options.expert_actions.choose(game);

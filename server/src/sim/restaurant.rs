@@ -503,34 +503,46 @@ impl Restaurant {
     /// environments follow no pattern a branch predictor could learn.
     pub fn action_mask(&self) -> ActionMask {
         let mut mask = [false; NUM_ACTIONS];
+        self.write_action_mask(&mut mask);
+        mask
+    }
+
+    /// [`Self::action_mask`] written into `out`, as any type a flag converts to: the server
+    /// writes 0/1 bytes straight into its reply. (A mask returned and then copied is written
+    /// byte by byte and read back in wide loads, which stall on the store buffer.)
+    pub fn write_action_mask<T: From<bool> + Copy>(&self, out: &mut [T; NUM_ACTIONS]) {
+        out.fill(T::from(false));
+        let mask = out;
         let [first, second] = self.hands;
         // Hands fill in order, so a hand is free exactly when the last slot is empty.
         let free_hand = second == EMPTY;
         let is_order = |i: Item| (1..=6).contains(&i);
-        mask[usize::from(WAIT)] = true;
-        mask[usize::from(HAND_IN_ORDERS)] = is_order(first) | is_order(second);
-        mask[usize::from(DROP_DISHES)] = (first > 12) | (second > 12);
+        mask[usize::from(WAIT)] = T::from(true);
+        mask[usize::from(HAND_IN_ORDERS)] = T::from(is_order(first) | is_order(second));
+        mask[usize::from(DROP_DISHES)] = T::from((first > 12) | (second > 12));
         let on_counters = self.food_on_counters();
         let mut free_tables = 0u8;
         for (i, table) in self.tables.iter().enumerate() {
             let t = i as u8 + 1;
             let s = table.status;
             let has_food = (first == food(t)) | (second == food(t));
-            mask[usize::from(FIRST_GO_TO) + i] =
+            mask[usize::from(FIRST_GO_TO) + i] = T::from(
                 ((s == status::READY_TO_ORDER) | (s == status::DISHES)) & free_hand
                     | (s == status::WAITING_FOR_FOOD) & has_food
-                    | (s == status::WAITING_FOR_BILL);
-            mask[usize::from(FIRST_PICK_UP) + i] = free_hand & (on_counters >> t & 1 == 1);
+                    | (s == status::WAITING_FOR_BILL),
+            );
+            mask[usize::from(FIRST_PICK_UP) + i] = T::from(free_hand & (on_counters >> t & 1 == 1));
             free_tables |= u8::from(s == status::FREE) << i;
         }
         if free_tables != 0 {
             for (g, group) in self.queue().iter().enumerate() {
                 let fits = free_tables & FITS[usize::from(group.size)];
-                mask[usize::from(FIRST_SEAT) + NUM_TABLES * g..][..NUM_TABLES]
-                    .copy_from_slice(&SPREAD[usize::from(fits)]);
+                let seats = &mut mask[usize::from(FIRST_SEAT) + NUM_TABLES * g..][..NUM_TABLES];
+                for (seat, &fit) in seats.iter_mut().zip(&SPREAD[usize::from(fits)]) {
+                    *seat = T::from(fit);
+                }
             }
         }
-        mask
     }
 
     /// Applies an action (docs/rules.md §4.1); with `SHAPED`, adds the expert's shaping.
@@ -759,24 +771,36 @@ impl Restaurant {
     /// The 40-number observation of docs/rules.md §6.
     pub fn observation(&self) -> Observation {
         let mut obs = [0i8; OBSERVATION_SIZE];
+        self.write_observation(&mut obs, |v| v);
+        obs
+    }
+
+    /// [`Self::observation`] written into `out`, each number through `to`: the server writes
+    /// int8 bytes straight into its reply (see [`Self::write_action_mask`]).
+    pub fn write_observation<T: Copy>(
+        &self,
+        out: &mut [T; OBSERVATION_SIZE],
+        to: impl Fn(i8) -> T,
+    ) {
+        out.fill(to(0));
+        let obs = out;
         for (t, table) in self.tables.iter().enumerate() {
-            obs[3 * t] = table.status as i8;
-            obs[3 * t + 1] = TABLE_CAPACITIES[t] as i8;
+            obs[3 * t] = to(table.status as i8);
+            obs[3 * t + 1] = to(TABLE_CAPACITIES[t] as i8);
             // Computed for every table and selected, rather than a branch (see `action_mask`).
             let level = table.group.patience_level();
-            obs[3 * t + 2] = if table.is_seated() { level } else { -1 };
+            obs[3 * t + 2] = to(if table.is_seated() { level } else { -1 });
         }
         let on_counters = self.food_on_counters();
         for t in 0..NUM_TABLES {
-            obs[18 + t] = (on_counters >> (t + 1) & 1) as i8;
+            obs[18 + t] = to((on_counters >> (t + 1) & 1) as i8);
         }
         for (g, group) in self.queue().iter().enumerate() {
-            obs[24 + 2 * g] = group.patience_level();
-            obs[25 + 2 * g] = group.size as i8;
+            obs[24 + 2 * g] = to(group.patience_level());
+            obs[25 + 2 * g] = to(group.size as i8);
         }
-        obs[38] = self.hands[0] as i8;
-        obs[39] = self.hands[1] as i8;
-        obs
+        obs[38] = to(self.hands[0] as i8);
+        obs[39] = to(self.hands[1] as i8);
     }
 
     /// Checks what a deserialised state must satisfy so that no later step can misbehave and
