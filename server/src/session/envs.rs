@@ -11,7 +11,8 @@ use super::SessionError;
 use crate::expert::expert_action;
 use crate::planner::Planner;
 use crate::sim::{
-    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, render, snapshot,
+    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, StepOutcome, render,
+    snapshot,
 };
 
 /// Kind tag of a whole-session snapshot (a single game's is `DDgm`).
@@ -176,21 +177,18 @@ impl Batch {
     }
 
     /// Writes environment `i`'s row: what happened in this call, then the state it is in now.
-    #[allow(clippy::too_many_arguments)]
     fn put(
         &mut self,
         i: usize,
-        reward: i64,
-        terminated: bool,
-        truncated: bool,
+        outcome: StepOutcome,
         reset: Option<ResetInfo>,
         game: &Game,
         options: &SessionOptions,
     ) {
         let r = game.restaurant();
-        put(&mut self.rewards, i, to_i32(reward).to_le_bytes());
-        self.terminated[i] = u8::from(terminated);
-        self.truncated[i] = u8::from(truncated);
+        put(&mut self.rewards, i, to_i32(outcome.reward).to_le_bytes());
+        self.terminated[i] = u8::from(outcome.terminated);
+        self.truncated[i] = u8::from(outcome.truncated);
         if let Some(info) = reset {
             self.reset[i] = 1;
             self.seeds[i] = info.seed;
@@ -210,40 +208,30 @@ impl Batch {
 
     /// Environment `i` was just reset: reward 0, not done.
     fn put_reset(&mut self, i: usize, info: ResetInfo, game: &Game, options: &SessionOptions) {
-        self.put(i, 0, false, false, Some(info), game, options);
+        let nothing = StepOutcome::default();
+        self.put(i, nothing, Some(info), game, options);
     }
 
     /// A partial Reset left environment `i` alone: its current state, reward 0.
     fn put_unchanged(&mut self, i: usize, game: &Game, options: &SessionOptions) {
         let r = game.restaurant();
-        self.put(
-            i,
-            0,
-            r.is_terminated(),
-            r.is_truncated(),
-            None,
-            game,
-            options,
-        );
+        let state = StepOutcome {
+            reward: 0,
+            terminated: r.is_terminated(),
+            truncated: r.is_truncated(),
+        };
+        self.put(i, state, None, game, options);
     }
 
     /// Writes environment `i`'s ended episode (SAME_STEP); the rows of the others stay zero.
     fn put_final(&mut self, i: usize, ended: &Game, options: &SessionOptions) {
         let r = ended.restaurant();
-        put(
-            &mut self.final_observations,
-            i,
-            r.observation().map(|v| v as u8),
-        );
+        r.write_observation(row(&mut self.final_observations, i), |v| v as u8);
         put(&mut self.final_scores, i, to_i32(r.score()).to_le_bytes());
         put(&mut self.final_lost, i, r.lost().to_le_bytes());
         put(&mut self.final_ticks, i, r.tick().to_le_bytes());
         if options.action_masks {
-            put(
-                &mut self.final_action_masks,
-                i,
-                r.action_mask().map(u8::from),
-            );
+            r.write_action_mask(row(&mut self.final_action_masks, i));
         }
         if options.expert_actions.enabled() {
             self.final_expert_actions[i] = options.expert_actions.choose(ended);
@@ -472,15 +460,7 @@ impl Envs {
                 }
                 Autoreset::SameStep | Autoreset::Disabled => {}
             }
-            batch.put(
-                i,
-                outcome.reward,
-                outcome.terminated,
-                outcome.truncated,
-                reset,
-                &env.game,
-                &self.options,
-            );
+            batch.put(i, outcome, reset, &env.game, &self.options);
         }
         Ok(batch)
     }
