@@ -266,7 +266,9 @@ fn created(id: SessionId, spec: &SessionSpec) -> pb::CreateSessionResponse {
     }
 }
 
-fn batch_to(b: Batch) -> pb::Batch {
+/// A session's [`Batch`] as the protocol's: every array moved, none copied (public for the
+/// `batch` bench, which measures a Step's reply).
+pub fn batch_to(b: Batch) -> pb::Batch {
     pb::Batch {
         num_envs: b.num_envs,
         observations: b.observations,

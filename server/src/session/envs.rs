@@ -11,7 +11,8 @@ use super::SessionError;
 use crate::expert::expert_action;
 use crate::planner::Planner;
 use crate::sim::{
-    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, render, snapshot,
+    Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, StepOutcome, render,
+    snapshot,
 };
 
 /// Kind tag of a whole-session snapshot (a single game's is `DDgm`).
@@ -133,26 +134,39 @@ fn to_i32(v: i64) -> i32 {
     v.clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32
 }
 
+/// Writes `bytes` as row `i` of an array of rows of `W` bytes.
+fn put<const W: usize>(array: &mut [u8], i: usize, bytes: [u8; W]) {
+    array[i * W..][..W].copy_from_slice(&bytes);
+}
+
+/// Row `i` of an array of rows of `W` bytes, for the simulator to write the observation or the
+/// mask into in place (an array returned and copied stalls on the store buffer).
+fn row<const W: usize>(array: &mut [u8], i: usize) -> &mut [u8; W] {
+    <&mut [u8; W]>::try_from(&mut array[i * W..][..W]).expect("a slice of W bytes")
+}
+
 impl Batch {
-    /// An empty batch with room for `n` environments.
-    fn with_capacity(n: usize, options: &SessionOptions, finals: bool) -> Batch {
-        let finals_of = |width: usize| Vec::with_capacity(if finals { n * width } else { 0 });
+    /// A batch of `n` environments, every array at its full length and zero: each environment's
+    /// row is then written in place, whole arrays at a time. (Appending per element, with a
+    /// capacity check each, cost about as much as computing the rows.)
+    fn zeroed(n: usize, options: &SessionOptions, finals: bool) -> Batch {
+        let finals_of = |width: usize| vec![0; if finals { n * width } else { 0 }];
         let mask_width = if options.action_masks { NUM_ACTIONS } else { 0 };
         let expert_width = usize::from(options.expert_actions.enabled());
         Batch {
             num_envs: n as u32,
-            observations: Vec::with_capacity(n * OBSERVATION_SIZE),
-            rewards: Vec::with_capacity(n * 4),
-            terminated: Vec::with_capacity(n),
-            truncated: Vec::with_capacity(n),
-            scores: Vec::with_capacity(n * 4),
-            lost: Vec::with_capacity(n * 4),
-            ticks: Vec::with_capacity(n * 4),
-            action_masks: Vec::with_capacity(n * mask_width),
-            expert_actions: Vec::with_capacity(n * expert_width),
-            reset: Vec::with_capacity(n),
-            seeds: Vec::with_capacity(n),
-            stream_episodes: Vec::with_capacity(n),
+            observations: vec![0; n * OBSERVATION_SIZE],
+            rewards: vec![0; n * 4],
+            terminated: vec![0; n],
+            truncated: vec![0; n],
+            scores: vec![0; n * 4],
+            lost: vec![0; n * 4],
+            ticks: vec![0; n * 4],
+            action_masks: vec![0; n * mask_width],
+            expert_actions: vec![0; n * expert_width],
+            reset: vec![0; n],
+            seeds: vec![0; n],
+            stream_episodes: vec![0; n],
             final_observations: finals_of(OBSERVATION_SIZE),
             final_scores: finals_of(4),
             final_lost: finals_of(4),
@@ -162,85 +176,65 @@ impl Batch {
         }
     }
 
-    /// Appends one environment's row: what happened in this call, then the state it is in now.
-    fn push(
+    /// Writes environment `i`'s row: what happened in this call, then the state it is in now.
+    fn put(
         &mut self,
-        reward: i64,
-        terminated: bool,
-        truncated: bool,
+        i: usize,
+        outcome: StepOutcome,
         reset: Option<ResetInfo>,
         game: &Game,
         options: &SessionOptions,
     ) {
         let r = game.restaurant();
-        self.rewards
-            .extend_from_slice(&to_i32(reward).to_le_bytes());
-        self.terminated.push(u8::from(terminated));
-        self.truncated.push(u8::from(truncated));
-        self.reset.push(u8::from(reset.is_some()));
-        self.seeds.push(reset.map_or(0, |info| info.seed));
-        self.stream_episodes
-            .push(reset.map_or(0, |info| info.stream_episodes));
-        self.observations
-            .extend(r.observation().iter().map(|&v| v as u8));
-        self.scores
-            .extend_from_slice(&to_i32(r.score()).to_le_bytes());
-        self.lost.extend_from_slice(&r.lost().to_le_bytes());
-        self.ticks.extend_from_slice(&r.tick().to_le_bytes());
+        put(&mut self.rewards, i, to_i32(outcome.reward).to_le_bytes());
+        self.terminated[i] = u8::from(outcome.terminated);
+        self.truncated[i] = u8::from(outcome.truncated);
+        if let Some(info) = reset {
+            self.reset[i] = 1;
+            self.seeds[i] = info.seed;
+            self.stream_episodes[i] = info.stream_episodes;
+        }
+        r.write_observation(row(&mut self.observations, i), |v| v as u8);
+        put(&mut self.scores, i, to_i32(r.score()).to_le_bytes());
+        put(&mut self.lost, i, r.lost().to_le_bytes());
+        put(&mut self.ticks, i, r.tick().to_le_bytes());
         if options.action_masks {
-            self.action_masks
-                .extend(r.action_mask().iter().map(|&m| u8::from(m)));
+            r.write_action_mask(row(&mut self.action_masks, i));
         }
         if options.expert_actions.enabled() {
-            self.expert_actions
-                .push(options.expert_actions.choose(game));
+            self.expert_actions[i] = options.expert_actions.choose(game);
         }
     }
 
-    /// An environment that was just reset: reward 0, not done.
-    fn push_reset(&mut self, info: ResetInfo, game: &Game, options: &SessionOptions) {
-        self.push(0, false, false, Some(info), game, options);
+    /// Environment `i` was just reset: reward 0, not done.
+    fn put_reset(&mut self, i: usize, info: ResetInfo, game: &Game, options: &SessionOptions) {
+        let nothing = StepOutcome::default();
+        self.put(i, nothing, Some(info), game, options);
     }
 
-    /// An environment that a partial Reset left alone: its current state, reward 0.
-    fn push_unchanged(&mut self, game: &Game, options: &SessionOptions) {
+    /// A partial Reset left environment `i` alone: its current state, reward 0.
+    fn put_unchanged(&mut self, i: usize, game: &Game, options: &SessionOptions) {
         let r = game.restaurant();
-        self.push(0, r.is_terminated(), r.is_truncated(), None, game, options);
+        let state = StepOutcome {
+            reward: 0,
+            terminated: r.is_terminated(),
+            truncated: r.is_truncated(),
+        };
+        self.put(i, state, None, game, options);
     }
 
-    /// Appends one environment's ended episode (SAME_STEP), or zeros when it did not end.
-    fn push_final(&mut self, ended: Option<&Game>, options: &SessionOptions) {
-        match ended {
-            Some(game) => {
-                let r = game.restaurant();
-                self.final_observations
-                    .extend(r.observation().iter().map(|&v| v as u8));
-                self.final_scores
-                    .extend_from_slice(&to_i32(r.score()).to_le_bytes());
-                self.final_lost.extend_from_slice(&r.lost().to_le_bytes());
-                self.final_ticks.extend_from_slice(&r.tick().to_le_bytes());
-                if options.action_masks {
-                    self.final_action_masks
-                        .extend(r.action_mask().iter().map(|&m| u8::from(m)));
-                }
-                if options.expert_actions.enabled() {
-                    self.final_expert_actions
-                        .push(options.expert_actions.choose(game));
-                }
-            }
-            None => {
-                self.final_observations
-                    .extend_from_slice(&[0; OBSERVATION_SIZE]);
-                self.final_scores.extend_from_slice(&[0; 4]);
-                self.final_lost.extend_from_slice(&[0; 4]);
-                self.final_ticks.extend_from_slice(&[0; 4]);
-                if options.action_masks {
-                    self.final_action_masks.extend_from_slice(&[0; NUM_ACTIONS]);
-                }
-                if options.expert_actions.enabled() {
-                    self.final_expert_actions.push(0);
-                }
-            }
+    /// Writes environment `i`'s ended episode (SAME_STEP); the rows of the others stay zero.
+    fn put_final(&mut self, i: usize, ended: &Game, options: &SessionOptions) {
+        let r = ended.restaurant();
+        r.write_observation(row(&mut self.final_observations, i), |v| v as u8);
+        put(&mut self.final_scores, i, to_i32(r.score()).to_le_bytes());
+        put(&mut self.final_lost, i, r.lost().to_le_bytes());
+        put(&mut self.final_ticks, i, r.tick().to_le_bytes());
+        if options.action_masks {
+            r.write_action_mask(row(&mut self.final_action_masks, i));
+        }
+        if options.expert_actions.enabled() {
+            self.final_expert_actions[i] = options.expert_actions.choose(ended);
         }
     }
 
@@ -380,10 +374,10 @@ impl Envs {
         } else {
             None
         });
-        let mut batch = Batch::with_capacity(n, &self.options, false);
+        let mut batch = Batch::zeroed(n, &self.options, false);
         for (i, env) in self.envs.iter_mut().enumerate() {
             if partial && !args.reset_mask[i] {
-                batch.push_unchanged(&env.game, &self.options);
+                batch.put_unchanged(i, &env.game, &self.options);
                 continue;
             }
             if let Some(config) = args.config {
@@ -405,7 +399,7 @@ impl Envs {
                 .reset(seed, arrivals.map(Vec::as_slice))
                 .map_err(internal)?;
             env.autoreset_pending = false;
-            batch.push_reset(info, &env.game, &self.options);
+            batch.put_reset(i, info, &env.game, &self.options);
         }
         Ok(batch)
     }
@@ -440,14 +434,19 @@ impl Envs {
             }
         }
 
-        let mut batch = Batch::with_capacity(n, &self.options, mode == Autoreset::SameStep);
-        for (env, a) in self.envs.iter_mut().zip(actions.chunks_exact(4)) {
+        let mut batch = Batch::zeroed(n, &self.options, mode == Autoreset::SameStep);
+        for (i, (env, a)) in self
+            .envs
+            .iter_mut()
+            .zip(actions.chunks_exact(4))
+            .enumerate()
+        {
             let action = i64::from(i32::from_le_bytes([a[0], a[1], a[2], a[3]]));
             if env.autoreset_pending {
                 // NEXT_STEP: this Step resets the environment and ignores its action.
                 let info = env.game.reset(None, None).map_err(internal)?;
                 env.autoreset_pending = false;
-                batch.push_reset(info, &env.game, &self.options);
+                batch.put_reset(i, info, &env.game, &self.options);
                 continue;
             }
             let outcome = env.game.step(action).map_err(internal)?;
@@ -456,20 +455,12 @@ impl Envs {
             match mode {
                 Autoreset::NextStep => env.autoreset_pending = ended,
                 Autoreset::SameStep if ended => {
-                    batch.push_final(Some(&env.game), &self.options);
+                    batch.put_final(i, &env.game, &self.options);
                     reset = Some(env.game.reset(None, None).map_err(internal)?);
                 }
-                Autoreset::SameStep => batch.push_final(None, &self.options),
-                Autoreset::Disabled => {}
+                Autoreset::SameStep | Autoreset::Disabled => {}
             }
-            batch.push(
-                outcome.reward,
-                outcome.terminated,
-                outcome.truncated,
-                reset,
-                &env.game,
-                &self.options,
-            );
+            batch.put(i, outcome, reset, &env.game, &self.options);
         }
         Ok(batch)
     }

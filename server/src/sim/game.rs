@@ -102,10 +102,10 @@ impl Game {
         let (list, len) = match explicit {
             Some(packed) => packed,
             None => {
+                let mut draws = [[0u32; 2]; MAX_ARRIVALS];
+                rng.uniform_pairs([(1, 2), (1, 6)], &mut draws);
                 let mut list = [0u8; MAX_ARRIVALS];
-                for entry in &mut list {
-                    let customer_type = rng.uniform(1, 2);
-                    let size = rng.uniform(1, 6);
+                for (entry, [customer_type, size]) in list.iter_mut().zip(draws) {
                     *entry = (customer_type << 4 | size) as u8;
                 }
                 self.stream_episodes += 1;

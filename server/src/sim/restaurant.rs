@@ -110,13 +110,15 @@ impl Group {
 
     /// One tick of impatience; returns whether the group has run out of patience.
     fn decay(&mut self, config: &Config) -> bool {
-        let d = config.decay[usize::from(self.customer_type - 1)] as i32;
-        self.buffer -= d;
-        if self.buffer < 0 {
-            // The overshoot is not carried into P (docs/rules.md §5.1).
-            self.patience -= d;
-            self.buffer = 0;
-        }
+        // Customer types are 1 and 2; the mask keeps the index in bounds for the empty group that
+        // a free table holds, whose decay is computed and thrown away (see `advance`).
+        let d = config.decay[usize::from(self.customer_type.wrapping_sub(1) & 1)] as i32;
+        let buffer = self.buffer - d;
+        // The overshoot is not carried into P (docs/rules.md §5.1). Written as selects, not a
+        // branch: the server decays thousands of unrelated groups in a row, so no pattern
+        // predicts it.
+        self.patience -= if buffer < 0 { d } else { 0 };
+        self.buffer = buffer.max(0);
         self.patience <= 0
     }
 
@@ -139,9 +141,42 @@ struct Table {
 
 impl Table {
     fn is_seated(&self) -> bool {
-        !matches!(self.status, status::FREE | status::DISHES)
+        (self.status != status::FREE) & (self.status != status::DISHES)
     }
 }
+
+/// Bit `t` of `FITS[size]`: table `t + 1` seats a group of `size`.
+const FITS: [u8; 7] = {
+    let mut fits = [0u8; 7];
+    let mut size = 0;
+    while size < 7 {
+        let mut t = 0;
+        while t < NUM_TABLES {
+            if size as u8 <= TABLE_CAPACITIES[t] {
+                fits[size] |= 1 << t;
+            }
+            t += 1;
+        }
+        size += 1;
+    }
+    fits
+};
+
+/// `SPREAD[bits]`: the six low bits of `bits` as six flags, the mask entries of seating one group
+/// at tables 1..=6.
+const SPREAD: [[bool; NUM_TABLES]; 64] = {
+    let mut spread = [[false; NUM_TABLES]; 64];
+    let mut bits = 0;
+    while bits < 64 {
+        let mut t = 0;
+        while t < NUM_TABLES {
+            spread[bits][t] = bits >> t & 1 == 1;
+            t += 1;
+        }
+        bits += 1;
+    }
+    spread
+};
 
 /// An order handed to the kitchen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -454,32 +489,60 @@ impl Restaurant {
         }
     }
 
+    /// Bit `t` set: food of table `t` lies on a counter (bit 0: a counter slot is empty).
+    fn food_on_counters(&self) -> u32 {
+        // Counter slots hold 0..=6 (`check`), so the shift stays inside the word.
+        self.counters
+            .iter()
+            .fold(0, |bits, &t| bits | 1u32.wrapping_shl(u32::from(t)))
+    }
+
     /// The action mask of docs/rules.md §7: [`Self::is_legal`] for every action, computed in one
-    /// pass (the server builds one per environment per step).
+    /// pass (the server builds one per environment per step). Flags are combined with `&` and
+    /// `|` rather than branches, and seating reads whole rows of a table: the states of unrelated
+    /// environments follow no pattern a branch predictor could learn.
     pub fn action_mask(&self) -> ActionMask {
         let mut mask = [false; NUM_ACTIONS];
+        self.write_action_mask(&mut mask);
+        mask
+    }
+
+    /// [`Self::action_mask`] written into `out`, as any type a flag converts to: the server
+    /// writes 0/1 bytes straight into its reply. (A mask returned and then copied is written
+    /// byte by byte and read back in wide loads, which stall on the store buffer.)
+    pub fn write_action_mask<T: From<bool> + Copy>(&self, out: &mut [T; NUM_ACTIONS]) {
+        out.fill(T::from(false));
+        let mask = out;
+        let [first, second] = self.hands;
         // Hands fill in order, so a hand is free exactly when the last slot is empty.
-        let free_hand = self.hands[HAND_CAPACITY - 1] == EMPTY;
-        mask[usize::from(WAIT)] = true;
-        mask[usize::from(HAND_IN_ORDERS)] = self.hands.iter().any(|&i| (1..=6).contains(&i));
-        mask[usize::from(DROP_DISHES)] = self.hands.iter().any(|&i| i > 12);
+        let free_hand = second == EMPTY;
+        let is_order = |i: Item| (1..=6).contains(&i);
+        mask[usize::from(WAIT)] = T::from(true);
+        mask[usize::from(HAND_IN_ORDERS)] = T::from(is_order(first) | is_order(second));
+        mask[usize::from(DROP_DISHES)] = T::from((first > 12) | (second > 12));
+        let on_counters = self.food_on_counters();
+        let mut free_tables = 0u8;
         for (i, table) in self.tables.iter().enumerate() {
             let t = i as u8 + 1;
-            mask[usize::from(FIRST_GO_TO + t - 1)] = match table.status {
-                status::READY_TO_ORDER | status::DISHES => free_hand,
-                status::WAITING_FOR_FOOD => self.hands.contains(&food(t)),
-                status::WAITING_FOR_BILL => true,
-                _ => false,
-            };
-            mask[usize::from(FIRST_PICK_UP + t - 1)] = free_hand && self.counter_holds(t);
+            let s = table.status;
+            let has_food = (first == food(t)) | (second == food(t));
+            mask[usize::from(FIRST_GO_TO) + i] = T::from(
+                ((s == status::READY_TO_ORDER) | (s == status::DISHES)) & free_hand
+                    | (s == status::WAITING_FOR_FOOD) & has_food
+                    | (s == status::WAITING_FOR_BILL),
+            );
+            mask[usize::from(FIRST_PICK_UP) + i] = T::from(free_hand & (on_counters >> t & 1 == 1));
+            free_tables |= u8::from(s == status::FREE) << i;
         }
-        for (g, group) in self.queue().iter().enumerate() {
-            for (t, table) in self.tables.iter().enumerate() {
-                mask[usize::from(FIRST_SEAT) + 6 * g + t] =
-                    table.status == status::FREE && group.size <= TABLE_CAPACITIES[t];
+        if free_tables != 0 {
+            for (g, group) in self.queue().iter().enumerate() {
+                let fits = free_tables & FITS[usize::from(group.size)];
+                let seats = &mut mask[usize::from(FIRST_SEAT) + NUM_TABLES * g..][..NUM_TABLES];
+                for (seat, &fit) in seats.iter_mut().zip(&SPREAD[usize::from(fits)]) {
+                    *seat = T::from(fit);
+                }
             }
         }
-        mask
     }
 
     /// Applies an action (docs/rules.md §4.1); with `SHAPED`, adds the expert's shaping.
@@ -606,10 +669,25 @@ impl Restaurant {
         }
         self.queue_len = kept as u8;
 
-        // 2. Seated groups lose patience; at 0 they run away.
+        // 2. Seated groups lose patience; at 0 they run away. Every table's group is decayed and
+        // only a seated one keeps the result: selects rather than a branch on the status, which
+        // no predictor can guess across environments.
         for t in 1..=NUM_TABLES as u8 {
             let table = &mut self.tables[usize::from(t - 1)];
-            if table.is_seated() && table.group.decay(&config) {
+            let seated = table.is_seated();
+            let mut group = table.group;
+            let gone = group.decay(&config);
+            table.group.patience = if seated {
+                group.patience
+            } else {
+                table.group.patience
+            };
+            table.group.buffer = if seated {
+                group.buffer
+            } else {
+                table.group.buffer
+            };
+            if seated && gone {
                 *table = Table::default();
                 self.run_away(t);
             }
@@ -636,17 +714,19 @@ impl Restaurant {
         }
         self.orders_len = kept as u8;
 
-        // 4. Reading and eating end.
+        // 4. Reading and eating end (selects, as in 2.; `since` is only meaningful while
+        // reading or eating, hence the wrapping difference).
         for table in &mut self.tables {
-            match table.status {
-                status::READING if now - table.since >= config.reading_ticks => {
-                    table.status = status::READY_TO_ORDER;
-                }
-                status::EATING if now - table.since >= config.eating_ticks => {
-                    table.status = status::WAITING_FOR_BILL;
-                }
-                _ => {}
-            }
+            let elapsed = now.wrapping_sub(table.since);
+            let read = (table.status == status::READING) & (elapsed >= config.reading_ticks);
+            let eaten = (table.status == status::EATING) & (elapsed >= config.eating_ticks);
+            table.status = if read {
+                status::READY_TO_ORDER
+            } else if eaten {
+                status::WAITING_FOR_BILL
+            } else {
+                table.status
+            };
         }
 
         // 5. Arrivals.
@@ -691,27 +771,36 @@ impl Restaurant {
     /// The 40-number observation of docs/rules.md §6.
     pub fn observation(&self) -> Observation {
         let mut obs = [0i8; OBSERVATION_SIZE];
+        self.write_observation(&mut obs, |v| v);
+        obs
+    }
+
+    /// [`Self::observation`] written into `out`, each number through `to`: the server writes
+    /// int8 bytes straight into its reply (see [`Self::write_action_mask`]).
+    pub fn write_observation<T: Copy>(
+        &self,
+        out: &mut [T; OBSERVATION_SIZE],
+        to: impl Fn(i8) -> T,
+    ) {
+        out.fill(to(0));
+        let obs = out;
         for (t, table) in self.tables.iter().enumerate() {
-            obs[3 * t] = table.status as i8;
-            obs[3 * t + 1] = TABLE_CAPACITIES[t] as i8;
-            obs[3 * t + 2] = if table.is_seated() {
-                table.group.patience_level()
-            } else {
-                -1
-            };
+            obs[3 * t] = to(table.status as i8);
+            obs[3 * t + 1] = to(TABLE_CAPACITIES[t] as i8);
+            // Computed for every table and selected, rather than a branch (see `action_mask`).
+            let level = table.group.patience_level();
+            obs[3 * t + 2] = to(if table.is_seated() { level } else { -1 });
         }
-        for &t in &self.counters {
-            if t != 0 {
-                obs[18 + usize::from(t - 1)] = 1;
-            }
+        let on_counters = self.food_on_counters();
+        for t in 0..NUM_TABLES {
+            obs[18 + t] = to((on_counters >> (t + 1) & 1) as i8);
         }
         for (g, group) in self.queue().iter().enumerate() {
-            obs[24 + 2 * g] = group.patience_level();
-            obs[25 + 2 * g] = group.size as i8;
+            obs[24 + 2 * g] = to(group.patience_level());
+            obs[25 + 2 * g] = to(group.size as i8);
         }
-        obs[38] = self.hands[0] as i8;
-        obs[39] = self.hands[1] as i8;
-        obs
+        obs[38] = to(self.hands[0] as i8);
+        obs[39] = to(self.hands[1] as i8);
     }
 
     /// Checks what a deserialised state must satisfy so that no later step can misbehave and
