@@ -204,7 +204,11 @@ def run(args: argparse.Namespace, connection: dict[str, Any]) -> None:
     reference = None
 
     def times(rate: float) -> str:
-        return f"{rate / reference:.1f}x the reference" if reference else "no reference run"
+        return (
+            f"{rate / reference:.{2 if rate < reference else 1}f}x the reference"
+            if reference
+            else "no reference run"
+        )
 
     # The floors first, before any gRPC thread competes with them.
     floor = tcp_floor()

@@ -7,9 +7,9 @@ packed little-endian ``int32``; the reply's packed arrays are turned into numpy 
 
 Scale-out: ``address`` may be a list of servers (or a DNS name that resolves to several). The N
 environments are then split into contiguous slices, one batched session per server, and the
-servers are called concurrently (gRPC futures). Environment ``i`` is seeded with ``seed + i``
-whatever server holds it, so the trajectories are the same as on one server. A session's calls
-always go to the server that created it.
+servers are called concurrently (each server's Step by a thread of the env). Environment ``i`` is
+seeded with ``seed + i`` whatever server holds it, so the trajectories are the same as on one
+server. A session's calls always go to the server that created it.
 """
 
 from __future__ import annotations
