@@ -145,7 +145,7 @@ def test_server_errors_arrive_at_step_wait_as_from_step(two, spread) -> None:
         envs.close()
 
 
-def test_step_wait_timeout_keeps_the_step_pending(start_server) -> None:
+def test_step_wait_timeout_or_interrupt_keeps_the_step_pending(start_server) -> None:
     server = start_server()
     envs = DinerDashVectorEnv(2, server.address)
     try:
@@ -157,6 +157,15 @@ def test_step_wait_timeout_keeps_the_step_pending(start_server) -> None:
                 envs.step_wait(timeout=0.2)
             with pytest.raises(AlreadyPendingCallError):
                 envs.step_async(np.zeros(2, dtype=np.int64))
+            # Ctrl-C while waiting loses nothing either: the step stays pending.
+            main = threading.main_thread().ident
+            interrupt = threading.Timer(0.2, signal.pthread_kill, (main, signal.SIGINT))
+            interrupt.start()
+            try:
+                with pytest.raises(KeyboardInterrupt):
+                    envs.step_wait()
+            finally:
+                interrupt.join()
         finally:
             server.proc.send_signal(signal.SIGCONT)
         _, _, _, _, info = envs.step_wait(timeout=30)

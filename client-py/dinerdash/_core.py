@@ -101,11 +101,15 @@ class Caller:
     def submit(self, item: Any) -> None:
         self._requests.put(item)
 
-    def wait(self, deadline: float) -> bool:
-        """True when the reply is in by ``deadline`` (it is then kept for :meth:`result`)."""
+    def wait(self, deadline: float | None = None) -> bool:
+        """True when the reply is in by ``deadline`` (``None``: waits for it); it is then kept for
+        :meth:`result`. An interrupted wait (Ctrl-C) loses nothing: the reply stays queued."""
         if self._reply is None:
             try:
-                self._reply = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
+                if deadline is None:
+                    self._reply = self._replies.get()
+                else:
+                    self._reply = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
                 return False
         return True
@@ -326,9 +330,9 @@ class SessionCore:
             self.caller = Caller(self.step, f"dinerdash-step-{self.index}")
         self.caller.submit(actions)
 
-    def step_ready(self, deadline: float) -> bool:
+    def step_ready(self, deadline: float | None = None) -> bool:
         """True when the Step begun by :meth:`start_step` has its outcome by ``deadline``
-        (a :func:`time.monotonic` time)."""
+        (a :func:`time.monotonic` time; ``None``: waits for it)."""
         return self.caller.wait(deadline)
 
     def finish_step(self) -> pb.Batch:

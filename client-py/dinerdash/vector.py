@@ -364,7 +364,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     def _finish(self) -> list[pb.Batch]:
         """Every core's Batch of the pending step. Every reply is awaited (and every core
-        updated) before the first error, if any, is raised: no server's step goes unrecorded."""
+        updated) before the first error, if any, is raised: no server's step goes unrecorded. An
+        interrupted wait (Ctrl-C) leaves the step pending, to be collected by ``step_wait()``."""
+        for core in self._cores:
+            core.step_ready()
         self._pending = False
         batches, error = [], None
         for core in self._cores:
