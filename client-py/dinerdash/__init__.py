@@ -17,6 +17,8 @@ Layout:
     render      the rgb_array picture, drawn with numpy
     rollout     rollout(): server-side expert/random episodes, streamed
     cli         ``python -m dinerdash`` (evaluate, collect, bench)
+    bench       the bench command: the client's rates beside the TCP floor and the reference
+    pysim       the rules in plain Python, the reference that bench measures against
     sb3         make_vec_env(): a stable-baselines3 VecEnv over one batched session (extra [sb3])
 """
 
