@@ -145,6 +145,35 @@ fn row<const W: usize>(array: &mut [u8], i: usize) -> &mut [u8; W] {
     <&mut [u8; W]>::try_from(&mut array[i * W..][..W]).expect("a slice of W bytes")
 }
 
+/// The arrays that describe a state, row per environment: a Batch's current ones, or the
+/// `final_*` ones of the episodes that ended (SAME_STEP).
+struct StateRows<'a> {
+    observations: &'a mut [u8],
+    scores: &'a mut [u8],
+    lost: &'a mut [u8],
+    ticks: &'a mut [u8],
+    action_masks: &'a mut [u8],
+    expert_actions: &'a mut [u8],
+}
+
+impl StateRows<'_> {
+    /// Writes `game`'s state as row `i`: observation, score, lost, tick, and the mask and expert
+    /// action when the session asked for them.
+    fn put(self, i: usize, game: &Game, options: &SessionOptions) {
+        let r = game.restaurant();
+        r.write_observation(row(self.observations, i), |v| v as u8);
+        put(self.scores, i, to_i32(r.score()).to_le_bytes());
+        put(self.lost, i, r.lost().to_le_bytes());
+        put(self.ticks, i, r.tick().to_le_bytes());
+        if options.action_masks {
+            r.write_action_mask(row(self.action_masks, i));
+        }
+        if options.expert_actions.enabled() {
+            self.expert_actions[i] = options.expert_actions.choose(game);
+        }
+    }
+}
+
 impl Batch {
     /// A batch of `n` environments, every array at its full length and zero: each environment's
     /// row is then written in place, whole arrays at a time. (Appending per element, with a
@@ -185,7 +214,6 @@ impl Batch {
         game: &Game,
         options: &SessionOptions,
     ) {
-        let r = game.restaurant();
         put(&mut self.rewards, i, to_i32(outcome.reward).to_le_bytes());
         self.terminated[i] = u8::from(outcome.terminated);
         self.truncated[i] = u8::from(outcome.truncated);
@@ -194,16 +222,15 @@ impl Batch {
             self.seeds[i] = info.seed;
             self.stream_episodes[i] = info.stream_episodes;
         }
-        r.write_observation(row(&mut self.observations, i), |v| v as u8);
-        put(&mut self.scores, i, to_i32(r.score()).to_le_bytes());
-        put(&mut self.lost, i, r.lost().to_le_bytes());
-        put(&mut self.ticks, i, r.tick().to_le_bytes());
-        if options.action_masks {
-            r.write_action_mask(row(&mut self.action_masks, i));
-        }
-        if options.expert_actions.enabled() {
-            self.expert_actions[i] = options.expert_actions.choose(game);
-        }
+        let now = StateRows {
+            observations: &mut self.observations,
+            scores: &mut self.scores,
+            lost: &mut self.lost,
+            ticks: &mut self.ticks,
+            action_masks: &mut self.action_masks,
+            expert_actions: &mut self.expert_actions,
+        };
+        now.put(i, game, options);
     }
 
     /// Environment `i` was just reset: reward 0, not done.
@@ -225,17 +252,15 @@ impl Batch {
 
     /// Writes environment `i`'s ended episode (SAME_STEP); the rows of the others stay zero.
     fn put_final(&mut self, i: usize, ended: &Game, options: &SessionOptions) {
-        let r = ended.restaurant();
-        r.write_observation(row(&mut self.final_observations, i), |v| v as u8);
-        put(&mut self.final_scores, i, to_i32(r.score()).to_le_bytes());
-        put(&mut self.final_lost, i, r.lost().to_le_bytes());
-        put(&mut self.final_ticks, i, r.tick().to_le_bytes());
-        if options.action_masks {
-            r.write_action_mask(row(&mut self.final_action_masks, i));
-        }
-        if options.expert_actions.enabled() {
-            self.final_expert_actions[i] = options.expert_actions.choose(ended);
-        }
+        let finals = StateRows {
+            observations: &mut self.final_observations,
+            scores: &mut self.final_scores,
+            lost: &mut self.final_lost,
+            ticks: &mut self.final_ticks,
+            action_masks: &mut self.final_action_masks,
+            expert_actions: &mut self.final_expert_actions,
+        };
+        finals.put(i, ended, options);
     }
 
     /// How many environments were reset in this call.
