@@ -11,7 +11,7 @@ import dinerdash
 import numpy as np
 import pytest
 from dinerdash import DinerDashEnv
-from dinerdash.cli import evaluate_through_env
+from dinerdash.evaluation import evaluate_through_env
 
 from .conftest import server_binary, server_env
 
