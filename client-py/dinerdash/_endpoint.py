@@ -47,8 +47,9 @@ class Endpoint:
         self.connections: list[Connection] = []
         addresses = choose_addresses(options.address)
         if addresses is None:
-            # The local server is plaintext on loopback: TLS settings are for remote servers.
-            self.options = dataclasses.replace(options, tls=False, tls_ca=None)
+            # The local server is plaintext on loopback: TLS settings, DINERDASH_TLS_CA included,
+            # are for remote servers.
+            self.options = dataclasses.replace(options, tls=False, tls_ca=False)
             self.server = LocalServer(options.server_binary)
             addresses = [self.server.address]
         if pick is not None:

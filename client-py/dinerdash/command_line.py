@@ -64,11 +64,12 @@ def connection_keywords(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_command(args: argparse.Namespace, errors: tuple[type[Exception], ...] = ()) -> int:
-    """Runs a parsed command (``args.func(args)``, its exit status): the client's errors, and
-    ``errors``, print ``error: ...`` and give exit status 1; Ctrl-C gives 130."""
+    """Runs a parsed command (``args.func(args)``, its exit status): the client's errors, files
+    that cannot be read or written (``--tls-ca``, ``--out``), and ``errors`` print ``error: ...``
+    and give exit status 1; Ctrl-C gives 130."""
     try:
         return args.func(args)
-    except (ServiceError, LocalServerError, *errors) as e:
+    except (ServiceError, LocalServerError, OSError, *errors) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

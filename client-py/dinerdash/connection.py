@@ -102,12 +102,15 @@ def call_timeout(timeout: float | None) -> float:
     return timeout
 
 
-def tls_credentials(tls: bool, tls_ca: str | os.PathLike | None) -> grpc.ChannelCredentials | None:
-    """The channel credentials for ``tls`` / ``tls_ca`` (default ``DINERDASH_TLS_CA``): ``None``
-    means plaintext; a CA file means TLS trusting that CA, ``tls=True`` the system's roots."""
+def tls_credentials(
+    tls: bool, tls_ca: str | os.PathLike | bool | None
+) -> grpc.ChannelCredentials | None:
+    """The channel credentials for ``tls`` / ``tls_ca`` (``None``: ``DINERDASH_TLS_CA``; ``False``:
+    no CA and no environment, as for the local server): ``None`` means plaintext; a CA file means
+    TLS trusting that CA, ``tls=True`` the system's roots."""
     if tls_ca is None:
         tls_ca = os.environ.get("DINERDASH_TLS_CA") or None
-    if tls_ca is not None:
+    if tls_ca is not None and tls_ca is not False:
         try:
             with open(tls_ca, "rb") as f:
                 pem = f.read()
@@ -227,7 +230,8 @@ class ConnectOptions:
         connect_timeout: seconds to wait for a server to answer at first.
         timeout: every call's deadline in seconds, resolved here (:func:`call_timeout`).
         tls, tls_ca: TLS trusting the system's roots, or this PEM CA (``None``:
-            ``DINERDASH_TLS_CA``).
+            ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says, as for the
+            local server).
         server_binary: the local server's binary, when one is started.
     """
 
@@ -236,7 +240,7 @@ class ConnectOptions:
     connect_timeout: float = 10.0
     timeout: float | None = None
     tls: bool = False
-    tls_ca: str | os.PathLike | None = None
+    tls_ca: str | os.PathLike | bool | None = None
     server_binary: str | os.PathLike | None = None
 
     def __post_init__(self) -> None:
@@ -285,7 +289,7 @@ class Connection:
         retry_backoff: float = 0.1,
         timeout: float | None = None,
         tls: bool = False,
-        tls_ca: str | os.PathLike | None = None,
+        tls_ca: str | os.PathLike | bool | None = None,
     ) -> None:
         self.address = parse_addresses(address)[0]
         self.retries = retries
