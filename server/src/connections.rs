@@ -350,7 +350,8 @@ pub struct Conn {
     idle_after: Option<Duration>,
     /// Preface bytes still to come: until they have, reads do not move the deadline.
     preface_left: usize,
-    /// Its place among the connections that may be shed; `None` over the limit.
+    /// Its place among the connections that may be shed; `None` over the limit. Declared after
+    /// `io`: fields drop in order, so the socket is closed by the time it leaves the table.
     tracked: Option<Tracked>,
     /// For the service.
     info: ConnInfo,
@@ -785,6 +786,9 @@ impl<B: Body + Unpin> Body for CallBody<B> {
 mod tests {
     use super::*;
 
+    /// Longest a test waits for what should be immediate.
+    const PATIENCE: Duration = Duration::from_secs(10);
+
     fn idle(preface: bool, last_read_ms: u64, in_flight: usize) -> Idle {
         Idle {
             preface,
@@ -843,10 +847,15 @@ mod tests {
         assert!(second.poll_shed(&mut cx), "the silent one was not closed");
         assert!(!first.poll_shed(&mut cx));
         assert_eq!(table.lock().conns.len(), 2);
-        // Dropping a shed connection leaves the table as it is; dropping one admitted frees its
-        // place.
+        assert_eq!(table.closing(), 1);
+        // A shed connection, once closed, is no longer counted as closing; the accept loop,
+        // waiting for that, goes on.
         drop(second);
         assert_eq!(table.lock().conns.len(), 2);
+        assert_eq!(table.closing(), 0);
+        tokio::time::timeout(PATIENCE, table.until_closing_below(1))
+            .await
+            .unwrap();
         // Both left have calls in flight: nothing to shed, the next one is over the limit.
         let third_call = Call::new(&third.activity);
         assert!(table.admit(2).is_none());
@@ -858,5 +867,7 @@ mod tests {
         drop(third_call);
         drop(third);
         assert_eq!(table.lock().conns.len(), 1);
+        drop(first);
+        assert_eq!(table.closing(), 0);
     }
 }
