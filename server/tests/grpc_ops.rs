@@ -4,7 +4,6 @@
 
 mod grpc_support;
 
-use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
@@ -307,15 +306,7 @@ async fn binary_prints_its_port_answers_health_and_exits_cleanly() {
             .stderr(Stdio::null())
             .spawn()
             .unwrap();
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("dinerdash-server listening on ")
-            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-            .to_owned();
+        let addr = grpc_support::listening_addr(&mut child);
         let port: u16 = addr.rsplit(':').next().unwrap().parse().unwrap();
         assert_ne!(port, 0);
         let health = Command::new(exe)

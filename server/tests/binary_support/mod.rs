@@ -3,11 +3,11 @@
 
 #![allow(dead_code)]
 
-use std::io::{BufRead, BufReader, Read};
+use std::io::Read;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use super::grpc_support::PATIENCE;
+use super::grpc_support::{PATIENCE, listening_addr};
 
 /// A server process this test started; killed when dropped, so a failing test stops it too.
 pub struct Process {
@@ -27,15 +27,7 @@ impl Process {
             .stderr(Stdio::piped())
             .spawn()
             .unwrap();
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("dinerdash-server listening on ")
-            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-            .to_owned();
+        let addr = listening_addr(&mut child);
         Process { child, addr }
     }
 

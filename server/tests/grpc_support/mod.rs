@@ -90,6 +90,20 @@ impl Drop for TestServer {
     }
 }
 
+/// The address a `dinerdash-server` child prints first on stdout (`dinerdash-server listening
+/// on ADDR`), read from its piped stdout.
+pub fn listening_addr(child: &mut std::process::Child) -> String {
+    use std::io::BufRead as _;
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().expect("stdout piped"))
+        .read_line(&mut line)
+        .unwrap();
+    line.trim()
+        .strip_prefix("dinerdash-server listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_owned()
+}
+
 /// N actions as little-endian int32.
 pub fn pack(actions: &[i32]) -> Vec<u8> {
     actions.iter().flat_map(|a| a.to_le_bytes()).collect()
