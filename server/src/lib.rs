@@ -17,11 +17,13 @@
 //! - [`rollout`]: records whole episodes of a server-side policy (the Rollout RPC).
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status`; the auth interceptor.
-//! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and metrics together
+//! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and HTTP together
 //!   on a listener until a shutdown future completes.
 //! - [`shutdown`]: SIGINT/SIGTERM, the drain deadlines and the shutdown handles.
 //! - [`health`]: the `health` command's grpc.health.v1 client.
-//! - [`metrics`]: counters and the Prometheus text endpoint.
+//! - [`metrics`]: counters, and their Prometheus text.
+//! - [`http`]: the HTTP endpoint: the sessions and watch pages, their JSON and event feeds, and
+//!   `/metrics`.
 
 pub mod budget;
 pub mod codec;
@@ -30,6 +32,7 @@ pub mod cpu;
 pub mod eval;
 pub mod expert;
 pub mod health;
+pub mod http;
 pub mod metrics;
 pub mod planner;
 pub mod rollout;

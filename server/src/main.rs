@@ -89,13 +89,16 @@ struct ServeArgs {
     /// Close connections silent this long (live clients answer keepalive pings every 30 s).
     #[arg(long, default_value = "120", value_parser = parse_duration)]
     idle_timeout: Duration,
-    /// Serve Prometheus metrics over HTTP on this port of --metrics-host.
-    #[arg(long)]
-    metrics_port: Option<u16>,
-    /// Address of the metrics endpoint: local only by default, whatever --host is. Any other
-    /// address needs --auth-token or --auth-tokens-file, whose tokens the endpoint then asks for.
-    #[arg(long, default_value = "127.0.0.1")]
-    metrics_host: String,
+    /// Serve web pages over HTTP on this port of --http-host: the live sessions at `/`, any
+    /// environment playing at `/watch/{session_id}?env=K`, and Prometheus metrics at `/metrics`
+    /// (--metrics-port is the same flag).
+    #[arg(long, alias = "metrics-port")]
+    http_port: Option<u16>,
+    /// Address of the HTTP endpoint: local only by default, whatever --host is. Any other
+    /// address needs --auth-token or --auth-tokens-file, whose tokens the pages then ask for
+    /// (--metrics-host is the same flag).
+    #[arg(long, alias = "metrics-host", default_value = "127.0.0.1")]
+    http_host: String,
     /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
     auth_token: Option<String>,
@@ -334,28 +337,26 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
         None => Vec::new(),
     };
     let has_token = args.auth_token.as_ref().is_some_and(|t| !t.is_empty()) || !tenants.is_empty();
-    let local_metrics = matches!(
-        args.metrics_host.as_str(),
-        "127.0.0.1" | "::1" | "localhost"
-    );
-    if args.metrics_port.is_some() && !local_metrics && !has_token {
+    let local_http = matches!(args.http_host.as_str(), "127.0.0.1" | "::1" | "localhost");
+    if args.http_port.is_some() && !local_http && !has_token {
         return Err(format!(
-            "--metrics-host {} publishes the metrics beyond this machine: give --auth-token or \
-             --auth-tokens-file too (scrapers then send the token as a bearer token)",
-            args.metrics_host
+            "--http-host {} publishes the sessions and metrics beyond this machine: give \
+             --auth-token or --auth-tokens-file too (the pages then ask for a token, and scrapers \
+             send it as a bearer token)",
+            args.http_host
         ));
     }
     let listener = tokio::net::TcpListener::bind((args.host.as_str(), args.port))
         .await
         .map_err(|e| format!("cannot listen on {}:{}: {e}", args.host, args.port))?;
-    let metrics_listener = match args.metrics_port {
+    let http_listener = match args.http_port {
         Some(port) => Some(
-            tokio::net::TcpListener::bind((args.metrics_host.as_str(), port))
+            tokio::net::TcpListener::bind((args.http_host.as_str(), port))
                 .await
                 .map_err(|e| {
                     format!(
-                        "cannot listen on {}:{port} for metrics: {e}",
-                        args.metrics_host
+                        "cannot listen on {}:{port} for the web pages: {e}",
+                        args.http_host
                     )
                 })?,
         ),
@@ -380,7 +381,7 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
             idle_timeout: args.idle_timeout,
         },
         tls,
-        metrics_listener,
+        http_listener,
     };
     tracing::info!(
         %addr,

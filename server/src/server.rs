@@ -1,6 +1,6 @@
 //! Puts the server together: the `DinerDash` service behind the auth interceptor, the standard
 //! `grpc.health.v1` service, server reflection, optional TLS, the idle-session sweeper and the
-//! metrics endpoint, all served on a listener the caller bound until a shutdown future completes.
+//! HTTP endpoint (pages, feeds, metrics), all served on a listener the caller bound until a shutdown future completes.
 //!
 //! The binary passes a listener on `--host:--port` and [`crate::shutdown::signal`]; tests pass
 //! `127.0.0.1:0` and a oneshot.
@@ -14,7 +14,8 @@ use tonic::transport::{Identity, Server, ServerTlsConfig};
 
 use crate::budget::Share;
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
-use crate::metrics::{self, Metrics};
+use crate::http::{self, Access, Site};
+use crate::metrics::Metrics;
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
 use crate::service::{AuthInterceptor, DinerDashService, MAX_MESSAGE_BYTES, Token};
@@ -47,9 +48,9 @@ pub struct ServerConfig {
     pub connections: connections::Limits,
     /// Serve TLS with this identity; `None` serves plaintext.
     pub tls: Option<TlsPem>,
-    /// Serve Prometheus metrics on this listener (asking for the same tokens as the RPCs);
-    /// `None` serves none.
-    pub metrics_listener: Option<TcpListener>,
+    /// Serve the HTTP endpoint (the sessions and watch pages, their feeds, and Prometheus
+    /// metrics; asking for the same tokens as the RPCs) on this listener; `None` serves none.
+    pub http_listener: Option<TcpListener>,
 }
 
 /// Why the server could not start or stopped with an error.
@@ -91,26 +92,26 @@ pub async fn run(
         });
     }
     let auth = AuthInterceptor::new(&tokens, stopping.clone());
-    // The metrics ask for the same tokens as the RPCs, so that a server that needs a token
-    // does not publish its load to whoever reaches the metrics port.
-    let metrics_task = config.metrics_listener.map(|l| {
-        if let Ok(addr) = l.local_addr() {
-            tracing::info!("metrics on http://{addr}/metrics");
+    // The pages' feeds and the metrics ask for the same tokens as the RPCs, so that a server
+    // that needs a token shows its sessions and load only to its token holders.
+    let http_addr = config
+        .http_listener
+        .as_ref()
+        .and_then(|l| l.local_addr().ok());
+    let http_task = config.http_listener.map(|l| {
+        if let Some(addr) = http_addr {
+            tracing::info!("sessions page on http://{addr}/, metrics on http://{addr}/metrics");
         }
-        let serve = metrics::serve(
-            l,
-            Arc::clone(&metrics),
-            auth.bearer_values(),
-            stopping.clone(),
-        );
-        tokio::spawn(serve)
+        let site = Site::new(store.clone(), Arc::clone(&metrics), Access::new(&tokens));
+        tokio::spawn(http::serve(l, Arc::new(site), stopping.clone()))
     });
     let service = DinerDashService::new(
         store,
         Arc::clone(&metrics),
         config.connection_share,
         stopping.clone(),
-    );
+    )
+    .with_http_addr(http_addr);
     let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -153,9 +154,9 @@ pub async fn run(
         .await;
 
     // The trigger fired, or was dropped with the shutdown future if serving failed: either way
-    // the sweeper and the metrics responder are stopping.
+    // the sweeper and the HTTP endpoint are stopping.
     let _ = sweeper.await;
-    if let Some(task) = metrics_task {
+    if let Some(task) = http_task {
         let _ = task.await;
     }
     served?;

@@ -8,8 +8,10 @@
 //! no critical section ever awaits, and they are several times cheaper.
 //!
 //! - [`envs`]: the environments of one session and what Reset and Step do to them.
+//! - [`watch`]: each session's running summary and watched environments, read by the web pages.
 
 pub mod envs;
+pub mod watch;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -184,6 +186,16 @@ pub struct Session {
     last_used_ms: AtomicU64,
     /// The environments. Locked for the whole of one Reset or Step.
     envs: Mutex<Envs>,
+    /// N, fixed at creation (the sessions page reads it without the lock).
+    num_envs: usize,
+    /// The options, fixed at creation.
+    options: SessionOptions,
+    /// Milliseconds since the store's epoch at creation.
+    created_ms: u64,
+    /// Steps, episodes and recent scores, for the sessions page.
+    tally: watch::Tally,
+    /// The environments someone watches.
+    watch: watch::Watch,
 }
 
 impl Session {
@@ -291,10 +303,16 @@ impl Store {
 
     /// Adds a session already charged and returns its ID and spec.
     fn insert(&self, envs: Envs, charge: Charge) -> Result<(SessionId, SessionSpec), SessionError> {
+        let now = self.now_ms();
         let session = Arc::new(Session {
             _charge: charge,
-            last_used_ms: AtomicU64::new(self.now_ms()),
+            last_used_ms: AtomicU64::new(now),
+            num_envs: envs.len(),
+            options: *envs.options(),
             envs: Mutex::new(envs),
+            created_ms: now,
+            tally: watch::Tally::default(),
+            watch: watch::Watch::default(),
         });
         let spec = session.spec();
         let id = loop {
@@ -354,7 +372,11 @@ impl Store {
 
     /// Resets every environment of a session.
     pub fn reset(&self, id: &str, args: &ResetArgs) -> Result<Batch, SessionError> {
-        let batch = self.get(id)?.lock().reset(args)?;
+        let session = self.get(id)?;
+        let mut envs = session.lock();
+        let batch = envs.reset(args)?;
+        session.was_reset(&envs, &batch);
+        drop(envs);
         let m = &self.shared.metrics;
         m.env_resets
             .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
@@ -369,7 +391,11 @@ impl Store {
 
     /// Steps every environment of a session.
     pub fn step(&self, id: &str, actions: &[u8]) -> Result<Batch, SessionError> {
-        let batch = self.get(id)?.lock().step(actions)?;
+        let session = self.get(id)?;
+        let mut envs = session.lock();
+        let batch = envs.step(actions)?;
+        session.stepped(&envs, actions, &batch);
+        drop(envs);
         let m = &self.shared.metrics;
         m.step_calls.fetch_add(1, Ordering::Relaxed);
         m.env_steps
