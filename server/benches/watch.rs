@@ -1,3 +1,4 @@
+#![allow(missing_docs)] // criterion_group! generates undocumented items.
 //! What watching costs a trainer: the latency of one Step (the session store's, as the service
 //! calls it) with nobody watching, and with 20 viewers attached over HTTP that never read their
 //! event streams (stalled browsers), all on one environment or each on its own.

@@ -90,7 +90,8 @@ impl Events {
                 .expect("no event in time")
                 .unwrap();
             assert!(n > 0, "the stream ended");
-            self.buffer.push_str(std::str::from_utf8(&buf[..n]).unwrap());
+            self.buffer
+                .push_str(std::str::from_utf8(&buf[..n]).unwrap());
         }
     }
 
@@ -130,8 +131,17 @@ async fn pages_feeds_and_status_codes() {
     assert_eq!(page.status, 200);
     assert!(page.head.contains("text/html"));
     assert!(page.body.contains("/static/sessions.js"));
-    for file in ["style.css", "common.js", "sessions.js", "board.js", "watch.js"] {
-        assert_eq!(get(addr, &format!("/static/{file}"), None).await.status, 200);
+    for file in [
+        "style.css",
+        "common.js",
+        "sessions.js",
+        "board.js",
+        "watch.js",
+    ] {
+        assert_eq!(
+            get(addr, &format!("/static/{file}"), None).await.status,
+            200
+        );
     }
     assert_eq!(get(addr, "/static/nope.js", None).await.status, 404);
     assert_eq!(get(addr, "/nowhere", None).await.status, 404);
@@ -141,11 +151,19 @@ async fn pages_feeds_and_status_codes() {
     let metrics = get(addr, "/metrics", None).await;
     assert!(metrics.body.contains("dinerdash_live_sessions 0"));
 
-    let id = create(&mut c, create_request(3, pb::AutoresetMode::NextStep, Some(2))).await;
+    let id = create(
+        &mut c,
+        create_request(3, pb::AutoresetMode::NextStep, Some(2)),
+    )
+    .await;
     let unknown = "0123456789abcdef0123456789abcdef";
     let missing = get(addr, &format!("/watch/{unknown}?env=0"), None).await;
     assert_eq!(missing.status, 404);
-    assert!(missing.body.contains("Session not found"), "{}", missing.body);
+    assert!(
+        missing.body.contains("Session not found"),
+        "{}",
+        missing.body
+    );
     assert!(missing.body.contains(unknown));
     assert_eq!(get(addr, "/watch/short", None).await.status, 404);
     let watch = get(addr, &format!("/watch/{id}?env=2"), None).await;
@@ -168,7 +186,10 @@ async fn pages_feeds_and_status_codes() {
     let after_reset = events.next().await.unwrap();
     assert_eq!(after_reset["started"], true);
     assert_eq!(after_reset["tick"], 0);
-    let obs: Vec<i8> = batch.observations[40..80].iter().map(|&b| b as i8).collect();
+    let obs: Vec<i8> = batch.observations[40..80]
+        .iter()
+        .map(|&b| b as i8)
+        .collect();
     assert_eq!(after_reset["obs"], serde_json::json!(obs));
     // The session's expert (the reference) chose this action; the page shows it.
     let choice = batch.expert_actions[1];
@@ -245,7 +266,12 @@ async fn tokens_show_each_tenant_its_own_sessions() {
         let mut request = tonic::Request::new(create_request(1, pb::AutoresetMode::NextStep, None));
         let value = format!("Bearer {token}").parse().unwrap();
         request.metadata_mut().insert("authorization", value);
-        let id = c.create_session(request).await.unwrap().into_inner().session_id;
+        let id = c
+            .create_session(request)
+            .await
+            .unwrap()
+            .into_inner()
+            .session_id;
         created.push(id);
     }
     let [a, b, shared] = created.as_slice() else {
@@ -270,8 +296,14 @@ async fn tokens_show_each_tenant_its_own_sessions() {
             .map(|r| r["id"].as_str().unwrap().to_owned())
             .collect()
     };
-    assert_eq!(ids(get(addr, "/api/sessions", Some("aaa")).await), [a.clone()]);
-    assert_eq!(ids(get(addr, "/api/sessions", Some("bbb")).await), [b.clone()]);
+    assert_eq!(
+        ids(get(addr, "/api/sessions", Some("aaa")).await),
+        [a.clone()]
+    );
+    assert_eq!(
+        ids(get(addr, "/api/sessions", Some("bbb")).await),
+        [b.clone()]
+    );
     assert_eq!(
         ids(get(addr, "/api/sessions", Some("shared")).await),
         [shared.clone()]
