@@ -298,15 +298,15 @@ async fn tokens_show_each_tenant_its_own_sessions() {
     };
     assert_eq!(
         ids(get(addr, "/api/sessions", Some("aaa")).await),
-        [a.clone()]
+        [a.as_str()]
     );
     assert_eq!(
         ids(get(addr, "/api/sessions", Some("bbb")).await),
-        [b.clone()]
+        [b.as_str()]
     );
     assert_eq!(
         ids(get(addr, "/api/sessions", Some("shared")).await),
-        [shared.clone()]
+        [shared.as_str()]
     );
     let listing = get(addr, "/api/sessions", Some("aaa")).await.json();
     assert_eq!(listing["sessions"][0]["tenant"], "tenant a");

@@ -33,11 +33,15 @@ pub enum Refused {
     Invalid,
 }
 
+/// An accepted `Authorization` value (`Bearer <token>`) and its tenant (`None`: the shared
+/// token).
+type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
+
 /// The server's tokens.
 #[derive(Debug, Clone, Default)]
 pub struct Access {
-    /// `Bearer <token>` values and their tenants (`None`: the shared token).
-    tokens: Arc<[(Box<[u8]>, Option<Arc<Tenant>>)]>,
+    /// The accepted values.
+    tokens: Arc<[Accepted]>,
 }
 
 impl Access {
