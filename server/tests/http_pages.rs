@@ -326,3 +326,24 @@ async fn tokens_show_each_tenant_its_own_sessions() {
     assert_eq!(watch(b, "nope").await, 401);
     server.stop().await;
 }
+
+#[tokio::test]
+async fn a_client_that_does_not_read_is_dropped_not_waited_for() {
+    use dinerdash_server::http::{WRITE_TIMEOUT, send};
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.set_recv_buffer_size(4096).unwrap();
+    let _stalled = socket
+        .connect(listener.local_addr().unwrap())
+        .await
+        .unwrap();
+    let (mut to_viewer, _) = listener.accept().await.unwrap();
+    // More than any socket buffers hold: the write blocks once they are full.
+    let frames = vec![b'x'; 64 << 20];
+    let start = std::time::Instant::now();
+    let error = send(&mut to_viewer, &frames).await.unwrap_err();
+    assert_eq!(error.kind(), std::io::ErrorKind::TimedOut);
+    let waited = start.elapsed();
+    assert!(waited >= WRITE_TIMEOUT, "{waited:?}");
+    assert!(waited < WRITE_TIMEOUT * 5, "{waited:?}");
+}
