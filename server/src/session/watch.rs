@@ -5,7 +5,7 @@
 //!
 //! Step updates both while it holds the session's lock anyway: the tally with a few relaxed
 //! atomic stores, the slots only while a viewer is attached (one atomic load otherwise); neither
-//! allocates. A viewer copies a [`Frame`] (a few hundred bytes) out under the slots' own short
+//! allocates. A viewer copies a [`Frame`] (under a kilobyte) out under the slots' own short
 //! lock and encodes it after letting go, so a slow or stalled viewer holds nothing a Step needs,
 //! and a view never counts as using the session (it does not keep an idle session alive).
 
