@@ -481,7 +481,38 @@ mod tests {
         assert_eq!(row.tally.steps, steps);
         assert_eq!(row.tally.episodes, 2);
         assert!(row.tally.recent_mean.is_some());
-        assert_eq!(store.summaries(|_| true, 10).visible, 2);
+        // SAME_STEP reports the ended episode's score in the final arrays: the tally takes it.
+        let (same, _) = store
+            .create(&b, 1, config, options(Autoreset::SameStep), Some(3))
+            .unwrap();
+        let same = same.to_string();
+        let mut batch = store.reset(&same, &ResetArgs::default()).unwrap();
+        // The expert earns points for 30 steps, then waiting loses the game.
+        let mut played = 0;
+        let final_score = loop {
+            let choice = if played < 30 {
+                batch.expert_actions[0]
+            } else {
+                0
+            };
+            batch = store.step(&same, &actions(1, i32::from(choice))).unwrap();
+            played += 1;
+            if batch.terminated[0] == 1 {
+                break i32::from_le_bytes(batch.final_scores[..4].try_into().unwrap());
+            }
+            assert!(played < 100_000, "the episode did not end");
+        };
+        assert!(final_score > 0, "the expert scored");
+        let mine = |t: &Arc<Tenant>| Arc::ptr_eq(t, &b);
+        let row = store
+            .summaries(mine, 10)
+            .rows
+            .into_iter()
+            .find(|r| r.id.to_string() == same)
+            .unwrap();
+        assert_eq!(row.tally.episodes, 1);
+        assert_eq!(row.tally.recent_mean, Some(f64::from(final_score)));
+        assert_eq!(store.summaries(|_| true, 10).visible, 3);
         assert_eq!(store.summaries(|_| true, 1).rows.len(), 1);
     }
 
