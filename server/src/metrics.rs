@@ -1,5 +1,5 @@
-//! Counters of what the server did, and their Prometheus text format (served at `/metrics` by
-//! the HTTP endpoint, [`crate::http`]).
+//! Counters of what the server did, and their Prometheus text format ([`Metrics::render`]);
+//! [`crate::http`] serves them at `/metrics`.
 //!
 //! Counters are plain atomics bumped on the hot path (relaxed: they are statistics, not
 //! synchronisation); nothing here allocates per step.
@@ -38,7 +38,7 @@ pub struct Metrics {
     /// Sessions evicted for being idle longer than the TTL.
     pub sessions_expired: AtomicU64,
     /// Live sessions right now: the one counter the session limit is checked against
-    /// ([`crate::budget::Budget`] keeps it).
+    /// (the memory budget keeps it).
     pub live_sessions: AtomicU64,
     /// Bytes sessions and Rollout streams hold now, as the memory budget counts them.
     pub memory_used_bytes: AtomicU64,

@@ -7,10 +7,10 @@ mod grpc_support;
 use std::net::SocketAddr;
 use std::sync::Arc;
 
+use dinerdash_server::auth::Token;
 use dinerdash_server::budget::{Share, Tenant};
 use dinerdash_server::pb;
 use dinerdash_server::server::ServerConfig;
-use dinerdash_server::service::Token;
 use grpc_support::{PATIENCE, TestServer, create, create_request, reset, step};
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -8,8 +8,8 @@
 
 use std::sync::Arc;
 
+use crate::auth::{Token, same_bytes};
 use crate::budget::Tenant;
-use crate::service::{Token, same_bytes};
 
 /// Who a request comes from.
 #[derive(Debug, Clone)]

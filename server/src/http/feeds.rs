@@ -15,7 +15,7 @@ use serde::Serialize;
 use tokio::net::TcpStream;
 
 use super::{Response, Site, Viewer, send};
-use crate::expert::expert_action;
+use crate::policy::expert::expert_action;
 use crate::session::watch::{Frame, Summary};
 use crate::session::{Autoreset, ExpertActions, SessionError, SessionId};
 use crate::shutdown::Shutdown;

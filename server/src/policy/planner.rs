@@ -29,7 +29,7 @@
 
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
-use crate::expert::Policy;
+use super::Policy;
 use crate::sim::restaurant::{DROP_DISHES, HAND_IN_ORDERS, WAIT, status};
 use crate::sim::{Game, Group, NUM_ACTIONS, NUM_TABLES, Restaurant, TABLE_CAPACITIES};
 
