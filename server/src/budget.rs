@@ -14,8 +14,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use crate::metrics::Metrics;
 
 /// Default `--max-memory`: what sessions and Rollout streams may hold. Measured RSS is about
-/// 1.1x the accounted bytes plus ~20 MiB of runtime (README, "Limits"), so one server stays
-/// under ~2 GiB whatever clients do.
+/// 1.1x the accounted bytes plus ~20 MiB of runtime (docs/operations.md, "Memory budget"), so
+/// one server stays under ~2 GiB whatever clients do.
 pub const DEFAULT_MAX_MEMORY: u64 = 1 << 30;
 /// Default share of one tenant (or connection): environments it may hold at once.
 pub const DEFAULT_TENANT_ENVS: u64 = 65_536;

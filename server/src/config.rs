@@ -60,7 +60,9 @@ pub struct ServeArgs {
     /// Most Rollout streams one tenant (or connection) may run at once.
     #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
     pub max_rollouts_per_tenant: u64,
-    /// Most client connections; more are answered RESOURCE_EXHAUSTED and closed.
+    /// Most client connections, capped below the open-file limit. At the limit the longest-idle
+    /// connection with no call in flight is closed to admit a new one; when every connection has
+    /// a call in flight, new ones are answered RESOURCE_EXHAUSTED and closed.
     #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS as u32, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_connections: u32,
     /// Close connections silent this long (live clients answer keepalive pings every 30 s).
@@ -289,6 +291,7 @@ impl ServerConfig {
             connections: connections::Limits {
                 max_connections: args.max_connections as usize,
                 idle_timeout: args.idle_timeout,
+                ..connections::Limits::default()
             },
             tls,
             http_listener: None,

@@ -65,7 +65,7 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
         port: u16,
         purpose: &'static str,
     ) -> Result<TcpListener, ServerError> {
-        TcpListener::bind((host, port))
+        connections::bind(host, port)
             .await
             .map_err(|source| ServerError::Listen {
                 addr: format!("{host}:{port}"),
@@ -74,6 +74,8 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
             })
     }
     let mut config = ServerConfig::from_args(args)?;
+    // Room for connections: the accept loop caps --max-connections below this limit.
+    crate::fd_limit::raise();
     let listener = bind(&args.host, args.port, "").await?;
     if let Some(port) = args.http_port {
         config.http_listener = Some(bind(&args.http_host, port, " for the web pages").await?);
@@ -149,6 +151,7 @@ pub async fn run(
     // Live clients answer the keepalive pings, which keeps their connections out of the idle
     // timeout; dead ones do not, and are closed.
     let mut builder = Server::builder()
+        .layer(connections::InFlightLayer)
         .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
         .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));

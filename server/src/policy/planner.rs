@@ -66,7 +66,7 @@ pub struct Planner {
 }
 
 impl Default for Planner {
-    /// The settings measured in the README: 1.63x the reference's score over seeds 0..99, at
+    /// The settings measured in docs/benchmarks.md: 1.63x the reference's score over seeds 0..99, at
     /// 0.1-0.2 ms a decision.
     fn default() -> Self {
         Planner {
