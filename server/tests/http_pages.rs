@@ -347,3 +347,28 @@ async fn a_client_that_does_not_read_is_dropped_not_waited_for() {
     assert!(waited >= WRITE_TIMEOUT, "{waited:?}");
     assert!(waited < WRITE_TIMEOUT * 5, "{waited:?}");
 }
+
+#[tokio::test]
+async fn connections_past_the_limit_are_answered_503() {
+    use dinerdash_server::http::MAX_CONNECTIONS;
+    let (server, addr) = http_server(ServerConfig::default()).await;
+    let mut streams = Vec::new();
+    for _ in 0..MAX_CONNECTIONS {
+        streams.push(Events::open(addr, "/api/sessions/events").await);
+    }
+    let busy = get(addr, "/", None).await;
+    assert_eq!(busy.status, 503, "{}", busy.body);
+    assert!(busy.body.contains("maximum"), "{}", busy.body);
+    drop(streams);
+    // The slots come back as the streams close.
+    let mut status = 0;
+    for _ in 0..200 {
+        status = get(addr, "/", None).await.status;
+        if status == 200 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert_eq!(status, 200);
+    server.stop().await;
+}
