@@ -1,10 +1,12 @@
-"""``python -m dinerdash``: evaluate a policy, collect expert demonstrations, measure speed.
+"""``python -m dinerdash``: evaluate a policy, collect expert demonstrations, measure speed,
+watch a server's sessions in a browser.
 
 ::
 
     python -m dinerdash evaluate --policy expert --episodes 100   # or --policy planner
     python -m dinerdash collect --episodes 274 --out demos/       # --policy planner: its demos
     python -m dinerdash bench
+    python -m dinerdash watch --address 127.0.0.1:50051           # the URL of its web pages
 
 Every command takes ``--address host:port`` (several separated by commas); without it (and
 without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started and stopped. ``--tls`` (the
@@ -114,6 +116,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_watch(args: argparse.Namespace) -> int:
+    from .watch import cmd_watch
+
+    return cmd_watch(args, connection_keywords(args))
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m dinerdash", description=__doc__.splitlines()[0]
@@ -188,6 +196,19 @@ def _parser() -> argparse.ArgumentParser:
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser(
+        "watch",
+        help="the URL of a server's web pages (its live sessions, any environment playing); "
+        "opens a browser when there is one",
+        description="Prints the URL of the web pages of the server at --address (default: "
+        "DINERDASH_ADDRESS, else 127.0.0.1:50051; it must run with --http-port).",
+    )
+    p.add_argument("--session", help="one session's ID: the URL of its watch page")
+    p.add_argument("--env", type=int, default=0, help="the environment of --session to show")
+    p.add_argument("--no-browser", action="store_true", help="only print the URL")
+    add_connection_arguments(p)
+    p.set_defaults(func=_cmd_watch)
     return parser
 
 

@@ -232,6 +232,14 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     def _conn(self) -> Connection:
         return self._core.conn
 
+    def watch_url(self) -> str:
+        """The URL of the server's web page that shows this environment playing (the server must
+        serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
+        from .watch import watch_url
+
+        self._check_open("watch_url()")
+        return watch_url(self._conn, self.session_id, 0)
+
     def _check_open(self, what: str) -> None:
         if self._closed:
             raise EnvClosed(f"{what} after close(); reset() opens a new session")

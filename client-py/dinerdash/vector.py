@@ -202,6 +202,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def session_ids(self) -> list[str | None]:
         return [c.session_id for c in self._cores]
 
+    def watch_url(self, index: int = 0) -> str:
+        """The URL of the server's web page that shows environment ``index`` playing (the
+        server must serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
+        from .watch import watch_url
+
+        self._check_open("watch_url()")
+        if not 0 <= index < self.num_envs:
+            raise IndexError(f"index must be in 0..{self.num_envs - 1}, got {index}")
+        core = next(c for c in self._cores if c.start <= index < c.stop)
+        return watch_url(core.conn, core.session_id, index - core.start)
+
     def _check_open(self, what: str) -> None:
         if self._closed:
             raise EnvClosed(f"{what} after close(); reset() opens new sessions")

@@ -112,12 +112,6 @@ pub struct RequestGate {
 }
 
 impl RequestGate {
-    /// The accepted `authorization` values, `Bearer <token>` (the metrics endpoint takes them
-    /// too).
-    pub fn bearer_values(&self) -> Arc<[Box<[u8]>]> {
-        self.tokens.iter().map(|(value, _)| value.clone()).collect()
-    }
-
     /// A gate accepting `tokens` (none: an open server).
     pub fn new(tokens: &[Token], stopping: Shutdown) -> RequestGate {
         let tokens = tokens

@@ -179,6 +179,13 @@ pub struct Charge {
     bytes: u64,
 }
 
+impl Charge {
+    /// Whose share it counts against.
+    pub fn tenant(&self) -> &Arc<Tenant> {
+        &self.tenant
+    }
+}
+
 impl Drop for Charge {
     fn drop(&mut self) {
         let m = &self.budget.metrics;

@@ -68,13 +68,16 @@ pub struct ServeArgs {
     /// Close connections silent this long (live clients answer keepalive pings every 30 s).
     #[arg(long, default_value = "120", value_parser = parse_duration)]
     pub idle_timeout: Duration,
-    /// Serve Prometheus metrics over HTTP on this port of --metrics-host.
-    #[arg(long)]
-    pub metrics_port: Option<u16>,
-    /// Address of the metrics endpoint: local only by default, whatever --host is. Any other
-    /// address needs --auth-token or --auth-tokens-file, whose tokens the endpoint then asks for.
-    #[arg(long, default_value = "127.0.0.1")]
-    pub metrics_host: String,
+    /// Serve web pages over HTTP on this port of --http-host: the live sessions at `/`, any
+    /// environment playing at `/watch/{session_id}?env=K`, and Prometheus metrics at `/metrics`
+    /// (--metrics-port is the same flag).
+    #[arg(long, alias = "metrics-port")]
+    pub http_port: Option<u16>,
+    /// Address of the HTTP endpoint: local only by default, whatever --host is. Any other
+    /// address needs --auth-token or --auth-tokens-file, whose tokens the pages then ask for
+    /// (--metrics-host is the same flag).
+    #[arg(long, alias = "metrics-host", default_value = "127.0.0.1")]
+    pub http_host: String,
     /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
     pub auth_token: Option<String>,
@@ -112,28 +115,26 @@ pub enum ConfigError {
         /// Which line, and what is wrong with it.
         message: String,
     },
-    /// `--metrics-host` is not local and no token protects the metrics.
+    /// `--http-host` is not local and no token protects the pages and metrics.
     #[error(
-        "--metrics-host {0} publishes the metrics beyond this machine: give --auth-token or \
-         --auth-tokens-file too (scrapers then send the token as a bearer token)"
+        "--http-host {0} publishes the sessions and metrics beyond this machine: give \
+         --auth-token or --auth-tokens-file too (the pages then ask for a token, and scrapers \
+         send it as a bearer token)"
     )]
-    PublicMetrics(String),
+    PublicHttp(String),
 }
 
 impl ServeArgs {
-    /// Refuses flags the server must not start with: metrics served beyond this machine (a
-    /// `--metrics-host` other than 127.0.0.1, ::1 or localhost) without `--auth-token` or
+    /// Refuses flags the server must not start with: pages and metrics served beyond this
+    /// machine (an `--http-host` other than 127.0.0.1, ::1 or localhost) without `--auth-token` or
     /// `--auth-tokens-file`, whose tokens the endpoint would ask for. (A tokens file counts as
     /// a token: [`ServerConfig::from_args`] refuses one without a tenant.)
     pub fn validate(&self) -> Result<(), ConfigError> {
         let has_token = self.auth_token.as_ref().is_some_and(|t| !t.is_empty())
             || self.auth_tokens_file.is_some();
-        let local_metrics = matches!(
-            self.metrics_host.as_str(),
-            "127.0.0.1" | "::1" | "localhost"
-        );
-        if self.metrics_port.is_some() && !local_metrics && !has_token {
-            return Err(ConfigError::PublicMetrics(self.metrics_host.clone()));
+        let local = matches!(self.http_host.as_str(), "127.0.0.1" | "::1" | "localhost");
+        if self.http_port.is_some() && !local && !has_token {
+            return Err(ConfigError::PublicHttp(self.http_host.clone()));
         }
         Ok(())
     }
@@ -239,9 +240,9 @@ pub struct ServerConfig {
     pub connections: connections::Limits,
     /// Serve TLS with this identity; `None` serves plaintext.
     pub tls: Option<TlsPem>,
-    /// Serve Prometheus metrics on this listener (asking for the same tokens as the RPCs);
-    /// `None` serves none.
-    pub metrics_listener: Option<TcpListener>,
+    /// Serve the HTTP endpoint (the sessions and watch pages, their feeds, and Prometheus
+    /// metrics; asking for the same tokens as the RPCs) on this listener; `None` serves none.
+    pub http_listener: Option<TcpListener>,
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
@@ -254,7 +255,7 @@ fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
 impl ServerConfig {
     /// The configuration `args` describe: the TLS files read, the tenants file's tenants as
     /// tokens, the limits; refused unless [`ServeArgs::validate`] passes. No listener is bound
-    /// (`metrics_listener` is `None`).
+    /// (`http_listener` is `None`).
     pub fn from_args(args: &ServeArgs) -> Result<ServerConfig, ConfigError> {
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => Some(TlsPem {
@@ -293,7 +294,7 @@ impl ServerConfig {
                 ..connections::Limits::default()
             },
             tls,
-            metrics_listener: None,
+            http_listener: None,
         })
     }
 
@@ -363,7 +364,7 @@ mod tests {
     fn metrics_beyond_this_machine_need_a_token() {
         let public = ["--metrics-port", "9000", "--metrics-host", "0.0.0.0"];
         let refused = ServerConfig::from_args(&flags(&public)).unwrap_err();
-        assert!(matches!(&refused, ConfigError::PublicMetrics(host) if host == "0.0.0.0"));
+        assert!(matches!(&refused, ConfigError::PublicHttp(host) if host == "0.0.0.0"));
         assert!(
             refused.to_string().contains("--auth-tokens-file"),
             "{refused}"

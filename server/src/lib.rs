@@ -27,12 +27,13 @@
 //! - [`auth`]: bearer tokens and the tenants they stand for (the tenants file), the
 //!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
 //!   over the connection limit, token.
-//! - [`metrics_http`]: the HTTP responder that serves the metrics.
+//! - [`http`]: the HTTP endpoint: the sessions page and the watch page, their JSON and event
+//!   feeds, and the metrics.
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status` ([`service::status`](mod@service::status));
 //!   StepStream and Rollout streams.
 //! - [`config`]: the `serve` flags and what they decide ([`config::ServerConfig::from_args`]).
-//! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and metrics together
+//! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and HTTP together
 //!   on a listener until a shutdown future completes; [`server::serve`] is the binary's.
 //! - [`health`]: the `health` command's grpc.health.v1 client.
 
@@ -45,8 +46,8 @@ pub mod cpu;
 pub mod eval;
 pub mod fd_limit;
 pub mod health;
+pub mod http;
 pub mod metrics;
-pub mod metrics_http;
 pub mod policy;
 pub mod rollout;
 pub mod server;

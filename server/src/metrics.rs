@@ -1,5 +1,5 @@
 //! Counters of what the server did, and their Prometheus text format ([`Metrics::render`]);
-//! `metrics_http` serves them over HTTP.
+//! [`crate::http`] serves them at `/metrics`.
 //!
 //! Counters are plain atomics bumped on the hot path (relaxed: they are statistics, not
 //! synchronisation); nothing here allocates per step.

@@ -1,6 +1,6 @@
 //! Puts the server together: the `DinerDash` service behind the request gate, the standard
 //! `grpc.health.v1` service, server reflection, optional TLS, the idle-session sweeper and the
-//! metrics endpoint, all served on a listener the caller bound until a shutdown future completes
+//! HTTP endpoint (pages, feeds, metrics), all served on a listener the caller bound until a shutdown future completes
 //! ([`run`]).
 //!
 //! The binary calls [`serve`], which binds `--host:--port` and passes [`crate::shutdown::signal`];
@@ -19,8 +19,8 @@ pub use crate::config::{ServerConfig, TlsPem};
 use crate::auth::RequestGate;
 use crate::config::{ConfigError, ServeArgs};
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
+use crate::http::{self, Access, Site};
 use crate::metrics::Metrics;
-use crate::metrics_http;
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
 use crate::service::{DinerDashService, MAX_MESSAGE_BYTES};
@@ -44,7 +44,7 @@ pub enum ServerError {
     Listen {
         /// `host:port`.
         addr: String,
-        /// Empty for gRPC, " for metrics" for the metrics endpoint.
+        /// Empty for gRPC, " for the web pages" for the HTTP endpoint.
         purpose: &'static str,
         /// Why.
         source: std::io::Error,
@@ -55,8 +55,8 @@ pub enum ServerError {
 }
 
 /// The `dinerdash-server` command: the configuration `args` describe
-/// ([`ServerConfig::from_args`]), served on `--host:--port` (and the metrics on
-/// `--metrics-host:--metrics-port`) until SIGINT/SIGTERM, with the drain deadline of
+/// ([`ServerConfig::from_args`]), served on `--host:--port` (and the web pages and metrics on
+/// `--http-host:--http-port`) until SIGINT/SIGTERM, with the drain deadline of
 /// [`shutdown::serve_until_signal`]. Once bound, prints `dinerdash-server listening on ADDR`,
 /// the one line on stdout: clients that started this process read the port from it.
 pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
@@ -77,8 +77,8 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     // Room for connections: the accept loop caps --max-connections below this limit.
     crate::fd_limit::raise();
     let listener = bind(&args.host, args.port, "").await?;
-    if let Some(port) = args.metrics_port {
-        config.metrics_listener = Some(bind(&args.metrics_host, port, " for metrics").await?);
+    if let Some(port) = args.http_port {
+        config.http_listener = Some(bind(&args.http_host, port, " for the web pages").await?);
     }
     let addr = listener.local_addr().map_err(ServerError::LocalAddr)?;
     tracing::info!(
@@ -122,27 +122,28 @@ pub async fn run(
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let gate = RequestGate::new(&config.tokens(), stopping.clone());
-    // The metrics ask for the same tokens as the RPCs, so that a server that needs a token
-    // does not publish its load to whoever reaches the metrics port.
-    let metrics_task = config.metrics_listener.map(|l| {
-        if let Ok(addr) = l.local_addr() {
-            tracing::info!("metrics on http://{addr}/metrics");
+    let tokens = config.tokens();
+    let gate = RequestGate::new(&tokens, stopping.clone());
+    // The pages' feeds and the metrics ask for the same tokens as the RPCs, so that a server
+    // that needs a token shows its sessions and load only to its token holders.
+    let http_addr = config
+        .http_listener
+        .as_ref()
+        .and_then(|l| l.local_addr().ok());
+    let http_task = config.http_listener.map(|l| {
+        if let Some(addr) = http_addr {
+            tracing::info!("sessions page on http://{addr}/, metrics on http://{addr}/metrics");
         }
-        let serve = metrics_http::serve(
-            l,
-            Arc::clone(&metrics),
-            gate.bearer_values(),
-            stopping.clone(),
-        );
-        tokio::spawn(serve)
+        let site = Site::new(store.clone(), Arc::clone(&metrics), Access::new(&tokens));
+        tokio::spawn(http::serve(l, Arc::new(site), stopping.clone()))
     });
     let service = DinerDashService::new(
         store,
         Arc::clone(&metrics),
         config.connection_share,
         stopping.clone(),
-    );
+    )
+    .with_http_addr(http_addr);
     let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -186,9 +187,9 @@ pub async fn run(
         .await;
 
     // The trigger fired, or was dropped with the shutdown future if serving failed: either way
-    // the sweeper and the metrics responder are stopping.
+    // the sweeper and the HTTP endpoint are stopping.
     let _ = sweeper.await;
-    if let Some(task) = metrics_task {
+    if let Some(task) = http_task {
         let _ = task.await;
     }
     served?;

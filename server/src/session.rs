@@ -8,8 +8,10 @@
 //! no critical section ever awaits, and they are several times cheaper.
 //!
 //! - [`envs`]: the environments of one session and what Reset and Step do to them.
+//! - [`watch`]: each session's running summary and watched environments, read by the web pages.
 
 pub mod envs;
+pub mod watch;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -192,10 +194,19 @@ pub struct Session {
     _charge: Charge,
     /// Milliseconds since the store's epoch at the last lookup; the sweeper reads it.
     last_used_ms: AtomicU64,
-    /// Which expert fills its expert actions: fixed at creation, so read without the lock.
-    expert_actions: ExpertActions,
     /// The environments. Locked for the whole of one Reset or Step.
     envs: Mutex<Envs>,
+    /// N, fixed at creation (the sessions page reads it without the lock).
+    num_envs: usize,
+    /// The options (which expert fills its expert actions, autoreset): fixed at creation, so
+    /// read without the lock.
+    options: SessionOptions,
+    /// Milliseconds since the store's epoch at creation.
+    created_ms: u64,
+    /// Steps, episodes and recent scores, for the sessions page.
+    tally: watch::Tally,
+    /// The environments someone watches.
+    watch: watch::Watch,
 }
 
 impl Session {
@@ -230,12 +241,15 @@ pub struct FoundSession {
 impl FoundSession {
     /// Which expert fills the session's expert actions (no lock: fixed at creation).
     pub fn expert_actions(&self) -> ExpertActions {
-        self.session.expert_actions
+        self.session.options.expert_actions
     }
 
     /// Resets every environment of the session.
     pub fn reset(&self, args: &ResetArgs) -> Result<Batch, SessionError> {
-        let batch = self.session.lock().reset(args)?;
+        let mut envs = self.session.lock();
+        let batch = envs.reset(args)?;
+        self.session.was_reset(&envs, &batch);
+        drop(envs);
         let m = &self.metrics;
         m.env_resets
             .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
@@ -244,7 +258,10 @@ impl FoundSession {
 
     /// Steps every environment of the session.
     pub fn step(&self, actions: &[u8]) -> Result<Batch, SessionError> {
-        let batch = self.session.lock().step(actions)?;
+        let mut envs = self.session.lock();
+        let batch = envs.step(actions)?;
+        self.session.stepped(&envs, actions, &batch);
+        drop(envs);
         let m = &self.metrics;
         m.step_calls.fetch_add(1, Ordering::Relaxed);
         m.env_steps
@@ -343,11 +360,16 @@ impl Store {
 
     /// Adds a session already charged and returns its ID and spec.
     fn insert(&self, envs: Envs, charge: Charge) -> Result<(SessionId, SessionSpec), SessionError> {
+        let now = self.now_ms();
         let session = Arc::new(Session {
             _charge: charge,
-            last_used_ms: AtomicU64::new(self.now_ms()),
-            expert_actions: envs.options().expert_actions,
+            last_used_ms: AtomicU64::new(now),
+            num_envs: envs.len(),
+            options: *envs.options(),
             envs: Mutex::new(envs),
+            created_ms: now,
+            tally: watch::Tally::default(),
+            watch: watch::Watch::default(),
         });
         let spec = session.spec();
         let id = loop {

@@ -284,7 +284,7 @@ class ServerInfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class ServerInfoResponse(_message.Message):
-    __slots__ = ("server_version", "ruleset", "max_sessions", "max_envs_per_session", "session_ttl_seconds", "live_sessions", "max_rollout_episodes", "max_message_bytes", "snapshot_version", "max_memory_bytes", "memory_used_bytes", "max_rollout_work_steps")
+    __slots__ = ("server_version", "ruleset", "max_sessions", "max_envs_per_session", "session_ttl_seconds", "live_sessions", "max_rollout_episodes", "max_message_bytes", "snapshot_version", "max_memory_bytes", "memory_used_bytes", "max_rollout_work_steps", "http_port", "http_host")
     SERVER_VERSION_FIELD_NUMBER: _ClassVar[int]
     RULESET_FIELD_NUMBER: _ClassVar[int]
     MAX_SESSIONS_FIELD_NUMBER: _ClassVar[int]
@@ -297,6 +297,8 @@ class ServerInfoResponse(_message.Message):
     MAX_MEMORY_BYTES_FIELD_NUMBER: _ClassVar[int]
     MEMORY_USED_BYTES_FIELD_NUMBER: _ClassVar[int]
     MAX_ROLLOUT_WORK_STEPS_FIELD_NUMBER: _ClassVar[int]
+    HTTP_PORT_FIELD_NUMBER: _ClassVar[int]
+    HTTP_HOST_FIELD_NUMBER: _ClassVar[int]
     server_version: str
     ruleset: str
     max_sessions: int
@@ -309,4 +311,6 @@ class ServerInfoResponse(_message.Message):
     max_memory_bytes: int
     memory_used_bytes: int
     max_rollout_work_steps: int
-    def __init__(self, server_version: _Optional[str] = ..., ruleset: _Optional[str] = ..., max_sessions: _Optional[int] = ..., max_envs_per_session: _Optional[int] = ..., session_ttl_seconds: _Optional[int] = ..., live_sessions: _Optional[int] = ..., max_rollout_episodes: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., snapshot_version: _Optional[int] = ..., max_memory_bytes: _Optional[int] = ..., memory_used_bytes: _Optional[int] = ..., max_rollout_work_steps: _Optional[int] = ...) -> None: ...
+    http_port: int
+    http_host: str
+    def __init__(self, server_version: _Optional[str] = ..., ruleset: _Optional[str] = ..., max_sessions: _Optional[int] = ..., max_envs_per_session: _Optional[int] = ..., session_ttl_seconds: _Optional[int] = ..., live_sessions: _Optional[int] = ..., max_rollout_episodes: _Optional[int] = ..., max_message_bytes: _Optional[int] = ..., snapshot_version: _Optional[int] = ..., max_memory_bytes: _Optional[int] = ..., memory_used_bytes: _Optional[int] = ..., max_rollout_work_steps: _Optional[int] = ..., http_port: _Optional[int] = ..., http_host: _Optional[str] = ...) -> None: ...

@@ -59,6 +59,8 @@ pub struct DinerDashService {
     unknown: Arc<Tenant>,
     /// Fires when the server starts draining: Rollout streams then get a short deadline.
     stopping: Shutdown,
+    /// Where the HTTP endpoint (the sessions and watch pages) listens, told by ServerInfo.
+    http_addr: Option<std::net::SocketAddr>,
 }
 
 impl DinerDashService {
@@ -75,6 +77,15 @@ impl DinerDashService {
             cpu: CpuPool::beside_steps(),
             unknown: Arc::new(Tenant::new("an unknown connection".into(), share)),
             stopping,
+            http_addr: None,
+        }
+    }
+
+    /// The same service, telling clients in ServerInfo that its pages are served at `addr`.
+    pub fn with_http_addr(self, addr: Option<std::net::SocketAddr>) -> DinerDashService {
+        DinerDashService {
+            http_addr: addr,
+            ..self
         }
     }
 
@@ -301,6 +312,10 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             max_rollout_work_steps: limits.max_rollout_work_steps,
             max_message_bytes: MAX_MESSAGE_BYTES as u64,
             snapshot_version: u32::from(SNAPSHOT_VERSION),
+            http_port: self.http_addr.map_or(0, |a| u32::from(a.port())),
+            http_host: self
+                .http_addr
+                .map_or_else(String::new, |a| a.ip().to_string()),
         }))
     }
 }

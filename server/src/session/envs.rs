@@ -335,6 +335,12 @@ impl Envs {
         &self.options
     }
 
+    /// Environment `index`'s game, once it has been reset.
+    pub fn restaurant(&self, index: usize) -> Option<&crate::sim::Restaurant> {
+        let game = &self.envs.get(index)?.game;
+        game.is_started().then(|| game.restaurant())
+    }
+
     /// The configuration the next reset uses.
     pub fn config(&self) -> Config {
         self.envs

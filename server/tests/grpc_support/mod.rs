@@ -37,7 +37,7 @@ impl TestServer {
         if metrics {
             let l = TcpListener::bind("127.0.0.1:0").await.unwrap();
             metrics_addr = Some(l.local_addr().unwrap());
-            config.metrics_listener = Some(l);
+            config.http_listener = Some(l);
         }
         let (stop, stopped) = oneshot::channel::<()>();
         let task = tokio::spawn(server::run(listener, config, async {

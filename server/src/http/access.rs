@@ -1,0 +1,136 @@
+//! Who is asking: the bearer token of an HTTP request, checked against the server's tokens, and
+//! which sessions that viewer may see.
+//!
+//! A server without tokens serves its pages only on a local address (the command line refuses
+//! anything else) and shows every session. With tokens, every feed and `/metrics` need one:
+//! a tenant token (`--auth-tokens-file`) sees its tenant's sessions; the shared `--auth-token`
+//! sees the sessions that no tenant token created (those count against their connections).
+
+use std::sync::Arc;
+
+use crate::auth::{Token, same_bytes};
+use crate::budget::Tenant;
+
+/// Who a request comes from.
+#[derive(Debug, Clone)]
+pub enum Viewer {
+    /// The server has no tokens: everyone sees everything.
+    Anyone,
+    /// The shared `--auth-token`.
+    SharedToken,
+    /// A tenant's token.
+    Tenant(Arc<Tenant>),
+}
+
+/// Why a request was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum Refused {
+    /// No `Authorization` header, and the server needs one.
+    #[error("this server needs a token: send `Authorization: Bearer <token>`")]
+    Missing,
+    /// The header names no token of this server.
+    #[error("invalid token")]
+    Invalid,
+}
+
+/// An accepted `Authorization` value (`Bearer <token>`) and its tenant (`None`: the shared
+/// token).
+type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
+
+/// The server's tokens.
+#[derive(Debug, Clone, Default)]
+pub struct Access {
+    /// The accepted values.
+    tokens: Arc<[Accepted]>,
+}
+
+impl Access {
+    /// Accepts `tokens`; none: an open (local-only) endpoint.
+    pub fn new(tokens: &[Token]) -> Access {
+        let tokens = tokens
+            .iter()
+            .map(|t| {
+                let value = format!("Bearer {}", t.token)
+                    .into_bytes()
+                    .into_boxed_slice();
+                (value, t.tenant.clone())
+            })
+            .collect();
+        Access { tokens }
+    }
+
+    /// Whether requests need a token.
+    pub fn needs_token(&self) -> bool {
+        !self.tokens.is_empty()
+    }
+
+    /// Who sends `authorization` (the header's value, if any).
+    pub fn viewer(&self, authorization: Option<&[u8]>) -> Result<Viewer, Refused> {
+        if self.tokens.is_empty() {
+            return Ok(Viewer::Anyone);
+        }
+        let value = authorization.ok_or(Refused::Missing)?.trim_ascii();
+        // Every token compared, so that the time taken does not reveal which one matched.
+        let mut found = None;
+        for (expected, tenant) in self.tokens.iter() {
+            if same_bytes(value, expected) {
+                found = Some(tenant.clone());
+            }
+        }
+        match found {
+            None => Err(Refused::Invalid),
+            Some(None) => Ok(Viewer::SharedToken),
+            Some(Some(tenant)) => Ok(Viewer::Tenant(tenant)),
+        }
+    }
+
+    /// Whether `viewer` may see a session of `tenant`.
+    pub fn sees(&self, viewer: &Viewer, tenant: &Arc<Tenant>) -> bool {
+        match viewer {
+            Viewer::Anyone => true,
+            Viewer::Tenant(mine) => Arc::ptr_eq(mine, tenant),
+            Viewer::SharedToken => !self
+                .tokens
+                .iter()
+                .any(|(_, t)| t.as_ref().is_some_and(|t| Arc::ptr_eq(t, tenant))),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::budget::Share;
+
+    #[test]
+    fn tokens_choose_what_a_viewer_sees() {
+        let a = Arc::new(Tenant::new("tenant a".into(), Share::default()));
+        let b = Arc::new(Tenant::new("tenant b".into(), Share::default()));
+        let conn = Arc::new(Tenant::new("connection x".into(), Share::default()));
+        let token = |token: &str, tenant: Option<&Arc<Tenant>>| Token {
+            token: token.into(),
+            tenant: tenant.cloned(),
+        };
+        let access = Access::new(&[
+            token("aaa", Some(&a)),
+            token("bbb", Some(&b)),
+            token("shared", None),
+        ]);
+        assert_eq!(access.viewer(None).unwrap_err(), Refused::Missing);
+        assert_eq!(
+            access.viewer(Some(b"Bearer nope")).unwrap_err(),
+            Refused::Invalid
+        );
+        let viewer_a = access.viewer(Some(b"Bearer aaa")).unwrap();
+        assert!(access.sees(&viewer_a, &a));
+        assert!(!access.sees(&viewer_a, &b));
+        assert!(!access.sees(&viewer_a, &conn));
+        let shared = access.viewer(Some(b" Bearer shared ")).unwrap();
+        assert!(access.sees(&shared, &conn));
+        assert!(!access.sees(&shared, &a));
+        let open = Access::new(&[]);
+        assert!(!open.needs_token());
+        let anyone = open.viewer(None).unwrap();
+        assert!(open.sees(&anyone, &a) && open.sees(&anyone, &conn));
+    }
+}
