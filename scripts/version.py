@@ -7,7 +7,8 @@ every tool can read without running code (sdists, editable installs, pip's resol
 
     client-py/pyproject.toml  version, and the [server] extra's ``dinerdash-server==VERSION``
     agents/pyproject.toml     version, and its ``dinerdash==VERSION`` dependency
-    Cargo.lock                the dinerdash-server package's version (for --locked builds)
+    Cargo.lock                the dinerdash-server and dinerdash-proto packages' versions (for
+                              --locked builds)
 
 ``python scripts/version.py`` prints the version, ``check`` exits 1 naming every copy that
 differs (``make wheels`` and tests/test_packaging.py run it), ``set 0.2.0`` rewrites them all.
@@ -32,6 +33,12 @@ COPIES = [
         "Cargo.lock",
         re.compile(
             r'(\[\[package\]\]\nname = "dinerdash-server"\nversion = ")([^"]+)(")'
+        ),
+    ),
+    (
+        "Cargo.lock",
+        re.compile(
+            r'(\[\[package\]\]\nname = "dinerdash-proto"\nversion = ")([^"]+)(")'
         ),
     ),
     ("client-py/pyproject.toml", re.compile(r'(\nversion = ")([^"]+)(")')),

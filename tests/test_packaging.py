@@ -84,7 +84,9 @@ def test_version_set_rewrites_every_copy(tmp_path: Path) -> None:
     assert '\nversion = "3.4.5"' in client and '"dinerdash-server==3.4.5"' in client
     agents = (tmp_path / "agents/pyproject.toml").read_text()
     assert '\nversion = "3.4.5"' in agents and '"dinerdash==3.4.5"' in agents
-    assert 'name = "dinerdash-server"\nversion = "3.4.5"' in (tmp_path / "Cargo.lock").read_text()
+    lock_text = (tmp_path / "Cargo.lock").read_text()
+    assert 'name = "dinerdash-server"\nversion = "3.4.5"' in lock_text
+    assert 'name = "dinerdash-proto"\nversion = "3.4.5"' in lock_text
     # Only the version lines changed.
     before = (REPO / "Cargo.toml").read_text().replace(cargo_version(), "3.4.5", 1)
     assert (tmp_path / "Cargo.toml").read_text() == before
