@@ -1,13 +1,14 @@
 //! Compiles `proto/dinerdash/v1/dinerdash.proto` with protox (no system `protoc`) into the
 //! tonic client and server, and writes the encoded descriptor set that server reflection serves.
-//! The files come from the `dinerdash-proto` build dependency (so the sdist carries them).
+//! The files belong to the `dinerdash-proto` build dependency (so the sdist carries them).
 
 use std::path::PathBuf;
 
 use prost::Message as _;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let root = PathBuf::from(dinerdash_proto::DIR);
+    // The dinerdash-proto crate's folder: beside this package here and in the sdist.
+    let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR")?).join("../proto");
     let proto = root.join(dinerdash_proto::FILE);
     println!("cargo:rerun-if-changed={}", proto.display());
     let fds = protox::compile([&proto], [&root])?;

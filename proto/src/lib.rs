@@ -1,13 +1,11 @@
-//! The gRPC contract's files: `dinerdash/v1/dinerdash.proto` under [`DIR`], the single source of
-//! truth for the server and the clients.
+//! The gRPC contract: `proto/dinerdash/v1/dinerdash.proto`, the single source of truth for the
+//! server and the clients.
 //!
-//! A crate of its own so that the server's build script reaches the files through a (build)
-//! dependency, which packaging carries along: maturin puts path dependencies into the
-//! `dinerdash-server` sdist, while a plain `../proto` outside the server's package would be left
-//! behind and the sdist would not build.
+//! A crate of its own so that packaging carries the contract along with the server: maturin puts
+//! the server's path dependencies into the `dinerdash-server` sdist, and a plain `../proto` outside
+//! the server's package would be left behind (the sdist would not build). The server's build
+//! script finds the files beside its own package (`../proto`) at build time, not through a path
+//! compiled into this crate, which a target directory shared by two clones would make stale.
 
-/// The include root of the contract: it holds `dinerdash/v1/dinerdash.proto`.
-pub const DIR: &str = env!("CARGO_MANIFEST_DIR");
-
-/// The contract's file, relative to [`DIR`].
+/// The contract's file, relative to the `proto/` folder (the include root).
 pub const FILE: &str = "dinerdash/v1/dinerdash.proto";
