@@ -30,10 +30,9 @@ from pathlib import Path
 
 import grpc
 from dinerdash._proto import pb, pb_grpc  # the client package installed by `make venv`
+from dinerdash.game import NUM_ACTIONS
 
 ROOT = Path(__file__).resolve().parent.parent
-
-NUM_ACTIONS = 57
 
 
 class Tally:

@@ -57,6 +57,18 @@ def test_env_starts_and_stops_its_own_server(binary_env) -> None:
     assert gone(pid) and pid not in children_named_server()
 
 
+def test_local_server_ignores_dinerdash_tls_ca(binary_env, monkeypatch, tmp_path: Path) -> None:
+    # DINERDASH_TLS_CA is for remote servers: the local server is plaintext on loopback, and an
+    # env that starts one must not try TLS against it (nor read the file).
+    monkeypatch.setenv("DINERDASH_TLS_CA", str(tmp_path / "not-a-ca.pem"))
+    env = gymnasium.make("dinerdash:DinerDash-v0", expert=True)
+    try:
+        _, info = env.reset(seed=0)
+        env.step(info["expert_action"])
+    finally:
+        env.close()
+
+
 def test_vector_env_starts_and_stops_its_own_server(binary_env) -> None:
     envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=4)
     pid = envs.server.pid

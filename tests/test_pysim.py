@@ -1,11 +1,12 @@
-"""The plain-Python simulator (``dinerdash.pysim``, the baseline of ``bench``) replays every
+"""The plain-Python simulator (``dinerdash.bench.pysim``, the baseline of ``bench``) replays every
 trajectory recorded from the reference (tests/data/conformance) exactly, expert included. No
 server is needed."""
 
 from __future__ import annotations
 
 import pytest
-from dinerdash.pysim import NUM_ACTIONS, WAIT, Config, Game, random_steps_per_second
+from dinerdash.bench.pysim import Config, Game, random_steps_per_second
+from dinerdash.game import NUM_ACTIONS, WAIT
 
 from .test_conformance import load
 

@@ -11,7 +11,7 @@ import dinerdash
 import numpy as np
 import pytest
 from dinerdash import DinerDashEnv
-from dinerdash.cli import evaluate_through_env
+from dinerdash.evaluation import evaluate_through_env
 
 from .conftest import server_binary, server_env
 
@@ -151,3 +151,18 @@ def test_cli_reports_errors_readably(tmp_path: Path) -> None:
         env={**server_env(), "DINERDASH_SERVER": str(tmp_path / "missing")},
     )
     assert result.returncode == 1 and "cargo build --release" in result.stderr
+
+
+def test_cli_reports_an_unreadable_tls_ca_readably(address: str, tmp_path: Path) -> None:
+    missing = tmp_path / "missing-ca.pem"
+    cmd = [sys.executable, "-m", "dinerdash", "evaluate", "--episodes", "1", "--address", address]
+    result = subprocess.run(
+        [*cmd, "--tls-ca", str(missing)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=server_env(),
+    )
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.startswith("error: tls_ca: cannot read")
+    assert "Traceback" not in result.stderr

@@ -1,4 +1,4 @@
-"""The DinerDash Gym paper's imitation agents in JAX: behaviour cloning and DPGM.
+"""The DinerDash Gym paper's agents in JAX: behaviour cloning and DPGM (imitation), PPO and GAIL.
 
 ::
 
@@ -9,14 +9,19 @@
     obs, reward, terminated, truncated, info = envs.step(policy.act(obs, info["action_mask"]))
 
 Layout:
-    demos       reading and slicing ``python -m dinerdash collect``'s demonstrations
-    training    the (masked) cross-entropy and the jitted minibatch loop both agents use
-    bc          behaviour cloning: two FC layers with dropout between
-    dpgm        DPGM: a factor graph per action, re-weighting layers, end-to-end fine-tuning
-    checkpoint  saving and loading checkpoint directories; the Policy that load() returns
-    play        playing a policy through the client's vector env, printing as dinerdash does
-    paper       the paper's experiment end to end: results.md, results.json, the bar chart
-    cli         ``python -m dinerdash_agents`` (train, evaluate, paper)
+    demos            reading and slicing ``python -m dinerdash collect``'s demonstrations
+    supervised       the (masked) cross-entropy and the jitted minibatch loop of BC and DPGM
+    bc               behaviour cloning: two FC layers with dropout between
+    dpgm             DPGM: a factor graph per action, re-weighting layers, end-to-end fine-tuning
+    ppo              PPO (masked or not) against one batched session: the model and the Trainer
+    gail             GAIL: PPO rewarded by a discriminator trained against the demonstrations
+    checkpoint       saving and loading checkpoint directories; the Policy that load() returns
+    train_imitation  one ``train bc|dpgm`` run: demonstrations -> checkpoint
+    train_rl         one ``train ppo|ppo-masked|gail`` run on the server: checkpoints, curve,
+                     resume
+    evaluate         playing a policy through the client's vector env (dinerdash.evaluation)
+    paper            the paper's experiment end to end: results.md, results.json, the bar chart
+    cli              ``python -m dinerdash_agents`` (train, evaluate, paper): a shell over the above
 """
 
 from __future__ import annotations

@@ -13,15 +13,12 @@ from dataclasses import asdict, dataclass
 
 import equinox as eqx
 import jax
-import numpy as np
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
-from .demos import NUM_ACTIONS, OBSERVATION_SIZE, Demos
-from .training import cross_entropy, fit
+from .demos import Demos
+from .supervised import cross_entropy, fit
 
 __all__ = ["BCConfig", "BehaviourCloning", "init", "train"]
-
-#: Upper bounds of the observation (docs/rules.md section 6): inputs are scaled into [-1/6, 1].
-OBSERVATION_HIGH = np.array([6, 6, 4] * 6 + [1] * 6 + [4, 6] * 7 + [18, 18], dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -56,6 +53,8 @@ class BehaviourCloning(eqx.Module):
         """Action logits of a batch (B, 40); dropout is active only when ``key`` is given. The
         mask is not an input of BC (it only restricts the softmax)."""
         del mask
+        # Scaled into [-1/6, 1] by the observation's upper bounds. Demonstrations carry no
+        # server Spec: the bounds are ruleset v0's.
         x = obs / OBSERVATION_HIGH
         h = jax.nn.relu(jax.vmap(self.hidden)(x))
         h = self.dropout(h, key=key, inference=key is None)

@@ -21,11 +21,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
 from . import bc, dpgm, ppo
-from .demos import NUM_ACTIONS, OBSERVATION_SIZE
 from .errors import CheckpointError
-from .training import masked_logits
+from .supervised import masked_logits
 
 __all__ = ["ALGORITHMS", "FORMAT", "FORMAT_VERSION", "Policy", "load", "save"]
 

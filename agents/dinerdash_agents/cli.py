@@ -9,7 +9,12 @@ experiment end to end.
 
 Every command that talks to a server takes ``--address host:port`` (several separated by
 commas); without it (and without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started
-and stopped, as in ``python -m dinerdash``.
+and stopped, as in ``python -m dinerdash``; and ``--tls``, ``--tls-ca PATH`` and ``--timeout``
+as there (:mod:`dinerdash.command_line`, which both programs share).
+
+The commands are shells over :mod:`~dinerdash_agents.train_imitation`,
+:mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate` and
+:mod:`~dinerdash_agents.paper`.
 """
 
 from __future__ import annotations
@@ -18,16 +23,18 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from dinerdash.command_line import add_connection_arguments, connection_keywords, run_command
+
 __all__ = ["main"]
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .rl import RL_ALGORITHMS
+    from .train_rl import RL_ALGORITHMS
 
     if args.algorithm in RL_ALGORITHMS:
         return _cmd_train_rl(args)
     from .errors import AgentsError
-    from .run import default_config, train_checkpoint
+    from .train_imitation import default_config, train_checkpoint
 
     if args.demos is None:
         raise AgentsError(f"{args.algorithm} needs --demos")
@@ -51,7 +58,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_rl(args: argparse.Namespace) -> int:
-    from .rl import train_rl
+    from .train_rl import train_rl
 
     trainer = train_rl(
         args.algorithm,
@@ -62,6 +69,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         demos=args.demos,
         seed=args.seed,
         resume=args.resume,
+        **connection_keywords(args),
     )
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
@@ -73,10 +81,10 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import time
 
-    from dinerdash.cli import Progress, print_evaluation
+    from dinerdash.evaluation import Progress, print_evaluation
 
     from .checkpoint import load
-    from .play import evaluate_policy
+    from .evaluate import evaluate_policy
 
     policy = load(args.checkpoint)
     if args.episodes < 1:
@@ -93,6 +101,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         max_steps=args.max_steps,
         use_mask=not args.no_mask,
         progress=progress,
+        **connection_keywords(args),
     )
     progress.close()
     print_evaluation(
@@ -111,7 +120,12 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from .paper import run_paper
 
     run_paper(
-        args.out, address=args.address, demos=args.demos, seed=args.seed, rl_steps=args.rl_steps
+        args.out,
+        address=args.address,
+        demos=args.demos,
+        seed=args.seed,
+        rl_steps=args.rl_steps,
+        **connection_keywords(args),
     )
     return 0
 
@@ -121,13 +135,6 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m dinerdash_agents", description=__doc__.splitlines()[0]
     )
     sub = parser.add_subparsers(dest="command", required=True)
-
-    def address(p: argparse.ArgumentParser) -> None:
-        p.add_argument(
-            "--address",
-            help="server host:port, several separated by commas (default: DINERDASH_ADDRESS, "
-            "else a local server is started)",
-        )
 
     p = sub.add_parser(
         "train", help="train an agent: on expert demonstrations (bc, dpgm) or on the server (RL)"
@@ -155,7 +162,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
     p.add_argument("--num-envs", type=int, help="RL: environments stepped together (default 256)")
     p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
-    address(p)
+    add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("evaluate", help="mean ± sd score of a checkpoint over seeded episodes")
@@ -172,7 +179,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-mask", action="store_true", help="greedy over all 57 actions, not the legal ones"
     )
-    address(p)
+    add_connection_arguments(p)
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser(
@@ -192,14 +199,12 @@ def _parser() -> argparse.ArgumentParser:
         help="environment steps of each RL agent (default: 3e7 for PPO, 1e7 for GAIL); a run "
         "already checkpointed under OUT/checkpoints is continued to it, or only loaded",
     )
-    address(p)
+    add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from dinerdash.cli import run_command
-
     from .errors import AgentsError
 
     return run_command(_parser().parse_args(argv), (AgentsError,))

@@ -13,13 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
 from .errors import DemosError
 
-__all__ = ["NUM_ACTIONS", "OBSERVATION_SIZE", "Demos", "load_demos"]
+__all__ = ["Demos", "load_demos"]
 
-OBSERVATION_SIZE = 40
-NUM_ACTIONS = 57
 _FIELDS = ("observations", "actions", "action_masks", "episode_lengths", "episode_starts")
 
 

@@ -31,9 +31,20 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from dinerdash.game import (
+    DROP_DISHES,
+    FIRST_PICK_UP,
+    FIRST_SEAT,
+    HAND_IN_ORDERS,
+    NUM_ACTIONS,
+    NUM_TABLES,
+    QUEUE_CAPACITY,
+    WAIT,
+    seat_action,
+)
 
-from .demos import NUM_ACTIONS, Demos
-from .training import cross_entropy, fit
+from .demos import Demos
+from .supervised import cross_entropy, fit
 
 __all__ = [
     "DPGM",
@@ -47,8 +58,6 @@ __all__ = [
     "train",
 ]
 
-TABLES = 6
-QUEUE = 7
 MAX_ARITY = 3
 
 
@@ -58,14 +67,14 @@ MAX_ARITY = 3
 #: computes each family as one block (one array operation rather than one per column).
 _FAMILIES: list[tuple[str, int, int]] = [
     ("none", 1, 1),
-    ("status", TABLES, 7),  # 0 free .. 6 waiting for the bill
-    ("table_patience", TABLES, 6),  # P div 200 of the seated group, -1..4 shifted to 0..5
-    ("capacity", TABLES, 7),
-    ("food_ready", TABLES, 2),  # the table's food is on a counter
-    ("food_in_hand", TABLES, 2),
-    ("group_waiting", QUEUE, 2),
-    ("group_size", QUEUE, 7),
-    ("group_patience", QUEUE, 5),  # P div 200, 0..4
+    ("status", NUM_TABLES, 7),  # 0 free .. 6 waiting for the bill
+    ("table_patience", NUM_TABLES, 6),  # P div 200 of the seated group, -1..4 shifted to 0..5
+    ("capacity", NUM_TABLES, 7),
+    ("food_ready", NUM_TABLES, 2),  # the table's food is on a counter
+    ("food_in_hand", NUM_TABLES, 2),
+    ("group_waiting", QUEUE_CAPACITY, 2),
+    ("group_size", QUEUE_CAPACITY, 7),
+    ("group_patience", QUEUE_CAPACITY, 5),  # P div 200, 0..4
     ("hand_items", 1, 3),
     ("hand_orders", 1, 3),
     ("hand_dishes", 1, 3),
@@ -94,9 +103,9 @@ def sub_state(obs: jax.Array, mask: jax.Array) -> jax.Array:
     o = jnp.round(obs).astype(jnp.int32)
     m = mask.astype(jnp.int32)
     hands = o[:, 38:40]
-    tables = o[:, :18].reshape(-1, TABLES, 3)  # status, capacity, patience level
-    queue = o[:, 24:38].reshape(-1, QUEUE, 2)  # patience level, size
-    in_hand = hands[:, None, :] == 7 + jnp.arange(TABLES)[None, :, None]  # food(t) is 6 + t
+    tables = o[:, :18].reshape(-1, NUM_TABLES, 3)  # status, capacity, patience level
+    queue = o[:, 24:38].reshape(-1, QUEUE_CAPACITY, 2)  # patience level, size
+    in_hand = hands[:, None, :] == 7 + jnp.arange(NUM_TABLES)[None, :, None]  # food(t) is 6 + t
 
     def one(x: jax.Array) -> jax.Array:
         return x[:, None]
@@ -117,7 +126,7 @@ def sub_state(obs: jax.Array, mask: jax.Array) -> jax.Array:
         "legal": m,
         "legal_others": one(jnp.sum(m[:, 1:], axis=1)),
         "legal_tables": one(jnp.sum(m[:, 1:7], axis=1)),
-        "legal_seats": one(jnp.sum(m[:, 15:], axis=1)),
+        "legal_seats": one(jnp.sum(m[:, FIRST_SEAT:], axis=1)),
     }
     x = jnp.concatenate([blocks[family] for family, _, _ in _FAMILIES], axis=1)
     return jnp.clip(x, 0, jnp.asarray(_CARDINALITIES) - 1)
@@ -131,37 +140,32 @@ class Factor(NamedTuple):
     variables: tuple[str, ...]
 
 
-def seat_action(group: int, table: int) -> int:
-    """The id of "seat queued group g at table t" (both 1-based)."""
-    return 15 + 6 * (group - 1) + (table - 1)
-
-
 def factor_layout() -> list[Factor]:
     """The factor graph of each of the 57 actions (docs/agents.md gives the reasons)."""
     f: list[Factor] = []
     # wait: memorised over how much else could be done.
-    f.append(Factor(0, ("legal_others",)))
-    f.append(Factor(0, ("legal_tables", "legal_seats")))
+    f.append(Factor(WAIT, ("legal_others",)))
+    f.append(Factor(WAIT, ("legal_tables", "legal_seats")))
     # go to table t: what the visit would do depends on the status; the hurry on the patience;
     # whether it is possible on the hands (an order or dishes need a free hand, serving needs
     # the table's food in hand).
-    for t in range(1, TABLES + 1):
+    for t in range(1, NUM_TABLES + 1):
         f.append(Factor(t, (f"legal{t}", f"status{t}")))
         f.append(Factor(t, (f"status{t}", f"table_patience{t}")))
         f.append(Factor(t, (f"status{t}", "hand_items", f"food_in_hand{t}")))
     # hand orders to the kitchen: memorised over the hands.
-    f.append(Factor(7, ("legal7", "hand_orders", "hand_items")))
+    f.append(Factor(HAND_IN_ORDERS, (f"legal{HAND_IN_ORDERS}", "hand_orders", "hand_items")))
     # pick up food of t: memorised over counter and hands; the table's hurry as its own factor.
-    for t in range(1, TABLES + 1):
-        a = 7 + t
+    for t in range(1, NUM_TABLES + 1):
+        a = FIRST_PICK_UP + t - 1
         f.append(Factor(a, (f"legal{a}", "hand_items", f"food_ready{t}")))
         f.append(Factor(a, (f"status{t}", f"table_patience{t}")))
     # drop dishes: memorised over the hands.
-    f.append(Factor(14, ("legal14", "hand_dishes", "hand_items")))
+    f.append(Factor(DROP_DISHES, (f"legal{DROP_DISHES}", "hand_dishes", "hand_items")))
     # seat group g at table t: the paper's four numbers (table status and size, group size and
     # patience), in three factors: can it be done, does the group fit the table, how urgent.
-    for g in range(1, QUEUE + 1):
-        for t in range(1, TABLES + 1):
+    for g in range(1, QUEUE_CAPACITY + 1):
+        for t in range(1, NUM_TABLES + 1):
             a = seat_action(g, t)
             f.append(Factor(a, (f"legal{a}", f"status{t}")))
             f.append(Factor(a, (f"capacity{t}", f"group_size{g}")))

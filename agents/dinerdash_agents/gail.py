@@ -16,10 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from .bc import OBSERVATION_HIGH
-from .demos import NUM_ACTIONS, OBSERVATION_SIZE, Demos
-from .ppo import PPOConfig, Rollout, Trainer
+from .demos import Demos
+from .ppo import PPOConfig, Rollout, Trainer, observation_scale
 
 __all__ = ["Discriminator", "GAILTrainer", "discriminator_loss", "fit_discriminator"]
 
@@ -34,9 +34,15 @@ class Discriminator(eqx.Module):
     """(observation, action) -> logit of "an expert's step"."""
 
     layers: list[eqx.nn.Linear]
+    #: What the observation is divided by: its upper bounds, as the policy's
+    #: (:func:`~dinerdash_agents.ppo.observation_scale`).
+    scale: tuple[float, ...] = eqx.field(static=True)
 
-    def __init__(self, key: jax.Array, hidden: int = HIDDEN) -> None:
+    def __init__(
+        self, key: jax.Array, hidden: int = HIDDEN, scale: tuple[float, ...] | None = None
+    ) -> None:
         k = jax.random.split(key, 3)
+        self.scale = scale if scale is not None else observation_scale(PPOConfig())
         n_in = OBSERVATION_SIZE + NUM_ACTIONS
         self.layers = [
             eqx.nn.Linear(n_in, hidden, key=k[0]),
@@ -45,7 +51,8 @@ class Discriminator(eqx.Module):
         ]
 
     def __call__(self, obs: jax.Array, actions: jax.Array) -> jax.Array:
-        x = jnp.concatenate([obs / OBSERVATION_HIGH, jax.nn.one_hot(actions, NUM_ACTIONS)], -1)
+        scaled = obs / jnp.asarray(self.scale, jnp.float32)
+        x = jnp.concatenate([scaled, jax.nn.one_hot(actions, NUM_ACTIONS)], -1)
         for layer in self.layers[:-1]:
             x = jnp.tanh(x @ layer.weight.T + layer.bias)
         last = self.layers[-1]
@@ -119,7 +126,9 @@ class GAILTrainer(Trainer):
         if demos is None:
             raise ValueError("GAIL needs demonstrations")
         self.expert = {"obs": demos.observations, "actions": demos.actions.astype(np.int32)}
-        self.discriminator = Discriminator(jax.random.PRNGKey(seed + 2))
+        self.discriminator = Discriminator(
+            jax.random.PRNGKey(seed + 2), scale=observation_scale(config)
+        )
         self._d_optimizer = optax.adam(LEARNING_RATE)
         self.d_opt_state = self._d_optimizer.init(eqx.filter(self.discriminator, eqx.is_array))
         self._fit = make_fit(self._d_optimizer)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .rl import RL_ALGORITHMS
+from .train_rl import RL_ALGORITHMS
 
 __all__ = ["AGENTS", "EVAL_EPISODES", "EVAL_SEED", "run_paper"]
 
@@ -81,7 +81,13 @@ def run_paper(
     demos: str | Path | None = None,
     seed: int = 0,
     rl_steps: int | None = None,
+    **connection: Any,
 ) -> dict[str, Any]:
+    """Runs the experiment against ``address`` (default: ``DINERDASH_ADDRESS``, else a local
+    server started here) and writes its results under ``out``; returns them. ``demos``: the
+    expert's demonstrations to use instead of collecting them; ``rl_steps``: every RL agent's
+    budget instead of the paper's; ``connection``: the connection keywords of every env
+    (``timeout``, ``tls``, ``tls_ca``, ...)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     from dinerdash.server import LocalServer
@@ -94,33 +100,49 @@ def run_paper(
     try:
         with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
             if demos is None:
-                demos = _collect(Path(tmp), address, "expert")
-            planner_demos = _collect(Path(tmp), address, "planner")
-            return _experiment(out, Path(demos), planner_demos, address, seed, rl_steps)
+                demos = _collect(Path(tmp), address, "expert", connection)
+            planner_demos = _collect(Path(tmp), address, "planner", connection)
+            return _experiment(out, Path(demos), planner_demos, address, seed, rl_steps, connection)
     finally:
         if server is not None:
             server.stop()
 
 
-def _collect(directory: Path, address: str | list[str], policy: str) -> Path:
-    from dinerdash.cli import main as dinerdash_main
+def _collect(
+    directory: Path, address: str | list[str], policy: str, connection: dict[str, Any]
+) -> Path:
+    """The ``policy``'s demonstrations of seeds 0..273, as ``python -m dinerdash collect``
+    writes them."""
+    from dinerdash.evaluation import Progress, collect
 
-    from .errors import AgentsError
-
-    addr = address if isinstance(address, str) else ",".join(address)
-    argv = ["collect", "--episodes", str(DEMO_EPISODES), "--seed", "0", "--out", str(directory)]
-    if dinerdash_main([*argv, "--policy", policy, "--address", addr]) != 0:
-        raise AgentsError(f"collecting the {policy}'s demonstrations failed (see above)")
-    return directory / f"dinerdash_{policy}.npz"
+    progress = Progress(DEMO_EPISODES, f"collect {policy}")
+    collected = collect(
+        directory,
+        policy=policy,
+        episodes=DEMO_EPISODES,
+        seed=0,
+        address=address,
+        progress=progress,
+        **connection,
+    )
+    progress.close()
+    print(f"wrote {collected.path}: {DEMO_EPISODES} episodes, {collected.steps} steps")
+    return collected.path
 
 
 def _experiment(
-    out: Path, demos: Path, planner_demos: Path, address, seed: int, rl_steps: int | None
+    out: Path,
+    demos: Path,
+    planner_demos: Path,
+    address,
+    seed: int,
+    rl_steps: int | None,
+    connection: dict[str, Any],
 ) -> dict[str, Any]:
-    from dinerdash.cli import Progress, evaluate_through_env
+    from dinerdash.evaluation import Progress, evaluate_through_env
 
-    from .play import evaluate_policy
-    from .run import default_config, train_checkpoint
+    from .evaluate import evaluate_policy
+    from .train_imitation import default_config, train_checkpoint
 
     rows: list[dict[str, Any]] = []
 
@@ -136,7 +158,7 @@ def _experiment(
             "mean_length": float(np.mean(lengths)),
         }
 
-    common = {"seed": EVAL_SEED, "address": address, "num_envs": EVAL_EPISODES}
+    common = {"seed": EVAL_SEED, "address": address, "num_envs": EVAL_EPISODES, **connection}
     expert = evaluate(
         "expert", lambda p: evaluate_through_env("expert", EVAL_EPISODES, progress=p, **common)
     )
@@ -148,7 +170,7 @@ def _experiment(
     )
     for agent in AGENTS:
         if agent.rl:
-            policy, description = _train_rl(agent, out, demos, address, seed, rl_steps)
+            policy, description = _train_rl(agent, out, demos, address, seed, rl_steps, connection)
         else:
             config = default_config(agent.algorithm, loss=agent.loss)
             policy, description = train_checkpoint(
@@ -216,12 +238,18 @@ def _experiment(
 
 
 def _train_rl(
-    agent: Agent, out: Path, demos: Path, address, seed: int, rl_steps: int | None
+    agent: Agent,
+    out: Path,
+    demos: Path,
+    address,
+    seed: int,
+    rl_steps: int | None,
+    connection: dict[str, Any],
 ) -> tuple[Any, dict[str, Any]]:
     """Trains an RL agent, or continues its run where a checkpoint of it already stands (a
     finished run is only loaded: the full budgets take tens of minutes)."""
     from . import checkpoint
-    from .rl import train_rl
+    from .train_rl import train_rl
 
     directory = out / "checkpoints" / agent.name
     steps = rl_steps or (GAIL_STEPS if agent.algorithm == "gail" else RL_STEPS)
@@ -234,6 +262,7 @@ def _train_rl(
         demos=demos if agent.algorithm == "gail" else None,
         seed=seed,
         resume=resume,
+        **connection,
     )
     return checkpoint.load(directory), checkpoint.read_description(directory)
 

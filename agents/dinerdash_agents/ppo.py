@@ -5,9 +5,13 @@ feeds a jitted actor-critic: per step one jitted call acts for all N environment
 one jitted call runs every epoch and minibatch of the update (a ``lax.scan``).
 
 - ``ppo-masked``: illegal actions (``info["action_mask"]``) get the logit
-  :data:`~dinerdash_agents.training.ILLEGAL_LOGIT` when acting and in the update, so the policy
+  :data:`~dinerdash_agents.supervised.ILLEGAL_LOGIT` when acting and in the update, so the policy
   never takes one and spends no probability on them.
 - ``ppo``: the paper's PPO over all 57 actions; an illegal action only lets a tick pass.
+
+The networks see the observation divided by its upper bounds, which the server sends in its Spec:
+``PPOConfig.observation_high``, taken from the vector env's ``single_observation_space.high`` when
+a run starts (:mod:`~dinerdash_agents.train_rl`) and kept in the checkpoint.
 
 Termination and truncation differ in one place, the bootstrap: after a terminated episode the
 next value is 0; after a truncated one it is the critic's value of the episode's last observation
@@ -27,12 +31,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
-from .bc import OBSERVATION_HIGH
-from .demos import NUM_ACTIONS, OBSERVATION_SIZE
-from .training import masked_logits
+from .supervised import masked_logits
 
-__all__ = ["ActorCritic", "PPOConfig", "gae", "init", "sample_actions"]
+__all__ = ["ActorCritic", "PPOConfig", "gae", "init", "observation_scale", "sample_actions"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,19 @@ class PPOConfig:
     reward_scale: float = 0.01
     #: Training episodes are truncated here (ruleset v0 has no time limit).
     max_episode_steps: int = 5000
+    #: The observation's upper bounds the networks divide it by, from the server's Spec (the env's
+    #: ``single_observation_space.high``); ``None`` (a checkpoint written before they were
+    #: recorded): ruleset v0's, :data:`dinerdash.game.OBSERVATION_HIGH`.
+    observation_high: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.observation_high is not None:  # a list, read back from JSON
+            high = tuple(float(x) for x in self.observation_high)
+            if len(high) != OBSERVATION_SIZE:
+                raise TypeError(
+                    f"observation_high has {len(high)} bounds, expected {OBSERVATION_SIZE}"
+                )
+            object.__setattr__(self, "observation_high", high)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -80,6 +96,13 @@ def _mlp(sizes: list[int], out_scale: float, key: jax.Array) -> list[eqx.nn.Line
     return layers
 
 
+def observation_scale(config: PPOConfig) -> tuple[float, ...]:
+    """What the networks of ``config`` divide the observation by: its upper bounds."""
+    if config.observation_high is not None:
+        return config.observation_high
+    return tuple(float(x) for x in OBSERVATION_HIGH)
+
+
 def _forward(layers: list[eqx.nn.Linear], x: jax.Array) -> jax.Array:
     for layer in layers[:-1]:
         x = jnp.tanh(x @ layer.weight.T + layer.bias)
@@ -92,10 +115,13 @@ class ActorCritic(eqx.Module):
 
     actor: list[eqx.nn.Linear]
     critic: list[eqx.nn.Linear]
+    #: :func:`observation_scale`: a constant of the model, not a parameter.
+    scale: tuple[float, ...] = eqx.field(static=True)
 
     def __init__(self, config: PPOConfig, key: jax.Array) -> None:
         ka, kc = jax.random.split(key)
         h = config.hidden
+        self.scale = observation_scale(config)
         self.actor = _mlp([OBSERVATION_SIZE, h, h, NUM_ACTIONS], 0.01, ka)
         self.critic = _mlp([OBSERVATION_SIZE, h, h, 1], 1.0, kc)
 
@@ -104,11 +130,11 @@ class ActorCritic(eqx.Module):
     ) -> jax.Array:
         """Action logits of a batch (B, 40); the mask only restricts the softmax."""
         del mask, key
-        return _forward(self.actor, obs / OBSERVATION_HIGH)
+        return _forward(self.actor, obs / jnp.asarray(self.scale, jnp.float32))
 
     def value(self, obs: jax.Array) -> jax.Array:
         """The critic's value of each observation of a batch, (B,)."""
-        return _forward(self.critic, obs / OBSERVATION_HIGH)[:, 0]
+        return _forward(self.critic, obs / jnp.asarray(self.scale, jnp.float32))[:, 0]
 
 
 def init(config: PPOConfig, seed: int = 0) -> ActorCritic:

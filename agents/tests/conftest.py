@@ -23,10 +23,8 @@ def server_address() -> Iterator[str]:
 
 @pytest.fixture(scope="session")
 def expert_demos(server_address: str, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """20 expert episodes (seeds 0..19) written by ``python -m dinerdash collect``."""
-    from dinerdash.cli import main as dinerdash_main
+    """20 expert episodes (seeds 0..19), as ``python -m dinerdash collect`` writes them."""
+    from dinerdash.evaluation import collect
 
     out = tmp_path_factory.mktemp("demos")
-    argv = ["collect", "--episodes", "20", "--seed", "0", "--out", str(out)]
-    assert dinerdash_main([*argv, "--address", server_address]) == 0
-    return out / "dinerdash_expert.npz"
+    return collect(out, episodes=20, seed=0, address=server_address).path

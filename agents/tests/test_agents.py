@@ -17,9 +17,9 @@ from dinerdash_agents import CheckpointError, DemosError, checkpoint, load
 from dinerdash_agents import dpgm as dpgm_module
 from dinerdash_agents.cli import main
 from dinerdash_agents.demos import load_demos
-from dinerdash_agents.play import evaluate_policy
-from dinerdash_agents.run import default_config, train_checkpoint
-from dinerdash_agents.training import cross_entropy
+from dinerdash_agents.evaluate import evaluate_policy
+from dinerdash_agents.supervised import cross_entropy
+from dinerdash_agents.train_imitation import default_config, train_checkpoint
 
 EVAL_SEED = 1000
 

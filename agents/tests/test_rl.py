@@ -11,14 +11,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from dinerdash.game import NUM_ACTIONS
 from gymnasium.vector import AutoresetMode
 
 from dinerdash_agents import gail, ppo
 from dinerdash_agents.checkpoint import Policy, load
 from dinerdash_agents.cli import main as agents_main
-from dinerdash_agents.demos import NUM_ACTIONS, load_demos
-from dinerdash_agents.play import evaluate_policy
-from dinerdash_agents.training import ILLEGAL_LOGIT
+from dinerdash_agents.demos import load_demos
+from dinerdash_agents.evaluate import evaluate_policy
+from dinerdash_agents.supervised import ILLEGAL_LOGIT
 
 
 def test_gae_bootstraps_a_truncation_but_not_a_termination():

@@ -7,20 +7,26 @@
     envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=256, address="localhost:50051")
 
 Layout:
-    connection  the channel (options, address rules) and the one call wrapper (errors, retries)
-    errors      the exception hierarchy (mapped from the server's structured error details)
-    _core       the session core: one batched session on one server (create, reset, step,
-                decode, reconnect), shared by both environments
-    env         DinerDashEnv, the Gymnasium Env
-    vector      DinerDashVectorEnv, the VectorEnv (one batched session per server)
-    server      LocalServer, the embedded default: a dinerdash-server subprocess
-    _version    __version__, and ServerVersionWarning for a server of another major/minor
-    render      the rgb_array picture, drawn with numpy
-    rollout     rollout(): server-side expert/random episodes, streamed
-    cli         ``python -m dinerdash`` (evaluate, collect, bench)
-    bench       the bench command: the client's rates beside the TCP floor and the reference
-    pysim       the rules in plain Python, the reference that bench measures against
-    sb3         make_vec_env(): a stable-baselines3 VecEnv over one batched session (extra [sb3])
+    game          the game's numbers (actions, observation size and bounds), defined once
+    connection    ConnectOptions (how to connect, built once per env), the channel and the one
+                  call wrapper (address rules, deadline, TLS, errors, retries)
+    errors        the exception hierarchy (mapped from the server's structured error details)
+    _arguments    the envs' Python arguments checked and turned into protocol messages
+    _endpoint     Endpoint: the connections to the server(s), or the local server, reconnecting
+    _core         the session core: one batched session on one server (create, reset, step,
+                  decode, reconnect), shared by both environments
+    env           DinerDashEnv, the Gymnasium Env
+    vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)
+    server        LocalServer, the embedded default: a dinerdash-server subprocess
+    _version      __version__, and ServerVersionWarning for a server of another major/minor
+    render        the rgb_array picture, drawn with numpy
+    rollout       rollout(): server-side expert/random/planner episodes, streamed
+    evaluation    seeded play, evaluate, collect demonstrations, print results, progress bar
+    command_line  what every ``python -m`` command shares: connection arguments, run_command
+    cli           ``python -m dinerdash`` (evaluate, collect, bench): a shell over the above
+    bench/        the bench command (harness) and pysim, the plain-Python rules it measures
+                  against
+    sb3           make_vec_env(): a stable-baselines3 VecEnv over one batched session (extra [sb3])
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """The session core: environments ``start:stop`` of an env, held in one batched session on one
-server, and everything both environments do with such a session.
+server, and everything both environments do with such a session; and :class:`SessionOwner`, what
+the two environments share (their endpoint and the server's Spec).
 
 It creates the session, resets and steps it (blocking, or started on every server first and then
 collected), checks actions, decodes the packed replies, and, with ``reconnect=True``, waits for a
@@ -23,10 +24,12 @@ import grpc
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from ._arguments import config_dict
+from ._endpoint import Endpoint
 from ._proto import pb
-from ._session import NUM_ACTIONS, OBSERVATION_SIZE, Endpoint, close_session
 from .connection import Connection
 from .errors import InvalidArgument, ServiceError, ServiceTransportError, SessionNotFound
+from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
 _WIRE_AUTORESET = {
     AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
@@ -71,6 +74,34 @@ def check_actions(actions: Any, num_envs: int) -> np.ndarray:
             env_index=i,
         )
     return acts.astype("<i4", copy=False)
+
+
+def close_session(conn: Connection, session_id: str) -> None:
+    """Closes a session, once and briefly: a server that is gone or already forgot the session
+    has nothing left to free."""
+    try:
+        request = pb.CloseSessionRequest(session_id=session_id)
+        conn.call("CloseSession", request, timeout=2.0, retries=0)
+    except ServiceError:
+        pass
+
+
+class SessionOwner:
+    """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share:
+    the :class:`Endpoint` they opened and the server's ``Spec`` of their session."""
+
+    _endpoint: Endpoint
+    spec_proto: pb.Spec
+
+    @property
+    def server(self):
+        """The :class:`~dinerdash.server.LocalServer` this env started, or ``None``."""
+        return self._endpoint.server
+
+    @property
+    def game_config(self) -> dict[str, int]:
+        """The effective game configuration, every field present."""
+        return config_dict(self.spec_proto.config)
 
 
 class Caller:
@@ -141,7 +172,7 @@ def _serve(work: weakref.WeakMethod, requests: queue.SimpleQueue, replies: queue
 
 class SessionCore:
     """Environments ``start:stop`` of an env, in one session on server ``index`` of its
-    :class:`~dinerdash._session.Endpoint`."""
+    :class:`~dinerdash._endpoint.Endpoint`."""
 
     __slots__ = (
         "__weakref__",

@@ -1,7 +1,8 @@
 """The channel to a DinerDash server and the one call wrapper every RPC goes through.
 
-Everything about the network lives here: the channel options, the address rules (a ``host:port``,
-a comma-separated or Python list of them, or a DNS name that resolves to several replicas), the
+Everything about the network lives here: how to connect (:class:`ConnectOptions`, built once from
+an environment's keywords), the channel options, the address rules (a ``host:port``, a
+comma-separated or Python list of them, or a DNS name that resolves to several replicas), the
 mapping from gRPC statuses to the typed exceptions of :mod:`dinerdash.errors`, the deadline every
 call carries, TLS, and the retry policy: only ``UNAVAILABLE`` is retried, with exponential backoff
 and a bounded number of attempts.
@@ -15,6 +16,7 @@ import socket
 import ssl
 import time
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
@@ -33,6 +35,7 @@ __all__ = [
     "CHANNEL_OPTIONS",
     "DEFAULT_PORT",
     "DEFAULT_TIMEOUT",
+    "ConnectOptions",
     "Connection",
     "call_timeout",
     "parse_addresses",
@@ -100,12 +103,15 @@ def call_timeout(timeout: float | None) -> float:
     return timeout
 
 
-def tls_credentials(tls: bool, tls_ca: str | os.PathLike | None) -> grpc.ChannelCredentials | None:
-    """The channel credentials for ``tls`` / ``tls_ca`` (default ``DINERDASH_TLS_CA``): ``None``
-    means plaintext; a CA file means TLS trusting that CA, ``tls=True`` the system's roots."""
+def tls_credentials(
+    tls: bool, tls_ca: str | os.PathLike | bool | None
+) -> grpc.ChannelCredentials | None:
+    """The channel credentials for ``tls`` / ``tls_ca`` (``None``: ``DINERDASH_TLS_CA``; ``False``:
+    no CA and no environment, as for the local server): ``None`` means plaintext; a CA file means
+    TLS trusting that CA, ``tls=True`` the system's roots."""
     if tls_ca is None:
         tls_ca = os.environ.get("DINERDASH_TLS_CA") or None
-    if tls_ca is not None:
+    if tls_ca is not None and tls_ca is not False:
         try:
             with open(tls_ca, "rb") as f:
                 pem = f.read()
@@ -211,6 +217,50 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class ConnectOptions:
+    """How to reach the server(s): built once from the keywords of an environment (or of
+    :func:`~dinerdash.rollout`) and passed down as is, to the endpoint that connects and from it
+    to every :class:`Connection`.
+
+    Attributes:
+        address: as given: a ``host:port``, several (a comma-separated string or a list, kept as
+            a tuple), or a DNS name; ``None``: ``DINERDASH_ADDRESS``, else a local server. It is
+            resolved at each connect, so that a DNS name that moved is followed.
+        token: the auth token (``None``: ``DINERDASH_AUTH_TOKEN``).
+        connect_timeout: seconds to wait for a server to answer at first.
+        timeout: every call's deadline in seconds, resolved here (:func:`call_timeout`).
+        tls, tls_ca: TLS trusting the system's roots, or this PEM CA (``None``:
+            ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says, as for the
+            local server).
+        server_binary: the local server's binary, when one is started.
+    """
+
+    address: str | tuple[str, ...] | None = None
+    token: str | None = None
+    connect_timeout: float = 10.0
+    timeout: float | None = None
+    tls: bool = False
+    tls_ca: str | os.PathLike | bool | None = None
+    server_binary: str | os.PathLike | None = None
+
+    def __post_init__(self) -> None:
+        if self.address is not None and not isinstance(self.address, str):
+            object.__setattr__(self, "address", tuple(self.address))
+        object.__setattr__(self, "timeout", call_timeout(self.timeout))
+
+    def connect(self, address: str) -> Connection:
+        """A :class:`Connection` to one server, with these options."""
+        return Connection(
+            address,
+            token=self.token,
+            connect_timeout=self.connect_timeout,
+            timeout=self.timeout,
+            tls=self.tls,
+            tls_ca=self.tls_ca,
+        )
+
+
 class Connection:
     """One channel to one server, and the call wrapper that every RPC of the client goes through.
 
@@ -240,7 +290,7 @@ class Connection:
         retry_backoff: float = 0.1,
         timeout: float | None = None,
         tls: bool = False,
-        tls_ca: str | os.PathLike | None = None,
+        tls_ca: str | os.PathLike | bool | None = None,
     ) -> None:
         self.address = parse_addresses(address)[0]
         self.retries = retries

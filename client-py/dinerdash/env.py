@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import os
 import random
 import struct
@@ -16,23 +17,21 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
 from . import render as _render
-from ._core import SessionCore, Settings, check_actions, decode_one
-from ._proto import pb
-from ._session import (
-    NUM_ACTIONS,
+from ._arguments import (
     RENDER_MODES,
     Config,
-    Endpoint,
-    SessionOwner,
     check_options,
     check_render_mode,
     expert_fields,
     make_arrivals,
     make_config,
 )
-from ._session import observation_space as _observation_space
-from .connection import Connection, call_timeout
+from ._core import SessionCore, SessionOwner, Settings, check_actions, decode_one
+from ._endpoint import Endpoint
+from ._proto import pb
+from .connection import Connection, ConnectOptions
 from .errors import EnvClosed, SessionNotFound
+from .game import NUM_ACTIONS, observation_space
 
 __all__ = ["DinerDashEnv", "Snapshot"]
 
@@ -189,19 +188,19 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             reconnect=self.reconnect,
             reconnect_timeout=reconnect_timeout,
         )
-        self._connect = {
-            "address": address,
-            "token": token,
-            "connect_timeout": connect_timeout,
-            "server_binary": server_binary,
-            "timeout": call_timeout(timeout),
-            "tls": tls,
-            "tls_ca": tls_ca,
-        }
+        self._options = ConnectOptions(
+            address,
+            token=token,
+            connect_timeout=connect_timeout,
+            timeout=timeout,
+            tls=tls,
+            tls_ca=tls_ca,
+            server_binary=server_binary,
+        )
         self._last_obs: np.ndarray | None = None
         self._last_info: dict[str, Any] = {}
         self._open()
-        self.observation_space = _observation_space(self.spec_proto)
+        self.observation_space = observation_space(self.spec_proto)
         self.action_space = spaces.Discrete(self.spec_proto.num_actions)
 
     # -- session --------------------------------------------------------------------------------
@@ -210,7 +209,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         """Connects and creates the session (at construction, and at a reset after close)."""
         # A list or a many-address DNS name: one replica at random, so that many single envs
         # (e.g. under AsyncVectorEnv) spread over the replicas.
-        self._endpoint = Endpoint(**self._connect, pick=random.randrange(1 << 30))
+        self._endpoint = Endpoint(self._options, pick=random.randrange(1 << 30))
         self._core = SessionCore(self._endpoint, 0, 0, 1, self._settings)
         try:
             self.spec_proto: pb.Spec = self._core.create()
@@ -318,8 +317,10 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         self._check_open("fork()")
         reply = self._conn.call("Fork", pb.ForkRequest(session_id=self.session_id))
         child = copy.copy(self)
-        child._connect = dict(self._connect, address=self._conn.address, server_binary=None)
-        child._endpoint = Endpoint(**child._connect)
+        child._options = dataclasses.replace(
+            self._options, address=self._conn.address, server_binary=None
+        )
+        child._endpoint = Endpoint(child._options)
         child._core = SessionCore(child._endpoint, 0, 0, 1, copy.copy(self._settings))
         child._settings = child._core.settings
         child._core.adopt(reply.session_id, reply.spec)

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .game import NUM_TABLES, OBSERVATION_SIZE, QUEUE_CAPACITY
+
 __all__ = ["STATUS_COLORS", "draw"]
 
 WIDTH, HEIGHT = 400, 260
@@ -115,9 +117,10 @@ def _item(img: np.ndarray, x: int, y: int, code: int) -> None:
 def draw(observation: np.ndarray, *, score: int = 0, lost: int = 0, lives: int = 5) -> np.ndarray:
     """The picture of one observation: an ``(HEIGHT, WIDTH, 3)`` ``uint8`` RGB array."""
     obs = np.asarray(observation).astype(np.int64).reshape(-1)
-    if obs.shape != (40,):
+    if obs.shape != (OBSERVATION_SIZE,):
         raise ValueError(
-            f"expected an observation of 40 numbers, got shape {np.shape(observation)}"
+            f"expected an observation of {OBSERVATION_SIZE} numbers, got shape "
+            f"{np.shape(observation)}"
         )
     img = np.empty((HEIGHT, WIDTH, 3), dtype=np.uint8)
     img[:] = _FLOOR
@@ -129,7 +132,7 @@ def draw(observation: np.ndarray, *, score: int = 0, lost: int = 0, lives: int =
         _rect(img, x + 14 * i, 8, 10, 10, _HEART if i < lives - lost else _SLOT)
 
     # Queue: group 1 (oldest) on top; heads for the size, a bar for the patience.
-    for g in range(7):
+    for g in range(QUEUE_CAPACITY):
         level, size = obs[24 + 2 * g], obs[25 + 2 * g]
         y = 48 + 28 * g
         _rect(img, 8, y, 66, 24, (235, 228, 212))
@@ -139,7 +142,7 @@ def draw(observation: np.ndarray, *, score: int = 0, lost: int = 0, lives: int =
             _rect(img, 12, y + 15, 12 * (level + 1), 5, _PATIENCE[min(max(level, 0), 4)])
 
     # Tables 1..6 in two rows of three.
-    for t in range(6):
+    for t in range(NUM_TABLES):
         status, capacity, level = obs[3 * t], obs[3 * t + 1], obs[3 * t + 2]
         x, y = 88 + 92 * (t % 3), 36 + 92 * (t // 3)
         color = STATUS_COLORS[min(max(status, 0), 6)]
@@ -154,7 +157,7 @@ def draw(observation: np.ndarray, *, score: int = 0, lost: int = 0, lives: int =
             _rect(img, x + 58, y + 14, 10, 10, _FOOD)
 
     # Counters: 5 slots; the ready food, in table order.
-    ready = [t for t in range(6) if obs[18 + t]]
+    ready = [t for t in range(NUM_TABLES) if obs[18 + t]]
     for s in range(5):
         y = 48 + 34 * s
         _rect(img, 364, y, 30, 30, _SLOT)

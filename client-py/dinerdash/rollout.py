@@ -13,8 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._arguments import Config, make_config
+from ._endpoint import Endpoint
 from ._proto import pb
-from ._session import NUM_ACTIONS, OBSERVATION_SIZE, Config, Endpoint, make_config
+from .connection import ConnectOptions
+from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
 __all__ = ["Episode", "rollout"]
 
@@ -111,16 +114,16 @@ def rollout(
             raise ValueError("give seeds or episodes")
         seeds = range(seed, seed + episodes)
     seeds = [int(s) for s in seeds]
-    endpoint = Endpoint(
+    options = ConnectOptions(
         address,
         token=token,
         connect_timeout=connect_timeout,
-        server_binary=server_binary,
-        pick=0,
         timeout=timeout,
         tls=tls,
         tls_ca=tls_ca,
+        server_binary=server_binary,
     )
+    endpoint = Endpoint(options, pick=0)
     try:
         conn = endpoint.connections[0]
         chunk = max(1, conn.server_info().max_rollout_episodes or len(seeds) or 1)

@@ -28,22 +28,21 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from . import render as _render
-from ._core import SessionCore, Settings, check_actions, decode, join, seeds
-from ._proto import pb
-from ._session import (
+from ._arguments import (
     RENDER_MODES,
     Config,
-    Endpoint,
-    SessionOwner,
     check_options,
     check_render_mode,
     expert_fields,
     make_arrivals,
     make_config,
 )
-from ._session import observation_space as _observation_space
-from .connection import call_timeout
+from ._core import SessionCore, SessionOwner, Settings, check_actions, decode, join, seeds
+from ._endpoint import Endpoint
+from ._proto import pb
+from .connection import ConnectOptions
 from .errors import EnvClosed, InvalidArgument
+from .game import observation_space
 
 __all__ = ["DinerDashVectorEnv"]
 
@@ -147,19 +146,18 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             reconnect=self.reconnect,
             reconnect_timeout=reconnect_timeout,
         )
-        self._connect = {
-            "address": address,
-            "max_servers": max(1, self.num_envs),
-            "token": token,
-            "connect_timeout": connect_timeout,
-            "server_binary": server_binary,
-            "timeout": call_timeout(timeout),
-            "tls": tls,
-            "tls_ca": tls_ca,
-        }
+        self._options = ConnectOptions(
+            address,
+            token=token,
+            connect_timeout=connect_timeout,
+            timeout=timeout,
+            tls=tls,
+            tls_ca=tls_ca,
+            server_binary=server_binary,
+        )
         self._open()
         spec = self.spec_proto
-        self.single_observation_space = _observation_space(spec)
+        self.single_observation_space = observation_space(spec)
         self.single_action_space = spaces.Discrete(spec.num_actions)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -169,7 +167,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def _open(self) -> None:
         """Connects and creates one session per server (at construction, and at a reset after
         close): the environments split into contiguous slices, one per server."""
-        self._endpoint = Endpoint(**self._connect)
+        self._endpoint = Endpoint(self._options, max_servers=max(1, self.num_envs))
         k = len(self._endpoint.connections)
         self._settings.split = k > 1
         sizes = [self.num_envs // k + (j < self.num_envs % k) for j in range(k)]

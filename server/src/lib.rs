@@ -11,7 +11,9 @@
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
 //! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments, Rollouts).
-//! - [`connections`]: the accept loop (backoff, limit, idle timeout) and each connection's info.
+//! - [`connections`]: the accept loop (backoff, limit, idle timeout, shedding) and each
+//!   connection's info.
+//! - [`fd_limit`]: the open-file limit: raised at start, and the connections it has room for.
 //! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
 //! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
 //! - [`rollout`]: records whole episodes of a server-side policy (the Rollout RPC).
@@ -29,6 +31,7 @@ pub mod connections;
 pub mod cpu;
 pub mod eval;
 pub mod expert;
+pub mod fd_limit;
 pub mod health;
 pub mod metrics;
 pub mod planner;

@@ -83,7 +83,9 @@ struct ServeArgs {
     /// Most Rollout streams one tenant (or connection) may run at once.
     #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
     max_rollouts_per_tenant: u64,
-    /// Most client connections; more are answered RESOURCE_EXHAUSTED and closed.
+    /// Most client connections, capped below the open-file limit. At the limit the longest-idle
+    /// connection with no call in flight is closed to admit a new one; when every connection has
+    /// a call in flight, new ones are answered RESOURCE_EXHAUSTED and closed.
     #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS as u32, value_parser = clap::value_parser!(u32).range(1..))]
     max_connections: u32,
     /// Close connections silent this long (live clients answer keepalive pings every 30 s).
@@ -345,7 +347,9 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
             args.metrics_host
         ));
     }
-    let listener = tokio::net::TcpListener::bind((args.host.as_str(), args.port))
+    // Room for connections: the accept loop caps --max-connections below this limit.
+    dinerdash_server::fd_limit::raise();
+    let listener = connections::bind(&args.host, args.port)
         .await
         .map_err(|e| format!("cannot listen on {}:{}: {e}", args.host, args.port))?;
     let metrics_listener = match args.metrics_port {
@@ -378,6 +382,7 @@ async fn serve(args: ServeArgs) -> Result<(), String> {
         connections: connections::Limits {
             max_connections: args.max_connections as usize,
             idle_timeout: args.idle_timeout,
+            ..connections::Limits::default()
         },
         tls,
         metrics_listener,

@@ -118,6 +118,7 @@ pub async fn run(
     // Live clients answer the keepalive pings, which keeps their connections out of the idle
     // timeout; dead ones do not, and are closed.
     let mut builder = Server::builder()
+        .layer(connections::InFlightLayer)
         .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
         .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));

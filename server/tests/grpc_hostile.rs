@@ -315,6 +315,13 @@ async fn connections_over_the_limit_are_answered_resource_exhausted() {
     let server = TestServer::start_with(config, false).await;
     let mut first = server.client().await;
     info(&mut first).await;
+    // A stream open on the only connection: a call in flight, so it is not shed for another.
+    let mut stream = first
+        .rollout(rollout(1000, None))
+        .await
+        .unwrap()
+        .into_inner();
+    stream.message().await.unwrap().unwrap();
     let mut second = server.client().await;
     let refused = second
         .server_info(pb::ServerInfoRequest {})
@@ -328,6 +335,8 @@ async fn connections_over_the_limit_are_answered_resource_exhausted() {
     );
     // The first connection is served as before.
     info(&mut first).await;
+    stream.message().await.unwrap().unwrap();
+    drop(stream);
     server.stop().await;
 }
 

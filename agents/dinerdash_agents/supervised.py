@@ -1,4 +1,6 @@
-"""What the two agents' training shares: the (masked) cross-entropy and the minibatch loop.
+"""Supervised learning on demonstrations, what BC and DPGM share: the (masked) cross-entropy and
+the minibatch loop; and :func:`masked_logits`, through which every policy (PPO's too) keeps to the
+legal actions.
 
 The loop runs one whole epoch as a single jitted ``lax.scan`` over shuffled minibatches, so a
 small network trains at the speed of XLA rather than of Python; the epoch is compiled once per

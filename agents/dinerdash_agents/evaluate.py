@@ -1,14 +1,15 @@
 """Playing a policy through the client's batched vector env, episode ``i`` seeded ``seed + i``:
-the client's own evaluation loop (``dinerdash.cli.play_seeded``) with a trained agent choosing
-the actions, so agents, the expert and random play are measured the same way."""
+the client's own evaluation loop (:func:`dinerdash.evaluation.play_seeded`) with a trained agent
+choosing the actions, so agents, the expert and random play are measured the same way."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import gymnasium
 import numpy as np
-from dinerdash.cli import Progress, play_seeded
+from dinerdash.evaluation import Progress, play_seeded
 
 __all__ = ["evaluate_policy"]
 
@@ -25,14 +26,16 @@ def evaluate_policy(
     max_steps: int = 100_000,
     use_mask: bool = True,
     progress: Progress | None = None,
+    **connection: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Final scores and lengths of ``episodes`` episodes of ``act(obs, mask)`` (``mask`` is
     ``info["action_mask"]``, or ``None`` with ``use_mask=False``), in batches of ``num_envs``
-    environments, as ``python -m dinerdash evaluate`` plays them."""
+    environments, as ``python -m dinerdash evaluate`` plays them. ``connection``: the vector
+    env's connection keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
     n = max(1, min(num_envs, episodes))
-    envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=n, address=address)
+    envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=n, address=address, **connection)
     try:
         return play_seeded(
             envs,

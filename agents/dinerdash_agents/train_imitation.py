@@ -1,5 +1,5 @@
-"""One training run: the first K episodes of a demonstrations file -> a trained agent -> a
-checkpoint directory with the description of what was done."""
+"""One imitation-learning run (``train bc|dpgm``): the first K episodes of a demonstrations file
+-> a trained agent -> a checkpoint directory with the description of what was done."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dinerdash.cli import Progress
+from dinerdash.evaluation import Progress
 
 from . import checkpoint
 from .demos import load_demos

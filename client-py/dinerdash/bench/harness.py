@@ -1,11 +1,12 @@
-"""``python -m dinerdash bench``: what stepping through the client costs, beside the floors of the
-machine it runs on, all measured in one run so that anyone can rerun the comparison.
+"""The measurements of ``python -m dinerdash bench``: what stepping through the client costs,
+beside the floors of the machine it runs on, all measured in one run so that anyone can rerun the
+comparison.
 
 - **Loopback TCP floor**: a one-byte ping-pong between this process and a child Python process
   (``TCP_NODELAY``), the least any request/reply between two processes costs here.
-- **Reference**: :mod:`dinerdash.pysim`, the rules in plain Python, stepped with uniformly random
-  actions in this process: the benchmark's own way of running the game, and the unit of every
-  ``x`` below.
+- **Reference**: :mod:`dinerdash.bench.pysim`, the rules in plain Python, stepped with uniformly
+  random actions in this process: the benchmark's own way of running the game, and the unit of
+  every ``x`` below.
 - **gRPC round trip** (a bare ``ServerInfo``), a **single env**, a **vector env** of N stepped with
   ``step()``, and with ``--pipeline`` **two vector envs** of N with one step always on the wire
   (``step_async`` on one while ``step_wait`` collects the other).
@@ -15,7 +16,6 @@ machine it runs on, all measured in one run so that anyone can rerun the compari
 
 from __future__ import annotations
 
-import argparse
 import os
 import socket
 import subprocess
@@ -24,6 +24,8 @@ import time
 from typing import Any
 
 import numpy as np
+
+from ..game import NUM_ACTIONS
 
 __all__ = ["run", "tcp_floor"]
 
@@ -72,8 +74,8 @@ def tcp_floor(round_trips: int = 5000) -> float:
 
 def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
     """Microseconds of one bare ``ServerInfo`` call: the floor under any single-env step."""
-    from ._proto import pb
-    from .connection import Connection
+    from .._proto import pb
+    from ..connection import Connection
 
     with Connection(address, **connection) as conn:
         request = pb.ServerInfoRequest()
@@ -86,11 +88,11 @@ def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
 
 
 def _single(address: str | None, steps: int, **connection: Any) -> float:
-    from .env import DinerDashEnv
+    from ..env import DinerDashEnv
 
     env = DinerDashEnv(address, **connection)
     try:
-        actions = np.random.default_rng(0).integers(0, 57, size=steps)
+        actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, size=steps)
         env.reset(seed=0)
         start = time.perf_counter()
         for a in actions:
@@ -105,13 +107,13 @@ def _single(address: str | None, steps: int, **connection: Any) -> float:
 def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: Any) -> float:
     """Env-steps/s of one vector env of ``num_envs`` stepped with ``step()``, or (``pipelined``)
     of two, each one's ``step_async`` sent before the other's ``step_wait``."""
-    from .vector import DinerDashVectorEnv
+    from ..vector import DinerDashVectorEnv
 
     count = 2 if pipelined else 1
     pair = [DinerDashVectorEnv(num_envs, address, **connection) for _ in range(count)]
     try:
         rng = np.random.default_rng(0)
-        actions = rng.integers(0, 57, size=(steps + 10, count, num_envs), dtype=np.int32)
+        actions = rng.integers(0, NUM_ACTIONS, size=(steps + 10, count, num_envs), dtype=np.int32)
         for envs in pair:
             envs.reset(seed=0)
             for a in actions[:10, 0]:  # warm-up: connections, allocator
@@ -141,8 +143,8 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
     """Microseconds the client spends on one Step reply of ``num_envs`` environments once it has
     arrived: parsing the Batch message and building the numpy arrays and infos. Measured on the
     replies of ``steps`` random steps (episodes ending and resetting among them)."""
-    from ._proto import pb
-    from .vector import DinerDashVectorEnv
+    from .._proto import pb
+    from ..vector import DinerDashVectorEnv
 
     envs = DinerDashVectorEnv(num_envs, address, **connection)
     try:
@@ -150,7 +152,7 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         envs.reset(seed=0)
         replies = []
         for _ in range(steps):
-            envs.step(rng.integers(0, 57, size=num_envs))
+            envs.step(rng.integers(0, NUM_ACTIONS, size=num_envs))
             replies.append([core.last.SerializeToString() for core in envs._cores])
         start = time.perf_counter()
         for raw in replies:
@@ -171,8 +173,8 @@ def _sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, 
     through ``env_method("action_masks")``, as MaskablePPO reads them)."""
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from .env import DinerDashEnv
-    from .sb3 import make_vec_env
+    from ..env import DinerDashEnv
+    from ..sb3 import make_vec_env
 
     def run(vec) -> float:
         rng = np.random.default_rng(0)
@@ -197,9 +199,23 @@ def _sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, 
     return dummy, adapter
 
 
-def run(args: argparse.Namespace, connection: dict[str, Any]) -> None:
-    """The ``bench`` command: prints one line per measurement."""
-    from .server import LocalServer
+def run(
+    address: str | list[str] | None = None,
+    *,
+    steps: int = 20_000,
+    num_envs: int = 256,
+    vec_steps: int = 2_000,
+    pipeline: bool = False,
+    reference_steps: int = 100_000,
+    servers: int = 1,
+    sb3_envs: int = 8,
+    sb3_steps: int = 2_000,
+    **connection: Any,
+) -> None:
+    """The ``bench`` command: prints one line per measurement. Without ``address`` (and
+    ``DINERDASH_ADDRESS``) it starts ``servers`` local servers; a step count of 0 skips its
+    measurement; ``connection``: ``timeout``, ``tls``, ``tls_ca`` of every client."""
+    from ..server import LocalServer
 
     reference = None
 
@@ -213,70 +229,68 @@ def run(args: argparse.Namespace, connection: dict[str, Any]) -> None:
     # The floors first, before any gRPC thread competes with them.
     floor = tcp_floor()
     print(f"loopback TCP floor : {floor:12,.1f} us/round trip  (1 byte each way, two processes)")
-    if args.reference_steps > 0:
+    if reference_steps > 0:
         from .pysim import random_steps_per_second
 
-        reference = random_steps_per_second(args.reference_steps)
+        reference = random_steps_per_second(reference_steps)
         print(
-            f"reference          : {reference:12,.0f} steps/s       (dinerdash.pysim in process, "
-            "random actions)"
+            f"reference          : {reference:12,.0f} steps/s       (dinerdash.bench.pysim in "
+            "process, random actions)"
         )
-    servers = []
+    started = []
     try:
-        if args.address is None and not os.environ.get("DINERDASH_ADDRESS"):
-            servers = [LocalServer() for _ in range(args.servers)]
-            address = [s.address for s in servers]
-        else:
-            address = args.address
+        if address is None and not os.environ.get("DINERDASH_ADDRESS"):
+            started = [LocalServer() for _ in range(servers)]
+            address = [s.address for s in started]
         first = address[0] if isinstance(address, list) else address
         shown = address if address is not None else os.environ["DINERDASH_ADDRESS"]
         print(f"servers: {shown}; {os.cpu_count()} cores")
-        n = args.num_envs
+        n = num_envs
         replicas = len(address) if isinstance(address, list) else 1
-        if args.steps > 0:
+        if steps > 0:
             micros = _round_trip(first, **connection)
             print(
                 f"gRPC round trip    : {micros:12,.1f} us/call        (ServerInfo; "
                 f"{micros / floor:.1f}x the TCP floor)"
             )
-            rate = _single(first, args.steps, **connection)
+            rate = _single(first, steps, **connection)
             print(
-                f"single env         : {rate:12,.0f} steps/s       ({args.steps} random steps; "
+                f"single env         : {rate:12,.0f} steps/s       ({steps} random steps; "
                 f"{times(rate)})"
             )
-        if args.vec_steps > 0:
-            rate = _vector(address, n, args.vec_steps, False, **connection)
+        if vec_steps > 0:
+            rate = _vector(address, n, vec_steps, False, **connection)
             print(
-                f"make_vec N={n:<8}: {rate:12,.0f} env-steps/s   ({args.vec_steps} step() calls, "
+                f"make_vec N={n:<8}: {rate:12,.0f} env-steps/s   ({vec_steps} step() calls, "
                 f"{replicas} server(s); {times(rate)})"
             )
-        if args.vec_steps > 0:
+        if vec_steps > 0:
             micros = _decode(address, n, **connection)
             print(
                 f"decode N={n:<10}: {micros:12,.1f} us/step       (parse the reply, build the "
                 "arrays and infos)"
             )
-        if args.vec_steps > 0 and args.pipeline:
-            rate = _vector(address, n, args.vec_steps, True, **connection)
+        if vec_steps > 0 and pipeline:
+            rate = _vector(address, n, vec_steps, True, **connection)
             print(
                 f"pipelined 2 x N={n:<3}: {rate:12,.0f} env-steps/s   (two vector envs, one step "
                 f"on the wire; {times(rate)})"
             )
-        if args.sb3_steps > 0:
+        if sb3_steps > 0:
             try:
-                dummy, adapter = _sb3(address, args.sb3_envs, args.sb3_steps, **connection)
+                dummy, adapter = _sb3(address, sb3_envs, sb3_steps, **connection)
             except ImportError:
                 print("sb3                : skipped (pip install 'dinerdash[sb3]')")
             else:
-                k = args.sb3_envs
+                k = sb3_envs
                 print(
                     f"SB3 DummyVecEnv N={k:<2}: {dummy:12,.0f} env-steps/s   "
-                    f"({args.sb3_steps} steps, random legal actions, one call per env)"
+                    f"({sb3_steps} steps, random legal actions, one call per env)"
                 )
                 print(
                     f"dinerdash.sb3  N={k:<3}: {adapter:12,.0f} env-steps/s   "
                     f"({adapter / dummy:.1f}x: one batched Step per server)"
                 )
     finally:
-        for s in servers:
+        for s in started:
             s.stop()

@@ -16,7 +16,7 @@ The Gymnasium environments never use it: they step the Rust simulator through th
 
 ::
 
-    from dinerdash.pysim import Game, random_steps_per_second
+    from dinerdash.bench.pysim import Game, random_steps_per_second
 
     game = Game()
     obs = game.reset(seed=0)           # 40 ints (docs/rules.md §6)
@@ -31,9 +31,18 @@ import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from ..game import (
+    DROP_DISHES,
+    FIRST_PICK_UP,
+    FIRST_SEAT,
+    HAND_IN_ORDERS,
+    NUM_ACTIONS,
+    NUM_TABLES,
+    QUEUE_CAPACITY,
+    WAIT,
+)
+
 __all__ = [
-    "NUM_ACTIONS",
-    "OBSERVATION_SIZE",
     "TABLE_CAPACITIES",
     "Config",
     "Game",
@@ -44,13 +53,9 @@ __all__ = [
     "random_steps_per_second",
 ]
 
-NUM_TABLES = 6
 TABLE_CAPACITIES = (4, 4, 2, 6, 4, 4)
-QUEUE_CAPACITY = 7
 NUM_COUNTERS = 5
 HAND_CAPACITY = 2
-NUM_ACTIONS = 57
-OBSERVATION_SIZE = 40
 # Each reset draws this many (type, size) pairs; later groups repeat the list (docs/rules.md §2).
 ARRIVALS_PER_EPISODE = 200
 
@@ -62,13 +67,6 @@ WAITING_FOR_FOOD = 3
 EATING = 4
 DISHES = 5
 WAITING_FOR_BILL = 6
-
-# Actions (docs/rules.md §4.1).
-WAIT = 0
-HAND_IN_ORDERS = 7
-DROP_DISHES = 14
-FIRST_PICK_UP = 8
-FIRST_SEAT = 15
 
 # What a hand slot shows in the observation: the item's offset plus its table (0 = empty hand).
 _ITEM_OFFSET = {"order": 0, "food": 6, "dish": 12}

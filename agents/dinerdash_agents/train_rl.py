@@ -19,7 +19,7 @@ from typing import Any
 
 import equinox as eqx
 import gymnasium
-from dinerdash.cli import Progress
+from dinerdash.evaluation import Progress
 from gymnasium.vector import AutoresetMode
 
 from . import checkpoint, ppo
@@ -148,9 +148,11 @@ def train_rl(
     resume: str | Path | None = None,
     config: ppo.PPOConfig | None = None,
     progress: bool = True,
+    **connection: Any,
 ) -> ppo.Trainer:
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
-    checkpointing to ``out``; returns the trainer."""
+    checkpointing to ``out``; returns the trainer. ``connection``: the vector env's connection
+    keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
     if algorithm not in RL_ALGORITHMS:
@@ -168,26 +170,44 @@ def train_rl(
         server = LocalServer()
         address = server.address
     try:
-        return _train(
-            algorithm, steps, out, num_envs, address, demos, seed, resume, config, progress
+        trainer, spent, config, demo_data = _prepare(
+            algorithm, steps, num_envs, demos, resume, config
         )
+        envs = gymnasium.make_vec(
+            "dinerdash:DinerDash-v0",
+            num_envs=config.num_envs,
+            address=address,
+            autoreset_mode=AutoresetMode.SAME_STEP,
+            max_episode_steps=config.max_episode_steps,
+            **connection,
+        )
+        try:
+            if trainer is None:
+                if config.observation_high is None:
+                    # The networks scale the observation by the bounds of the server's Spec.
+                    high = envs.single_observation_space.high
+                    config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
+                trainer = _trainer_for(algorithm, config, steps, seed, demo_data)
+            _run(trainer, envs, out, algorithm, spent, progress)
+        finally:
+            envs.close()
+        _save(trainer, out, algorithm, spent)
+        return trainer
     finally:
         if server is not None:
             server.stop()
 
 
-def _train(
+def _prepare(
     algorithm: str,
     steps: int | None,
-    out: Path,
     num_envs: int | None,
-    address: str | list[str],
     demos: str | Path | None,
-    seed: int,
     resume: str | Path | None,
     config: ppo.PPOConfig | None,
-    progress: bool,
-) -> ppo.Trainer:
+) -> tuple[ppo.Trainer | None, _Spent, ppo.PPOConfig, Any]:
+    """The resumed trainer, or ``None`` for a new run (its trainer is made once the environments
+    are there); the time spent, the run's config and the demonstrations (``None`` without)."""
     demo_data = None
     if demos is not None:
         from .demos import load_demos
@@ -200,21 +220,20 @@ def _train(
                 f"--num-envs {num_envs}: the run in {resume} has {trainer.config.num_envs} "
                 "environments, and a resumed run keeps them"
             )
-    else:
-        if steps is None:
-            raise AgentsError("--steps is needed (or --resume DIR)")
-        config = config or ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
-        if num_envs is not None:
-            config = dataclasses.replace(config, num_envs=num_envs)
-        trainer, spent = _trainer_for(algorithm, config, steps, seed, demo_data), _Spent()
-    cfg = trainer.config
-    envs = gymnasium.make_vec(
-        "dinerdash:DinerDash-v0",
-        num_envs=cfg.num_envs,
-        address=address,
-        autoreset_mode=AutoresetMode.SAME_STEP,
-        max_episode_steps=cfg.max_episode_steps,
-    )
+        return trainer, spent, trainer.config, demo_data
+    if steps is None:
+        raise AgentsError("--steps is needed (or --resume DIR)")
+    config = config or ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
+    if num_envs is not None:
+        config = dataclasses.replace(config, num_envs=num_envs)
+    return None, _Spent(), config, demo_data
+
+
+def _run(
+    trainer: ppo.Trainer, envs: Any, out: Path, algorithm: str, spent: _Spent, progress: bool
+) -> None:
+    """Iterations on ``envs`` until the trainer has done them all, checkpointing every
+    :data:`CHECKPOINT_EVERY` seconds; a lost server checkpoints and raises :class:`AgentsError`."""
     # The bar counts environment steps, so that its rate is env-steps/s.
     bar = Progress(trainer.iterations * trainer.per_iteration, algorithm) if progress else None
     if bar is not None:
@@ -244,8 +263,5 @@ def _train(
             f"checkpointed in {out}: continue it with --resume {out}"
         ) from e
     finally:
-        envs.close()
         if bar is not None:
             bar.close()
-    _save(trainer, out, algorithm, spent)
-    return trainer

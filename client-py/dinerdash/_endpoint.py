@@ -1,0 +1,104 @@
+"""Where an environment's sessions live: :class:`Endpoint`, the connections to one or more
+servers chosen by the :class:`~dinerdash.connection.ConnectOptions` (or the local server this
+client started when no address is given), and how a lost server is waited for and reconnected."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable, Sequence
+
+from .connection import Connection, ConnectOptions, resolve_replicas
+from .errors import ServiceTransportError
+from .server import LocalServer
+
+__all__ = ["Endpoint", "choose_addresses"]
+
+
+def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
+    """The replicas to use: from ``address``, else ``DINERDASH_ADDRESS``; ``None`` means "start a
+    local server"."""
+    if address is None:
+        address = os.environ.get("DINERDASH_ADDRESS") or None
+    if address is None:
+        return None
+    return resolve_replicas(address)
+
+
+class Endpoint:
+    """Connections to one or more servers, and the local server this client started, if any.
+
+    Every connection is made with the same :class:`~dinerdash.connection.ConnectOptions`
+    (deadline, TLS, token); a local server is plaintext on loopback. ``pick`` keeps one replica
+    of several (``pick`` modulo their number), ``max_servers`` the first ones. Closing it closes
+    every channel and stops the local server.
+    """
+
+    def __init__(
+        self,
+        options: ConnectOptions,
+        *,
+        max_servers: int | None = None,
+        pick: int | None = None,
+    ) -> None:
+        self.options = options
+        self.server: LocalServer | None = None
+        self.connections: list[Connection] = []
+        addresses = choose_addresses(options.address)
+        if addresses is None:
+            # The local server is plaintext on loopback: TLS settings, DINERDASH_TLS_CA included,
+            # are for remote servers.
+            self.options = dataclasses.replace(options, tls=False, tls_ca=False)
+            self.server = LocalServer(options.server_binary)
+            addresses = [self.server.address]
+        if pick is not None:
+            addresses = [addresses[pick % len(addresses)]]
+        if max_servers is not None:
+            addresses = addresses[:max_servers]
+        self.addresses = addresses
+        try:
+            for a in addresses:
+                self.connections.append(self.options.connect(a))
+        except BaseException:
+            self.close()
+            raise
+
+    def reopen(
+        self, index: int, create: Callable[[Connection], None], lost: str, timeout: float
+    ) -> Connection:
+        """Waits up to ``timeout`` seconds for server ``index`` to answer again, then calls
+        ``create`` with its connection to open a new session there (``reconnect=True``).
+
+        A local server this client owns that died is started again (on a new free port). Returns
+        the connection to use from now on; ``lost`` names what was lost, for the error raised
+        when the server does not come back in time.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            # Checked on every round: a dying process may still look alive at first.
+            if self.server is not None and not self.server.is_running():
+                self.server.start()
+                self.connections[index].close()
+                self.connections[index] = self.options.connect(self.server.address)
+            conn = self.connections[index]
+            if conn.wait_ready(min(1.0, max(0.0, deadline - time.monotonic()))):
+                try:
+                    create(conn)
+                    return conn
+                except ServiceTransportError:
+                    pass  # went away again between connecting and creating: keep waiting
+            if time.monotonic() >= deadline:
+                raise ServiceTransportError(
+                    f"lost {lost} and could not reconnect to {conn.address} within {timeout:g} s",
+                    address=conn.address,
+                ) from None
+            time.sleep(0.1)
+
+    def close(self) -> None:
+        for conn in self.connections:
+            conn.close()
+        self.connections = []
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
