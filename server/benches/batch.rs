@@ -24,7 +24,7 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group};
 use dinerdash_server::pb;
-use dinerdash_server::service::batch_to;
+use dinerdash_server::service::convert::batch_to;
 use dinerdash_server::session::{Autoreset, Envs, ExpertActions, ResetArgs, SessionOptions};
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS, OBSERVATION_SIZE};
 use prost::Message;

@@ -8,9 +8,7 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use dinerdash_server::eval::{evaluate, run_episode};
-use dinerdash_server::expert::PolicyKind;
-use dinerdash_server::expert::expert_action;
-use dinerdash_server::planner::Planner;
+use dinerdash_server::policy::{Planner, PolicyKind, expert_action};
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS, Restaurant};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 

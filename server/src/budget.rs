@@ -14,8 +14,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use crate::metrics::Metrics;
 
 /// Default `--max-memory`: what sessions and Rollout streams may hold. Measured RSS is about
-/// 1.1x the accounted bytes plus ~20 MiB of runtime (README, "Limits"), so one server stays
-/// under ~2 GiB whatever clients do.
+/// 1.1x the accounted bytes plus ~20 MiB of runtime (docs/operations.md, "Memory budget"), so
+/// one server stays under ~2 GiB whatever clients do.
 pub const DEFAULT_MAX_MEMORY: u64 = 1 << 30;
 /// Default share of one tenant (or connection): environments it may hold at once.
 pub const DEFAULT_TENANT_ENVS: u64 = 65_536;
@@ -302,68 +302,6 @@ impl Budget {
     }
 }
 
-/// One line of `--auth-tokens-file`: a tenant, its token and its share.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TenantLine {
-    /// The tenant's name, for messages and logs.
-    pub name: String,
-    /// Its bearer token.
-    pub token: String,
-    /// What it may hold.
-    pub share: Share,
-}
-
-/// Reads `--auth-tokens-file`: one tenant a line, `NAME TOKEN [envs=N] [sessions=N]
-/// [rollouts=N]`; what a line does not give is `default`'s. Blank lines and `#` comments are
-/// skipped. Names and tokens must be unique.
-pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, String> {
-    let mut tenants: Vec<TenantLine> = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.split('#').next().unwrap_or_default().trim();
-        if line.is_empty() {
-            continue;
-        }
-        let at = |msg: String| format!("line {}: {msg}", i + 1);
-        let mut words = line.split_whitespace();
-        let (Some(name), Some(token)) = (words.next(), words.next()) else {
-            return Err(at(
-                "expected `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`".into(),
-            ));
-        };
-        let mut share = default;
-        for word in words {
-            let (key, value) = word
-                .split_once('=')
-                .ok_or_else(|| at(format!("expected key=value, got {word:?}")))?;
-            let value: u64 = value
-                .parse()
-                .map_err(|_| at(format!("{key} must be a whole number, got {value:?}")))?;
-            match key {
-                "envs" => share.max_envs = value,
-                "sessions" => share.max_sessions = value,
-                "rollouts" => share.max_rollouts = value,
-                other => {
-                    return Err(at(format!(
-                        "unknown quota {other:?}: use envs, sessions or rollouts"
-                    )));
-                }
-            }
-        }
-        if tenants.iter().any(|t| t.name == name || t.token == token) {
-            return Err(at(format!("tenant {name:?} or its token is given twice")));
-        }
-        tenants.push(TenantLine {
-            name: name.to_owned(),
-            token: token.to_owned(),
-            share,
-        });
-    }
-    if tenants.is_empty() {
-        return Err("no tenant in the file".into());
-    }
-    Ok(tenants)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -417,21 +355,5 @@ mod tests {
         assert_eq!((budget.used_bytes(), budget.live_sessions()), (0, 0));
         assert_eq!(tenant.envs(), 0);
         assert_eq!(metrics.live_rollouts.load(Ordering::Relaxed), 0);
-    }
-
-    #[test]
-    fn tenants_file_lines() {
-        let text = "# trainers\nteam-a s3cret envs=100 rollouts=1\n\nteam-b other # no quota\n";
-        let tenants = parse_tenants(text, Share::default()).unwrap();
-        assert_eq!(tenants.len(), 2);
-        assert_eq!(tenants[0].share.max_envs, 100);
-        assert_eq!(tenants[0].share.max_rollouts, 1);
-        assert_eq!(tenants[1].share, Share::default());
-        assert_eq!(
-            parse_tenants("a t envs=x", Share::default()),
-            Err("line 1: envs must be a whole number, got \"x\"".into())
-        );
-        assert!(parse_tenants("a t\nb t", Share::default()).is_err());
-        assert!(parse_tenants("lonely", Share::default()).is_err());
     }
 }

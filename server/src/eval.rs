@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use crate::expert::PolicyKind;
+use crate::policy::PolicyKind;
 use crate::sim::{Config, Game};
 
 /// How one episode ended.
@@ -114,6 +114,40 @@ impl Evaluation {
     /// Steps taken in all.
     pub fn total_steps(&self) -> u64 {
         self.episodes.iter().map(|e| u64::from(e.steps)).sum()
+    }
+
+    /// What the `eval` command prints: score, length and lost groups over the episodes of
+    /// `kind` from seeds `seed..seed + episodes`, and the speed on `threads` threads.
+    pub fn report(&self, kind: PolicyKind, seed: u64, episodes: u32, threads: usize) -> String {
+        let score = self.score();
+        let length = self.length();
+        let lost: u64 = self.episodes.iter().map(|e| u64::from(e.lost)).sum();
+        let ended = self.episodes.iter().filter(|e| e.terminated).count();
+        let secs = self.elapsed.as_secs_f64().max(1e-9);
+        format!(
+            "policy {:?}: {} episodes (seeds {}..={})\n\
+             score  {:.1} ± {:.1} (sample sd {:.1})\n\
+             length {:.1} ± {:.1} steps\n\
+             lost   {} groups, {:.2} per 1000 steps; {} of {} episodes ended by losing groups\n\
+             {} steps in {:.3} s on {} threads: {:.0} steps/s\n",
+            kind,
+            self.episodes.len(),
+            seed,
+            seed.wrapping_add(u64::from(episodes.saturating_sub(1))),
+            score.mean,
+            score.std,
+            score.sample_std,
+            length.mean,
+            length.std,
+            lost,
+            1000.0 * lost as f64 / self.total_steps().max(1) as f64,
+            ended,
+            self.episodes.len(),
+            self.total_steps(),
+            secs,
+            threads,
+            self.total_steps() as f64 / secs
+        )
     }
 }
 

@@ -2,39 +2,52 @@
 //! environment service that hosts many sessions of it.
 //!
 //! # Layout
+//! Each module uses only modules listed above it (`tests/module_graph.rs` keeps it so).
 //! - [`sim`]: the game itself, pure and synchronous (docs/rules.md).
-//! - [`expert`]: policies that read the game: the reference heuristic, random, and
-//!   [`expert::PolicyKind`], the names that choose a policy.
-//! - [`planner`]: the look-ahead planner over sampled futures, which never reads what arrives next.
+//! - [`policy`]: [`policy::Policy`] and [`policy::PolicyKind`], the names that choose one; the
+//!   reference heuristic ([`policy::expert`]), random actions ([`policy::random`]), and the
+//!   look-ahead planner over sampled futures, which never reads what arrives next
+//!   ([`policy::planner`]).
 //! - [`eval`]: runs a policy over many episodes and summarises scores (the `eval` command).
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
+//! - [`metrics`]: the counters and their Prometheus text.
+//! - [`shutdown`]: SIGINT/SIGTERM, the drain deadlines, the shutdown handles, and the
+//!   `UNAVAILABLE` a draining server answers.
+//! - [`fd_limit`]: the open-file limit: raised at start, and the connections it has room for.
+//! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
+//! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
+//! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
+//!   Rollouts).
+//! - [`rollout`]: the Rollout RPC's rules (what a request may ask, what its stream is charged)
+//!   and the recording of whole episodes of a server-side policy.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
-//! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments, Rollouts).
-//! - [`connections`]: the accept loop (backoff, limit, idle timeout, shedding) and each
-//!   connection's info.
-//! - [`fd_limit`]: the open-file limit: raised at start, and the connections it has room for.
-//! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
-//! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
-//! - [`rollout`]: records whole episodes of a server-side policy (the Rollout RPC).
+//! - [`connections`]: the accept loop (backoff, limit, idle timeout, preface timeout, shedding)
+//!   and each connection's info.
+//! - [`auth`]: bearer tokens and the tenants they stand for (the tenants file), the
+//!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
+//!   over the connection limit, token.
+//! - [`metrics_http`]: the HTTP responder that serves the metrics.
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
-//!   only place errors become `tonic::Status`; the auth interceptor.
+//!   only place errors become `tonic::Status` ([`service::status`](mod@service::status));
+//!   StepStream and Rollout streams.
+//! - [`config`]: the `serve` flags and what they decide ([`config::ServerConfig::from_args`]).
 //! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and metrics together
-//!   on a listener until a shutdown future completes.
-//! - [`shutdown`]: SIGINT/SIGTERM, the drain deadlines and the shutdown handles.
+//!   on a listener until a shutdown future completes; [`server::serve`] is the binary's.
 //! - [`health`]: the `health` command's grpc.health.v1 client.
-//! - [`metrics`]: counters and the Prometheus text endpoint.
 
+pub mod auth;
 pub mod budget;
 pub mod codec;
+pub mod config;
 pub mod connections;
 pub mod cpu;
 pub mod eval;
-pub mod expert;
 pub mod fd_limit;
 pub mod health;
 pub mod metrics;
-pub mod planner;
+pub mod metrics_http;
+pub mod policy;
 pub mod rollout;
 pub mod server;
 pub mod service;

@@ -1,11 +1,14 @@
-//! Records whole episodes of a server-side policy (the Rollout RPC): the reset observation,
-//! then per step the expert's choice in the state before it, the action, the reward and the new
-//! observation. Synchronous and CPU-bound: the service runs it on a blocking thread.
+//! The Rollout RPC's rules and recorder: what a request may ask for ([`RolloutPlan`]) and what
+//! its stream is charged, and the recording of whole episodes of a server-side policy: the reset
+//! observation, then per step the expert's choice in the state before it, the action, the reward
+//! and the new observation. Recording is synchronous and CPU-bound: the service runs it on its
+//! CPU pool.
 
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use crate::expert::PolicyKind;
-use crate::expert::expert_action;
+use crate::budget::{Budget, BudgetError, Charge, Tenant};
+use crate::policy::{PolicyKind, expert_action};
 use crate::sim::{Config, ConfigError, Game, NUM_ACTIONS, OBSERVATION_SIZE};
 
 /// Most steps of one recorded episode: bounds the size of one streamed message (~10 MB).
@@ -18,6 +21,90 @@ pub const MAX_ROLLOUT_EPISODES: u32 = 10_000;
 pub const MAX_ROLLOUT_WORK_STEPS: u64 = 10_000_000;
 /// Bytes one recorded step takes at most: observation, action, reward, expert action, mask.
 pub const MAX_BYTES_PER_STEP: u64 = (OBSERVATION_SIZE + 1 + 4 + 1 + NUM_ACTIONS) as u64;
+
+/// Rollout episodes recorded ahead of the reader: one, so that a stream is produced on demand.
+pub const ROLLOUT_BUFFER: usize = 1;
+/// Episodes a Rollout stream may hold at once, for the memory budget: the one buffered, one in
+/// the transport's send buffer, and the one being recorded.
+const ROLLOUT_EPISODES_HELD: u64 = ROLLOUT_BUFFER as u64 + 2;
+
+/// Why a Rollout request is refused before anything is recorded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RolloutError {
+    /// A field is out of range; the message starts with the field's name (`seeds`, `max_steps`,
+    /// a configuration field) and gives its allowed range.
+    #[error("{0}")]
+    InvalidArgument(String),
+    /// The memory budget or the tenant's share of Rollout streams would be passed.
+    #[error(transparent)]
+    OverBudget(#[from] BudgetError),
+}
+
+/// A Rollout request that passed its checks: what its stream records.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RolloutPlan {
+    /// Who plays.
+    pub policy: PolicyKind,
+    /// One episode per seed, in order.
+    pub seeds: Vec<u64>,
+    /// Most steps of each episode.
+    pub max_steps: u32,
+    /// The game.
+    pub config: Config,
+    /// Whether episodes carry action masks.
+    pub action_masks: bool,
+}
+
+impl RolloutPlan {
+    /// Checks a request: 1..=[`MAX_ROLLOUT_EPISODES`] seeds, `max_steps` in
+    /// 1..=[`MAX_ROLLOUT_STEPS`] (absent: the most), a valid configuration.
+    pub fn new(
+        policy: PolicyKind,
+        seeds: Vec<u64>,
+        max_steps: Option<u32>,
+        config: Config,
+        action_masks: bool,
+    ) -> Result<RolloutPlan, RolloutError> {
+        let invalid = RolloutError::InvalidArgument;
+        if seeds.is_empty() || seeds.len() > MAX_ROLLOUT_EPISODES as usize {
+            return Err(invalid(format!(
+                "seeds must hold 1..={MAX_ROLLOUT_EPISODES} seeds, got {}",
+                seeds.len()
+            )));
+        }
+        let max_steps = max_steps.unwrap_or(MAX_ROLLOUT_STEPS);
+        if !(1..=MAX_ROLLOUT_STEPS).contains(&max_steps) {
+            return Err(invalid(format!(
+                "max_steps must be in 1..={MAX_ROLLOUT_STEPS}, got {max_steps}"
+            )));
+        }
+        config.validate().map_err(|e| invalid(e.to_string()))?;
+        Ok(RolloutPlan {
+            policy,
+            seeds,
+            max_steps,
+            config,
+            action_masks,
+        })
+    }
+
+    /// Bytes the memory budget charges the stream: the episodes it may hold at once, each of
+    /// `max_steps` steps at the most a step may take.
+    pub fn bytes(&self) -> u64 {
+        let episode_bytes = (u64::from(self.max_steps) + 1) * MAX_BYTES_PER_STEP;
+        ROLLOUT_EPISODES_HELD * episode_bytes
+    }
+
+    /// Charges the stream to `tenant` in `budget` (its bytes and one of the tenant's Rollout
+    /// streams), before anything is recorded; the charge is given back when dropped.
+    pub fn charge(
+        &self,
+        budget: &Arc<Budget>,
+        tenant: &Arc<Tenant>,
+    ) -> Result<Charge, RolloutError> {
+        Ok(budget.charge_rollout(tenant, self.bytes())?)
+    }
+}
 
 /// One recorded episode, in the packed layout of `dinerdash.v1.Episode`.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -153,6 +240,41 @@ mod tests {
         let stop = AtomicBool::new(true);
         let rec = record_until(PolicyKind::Expert, Config::default(), 0, 100, false, &stop);
         assert_eq!(rec, Ok(None));
+    }
+
+    #[test]
+    fn plans_check_seeds_steps_and_config() {
+        let plan = |seeds: Vec<u64>, max_steps| {
+            RolloutPlan::new(
+                PolicyKind::Expert,
+                seeds,
+                max_steps,
+                Config::default(),
+                false,
+            )
+        };
+        let ok = plan(vec![1, 2], None).unwrap();
+        assert_eq!(ok.max_steps, MAX_ROLLOUT_STEPS);
+        assert_eq!(
+            ok.bytes(),
+            3 * (u64::from(MAX_ROLLOUT_STEPS) + 1) * MAX_BYTES_PER_STEP
+        );
+        let refused = |r: Result<RolloutPlan, RolloutError>| match r {
+            Err(RolloutError::InvalidArgument(m)) => m,
+            other => panic!("not refused: {other:?}"),
+        };
+        assert!(refused(plan(vec![], None)).starts_with("seeds must hold"));
+        let too_many = vec![0; MAX_ROLLOUT_EPISODES as usize + 1];
+        assert!(refused(plan(too_many, None)).starts_with("seeds must hold"));
+        assert!(refused(plan(vec![0], Some(0))).starts_with("max_steps must be in"));
+        let bad = Config {
+            lives: 0,
+            ..Config::default()
+        };
+        assert!(
+            RolloutPlan::new(PolicyKind::Random, vec![0], None, bad, false).is_err(),
+            "an invalid configuration is refused"
+        );
     }
 
     #[test]

@@ -1,56 +1,31 @@
-//! Puts the server together: the `DinerDash` service behind the auth interceptor, the standard
+//! Puts the server together: the `DinerDash` service behind the request gate, the standard
 //! `grpc.health.v1` service, server reflection, optional TLS, the idle-session sweeper and the
-//! metrics endpoint, all served on a listener the caller bound until a shutdown future completes.
+//! metrics endpoint, all served on a listener the caller bound until a shutdown future completes
+//! ([`run`]).
 //!
-//! The binary passes a listener on `--host:--port` and [`crate::shutdown::signal`]; tests pass
-//! `127.0.0.1:0` and a oneshot.
+//! The binary calls [`serve`], which binds `--host:--port` and passes [`crate::shutdown::signal`];
+//! tests pass `127.0.0.1:0` and a oneshot to [`run`].
 
 use std::future::Future;
+use std::io::Write as _;
 use std::sync::Arc;
 
 use tokio::net::TcpListener;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 
-use crate::budget::Share;
+pub use crate::config::{ServerConfig, TlsPem};
+
+use crate::auth::RequestGate;
+use crate::config::{ConfigError, ServeArgs};
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
-use crate::metrics::{self, Metrics};
+use crate::metrics::Metrics;
+use crate::metrics_http;
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
-use crate::service::{AuthInterceptor, DinerDashService, MAX_MESSAGE_BYTES, Token};
-use crate::session::{Limits, Store};
+use crate::service::{DinerDashService, MAX_MESSAGE_BYTES};
+use crate::session::Store;
 use crate::shutdown;
-
-/// A PEM certificate chain and its private key.
-#[derive(Debug, Clone)]
-pub struct TlsPem {
-    /// The certificate chain, PEM.
-    pub cert: Vec<u8>,
-    /// The private key, PEM.
-    pub key: Vec<u8>,
-}
-
-/// Everything [`run`] needs besides the listener.
-#[derive(Debug, Default)]
-pub struct ServerConfig {
-    /// Session limits and the idle TTL.
-    pub limits: Limits,
-    /// The bearer token clients must send; `None` serves everyone (unless `tenants` is given).
-    /// Each connection is then its own tenant.
-    pub auth_token: Option<String>,
-    /// Tenant tokens (`--auth-tokens-file`): each token's requests count against its tenant's
-    /// share. Given with `auth_token`, either token is accepted.
-    pub tenants: Vec<Token>,
-    /// What each connection may hold when its requests carry no tenant token.
-    pub connection_share: Share,
-    /// Connection limit and idle timeout.
-    pub connections: connections::Limits,
-    /// Serve TLS with this identity; `None` serves plaintext.
-    pub tls: Option<TlsPem>,
-    /// Serve Prometheus metrics on this listener (asking for the same tokens as the RPCs);
-    /// `None` serves none.
-    pub metrics_listener: Option<TcpListener>,
-}
 
 /// Why the server could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -61,6 +36,70 @@ pub enum ServerError {
     /// The reflection service could not read the descriptors.
     #[error("reflection: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    /// The flags describe no server that may start.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// A listener could not be bound.
+    #[error("cannot listen on {addr}{purpose}: {source}")]
+    Listen {
+        /// `host:port`.
+        addr: String,
+        /// Empty for gRPC, " for metrics" for the metrics endpoint.
+        purpose: &'static str,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The bound listener's address could not be read.
+    #[error("cannot read the bound address: {0}")]
+    LocalAddr(std::io::Error),
+}
+
+/// The `dinerdash-server` command: the configuration `args` describe
+/// ([`ServerConfig::from_args`]), served on `--host:--port` (and the metrics on
+/// `--metrics-host:--metrics-port`) until SIGINT/SIGTERM, with the drain deadline of
+/// [`shutdown::serve_until_signal`]. Once bound, prints `dinerdash-server listening on ADDR`,
+/// the one line on stdout: clients that started this process read the port from it.
+pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
+    async fn bind(
+        host: &str,
+        port: u16,
+        purpose: &'static str,
+    ) -> Result<TcpListener, ServerError> {
+        connections::bind(host, port)
+            .await
+            .map_err(|source| ServerError::Listen {
+                addr: format!("{host}:{port}"),
+                purpose,
+                source,
+            })
+    }
+    let mut config = ServerConfig::from_args(args)?;
+    // Room for connections: the accept loop caps --max-connections below this limit.
+    crate::fd_limit::raise();
+    let listener = bind(&args.host, args.port, "").await?;
+    if let Some(port) = args.metrics_port {
+        config.metrics_listener = Some(bind(&args.metrics_host, port, " for metrics").await?);
+    }
+    let addr = listener.local_addr().map_err(ServerError::LocalAddr)?;
+    tracing::info!(
+        %addr,
+        tls = config.tls.is_some(),
+        auth = config.has_tokens(),
+        tenants = config.tenants.len(),
+        max_sessions = config.limits.max_sessions,
+        max_envs_per_session = config.limits.max_envs_per_session,
+        max_memory = config.limits.max_memory,
+        max_connections = config.connections.max_connections,
+        session_ttl_s = config.limits.session_ttl.as_secs_f64(),
+        "serving"
+    );
+    // The one line on stdout: clients that started this process read the port from it.
+    let mut stdout = std::io::stdout().lock();
+    let _ = writeln!(stdout, "dinerdash-server listening on {addr}");
+    let _ = stdout.flush();
+    drop(stdout);
+
+    shutdown::serve_until_signal(|stop| run(listener, config, stop)).await
 }
 
 /// Serves on `listener` until `shutdown` completes, then stops accepting connections, lets the
@@ -83,24 +122,17 @@ pub async fn run(
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let mut tokens = config.tenants.clone();
-    if let Some(token) = &config.auth_token {
-        tokens.push(Token {
-            token: token.clone(),
-            tenant: None,
-        });
-    }
-    let auth = AuthInterceptor::new(&tokens, stopping.clone());
+    let gate = RequestGate::new(&config.tokens(), stopping.clone());
     // The metrics ask for the same tokens as the RPCs, so that a server that needs a token
     // does not publish its load to whoever reaches the metrics port.
     let metrics_task = config.metrics_listener.map(|l| {
         if let Ok(addr) = l.local_addr() {
             tracing::info!("metrics on http://{addr}/metrics");
         }
-        let serve = metrics::serve(
+        let serve = metrics_http::serve(
             l,
             Arc::clone(&metrics),
-            auth.bearer_values(),
+            gate.bearer_values(),
             stopping.clone(),
         );
         tokio::spawn(serve)
@@ -137,8 +169,8 @@ pub async fn run(
     let served = builder
         // Health stays open without the token, so that orchestrators can probe it.
         .add_service(health_service)
-        .add_service(InterceptedService::new(reflection, auth.clone()))
-        .add_service(InterceptedService::new(dinerdash, auth))
+        .add_service(InterceptedService::new(reflection, gate.clone()))
+        .add_service(InterceptedService::new(dinerdash, gate))
         .serve_with_incoming_shutdown(incoming, async {
             shutdown.await;
             // First of all: close the port and answer new calls UNAVAILABLE.

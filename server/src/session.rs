@@ -20,6 +20,7 @@ pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions}
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
 use crate::metrics::Metrics;
+use crate::rollout::{MAX_ROLLOUT_WORK_STEPS, RolloutError};
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
 
@@ -82,6 +83,15 @@ impl From<BudgetError> for SessionError {
     }
 }
 
+impl From<RolloutError> for SessionError {
+    fn from(e: RolloutError) -> SessionError {
+        match e {
+            RolloutError::InvalidArgument(message) => SessionError::InvalidArgument(message),
+            RolloutError::OverBudget(e) => e.into(),
+        }
+    }
+}
+
 /// Default most live sessions: an idle single-environment session costs ~3.5 KB, so 100,000
 /// fit in well under 1 GiB.
 pub const DEFAULT_MAX_SESSIONS: u32 = 100_000;
@@ -119,7 +129,7 @@ impl Default for Limits {
             max_envs_per_session: DEFAULT_MAX_ENVS_PER_SESSION as usize,
             session_ttl: DEFAULT_SESSION_TTL,
             max_memory: DEFAULT_MAX_MEMORY,
-            max_rollout_work_steps: crate::rollout::MAX_ROLLOUT_WORK_STEPS,
+            max_rollout_work_steps: MAX_ROLLOUT_WORK_STEPS,
         }
     }
 }
@@ -182,6 +192,8 @@ pub struct Session {
     _charge: Charge,
     /// Milliseconds since the store's epoch at the last lookup; the sweeper reads it.
     last_used_ms: AtomicU64,
+    /// Which expert fills its expert actions: fixed at creation, so read without the lock.
+    expert_actions: ExpertActions,
     /// The environments. Locked for the whole of one Reset or Step.
     envs: Mutex<Envs>,
 }
@@ -202,6 +214,46 @@ impl Session {
             options: *envs.options(),
             config: envs.config(),
         }
+    }
+}
+
+/// A session [`Store::find`] looked up: its Reset or Step then takes its lock once, with no
+/// second lookup. It keeps the session alive while held, even if closed meanwhile.
+#[derive(Debug, Clone)]
+pub struct FoundSession {
+    /// The session.
+    session: Arc<Session>,
+    /// The store's counters.
+    metrics: Arc<Metrics>,
+}
+
+impl FoundSession {
+    /// Which expert fills the session's expert actions (no lock: fixed at creation).
+    pub fn expert_actions(&self) -> ExpertActions {
+        self.session.expert_actions
+    }
+
+    /// Resets every environment of the session.
+    pub fn reset(&self, args: &ResetArgs) -> Result<Batch, SessionError> {
+        let batch = self.session.lock().reset(args)?;
+        let m = &self.metrics;
+        m.env_resets
+            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
+        Ok(batch)
+    }
+
+    /// Steps every environment of the session.
+    pub fn step(&self, actions: &[u8]) -> Result<Batch, SessionError> {
+        let batch = self.session.lock().step(actions)?;
+        let m = &self.metrics;
+        m.step_calls.fetch_add(1, Ordering::Relaxed);
+        m.env_steps
+            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
+        let resets = batch.resets();
+        if resets > 0 {
+            m.env_resets.fetch_add(resets, Ordering::Relaxed);
+        }
+        Ok(batch)
     }
 }
 
@@ -294,6 +346,7 @@ impl Store {
         let session = Arc::new(Session {
             _charge: charge,
             last_used_ms: AtomicU64::new(self.now_ms()),
+            expert_actions: envs.options().expert_actions,
             envs: Mutex::new(envs),
         });
         let spec = session.spec();
@@ -352,33 +405,23 @@ impl Store {
         Ok(())
     }
 
-    /// Resets every environment of a session.
-    pub fn reset(&self, id: &str, args: &ResetArgs) -> Result<Batch, SessionError> {
-        let batch = self.get(id)?.lock().reset(args)?;
-        let m = &self.shared.metrics;
-        m.env_resets
-            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
-        Ok(batch)
+    /// The session with this ID, looked up once for a Reset or Step that may run elsewhere (the
+    /// service runs sessions whose expert actions come from the planner on its CPU pool).
+    pub fn find(&self, id: &str) -> Result<FoundSession, SessionError> {
+        Ok(FoundSession {
+            session: self.get(id)?,
+            metrics: Arc::clone(&self.shared.metrics),
+        })
     }
 
-    /// Which expert fills a session's expert actions (the service runs planner sessions on its
-    /// CPU pool).
-    pub fn expert_actions(&self, id: &str) -> Result<ExpertActions, SessionError> {
-        Ok(self.get(id)?.lock().options().expert_actions)
+    /// Resets every environment of a session.
+    pub fn reset(&self, id: &str, args: &ResetArgs) -> Result<Batch, SessionError> {
+        self.find(id)?.reset(args)
     }
 
     /// Steps every environment of a session.
     pub fn step(&self, id: &str, actions: &[u8]) -> Result<Batch, SessionError> {
-        let batch = self.get(id)?.lock().step(actions)?;
-        let m = &self.shared.metrics;
-        m.step_calls.fetch_add(1, Ordering::Relaxed);
-        m.env_steps
-            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
-        let resets = batch.resets();
-        if resets > 0 {
-            m.env_resets.fetch_add(resets, Ordering::Relaxed);
-        }
-        Ok(batch)
+        self.find(id)?.step(actions)
     }
 
     /// A new session identical to this one, random streams included.
@@ -514,6 +557,36 @@ mod tests {
         store
             .create(&tenant(), 1, Config::default(), options(), None)
             .unwrap();
+    }
+
+    #[test]
+    fn a_found_session_steps_without_a_second_lookup() {
+        let metrics = Arc::new(Metrics::default());
+        let store = Store::new(Limits::default(), Arc::clone(&metrics));
+        let planner = SessionOptions {
+            expert_actions: ExpertActions::Planner,
+            ..options()
+        };
+        let (id, _) = store
+            .create(&tenant(), 2, Config::default(), planner, None)
+            .unwrap();
+        let found = store.find(&id.to_string()).unwrap();
+        assert_eq!(found.expert_actions(), ExpertActions::Planner);
+        let args = ResetArgs {
+            seed: Some(1),
+            ..ResetArgs::default()
+        };
+        assert_eq!(found.reset(&args).unwrap().num_envs, 2);
+        // Closed meanwhile: the request that found it still finishes its step.
+        store.close(&id.to_string()).unwrap();
+        let batch = found.step(&[0; 8]).unwrap();
+        assert_eq!(batch.expert_actions.len(), 2);
+        assert_eq!(metrics.step_calls.load(Ordering::Relaxed), 1);
+        assert_eq!(metrics.env_steps.load(Ordering::Relaxed), 2);
+        assert!(matches!(
+            store.find(&id.to_string()),
+            Err(SessionError::NotFound(_))
+        ));
     }
 
     #[test]

@@ -1,8 +1,9 @@
-//! Graceful shutdown: the signals that start it and the deadline that ends it.
+//! Graceful shutdown: the signals that start it, the deadline that ends it, the handles that
+//! tell background tasks, and the `UNAVAILABLE` answer ([`unavailable`]) of a draining server.
 //!
-//! [`crate::server::run`] takes any future as its shutdown trigger, so tests pass a oneshot and
-//! the binary passes [`signal`]. Once triggered the server stops accepting connections and lets
-//! in-flight RPCs finish; the binary gives them [`DRAIN_DEADLINE`] before it exits anyway.
+//! The server (`server::run`) takes any future as its shutdown trigger, so tests pass a oneshot
+//! and the binary passes [`signal`]. Once triggered the server stops accepting connections and
+//! lets in-flight RPCs finish; the binary gives them [`DRAIN_DEADLINE`] before it exits anyway.
 
 use std::future::Future;
 use std::time::Duration;
@@ -67,6 +68,11 @@ pub async fn signal() {
     {
         let _ = tokio::signal::ctrl_c().await;
     }
+}
+
+/// The answer to calls that arrive, or streams still running, once the server drains.
+pub fn unavailable() -> tonic::Status {
+    tonic::Status::unavailable("the server is shutting down; retry on another server")
 }
 
 /// Fires the [`Shutdown`] handles made with it; dropping it fires them too.

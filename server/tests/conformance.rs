@@ -1,7 +1,7 @@
 //! Replays every trajectory recorded from the reference simulator (`tests/data/conformance`) and
 //! checks every number of every step, and the expert's choice before each step.
 
-use dinerdash_server::expert::expert_action;
+use dinerdash_server::policy::expert_action;
 use dinerdash_server::sim::{Config, Game};
 
 mod recorded;

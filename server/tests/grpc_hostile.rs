@@ -9,11 +9,11 @@ mod grpc_support;
 use std::sync::Arc;
 use std::time::Duration;
 
+use dinerdash_server::auth::Token;
 use dinerdash_server::budget::{Share, Tenant};
 use dinerdash_server::connections;
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::server::ServerConfig;
-use dinerdash_server::service::Token;
 use dinerdash_server::session::{Limits, session_bytes};
 use grpc_support::*;
 use tokio::io::AsyncReadExt;

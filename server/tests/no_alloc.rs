@@ -5,8 +5,7 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
-use dinerdash_server::expert::expert_action;
-use dinerdash_server::planner::Planner;
+use dinerdash_server::policy::{Planner, expert_action};
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS};
 
 struct Counting;

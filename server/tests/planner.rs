@@ -2,8 +2,7 @@
 //! through eval, Rollout and a session, only picks legal actions, and beats the reference.
 
 use dinerdash_server::eval::run_episode;
-use dinerdash_server::expert::PolicyKind;
-use dinerdash_server::planner::Planner;
+use dinerdash_server::policy::{Planner, PolicyKind};
 use dinerdash_server::rollout::record;
 use dinerdash_server::session::{Autoreset, Envs, ExpertActions, ResetArgs, SessionOptions};
 use dinerdash_server::sim::{Config, Game};

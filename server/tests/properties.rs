@@ -1,6 +1,6 @@
 //! Property tests of the simulator over random action sequences and configurations.
 
-use dinerdash_server::expert::expert_action;
+use dinerdash_server::policy::expert_action;
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS, Restaurant};
 use proptest::prelude::*;
 

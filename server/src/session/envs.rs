@@ -8,8 +8,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::SessionError;
-use crate::expert::expert_action;
-use crate::planner::Planner;
+use crate::policy::{Planner, expert_action};
 use crate::sim::{
     Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, StepOutcome, render,
     snapshot,

@@ -6,8 +6,8 @@
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use dinerdash_server::expert::expert_action;
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
+use dinerdash_server::policy::expert_action;
 use dinerdash_server::server::{self, ServerConfig, ServerError};
 use dinerdash_server::sim::{Config, Game};
 use tokio::net::TcpListener;

@@ -29,7 +29,7 @@
 
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 
-use crate::expert::Policy;
+use super::Policy;
 use crate::sim::restaurant::{DROP_DISHES, HAND_IN_ORDERS, WAIT, status};
 use crate::sim::{Game, Group, NUM_ACTIONS, NUM_TABLES, Restaurant, TABLE_CAPACITIES};
 
@@ -66,7 +66,7 @@ pub struct Planner {
 }
 
 impl Default for Planner {
-    /// The settings measured in the README: 1.63x the reference's score over seeds 0..99, at
+    /// The settings measured in docs/benchmarks.md: 1.63x the reference's score over seeds 0..99, at
     /// 0.1-0.2 ms a decision.
     fn default() -> Self {
         Planner {

@@ -1,0 +1,414 @@
+//! What the `serve` command's flags decide, before anything is bound: [`ServeArgs`] (the flags
+//! themselves, parsed by the binary), and [`ServerConfig::from_args`], which reads the TLS and
+//! tenants files, turns the tenants into tokens, and refuses what the server must not start
+//! with ([`ServeArgs::validate`]). Library users (tests, embeddings) build a [`ServerConfig`]
+//! directly.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use clap::ValueEnum;
+use tokio::net::TcpListener;
+
+use crate::auth::{Token, tenant_tokens};
+use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
+use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
+use crate::rollout::MAX_ROLLOUT_WORK_STEPS;
+use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
+
+/// How log lines are written (to stderr).
+// The variants' doc comments would show in `--help`; the flag's own help says enough.
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
+/// The server's flags (used when no subcommand is given).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Address to listen on.
+    #[arg(long, default_value = "127.0.0.1")]
+    pub host: String,
+    /// Port to listen on; 0 picks a free one (printed on stdout).
+    #[arg(long, default_value_t = 50051)]
+    pub port: u16,
+    /// Most live sessions.
+    #[arg(long, default_value_t = DEFAULT_MAX_SESSIONS, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_sessions: u32,
+    /// Most environments in one session.
+    #[arg(long, default_value_t = DEFAULT_MAX_ENVS_PER_SESSION, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub max_envs_per_session: u32,
+    /// Close sessions idle this long: seconds, or a number with ms, s, m or h ("5m").
+    #[arg(long, default_value = "300", value_parser = parse_duration)]
+    pub session_ttl: Duration,
+    /// Log line format on stderr (the level comes from RUST_LOG, default info).
+    #[arg(long, value_enum, default_value = "text")]
+    pub log_format: LogFormat,
+    /// Most bytes sessions and Rollout streams may hold: bytes, or with KiB, MiB, GiB ("2GiB").
+    /// Requests that would pass it are refused with RESOURCE_EXHAUSTED.
+    #[arg(long, default_value_t = DEFAULT_MAX_MEMORY, value_parser = parse_bytes)]
+    pub max_memory: u64,
+    /// Most environments one tenant may hold: a token of --auth-tokens-file (unless its line
+    /// says otherwise), or else one connection.
+    #[arg(long, default_value_t = DEFAULT_TENANT_ENVS)]
+    pub max_envs_per_tenant: u64,
+    /// Most steps one Rollout request may record over all its episodes.
+    #[arg(long, default_value_t = MAX_ROLLOUT_WORK_STEPS, value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_rollout_work_steps: u64,
+    /// Most Rollout streams one tenant (or connection) may run at once.
+    #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
+    pub max_rollouts_per_tenant: u64,
+    /// Most client connections, capped below the open-file limit. At the limit the longest-idle
+    /// connection with no call in flight is closed to admit a new one; when every connection has
+    /// a call in flight, new ones are answered RESOURCE_EXHAUSTED and closed.
+    #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS as u32, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_connections: u32,
+    /// Close connections silent this long (live clients answer keepalive pings every 30 s).
+    #[arg(long, default_value = "120", value_parser = parse_duration)]
+    pub idle_timeout: Duration,
+    /// Serve Prometheus metrics over HTTP on this port of --metrics-host.
+    #[arg(long)]
+    pub metrics_port: Option<u16>,
+    /// Address of the metrics endpoint: local only by default, whatever --host is. Any other
+    /// address needs --auth-token or --auth-tokens-file, whose tokens the endpoint then asks for.
+    #[arg(long, default_value = "127.0.0.1")]
+    pub metrics_host: String,
+    /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
+    #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
+    pub auth_token: Option<String>,
+    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`. Each token is
+    /// accepted like --auth-token, and its requests count against its tenant's share.
+    #[arg(long)]
+    pub auth_tokens_file: Option<PathBuf>,
+    /// PEM certificate chain: serve TLS (needs --tls-key).
+    #[arg(long, requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+}
+
+/// Why the flags describe no server that may start.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// A file named by a flag could not be read.
+    #[error("cannot read {}: {source}", path.display())]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The tenants file is not UTF-8.
+    #[error("{} is not UTF-8", .0.display())]
+    NotUtf8(PathBuf),
+    /// A line of the tenants file is malformed.
+    #[error("{}: {message}", path.display())]
+    Tenants {
+        /// The file.
+        path: PathBuf,
+        /// Which line, and what is wrong with it.
+        message: String,
+    },
+    /// `--metrics-host` is not local and no token protects the metrics.
+    #[error(
+        "--metrics-host {0} publishes the metrics beyond this machine: give --auth-token or \
+         --auth-tokens-file too (scrapers then send the token as a bearer token)"
+    )]
+    PublicMetrics(String),
+}
+
+impl ServeArgs {
+    /// Refuses flags the server must not start with: metrics served beyond this machine (a
+    /// `--metrics-host` other than 127.0.0.1, ::1 or localhost) without `--auth-token` or
+    /// `--auth-tokens-file`, whose tokens the endpoint would ask for. (A tokens file counts as
+    /// a token: [`ServerConfig::from_args`] refuses one without a tenant.)
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let has_token = self.auth_token.as_ref().is_some_and(|t| !t.is_empty())
+            || self.auth_tokens_file.is_some();
+        let local_metrics = matches!(
+            self.metrics_host.as_str(),
+            "127.0.0.1" | "::1" | "localhost"
+        );
+        if self.metrics_port.is_some() && !local_metrics && !has_token {
+            return Err(ConfigError::PublicMetrics(self.metrics_host.clone()));
+        }
+        Ok(())
+    }
+
+    /// What each tenant (or connection) may hold: `--max-envs-per-tenant`,
+    /// `--max-rollouts-per-tenant`, any number of sessions.
+    pub fn share(&self) -> Share {
+        Share {
+            max_envs: self.max_envs_per_tenant,
+            max_sessions: u64::MAX,
+            max_rollouts: self.max_rollouts_per_tenant,
+        }
+    }
+}
+
+/// A non-zero whole number followed by one of `units` (name, scale); `what` and `example` word
+/// the errors.
+fn parse_scaled(
+    text: &str,
+    units: &[(&str, u64)],
+    what: &str,
+    example: &str,
+) -> Result<u64, String> {
+    let text = text.trim();
+    let split = text
+        .find(|c: char| !c.is_ascii_digit())
+        .unwrap_or(text.len());
+    let (number, unit) = text.split_at(split);
+    let n: u64 = number
+        .parse()
+        .map_err(|_| format!("expected a number of {what} or e.g. {example}, got {text:?}"))?;
+    let unit = unit.trim();
+    let scale = units
+        .iter()
+        .find_map(|&(name, scale)| (name == unit).then_some(scale))
+        .ok_or_else(|| {
+            let names: Vec<&str> = units
+                .iter()
+                .map(|&(name, _)| name)
+                .filter(|n| !n.is_empty())
+                .collect();
+            format!("unknown unit {unit:?}: use {}", names.join(", "))
+        })?;
+    let value = n
+        .checked_mul(scale)
+        .ok_or_else(|| format!("{text} is too large"))?;
+    if value == 0 {
+        return Err("must be greater than zero".into());
+    }
+    Ok(value)
+}
+
+/// "300", "300s", "500ms", "5m", "1h" as a non-zero duration.
+pub fn parse_duration(text: &str) -> Result<Duration, String> {
+    const MS: &[(&str, u64)] = &[
+        ("", 1000),
+        ("s", 1000),
+        ("ms", 1),
+        ("m", 60_000),
+        ("h", 3_600_000),
+    ];
+    parse_scaled(text, MS, "seconds", "5m").map(Duration::from_millis)
+}
+
+/// "1073741824", "512MiB", "2GiB", "64KiB" (also KB, MB, GB as powers of 1000) as bytes.
+pub fn parse_bytes(text: &str) -> Result<u64, String> {
+    const UNITS: &[(&str, u64)] = &[
+        ("", 1),
+        ("B", 1),
+        ("KiB", 1 << 10),
+        ("MiB", 1 << 20),
+        ("GiB", 1 << 30),
+        ("KB", 1_000),
+        ("MB", 1_000_000),
+        ("GB", 1_000_000_000),
+    ];
+    parse_scaled(text, UNITS, "bytes", "2GiB")
+}
+
+/// A PEM certificate chain and its private key.
+#[derive(Debug, Clone)]
+pub struct TlsPem {
+    /// The certificate chain, PEM.
+    pub cert: Vec<u8>,
+    /// The private key, PEM.
+    pub key: Vec<u8>,
+}
+
+/// Everything the server (`server::run`) needs besides the listener.
+#[derive(Debug, Default)]
+pub struct ServerConfig {
+    /// Session limits and the idle TTL.
+    pub limits: Limits,
+    /// The bearer token clients must send; `None` serves everyone (unless `tenants` is given).
+    /// Each connection is then its own tenant.
+    pub auth_token: Option<String>,
+    /// Tenant tokens (`--auth-tokens-file`): each token's requests count against its tenant's
+    /// share. Given with `auth_token`, either token is accepted.
+    pub tenants: Vec<Token>,
+    /// What each connection may hold when its requests carry no tenant token.
+    pub connection_share: Share,
+    /// Connection limit and idle timeout.
+    pub connections: connections::Limits,
+    /// Serve TLS with this identity; `None` serves plaintext.
+    pub tls: Option<TlsPem>,
+    /// Serve Prometheus metrics on this listener (asking for the same tokens as the RPCs);
+    /// `None` serves none.
+    pub metrics_listener: Option<TcpListener>,
+}
+
+fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
+    std::fs::read(path).map_err(|source| ConfigError::Read {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+impl ServerConfig {
+    /// The configuration `args` describe: the TLS files read, the tenants file's tenants as
+    /// tokens, the limits; refused unless [`ServeArgs::validate`] passes. No listener is bound
+    /// (`metrics_listener` is `None`).
+    pub fn from_args(args: &ServeArgs) -> Result<ServerConfig, ConfigError> {
+        let tls = match (&args.tls_cert, &args.tls_key) {
+            (Some(cert), Some(key)) => Some(TlsPem {
+                cert: read(cert)?,
+                key: read(key)?,
+            }),
+            _ => None,
+        };
+        let share = args.share();
+        let tenants = match &args.auth_tokens_file {
+            Some(path) => {
+                let text = String::from_utf8(read(path)?)
+                    .map_err(|_| ConfigError::NotUtf8(path.clone()))?;
+                tenant_tokens(&text, share).map_err(|message| ConfigError::Tenants {
+                    path: path.clone(),
+                    message,
+                })?
+            }
+            None => Vec::new(),
+        };
+        args.validate()?;
+        Ok(ServerConfig {
+            limits: Limits {
+                max_sessions: args.max_sessions as usize,
+                max_envs_per_session: args.max_envs_per_session as usize,
+                session_ttl: args.session_ttl,
+                max_memory: args.max_memory,
+                max_rollout_work_steps: args.max_rollout_work_steps,
+            },
+            auth_token: args.auth_token.clone().filter(|t| !t.is_empty()),
+            tenants,
+            connection_share: share,
+            connections: connections::Limits {
+                max_connections: args.max_connections as usize,
+                idle_timeout: args.idle_timeout,
+                ..connections::Limits::default()
+            },
+            tls,
+            metrics_listener: None,
+        })
+    }
+
+    /// Every token the server accepts: the tenants' and `auth_token` (which stands for no
+    /// tenant: each connection is its own).
+    pub fn tokens(&self) -> Vec<Token> {
+        let mut tokens = self.tenants.clone();
+        if let Some(token) = &self.auth_token {
+            tokens.push(Token {
+                token: token.clone(),
+                tenant: None,
+            });
+        }
+        tokens
+    }
+
+    /// Whether the server asks for a token.
+    pub fn has_tokens(&self) -> bool {
+        self.auth_token.is_some() || !self.tenants.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_and_sizes_parse_with_their_units() {
+        assert_eq!(parse_duration("300"), Ok(Duration::from_secs(300)));
+        assert_eq!(parse_duration("500ms"), Ok(Duration::from_millis(500)));
+        assert_eq!(parse_duration(" 5m "), Ok(Duration::from_secs(300)));
+        assert_eq!(parse_duration("1h"), Ok(Duration::from_secs(3600)));
+        assert_eq!(parse_bytes("2GiB"), Ok(2 << 30));
+        assert_eq!(parse_bytes("64KB"), Ok(64_000));
+        assert_eq!(parse_bytes("1048576"), Ok(1 << 20));
+        assert!(
+            parse_duration("0s")
+                .unwrap_err()
+                .contains("greater than zero")
+        );
+        assert!(
+            parse_duration("5d")
+                .unwrap_err()
+                .contains("use s, ms, m, h")
+        );
+        assert!(parse_bytes("1TiB").unwrap_err().contains("unknown unit"));
+        assert!(parse_bytes("x").unwrap_err().contains("number of bytes"));
+        assert!(
+            parse_bytes("99999999999GiB")
+                .unwrap_err()
+                .contains("too large")
+        );
+    }
+
+    #[derive(Debug, clap::Parser)]
+    struct Flags {
+        #[command(flatten)]
+        serve: ServeArgs,
+    }
+
+    fn flags(args: &[&str]) -> ServeArgs {
+        use clap::Parser as _;
+        Flags::parse_from(std::iter::once("dinerdash-server").chain(args.iter().copied())).serve
+    }
+
+    #[test]
+    fn metrics_beyond_this_machine_need_a_token() {
+        let public = ["--metrics-port", "9000", "--metrics-host", "0.0.0.0"];
+        let refused = ServerConfig::from_args(&flags(&public)).unwrap_err();
+        assert!(matches!(&refused, ConfigError::PublicMetrics(host) if host == "0.0.0.0"));
+        assert!(
+            refused.to_string().contains("--auth-tokens-file"),
+            "{refused}"
+        );
+        let with_token = [&public[..], &["--auth-token", "s3cret"]].concat();
+        let config = ServerConfig::from_args(&flags(&with_token)).unwrap();
+        assert!(config.has_tokens());
+        assert_eq!(config.tokens().len(), 1);
+        let local = ["--metrics-port", "9000", "--metrics-host", "localhost"];
+        assert!(
+            !ServerConfig::from_args(&flags(&local))
+                .unwrap()
+                .has_tokens()
+        );
+        // An empty --auth-token is no token.
+        let empty = [&public[..], &["--auth-token", ""]].concat();
+        assert!(flags(&empty).validate().is_err());
+    }
+
+    #[test]
+    fn the_tenants_file_becomes_tokens() {
+        let dir = std::env::temp_dir().join(format!("dinerdash-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("tenants");
+        std::fs::write(&file, "team-a aaa envs=8\nteam-b bbb\n").unwrap();
+        let path = file.to_str().unwrap();
+        let config =
+            ServerConfig::from_args(&flags(&["--auth-tokens-file", path, "--max-sessions", "7"]))
+                .unwrap();
+        assert_eq!(config.limits.max_sessions, 7);
+        let tokens = config.tokens();
+        assert_eq!(tokens.len(), 2);
+        let team_a = tokens[0].tenant.as_ref().unwrap();
+        assert_eq!(
+            (tokens[0].token.as_str(), team_a.name()),
+            ("aaa", "tenant team-a")
+        );
+        std::fs::write(&file, "team-a\n").unwrap();
+        let bad = ServerConfig::from_args(&flags(&["--auth-tokens-file", path])).unwrap_err();
+        assert!(
+            bad.to_string().starts_with(&format!("{path}: line 1: ")),
+            "{bad}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+        let missing = ServerConfig::from_args(&flags(&["--auth-tokens-file", path])).unwrap_err();
+        assert!(matches!(missing, ConfigError::Read { .. }), "{missing}");
+    }
+}

@@ -1,0 +1,306 @@
+//! The tonic glue of `dinerdash.v1.DinerDash`: decode a request, call the session store (or the
+//! rollout recorder), encode the reply.
+//!
+//! - [`status`](mod@status): the only place errors become `tonic::Status`, each
+//!   [`SessionError`] mapped once.
+//! - [`convert`]: the protocol's messages to the store's types and back.
+//! - [`step_stream`]: StepStream's replies, each request stepped exactly as the unary Step does.
+//! - [`rollout_stream`]: the producer of a Rollout stream's episodes.
+//!
+//! Requests reach these handlers through the [`crate::auth::RequestGate`].
+
+pub mod convert;
+pub mod rollout_stream;
+pub mod status;
+pub mod step_stream;
+
+use std::sync::Arc;
+
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+pub use rollout_stream::ROLLOUT_UNREAD_TIMEOUT;
+pub use status::{ERROR_DOMAIN, status};
+pub use step_stream::StepReplies;
+
+use convert::{
+    autoreset_from, batch_to, config_from, created, expert_actions_from, policy_from, reset_from,
+};
+use rollout_stream::Produce;
+
+use crate::budget::{Share, Tenant};
+use crate::connections::conn_info;
+use crate::cpu::CpuPool;
+use crate::metrics::Metrics;
+use crate::pb;
+use crate::rollout::{MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
+use crate::session::{Batch, ExpertActions, FoundSession, SessionError, SessionOptions, Store};
+use crate::shutdown::Shutdown;
+use crate::sim::{self, SNAPSHOT_VERSION};
+
+/// Largest message the server reads or writes. The biggest legitimate ones are a Restore of a
+/// 1024-environment session (~3.5 MB) and a Rollout episode of 100,000 steps with action masks
+/// (~10 MB); anything larger is refused by this limit before it is buffered.
+pub const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+
+/// The `DinerDash` service. Cloning is shallow.
+#[derive(Debug, Clone)]
+pub struct DinerDashService {
+    /// The sessions.
+    store: Store,
+    /// Counts failed RPCs by code.
+    metrics: Arc<Metrics>,
+    /// Where Rollout episodes are recorded, and Reset and Step of sessions whose expert actions
+    /// come from the planner: off the async workers and leaving them a core, so that neither can
+    /// starve the Step path of every other client.
+    cpu: CpuPool,
+    /// The tenant of requests that came neither with a tenant token nor on a connection this
+    /// server accepted (an embedding that serves its own listener).
+    unknown: Arc<Tenant>,
+    /// Fires when the server starts draining: Rollout streams then get a short deadline.
+    stopping: Shutdown,
+}
+
+impl DinerDashService {
+    /// A service over `store`; connections of no known tenant get `share`.
+    pub fn new(
+        store: Store,
+        metrics: Arc<Metrics>,
+        share: Share,
+        stopping: Shutdown,
+    ) -> DinerDashService {
+        DinerDashService {
+            store,
+            metrics,
+            cpu: CpuPool::beside_steps(),
+            unknown: Arc::new(Tenant::new("an unknown connection".into(), share)),
+            stopping,
+        }
+    }
+
+    /// Looks session `id` up (once) and runs `job` (its Reset or Step) on it here, or on the CPU
+    /// pool when the session's expert actions come from the planner: its decisions cost too much
+    /// for an async worker.
+    async fn heavy_if_planner<F>(&self, id: &str, job: F) -> Result<Batch, Status>
+    where
+        F: FnOnce(&FoundSession) -> Result<Batch, SessionError> + Send + 'static,
+    {
+        let session = self.store.find(id).map_err(|e| self.fail(e))?;
+        let result = if session.expert_actions() == ExpertActions::Planner {
+            self.cpu
+                .run(move || job(&session))
+                .await
+                .unwrap_or_else(|e| Err(SessionError::Internal(e.to_string())))
+        } else {
+            job(&session)
+        };
+        result.map_err(|e| self.fail(e))
+    }
+
+    /// One Step, as the unary call and each message of a StepStream do it.
+    async fn step_one(&self, r: pb::StepRequest) -> Result<pb::Batch, Status> {
+        let actions = r.actions;
+        let batch = self
+            .heavy_if_planner(&r.session_id, move |session| session.step(&actions))
+            .await?;
+        Ok(batch_to(batch))
+    }
+
+    /// Whose share a request counts against: its token's tenant, else its connection.
+    fn tenant<T>(&self, request: &Request<T>) -> Arc<Tenant> {
+        if let Some(tenant) = request.extensions().get::<Arc<Tenant>>() {
+            return Arc::clone(tenant);
+        }
+        conn_info(request).map_or_else(|| Arc::clone(&self.unknown), |c| Arc::clone(&c.tenant))
+    }
+
+    /// The status for `e`, counted.
+    fn fail(&self, e: SessionError) -> Status {
+        let status = status(e);
+        self.metrics.count_error(status.code() as usize);
+        tracing::debug!(code = ?status.code(), message = status.message(), "request refused");
+        status
+    }
+}
+
+#[tonic::async_trait]
+impl pb::diner_dash_server::DinerDash for DinerDashService {
+    #[tracing::instrument(skip_all, fields(num_envs = request.get_ref().num_envs))]
+    async fn create_session(
+        &self,
+        request: Request<pb::CreateSessionRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let tenant = self.tenant(&request);
+        let r = request.into_inner();
+        let options = SessionOptions {
+            autoreset: autoreset_from(r.autoreset_mode, r.num_envs).map_err(|e| self.fail(e))?,
+            action_masks: r.action_masks,
+            expert_actions: expert_actions_from(r.expert_actions, r.expert_policy)
+                .map_err(|e| self.fail(e))?,
+        };
+        let config = config_from(r.config.as_ref());
+        let (id, spec) = self
+            .store
+            .create(&tenant, r.num_envs, config, options, r.seed)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!(session = %id, "session created");
+        Ok(Response::new(created(id, &spec)))
+    }
+
+    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    async fn close_session(
+        &self,
+        request: Request<pb::CloseSessionRequest>,
+    ) -> Result<Response<pb::CloseSessionResponse>, Status> {
+        self.store
+            .close(&request.get_ref().session_id)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!("session closed");
+        Ok(Response::new(pb::CloseSessionResponse {}))
+    }
+
+    #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
+    async fn reset(
+        &self,
+        request: Request<pb::ResetRequest>,
+    ) -> Result<Response<pb::Batch>, Status> {
+        let (id, args) = reset_from(request.into_inner()).map_err(|e| self.fail(e))?;
+        let batch = self
+            .heavy_if_planner(&id, move |session| session.reset(&args))
+            .await?;
+        Ok(Response::new(batch_to(batch)))
+    }
+
+    #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
+    async fn step(&self, request: Request<pb::StepRequest>) -> Result<Response<pb::Batch>, Status> {
+        self.step_one(request.into_inner()).await.map(Response::new)
+    }
+
+    type StepStreamStream = StepReplies;
+
+    #[tracing::instrument(level = "debug", skip_all)]
+    async fn step_stream(
+        &self,
+        request: Request<Streaming<pb::StepRequest>>,
+    ) -> Result<Response<StepReplies>, Status> {
+        Ok(Response::new(StepReplies::new(
+            self.clone(),
+            request.into_inner(),
+            self.stopping.clone(),
+        )))
+    }
+
+    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    async fn fork(
+        &self,
+        request: Request<pb::ForkRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let (id, spec) = self
+            .store
+            .fork(&self.tenant(&request), &request.get_ref().session_id)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!(fork = %id, "session forked");
+        Ok(Response::new(created(id, &spec)))
+    }
+
+    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    async fn snapshot(
+        &self,
+        request: Request<pb::SnapshotRequest>,
+    ) -> Result<Response<pb::SnapshotResponse>, Status> {
+        let snapshot = self
+            .store
+            .snapshot(&request.get_ref().session_id)
+            .map_err(|e| self.fail(e))?;
+        Ok(Response::new(pb::SnapshotResponse { snapshot }))
+    }
+
+    #[tracing::instrument(skip_all)]
+    async fn restore(
+        &self,
+        request: Request<pb::RestoreRequest>,
+    ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        let (id, spec) = self
+            .store
+            .restore(&self.tenant(&request), &request.get_ref().snapshot)
+            .map_err(|e| self.fail(e))?;
+        tracing::info!(session = %id, "session restored");
+        Ok(Response::new(created(id, &spec)))
+    }
+
+    #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
+    async fn render(
+        &self,
+        request: Request<pb::RenderRequest>,
+    ) -> Result<Response<pb::RenderResponse>, Status> {
+        let r = request.get_ref();
+        let text = self
+            .store
+            .render(&r.session_id, r.env_index, r.color)
+            .map_err(|e| self.fail(e))?;
+        Ok(Response::new(pb::RenderResponse { text }))
+    }
+
+    type RolloutStream = ReceiverStream<Result<pb::Episode, Status>>;
+
+    #[tracing::instrument(skip_all, fields(episodes = request.get_ref().seeds.len()))]
+    async fn rollout(
+        &self,
+        request: Request<pb::RolloutRequest>,
+    ) -> Result<Response<Self::RolloutStream>, Status> {
+        let tenant = self.tenant(&request);
+        let r = request.into_inner();
+        let policy = policy_from(r.policy).map_err(|e| self.fail(e))?;
+        let plan = RolloutPlan::new(
+            policy,
+            r.seeds,
+            r.max_steps,
+            config_from(r.config.as_ref()),
+            r.action_masks,
+        )
+        .map_err(|e| self.fail(e.into()))?;
+        let charge = plan
+            .charge(self.store.budget(), &tenant)
+            .map_err(|e| self.fail(e.into()))?;
+
+        let (tx, rx) = tokio::sync::mpsc::channel(ROLLOUT_BUFFER);
+        let produce = Produce {
+            cpu: self.cpu.clone(),
+            metrics: Arc::clone(&self.metrics),
+            stopping: self.stopping.clone(),
+            policy: plan.policy,
+            config: plan.config,
+            max_steps: plan.max_steps,
+            masks: plan.action_masks,
+            work_cap: self.store.limits().max_rollout_work_steps,
+        };
+        tokio::spawn(async move {
+            produce.run(plan.seeds, tx).await;
+            // The producer is done: what it charged is given back (an episode still waiting in
+            // the channel for its reader is within the transport's share of the estimate).
+            drop(charge);
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn server_info(
+        &self,
+        _request: Request<pb::ServerInfoRequest>,
+    ) -> Result<Response<pb::ServerInfoResponse>, Status> {
+        let limits = self.store.limits();
+        Ok(Response::new(pb::ServerInfoResponse {
+            server_version: crate::SERVER_VERSION.into(),
+            ruleset: sim::RULESET.into(),
+            max_sessions: u32::try_from(limits.max_sessions).unwrap_or(u32::MAX),
+            max_envs_per_session: u32::try_from(limits.max_envs_per_session).unwrap_or(u32::MAX),
+            session_ttl_seconds: limits.session_ttl.as_secs(),
+            live_sessions: self.store.live() as u64,
+            max_rollout_episodes: MAX_ROLLOUT_EPISODES,
+            max_memory_bytes: self.store.budget().max_bytes(),
+            memory_used_bytes: self.store.budget().used_bytes(),
+            max_rollout_work_steps: limits.max_rollout_work_steps,
+            max_message_bytes: MAX_MESSAGE_BYTES as u64,
+            snapshot_version: u32::from(SNAPSHOT_VERSION),
+        }))
+    }
+}
