@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVER := target/release/dinerdash-server
 
-.PHONY: serve build build-server test test-rust test-python test-agents lint bench soak docker-smoke venv clean
+.PHONY: serve build build-server test test-rust test-python test-agents lint bench soak docker-smoke venv clean wheels wheel-smoke cross-check
 
 ## Start the gRPC server on port 50051 (Ctrl-C stops it).
 serve:
@@ -29,6 +29,36 @@ $(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml
 
 venv: $(VENV)/.installed
 
+# The wheels' build tools (maturin, ziglang, auditwheel), apart from the development venv.
+BUILD_VENV := .build-venv
+$(BUILD_VENV)/.installed: scripts/build-requirements.txt
+	$(PYTHON) -m venv $(BUILD_VENV)
+	$(BUILD_VENV)/bin/python -m pip install --quiet -r scripts/build-requirements.txt
+	touch $@
+
+## dist/: the dinerdash-server wheel (the release binary, stripped; manylinux2014 linked by zig)
+## and its sdist, and the pure-Python wheels of dinerdash and dinerdash-agents; all one version.
+## SERVER_WHEEL_FLAGS= (empty) builds a wheel for this machine's glibc with the system linker.
+SERVER_WHEEL_FLAGS ?= --zig --compatibility manylinux2014
+wheels: $(BUILD_VENV)/.installed
+	$(BUILD_VENV)/bin/python scripts/version.py check
+	rm -rf dist
+	PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" maturin build --release -m server/Cargo.toml \
+		$(SERVER_WHEEL_FLAGS) --out dist
+	PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" maturin sdist -m server/Cargo.toml --out dist
+	$(BUILD_VENV)/bin/python -m pip wheel --quiet --no-deps --wheel-dir dist ./client-py ./agents
+	if [ "$$(uname)" = Linux ]; then $(BUILD_VENV)/bin/auditwheel show dist/dinerdash_server-*.whl; fi
+	ls -l dist
+
+## The wheels in a clean venv, as a user without Rust installs them (scripts/wheel_smoke.sh).
+wheel-smoke: wheels
+	scripts/wheel_smoke.sh dist
+
+## cargo check of the server for Windows, macOS and Linux aarch64 (needs their std: rustup
+## target add); zig from .build-venv compiles ring's C (scripts/cross_check.sh).
+cross-check: $(BUILD_VENV)/.installed
+	scripts/cross_check.sh
+
 ## Every test: Rust unit, property, conformance and gRPC tests, the Python end-to-end tests, then
 ## the agents' tests (BC and DPGM against a local server).
 test: test-rust test-python test-agents
@@ -45,8 +75,8 @@ test-agents: build-server venv
 lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
-	$(VENV)/bin/ruff check client-py tests agents scripts
-	$(VENV)/bin/ruff format --check client-py tests agents scripts
+	$(VENV)/bin/ruff check client-py tests agents scripts server/python
+	$(VENV)/bin/ruff format --check client-py tests agents scripts server/python
 
 ## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench.
 bench: build venv
@@ -67,4 +97,4 @@ docker-smoke:
 
 clean:
 	cargo clean
-	rm -rf $(VENV)
+	rm -rf $(VENV) $(BUILD_VENV) dist

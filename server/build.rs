@@ -1,13 +1,15 @@
 //! Compiles `proto/dinerdash/v1/dinerdash.proto` with protox (no system `protoc`) into the
 //! tonic client and server, and writes the encoded descriptor set that server reflection serves.
+//! The files belong to the `dinerdash-proto` build dependency (so the sdist carries them).
 
 use std::path::PathBuf;
 
 use prost::Message as _;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // The dinerdash-proto crate's folder: beside this package here and in the sdist.
     let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR")?).join("../proto");
-    let proto = root.join("dinerdash/v1/dinerdash.proto");
+    let proto = root.join(dinerdash_proto::FILE);
     println!("cargo:rerun-if-changed={}", proto.display());
     let fds = protox::compile([&proto], [&root])?;
     let out = PathBuf::from(std::env::var("OUT_DIR")?);

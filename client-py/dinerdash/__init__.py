@@ -18,6 +18,7 @@ Layout:
     env           DinerDashEnv, the Gymnasium Env
     vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)
     server        LocalServer, the embedded default: a dinerdash-server subprocess
+    _version      __version__, and ServerVersionWarning for a server of another major/minor
     render        the rgb_array picture, drawn with numpy
     rollout       rollout(): server-side expert/random/planner episodes, streamed
     evaluation    seeded play, evaluate, collect demonstrations, print results, progress bar
@@ -30,11 +31,11 @@ Layout:
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
-
 import gymnasium
 
 from . import _tuning  # noqa: F401  (first: gRPC settings must precede the first import of grpc)
+from ._version import ServerVersionWarning
+from ._version import __version__ as __version__
 from .connection import Connection
 from .env import DinerDashEnv, Snapshot
 from .errors import (
@@ -57,11 +58,6 @@ from .rollout import Episode, rollout
 from .server import LocalServer
 from .vector import DinerDashVectorEnv
 
-try:
-    __version__ = version("dinerdash")
-except PackageNotFoundError:  # running from a source tree without installing
-    __version__ = "0.0.0"
-
 __all__ = [
     "Connection",
     "DinerDashEnv",
@@ -75,6 +71,7 @@ __all__ = [
     "LocalServerError",
     "ResourceExhausted",
     "ServerBinaryNotFound",
+    "ServerVersionWarning",
     "ServiceError",
     "ServiceInternalError",
     "ServiceTimeout",

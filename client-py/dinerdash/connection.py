@@ -22,6 +22,7 @@ from typing import Any
 import grpc
 
 from ._proto import pb, pb_grpc
+from ._version import warn_if_other_version
 from .errors import (
     EnvClosed,
     ServiceTimeout,
@@ -356,12 +357,13 @@ class Connection:
         whose polling thread outlives it and fails noisily when the channel is closed later.
         """
         try:
-            self.stub.ServerInfo(
+            info = self.stub.ServerInfo(
                 pb.ServerInfoRequest(),
                 timeout=max(timeout, 0.001),
                 metadata=self._metadata,
                 wait_for_ready=True,
             )
+            warn_if_other_version(info.server_version, self.address)
             return True
         except grpc.RpcError as e:
             # Any answer from the server (e.g. UNAUTHENTICATED) means it is there.

@@ -5,8 +5,9 @@
 it: terminate, wait, then kill. On Linux the child also gets ``PR_SET_PDEATHSIG``, so it dies with
 the Python process even when that one is killed without a chance to clean up.
 
-The binary is, in this order: the ``binary`` argument, ``DINERDASH_SERVER``, ``dinerdash-server``
-on ``PATH``, or the release build of the workspace this package was installed from.
+The binary is, in this order: the ``binary`` argument, ``DINERDASH_SERVER``, the binary of the
+installed ``dinerdash-server`` wheel (``pip install 'dinerdash[server]'``), ``dinerdash-server`` on
+``PATH``, or the release build of the workspace this package was installed from.
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ __all__ = ["LocalServer", "find_server_binary"]
 
 _LISTENING = re.compile(r"^dinerdash-server listening on (\S+)\s*$")
 _BUILD_HINT = (
-    "build it with `cargo build --release -p dinerdash-server` in the repository, then set "
+    "install it with `pip install 'dinerdash[server]'`; or, in a clone of the repository, build it "
+    "with `cargo build --release -p dinerdash-server` and set "
     "DINERDASH_SERVER=/path/to/target/release/dinerdash-server or put it on PATH; or connect to a "
     "running server with address='host:port' (or DINERDASH_ADDRESS)"
 )
@@ -48,12 +50,16 @@ def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
         env = os.environ.get("DINERDASH_SERVER")
         if env:
             candidates.append(("DINERDASH_SERVER", Path(env)))
+        wheel = _wheel_binary()
+        if wheel is not None:
+            candidates.append(("dinerdash-server package", wheel))
         on_path = shutil.which("dinerdash-server")
         if on_path:
             candidates.append(("PATH", Path(on_path)))
         # client-py/dinerdash/server.py -> the workspace root holds target/release.
         workspace = Path(__file__).resolve().parent.parent.parent
-        candidates.append(("workspace", workspace / "target" / "release" / "dinerdash-server"))
+        exe = "dinerdash-server.exe" if os.name == "nt" else "dinerdash-server"
+        candidates.append(("workspace", workspace / "target" / "release" / exe))
     for origin, path in candidates:
         if path.is_file() and os.access(path, os.X_OK):
             return path
@@ -63,6 +69,18 @@ def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
     raise ServerBinaryNotFound(
         f"no dinerdash-server binary found (tried {', '.join(tried)}); {_BUILD_HINT}"
     )
+
+
+def _wheel_binary() -> Path | None:
+    """The binary of the installed ``dinerdash-server`` wheel (the ``[server]`` extra), if any."""
+    try:
+        from dinerdash_server import find_binary
+    except ImportError:
+        return None
+    try:
+        return Path(find_binary())
+    except FileNotFoundError:  # the package without its binary: a broken install, look on
+        return None
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
