@@ -356,7 +356,9 @@ pub struct Conn {
     /// For the service.
     info: ConnInfo,
     /// Counted while it lives.
-    _counted: Counted,
+    counted: Counted,
+    /// Its deadline passed: counted once among the timeouts, however often it is read after.
+    timed_out: bool,
 }
 
 impl tonic::transport::server::Connected for Conn {
@@ -389,14 +391,27 @@ impl AsyncRead for Conn {
                 Poll::Ready(Ok(()))
             }
             Poll::Pending => match self.idle.as_mut().poll(cx) {
-                Poll::Ready(()) => Poll::Ready(Err(std::io::Error::new(
-                    std::io::ErrorKind::TimedOut,
-                    if self.preface_left > 0 {
-                        "no HTTP/2 preface in time"
-                    } else {
-                        "connection idle for too long"
-                    },
-                ))),
+                Poll::Ready(()) => {
+                    let no_preface = self.preface_left > 0;
+                    // Connections over the limit end their grace here too: not a timeout.
+                    if self.tracked.is_some() && !std::mem::replace(&mut self.timed_out, true) {
+                        let metrics = &self.counted.metrics;
+                        let counter = if no_preface {
+                            &metrics.connections_without_preface
+                        } else {
+                            &metrics.connections_idle_closed
+                        };
+                        counter.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Poll::Ready(Err(std::io::Error::new(
+                        std::io::ErrorKind::TimedOut,
+                        if no_preface {
+                            "no HTTP/2 preface in time"
+                        } else {
+                            "connection idle for too long"
+                        },
+                    )))
+                }
                 Poll::Pending => Poll::Pending,
             },
             Poll::Ready(Err(e)) => Poll::Ready(Err(e)),
@@ -592,6 +607,9 @@ impl Accepting {
             let admitted = self.table.admit(self.budget.max_connections);
             match &admitted {
                 Some((_, true)) => {
+                    self.metrics
+                        .connections_shed
+                        .fetch_add(1, Ordering::Relaxed);
                     if shed_run == 0 {
                         tracing::warn!(
                             max_connections = self.budget.max_connections,
@@ -648,7 +666,8 @@ impl Accepting {
                 activity: tracked.as_ref().map(|t| Arc::clone(&t.activity)),
             },
             tracked,
-            _counted: Counted::new(&self.metrics, over_limit),
+            counted: Counted::new(&self.metrics, over_limit),
+            timed_out: false,
         })
     }
 }

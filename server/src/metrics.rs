@@ -50,6 +50,12 @@ pub struct Metrics {
     pub open_connections: AtomicU64,
     /// Connections accepted over the connection limit, open now (answered RESOURCE_EXHAUSTED).
     pub over_limit_connections: AtomicU64,
+    /// Connections closed at the connection limit to admit a new one (shed).
+    pub connections_shed: AtomicU64,
+    /// Connections closed for not sending the HTTP/2 preface in time.
+    pub connections_without_preface: AtomicU64,
+    /// Connections closed for being silent longer than `--idle-timeout`.
+    pub connections_idle_closed: AtomicU64,
     /// Step RPCs that succeeded.
     pub step_calls: AtomicU64,
     /// Environment steps: a Step of N environments counts N.
@@ -72,7 +78,7 @@ impl Metrics {
     /// The counters in Prometheus' text exposition format.
     pub fn render(&self) -> String {
         let mut out = String::with_capacity(2048);
-        let counters: [(&str, &str, &AtomicU64); 7] = [
+        let counters: [(&str, &str, &AtomicU64); 10] = [
             (
                 "dinerdash_sessions_created_total",
                 "Sessions created by CreateSession, Fork and Restore.",
@@ -108,13 +114,28 @@ impl Metrics {
                 "Episodes recorded by Rollout.",
                 &self.rollout_episodes,
             ),
+            (
+                "dinerdash_connections_shed_total",
+                "Connections closed at the connection limit to admit a new one.",
+                &self.connections_shed,
+            ),
+            (
+                "dinerdash_connections_without_preface_total",
+                "Connections closed for not sending the HTTP/2 preface in time.",
+                &self.connections_without_preface,
+            ),
+            (
+                "dinerdash_connections_idle_closed_total",
+                "Connections closed for being silent longer than --idle-timeout.",
+                &self.connections_idle_closed,
+            ),
         ];
         for (name, help, value) in counters {
             let _ = writeln!(out, "# HELP {name} {help}");
             let _ = writeln!(out, "# TYPE {name} counter");
             let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
         }
-        let gauges: [(&str, &str, &AtomicU64); 5] = [
+        let gauges: [(&str, &str, &AtomicU64); 6] = [
             (
                 "dinerdash_live_sessions",
                 "Sessions alive now.",
@@ -139,6 +160,11 @@ impl Metrics {
                 "dinerdash_open_connections",
                 "Client connections open now.",
                 &self.open_connections,
+            ),
+            (
+                "dinerdash_over_limit_connections",
+                "Connections over the connection limit open now, answered RESOURCE_EXHAUSTED.",
+                &self.over_limit_connections,
             ),
         ];
         for (name, help, value) in gauges {

@@ -16,7 +16,7 @@ use dinerdash_server::connections;
 use dinerdash_server::fd_limit::{self, Budget};
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::server::ServerConfig;
-use grpc_support::{PATIENCE, TestServer, create, create_request, step};
+use grpc_support::{PATIENCE, TestServer, create, create_request, scrape, step};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tonic::Code;
 use tonic::transport::Channel;
@@ -199,7 +199,7 @@ async fn a_connection_without_the_preface_is_closed() {
             preface_timeout: Duration::from_millis(300),
             ..connections::Limits::default()
         }),
-        false,
+        true,
     )
     .await;
     let mut silent = tokio::net::TcpStream::connect(server.addr).await.unwrap();
@@ -217,6 +217,13 @@ async fn a_connection_without_the_preface_is_closed() {
     // A client that sent it is served on the same connection long after the preface timeout.
     tokio::time::sleep(Duration::from_millis(500)).await;
     info(&mut client).await.unwrap();
+    let metrics = scrape(server.metrics_addr.unwrap()).await;
+    assert!(
+        metrics.contains("\ndinerdash_connections_without_preface_total 2\n"),
+        "{metrics}"
+    );
+    assert!(metrics.contains("\ndinerdash_connections_shed_total 0\n"));
+    assert!(metrics.contains("\ndinerdash_over_limit_connections 0\n"));
     server.stop().await;
 }
 
@@ -249,7 +256,7 @@ async fn an_idle_connection_makes_room_and_its_session_lives_on() {
             max_connections: 1,
             ..connections::Limits::default()
         }),
-        false,
+        true,
     )
     .await;
     let mut first = server.client().await;
@@ -281,6 +288,14 @@ async fn an_idle_connection_makes_room_and_its_session_lives_on() {
     .await
     .into_inner();
     assert_eq!(next.num_envs, stepped.num_envs);
+    // At least the first connection, then the second when the first came back (the scrape is
+    // HTTP, not a gRPC connection).
+    let metrics = scrape(server.metrics_addr.unwrap()).await;
+    let shed = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("dinerdash_connections_shed_total "))
+        .and_then(|n| n.parse::<u64>().ok());
+    assert!(shed.is_some_and(|n| n >= 1), "{metrics}");
     first
         .close_session(pb::CloseSessionRequest { session_id: id })
         .await
