@@ -100,21 +100,18 @@ pub fn tenant_tokens(text: &str, default: Share) -> Result<Vec<Token>, String> {
 /// An accepted `authorization` value (`Bearer <token>`) and the tenant it stands for.
 type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
 
-/// Stands in front of every RPC but health checks: answers `UNAVAILABLE` once the server drains,
-/// `RESOURCE_EXHAUSTED` on a connection over the connection limit, and, when the server has
-/// tokens, checks `authorization: Bearer <token>` and tags the request with the token's tenant.
-#[derive(Debug, Clone)]
-pub struct RequestGate {
-    /// Accepted `Bearer <token>` values and their tenants; empty lets every request in.
-    tokens: Arc<[Accepted]>,
-    /// Fires when the server drains.
-    stopping: Shutdown,
+/// The tokens a server accepts, as the `authorization` values that carry them, for the gRPC
+/// [`RequestGate`] and the web pages alike. Cloning is shallow.
+#[derive(Debug, Clone, Default)]
+pub struct Tokens {
+    /// Accepted `Bearer <token>` values and their tenants; empty: an open server.
+    accepted: Arc<[Accepted]>,
 }
 
-impl RequestGate {
-    /// A gate accepting `tokens` (none: an open server).
-    pub fn new(tokens: &[Token], stopping: Shutdown) -> RequestGate {
-        let tokens = tokens
+impl Tokens {
+    /// Accepts `tokens` (none: an open server).
+    pub fn new(tokens: &[Token]) -> Tokens {
+        let accepted = tokens
             .iter()
             .map(|t| {
                 let expected = format!("Bearer {}", t.token)
@@ -123,12 +120,55 @@ impl RequestGate {
                 (expected, t.tenant.clone())
             })
             .collect();
+        Tokens { accepted }
+    }
+
+    /// Whether the server has no tokens (every request is let in).
+    pub fn is_empty(&self) -> bool {
+        self.accepted.is_empty()
+    }
+
+    /// Which token the `authorization` value `value` carries: `None`, none of this server's;
+    /// `Some(tenant)`, a tenant's token, or `Some(None)` the shared `--auth-token`. Every token
+    /// is compared, so that the time taken does not reveal which one matched.
+    pub fn check(&self, value: &[u8]) -> Option<Option<Arc<Tenant>>> {
+        let mut found = None;
+        for (expected, tenant) in self.accepted.iter() {
+            if same_bytes(value, expected) {
+                found = Some(tenant.clone());
+            }
+        }
+        found
+    }
+
+    /// Whether one of the tokens stands for `tenant`.
+    pub fn stand_for(&self, tenant: &Arc<Tenant>) -> bool {
+        self.accepted
+            .iter()
+            .any(|(_, t)| t.as_ref().is_some_and(|t| Arc::ptr_eq(t, tenant)))
+    }
+}
+
+/// Stands in front of every RPC but health checks: answers `UNAVAILABLE` once the server drains,
+/// `RESOURCE_EXHAUSTED` on a connection over the connection limit, and, when the server has
+/// tokens, checks `authorization: Bearer <token>` and tags the request with the token's tenant.
+#[derive(Debug, Clone)]
+pub struct RequestGate {
+    /// The accepted tokens; none lets every request in.
+    tokens: Tokens,
+    /// Fires when the server drains.
+    stopping: Shutdown,
+}
+
+impl RequestGate {
+    /// A gate accepting `tokens` (none: an open server).
+    pub fn new(tokens: Tokens, stopping: Shutdown) -> RequestGate {
         RequestGate { tokens, stopping }
     }
 }
 
 /// Compares without returning early, so that the time taken does not reveal the token.
-pub fn same_bytes(a: &[u8], b: &[u8]) -> bool {
+fn same_bytes(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
@@ -151,14 +191,7 @@ impl tonic::service::Interceptor for RequestGate {
                 "missing authorization metadata: send `authorization: Bearer <token>`",
             ));
         };
-        // Every token is compared, so that the time taken does not reveal which one matched.
-        let mut found = None;
-        for (expected, tenant) in self.tokens.iter() {
-            if same_bytes(value.as_bytes(), expected) {
-                found = Some(tenant.clone());
-            }
-        }
-        match found {
+        match self.tokens.check(value.as_bytes()) {
             None => Err(Status::unauthenticated("invalid auth token")),
             Some(tenant) => {
                 if let Some(tenant) = tenant {

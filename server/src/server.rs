@@ -16,7 +16,7 @@ use tonic::transport::{Identity, Server, ServerTlsConfig};
 
 pub use crate::config::{ServerConfig, TlsPem};
 
-use crate::auth::RequestGate;
+use crate::auth::{RequestGate, Tokens};
 use crate::config::{ConfigError, ServeArgs};
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
 use crate::http::{self, Access, Site};
@@ -122,8 +122,8 @@ pub async fn run(
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let tokens = config.tokens();
-    let gate = RequestGate::new(&tokens, stopping.clone());
+    let tokens = Tokens::new(&config.tokens());
+    let gate = RequestGate::new(tokens.clone(), stopping.clone());
     // The pages' feeds and the metrics ask for the same tokens as the RPCs, so that a server
     // that needs a token shows its sessions and load only to its token holders.
     let http_addr = config
@@ -134,7 +134,7 @@ pub async fn run(
         if let Some(addr) = http_addr {
             tracing::info!("sessions page on http://{addr}/, metrics on http://{addr}/metrics");
         }
-        let site = Site::new(store.clone(), Arc::clone(&metrics), Access::new(&tokens));
+        let site = Site::new(store.clone(), Arc::clone(&metrics), Access::new(tokens));
         tokio::spawn(http::serve(l, Arc::new(site), stopping.clone()))
     });
     let service = DinerDashService::new(

@@ -8,7 +8,7 @@
 
 use std::sync::Arc;
 
-use crate::auth::{Token, same_bytes};
+use crate::auth::Tokens;
 use crate::budget::Tenant;
 
 /// Who a request comes from.
@@ -33,29 +33,16 @@ pub enum Refused {
     Invalid,
 }
 
-/// An accepted `Authorization` value (`Bearer <token>`) and its tenant (`None`: the shared
-/// token).
-type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
-
-/// The server's tokens.
+/// The server's tokens, as the pages check them.
 #[derive(Debug, Clone, Default)]
 pub struct Access {
-    /// The accepted values.
-    tokens: Arc<[Accepted]>,
+    /// The accepted tokens; none: an open (local-only) endpoint.
+    tokens: Tokens,
 }
 
 impl Access {
     /// Accepts `tokens`; none: an open (local-only) endpoint.
-    pub fn new(tokens: &[Token]) -> Access {
-        let tokens = tokens
-            .iter()
-            .map(|t| {
-                let value = format!("Bearer {}", t.token)
-                    .into_bytes()
-                    .into_boxed_slice();
-                (value, t.tenant.clone())
-            })
-            .collect();
+    pub fn new(tokens: Tokens) -> Access {
         Access { tokens }
     }
 
@@ -70,14 +57,7 @@ impl Access {
             return Ok(Viewer::Anyone);
         }
         let value = authorization.ok_or(Refused::Missing)?.trim_ascii();
-        // Every token compared, so that the time taken does not reveal which one matched.
-        let mut found = None;
-        for (expected, tenant) in self.tokens.iter() {
-            if same_bytes(value, expected) {
-                found = Some(tenant.clone());
-            }
-        }
-        match found {
+        match self.tokens.check(value) {
             None => Err(Refused::Invalid),
             Some(None) => Ok(Viewer::SharedToken),
             Some(Some(tenant)) => Ok(Viewer::Tenant(tenant)),
@@ -89,10 +69,7 @@ impl Access {
         match viewer {
             Viewer::Anyone => true,
             Viewer::Tenant(mine) => Arc::ptr_eq(mine, tenant),
-            Viewer::SharedToken => !self
-                .tokens
-                .iter()
-                .any(|(_, t)| t.as_ref().is_some_and(|t| Arc::ptr_eq(t, tenant))),
+            Viewer::SharedToken => !self.tokens.stand_for(tenant),
         }
     }
 }
@@ -100,6 +77,7 @@ impl Access {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::auth::Token;
     use crate::budget::Share;
 
     #[test]
@@ -111,11 +89,11 @@ mod tests {
             token: token.into(),
             tenant: tenant.cloned(),
         };
-        let access = Access::new(&[
+        let access = Access::new(Tokens::new(&[
             token("aaa", Some(&a)),
             token("bbb", Some(&b)),
             token("shared", None),
-        ]);
+        ]));
         assert_eq!(access.viewer(None).unwrap_err(), Refused::Missing);
         assert_eq!(
             access.viewer(Some(b"Bearer nope")).unwrap_err(),
@@ -128,7 +106,7 @@ mod tests {
         let shared = access.viewer(Some(b" Bearer shared ")).unwrap();
         assert!(access.sees(&shared, &conn));
         assert!(!access.sees(&shared, &a));
-        let open = Access::new(&[]);
+        let open = Access::default();
         assert!(!open.needs_token());
         let anyone = open.viewer(None).unwrap();
         assert!(open.sees(&anyone, &a) && open.sees(&anyone, &conn));
