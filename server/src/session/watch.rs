@@ -58,12 +58,7 @@ impl Tally {
         let ended = batch.terminated.iter().zip(&batch.truncated);
         for (i, (&terminated, &truncated)) in ended.enumerate() {
             if terminated | truncated != 0 {
-                let score = i32::from_le_bytes([
-                    scores[4 * i],
-                    scores[4 * i + 1],
-                    scores[4 * i + 2],
-                    scores[4 * i + 3],
-                ]);
+                let score = i32_at(scores, i);
                 let n = self.episodes.fetch_add(1, Ordering::Relaxed);
                 self.scores[(n % RECENT_SCORES as u64) as usize]
                     .store(i64::from(score), Ordering::Relaxed);
@@ -88,6 +83,14 @@ impl Tally {
             recent_mean,
         }
     }
+}
+
+/// Environment `i`'s little-endian `i32` in a Batch array (or Step's actions); 0 if the array
+/// has none (as the rewards of a Reset).
+fn i32_at(array: &[u8], i: usize) -> i32 {
+    array
+        .get(4 * i..4 * i + 4)
+        .map_or(0, |b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
 }
 
 /// One thing that happened to a watched environment.
@@ -190,15 +193,10 @@ impl Watch {
             if !stepped && !reset {
                 continue;
             }
-            let word = |array: &[u8]| {
-                array
-                    .get(4 * i..4 * i + 4)
-                    .map_or(0, |b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            };
             frame.push(Move {
-                tick: word(&batch.ticks) as u32,
-                action: if stepped { word(actions) as u8 } else { 0 },
-                reward: word(&batch.rewards),
+                tick: i32_at(&batch.ticks, i) as u32,
+                action: if stepped { i32_at(actions, i) as u8 } else { 0 },
+                reward: i32_at(&batch.rewards, i),
                 reset,
             });
         }
