@@ -117,9 +117,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_watch(args: argparse.Namespace) -> int:
-    from .watch import cmd_watch
+    import os
 
-    return cmd_watch(args, connection_keywords(args))
+    from .connection import Connection
+    from .watch import open_browser, pages_url, watch_url
+
+    # The pages are a running server's: with no address, the default port on this machine.
+    address = args.address or os.environ.get("DINERDASH_ADDRESS") or "127.0.0.1:50051"
+    if isinstance(address, list):
+        address = address[0]
+    with Connection(address, **connection_keywords(args)) as conn:
+        if args.session:
+            url = watch_url(conn, args.session, args.env)
+        else:
+            url = pages_url(conn)
+    print(url, flush=True)
+    if not args.no_browser and open_browser(url):
+        print("opened in your browser", file=sys.stderr)
+    return 0
 
 
 def _parser() -> argparse.ArgumentParser:

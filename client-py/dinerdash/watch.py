@@ -11,11 +11,13 @@ watch (the page also asks for a token when the server has tokens).
 
     python -m dinerdash watch --address 127.0.0.1:50051   # prints the URL, opens a browser
     env.unwrapped.watch_url()                              # one environment's page
+
+(the command itself is :mod:`dinerdash.cli`'s, over :func:`pages_url`, :func:`watch_url` and
+:func:`open_browser`).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import webbrowser
@@ -66,20 +68,3 @@ def open_browser(url: str) -> bool:
         return webbrowser.open(url)
     except webbrowser.Error:
         return False
-
-
-def cmd_watch(args: argparse.Namespace, connection: dict) -> int:
-    """``python -m dinerdash watch``: prints the URL of the sessions page (or of one session's
-    environment with ``--session``) and opens it in a browser when there is one."""
-    address = args.address or os.environ.get("DINERDASH_ADDRESS") or "127.0.0.1:50051"
-    if isinstance(address, list):
-        address = address[0]
-    with Connection(address, **connection) as conn:
-        if args.session:
-            url = watch_url(conn, args.session, args.env)
-        else:
-            url = pages_url(conn)
-    print(url, flush=True)
-    if not args.no_browser and open_browser(url):
-        print("opened in your browser", file=sys.stderr)
-    return 0
