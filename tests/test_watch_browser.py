@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import os
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -66,7 +67,15 @@ def browser() -> Iterator:
         "--window-size=1280,900",
     ):
         options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
+    from selenium.common.exceptions import WebDriverException
+
+    # Starting chromedriver and Chromium failed once in several full runs, before any page was
+    # asked for: a second start is tried, and the first failure is printed for the record.
+    try:
+        driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
+    except WebDriverException as e:
+        print(f"chromium did not start, trying once more: {e!r}", file=sys.stderr)
+        driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
     driver.set_page_load_timeout(PATIENCE)
     try:
         yield driver
