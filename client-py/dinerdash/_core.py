@@ -4,7 +4,9 @@ the two environments share (their endpoint and the server's Spec).
 
 It creates the session, resets and steps it (blocking, or started on every server first and then
 collected), checks actions, decodes the packed replies, and, with ``reconnect=True``, waits for a
-lost server and reopens the session there. :class:`~dinerdash.DinerDashEnv` is one core of one
+lost server and reopens the session there; or, when the env has other servers and the lost one
+stays away past ``failover_after``, raises :class:`ServerLost` for the env to move the core's
+environments (:mod:`dinerdash._failover`). :class:`~dinerdash.DinerDashEnv` is one core of one
 environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Errors are the
 server's typed errors; a core of a vector env that is split over several servers reports an
 environment by its index in the vector env (from the error's structured ``env_index``).
@@ -28,7 +30,13 @@ from ._arguments import config_dict
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection
-from .errors import InvalidArgument, ServiceError, ServiceTransportError, SessionNotFound
+from .errors import (
+    InvalidArgument,
+    NoServerLeft,
+    ServiceError,
+    ServiceTransportError,
+    SessionNotFound,
+)
 from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
 _WIRE_AUTORESET = {
@@ -53,8 +61,25 @@ class Settings:
     expert_policy: int = pb.POLICY_EXPERT
     reconnect: bool = False
     reconnect_timeout: float = 60.0
+    #: Seconds a lost server is waited for before its environments move to the servers left
+    #: (``reconnect=True``, several servers); ``None``: it is waited for ``reconnect_timeout``.
+    failover_after: float | None = None
     #: Several cores: errors name the environments by their index in the whole env.
     split: bool = field(default=False)
+
+
+class ServerLost(ServiceTransportError):
+    """Raised by a core whose server stayed unreachable past ``failover_after`` (or was given
+    up already) while the env has other servers: the env moves the core's environments to them
+    (:func:`dinerdash._failover.move`) and never lets this escape."""
+
+    def __init__(self, core: SessionCore, error: ServiceError) -> None:
+        super().__init__(
+            f"gave up {core.conn.address} (environments {core.start}..{core.stop - 1}): {error}",
+            code=error.code,
+            address=core.conn.address,
+        )
+        self.core = core
 
 
 def check_actions(actions: Any, num_envs: int) -> np.ndarray:
@@ -244,24 +269,52 @@ class SessionCore:
         self.last = self.pending = None
 
     def reopen(self, error: ServiceError) -> None:
-        """Waits for the lost server and opens a new session there (``reconnect=True``)."""
+        """Waits for the lost server and opens a new session there (``reconnect=True``).
+
+        With ``failover_after`` and another server left, the server is waited for that long
+        only, and then (or at once, when it was given up already) :class:`ServerLost` is raised
+        for the env to move these environments. The last server left is waited for
+        ``reconnect_timeout``, as without failover; if it does not come back,
+        :class:`~dinerdash.errors.NoServerLeft` is raised."""
 
         def create(conn: Connection) -> None:
             self.create()
 
+        endpoint, s = self.endpoint, self.settings
+        if self.index in endpoint.given_up:
+            raise ServerLost(self, error)
         lost = (
             f"environments {self.start}..{self.stop - 1} ({error})"
-            if self.settings.split or self.settings.num_envs > 1
+            if s.split or s.num_envs > 1
             else f"the session ({error})"
         )
-        self.endpoint.reopen(self.index, create, lost, self.settings.reconnect_timeout)
+        failover = s.failover_after is not None and len(endpoint.connections) > 1
+        if failover and len(endpoint.live()) > 1:
+            try:
+                endpoint.reopen(self.index, create, lost, s.failover_after)
+            except ServiceTransportError:
+                raise ServerLost(self, error) from None
+            return
+        try:
+            endpoint.reopen(self.index, create, lost, s.reconnect_timeout)
+        except ServiceTransportError as e:
+            if not failover:
+                raise
+            before = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
+            raise NoServerLeft(
+                f"no server left: {e.details}; the env's other servers were given up before "
+                f"({before}), each after failover_after={s.failover_after:g} s",
+                code=e.code,
+                address=e.address,
+            ) from None
 
     def close(self) -> None:
         if self.caller is not None:
             self.caller.close()
             self.caller = None
         if self.session_id is not None:
-            close_session(self.conn, self.session_id)
+            if self.index not in self.endpoint.given_up:  # a server given up is not called
+                close_session(self.conn, self.session_id)
             self.session_id = None
 
     def fail(self, error: ServiceError) -> ServiceError:
@@ -342,6 +395,10 @@ class SessionCore:
         """One Step of this core's environments (their ``actions`` as packed int32), blocking."""
         if self.pending is not None:
             batch, self.pending = self.pending, None
+        elif self.index in self.endpoint.given_up:
+            # Another session on this server found it lost: this one moves too.
+            gone = ServiceTransportError("the server was given up", address=self.conn.address)
+            batch = self.recover_step(gone)
         else:
             try:
                 batch = self.conn.call(
@@ -378,6 +435,12 @@ class SessionCore:
         last = self.last
         self.reopen(error)
         first = self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id))
+        return self.interrupt(last, first)
+
+    def interrupt(self, last: pb.Batch, first: pb.Batch) -> pb.Batch:
+        """The Batch of a step that interrupts this core's episodes, whose ``last`` Batch came
+        from a lost session, and starts the new session's, whose Reset replied ``first``: the
+        old episodes end truncated (reward 0), and ``info["reconnected"]`` will say so."""
         n = self.size
         out = pb.Batch()
         if self.settings.autoreset_mode != AutoresetMode.SAME_STEP:
@@ -417,6 +480,22 @@ class SessionCore:
 
 
 # -- decoding -------------------------------------------------------------------------------------
+
+
+def slice_batch(batch: pb.Batch, lo: int, hi: int) -> pb.Batch:
+    """Environments ``lo:hi`` of ``batch``: every packed field cut at its width per environment
+    (the observations' 40 bytes, a score's 4, ...), every repeated field sliced."""
+    n = len(batch.observations) // OBSERVATION_SIZE
+    out = pb.Batch(num_envs=hi - lo)
+    for desc, value in batch.ListFields():
+        if desc.name == "num_envs":
+            continue
+        if isinstance(value, bytes):
+            width = len(value) // n
+            setattr(out, desc.name, value[lo * width : hi * width])
+        else:  # repeated: seeds, stream_episodes
+            getattr(out, desc.name).extend(value[lo:hi])
+    return out
 
 
 def join(batches: list[pb.Batch], name: str) -> bytes:

@@ -1,6 +1,7 @@
 """Where an environment's sessions live: :class:`Endpoint`, the connections to one or more
 servers chosen by the :class:`~dinerdash.connection.ConnectOptions` (or the local server this
-client started when no address is given), and how a lost server is waited for and reconnected."""
+client started when no address is given), how a lost server is waited for and reconnected, and
+which servers were given up for good (a vector env's failover, ``failover_after``)."""
 
 from __future__ import annotations
 
@@ -33,6 +34,10 @@ class Endpoint:
     (deadline, TLS, token); a local server is plaintext on loopback. ``pick`` keeps one replica
     of several (``pick`` modulo their number), ``max_servers`` the first ones. Closing it closes
     every channel and stops the local server.
+
+    A server given up (:meth:`give_up`: it stayed unreachable past a vector env's
+    ``failover_after``) keeps its index, so that ``connections[i]`` still names server ``i``, but
+    its channel is closed and it is never called again, even if it comes back.
     """
 
     def __init__(
@@ -57,6 +62,8 @@ class Endpoint:
         if max_servers is not None:
             addresses = addresses[:max_servers]
         self.addresses = addresses
+        #: The indices of the servers given up, in the order they were lost.
+        self.given_up: list[int] = []
         try:
             for a in addresses:
                 self.connections.append(self.options.connect(a))
@@ -94,6 +101,17 @@ class Endpoint:
                     address=conn.address,
                 ) from None
             time.sleep(0.1)
+
+    def live(self) -> list[int]:
+        """The indices of the servers not given up."""
+        return [i for i in range(len(self.connections)) if i not in self.given_up]
+
+    def give_up(self, index: int) -> None:
+        """Server ``index`` is lost for good: its channel is closed (which cancels any call still
+        waiting on it, and returns at once) and :meth:`live` leaves it out from now on."""
+        if index not in self.given_up:
+            self.given_up.append(index)
+            self.connections[index].close()
 
     def close(self) -> None:
         for conn in self.connections:

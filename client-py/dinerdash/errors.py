@@ -16,7 +16,8 @@ attaches (a ``google.rpc.Status`` in the ``grpc-status-details-bin`` trailer: ``
     ├── ServiceTimeout (TimeoutError) DEADLINE_EXCEEDED
     ├── ServiceInternalError          INTERNAL, UNKNOWN and any other code
     ├── ServiceTransportError (OSError)  UNAVAILABLE after the retries, or no connection
-    │   └── TLSMismatch               a plaintext client met a TLS server (or the other way round)
+    │   ├── TLSMismatch               a plaintext client met a TLS server (or the other way round)
+    │   └── NoServerLeft              a vector env over several servers lost every one of them
     └── EnvClosed                     the env was closed; ``reset()`` opens a new session
 
 ``LocalServerError`` is about starting a local ``dinerdash-server``; ``ServerBinaryNotFound`` (also
@@ -35,6 +36,7 @@ __all__ = [
     "FailedPrecondition",
     "InvalidArgument",
     "LocalServerError",
+    "NoServerLeft",
     "ResourceExhausted",
     "ServerBinaryNotFound",
     "ServiceError",
@@ -133,6 +135,14 @@ class TLSMismatch(ServiceTransportError):
     """The client and the server disagree about TLS: pass ``tls=True`` or ``tls_ca=PATH`` (or
     ``DINERDASH_TLS_CA``) for a server started with ``--tls-cert``, and neither for a plaintext
     one."""
+
+
+class NoServerLeft(ServiceTransportError):
+    """Every server of a vector env spread over several was lost: with ``reconnect=True`` and
+    ``failover_after``, the environments of a lost server move to the servers left, and this is
+    raised when none is left (the last one did not come back within ``reconnect_timeout``, or
+    the last ones were lost together). ``address`` is the last server's; the message names the
+    servers given up before it. ``close()`` and then ``reset()`` start over on every address."""
 
 
 class EnvClosed(ServiceError):

@@ -10,6 +10,10 @@ environments are then split into contiguous slices, one batched session per serv
 servers are called concurrently (each server's Step by a thread of the env). Environment ``i`` is
 seeded with ``seed + i`` whatever server holds it, so the trajectories are the same as on one
 server. A session's calls always go to the server that created it.
+
+Failover (``reconnect=True``): a server unreachable for more than ``failover_after`` seconds is
+given up and its environments move to the servers left (:mod:`dinerdash._failover`); they keep
+their indices, and the other servers' sessions are not touched.
 """
 
 from __future__ import annotations
@@ -31,14 +35,26 @@ from . import render as _render
 from ._arguments import (
     RENDER_MODES,
     Config,
+    check_failover_after,
     check_options,
     check_render_mode,
     expert_fields,
     make_arrivals,
     make_config,
 )
-from ._core import SessionCore, SessionOwner, Settings, check_actions, decode, join, seeds
+from ._core import (
+    ServerLost,
+    SessionCore,
+    SessionOwner,
+    Settings,
+    check_actions,
+    decode,
+    join,
+    seeds,
+    slice_batch,
+)
 from ._endpoint import Endpoint
+from ._failover import fail_over
 from ._proto import pb
 from .connection import ConnectOptions
 from .errors import EnvClosed, InvalidArgument
@@ -73,6 +89,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             ``"planner"`` the look-ahead planner's.
         reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
             its session and report its environments' episodes as truncated.
+        failover_after: with ``reconnect=True`` and several servers: seconds a lost server is
+            waited for before it is given up and its environments move to the servers left (new
+            sessions, spread evenly; their episodes end truncated with ``info["reconnected"]``,
+            as after a reconnect). The last server left is waited for ``reconnect_timeout``,
+            then :class:`~dinerdash.errors.NoServerLeft` is raised. ``None``: no failover.
         autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
         config: game configuration (GameConfig fields), as for the single env.
         max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
@@ -110,6 +131,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         token: str | None = None,
         connect_timeout: float = 10.0,
         reconnect_timeout: float = 60.0,
+        failover_after: float | None = 10.0,
         server_binary: str | None = None,
         ansi_color: bool = False,
         timeout: float | None = None,
@@ -129,6 +151,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.expert = expert_request["expert_actions"]
         self.reconnect = bool(reconnect)
         self.reconnect_timeout = reconnect_timeout
+        self.failover_after = check_failover_after(failover_after)
         self.ansi_color = ansi_color
         config = make_config(config)
         if max_episode_steps is not None:
@@ -145,6 +168,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             expert_policy=expert_request["expert_policy"],
             reconnect=self.reconnect,
             reconnect_timeout=reconnect_timeout,
+            failover_after=self.failover_after,
         )
         self._options = ConnectOptions(
             address,
@@ -190,12 +214,21 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     @property
     def addresses(self) -> list[str]:
-        """The servers, in the order of the environment slices they hold."""
-        return [c.conn.address for c in self._cores]
+        """The servers in use, in the order of the first environments they hold (after a
+        failover a server may hold several slices; the servers given up are left out)."""
+        return list(dict.fromkeys(c.conn.address for c in self._cores))
+
+    @property
+    def lost_addresses(self) -> list[str]:
+        """The servers given up after ``failover_after`` (``reconnect=True``), in the order they
+        were lost; they are not used again, even if they come back, until a ``reset()`` after
+        ``close()`` starts over on every address."""
+        return [self._endpoint.addresses[i] for i in self._endpoint.given_up]
 
     @property
     def env_slices(self) -> list[tuple[str, slice]]:
-        """Which server holds which environments."""
+        """Which server holds which environments: one entry per session, in environment
+        order (after a failover a server holds several)."""
         return [(c.conn.address, slice(c.start, c.stop)) for c in self._cores]
 
     @property
@@ -252,28 +285,39 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._settings.config = config
 
         # A core with none of its environments in the mask is not called: it keeps its state.
-        calls = []
+        given = {
+            "seed": None if seed is None or seed_list is not None else int(seed),
+            "seeds": seed_list,
+            "arrivals": arrivals,
+            "config": config,
+        }
+        given_up = self._endpoint.given_up
+        calls, kept = [], set()
         for core in self._cores:
             if mask is not None and not mask[core.start : core.stop].any():
-                calls.append(None)
+                kept.add(id(core))
                 continue
-            req = core.reset_request(
-                seed=None if seed is None or seed_list is not None else int(seed),
-                seeds=seed_list,
-                arrivals=arrivals,
-                config=config,
-                mask=mask,
+            req = core.reset_request(**given, mask=mask)
+            calls.append(
+                (core, req, None if core.index in given_up else core.conn.future("Reset", req))
             )
-            calls.append((req, core.conn.future("Reset", req)))
-        batches, reset = [], []
-        for core, call in zip(self._cores, calls, strict=True):
-            if call is None:
-                batches.append(core.last)
-                reset.append(bytes(core.size))
-                continue
-            batch = core.reset(*call)
-            batches.append(batch)
-            reset.append(batch.reset)
+        lost = []
+        for core, req, future in calls:
+            try:
+                if future is None:
+                    lost.append(core)  # its server was given up at a step: it moves now
+                else:
+                    core.reset(req, future)
+            except ServerLost:
+                lost.append(core)
+        if lost:
+            # The moved environments' new sessions are reset whole, as after a reconnect.
+            def start(old: SessionCore, new: SessionCore) -> pb.Batch:
+                return new.conn.call("Reset", new.reset_request(**given))
+
+            self._cores = fail_over(self._cores, lost, start)
+        batches = [core.last for core in self._cores]
+        reset = [bytes(core.size) if id(core) in kept else core.last.reset for core in self._cores]
         obs, info = decode(batches, self.num_envs, self.expert)
         info["seed"] = seeds(batches)
         info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
@@ -317,7 +361,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         cores = self._cores
         if len(cores) == 1:
             # One blocking call: cheaper than a future (no hand-off to gRPC's completion thread).
-            return self._decode_step([cores[0].step(wire.tobytes())])
+            try:
+                return self._decode_step([cores[0].step(wire.tobytes())])
+            except ServerLost as e:
+                self._cores = fail_over(cores, [e.core], _interrupted)
+                return self._decode_step([c.last for c in self._cores])
         self._start(wire)
         return self._decode_step(self._finish())
 
@@ -374,20 +422,27 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def _finish(self) -> list[pb.Batch]:
         """Every core's Batch of the pending step. Every reply is awaited (and every core
         updated) before the first error, if any, is raised: no server's step goes unrecorded. An
-        interrupted wait (Ctrl-C) leaves the step pending, to be collected by ``step_wait()``."""
+        interrupted wait (Ctrl-C) leaves the step pending, to be collected by ``step_wait()``.
+
+        The environments of a core whose server was lost past ``failover_after`` move to the
+        servers left first, and report this step as interrupted (:func:`_interrupted`)."""
         for core in self._cores:
             core.step_ready()
         self._pending = False
-        batches, error = [], None
+        error, lost = None, []
         for core in self._cores:
             try:
-                batches.append(core.finish_step())
+                core.finish_step()  # its Batch is core.last
+            except ServerLost as e:
+                lost.append(e.core)
             except BaseException as e:
                 if error is None:
                     error = e
+        if lost:
+            self._cores = fail_over(self._cores, lost, _interrupted)
         if error is not None:
             raise error
-        return batches
+        return [core.last for core in self._cores]
 
     def action_masks(self) -> np.ndarray:
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
@@ -465,3 +520,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._close_sessions()
             self._endpoint.close()
             self._closed = True
+
+
+def _interrupted(old: SessionCore, new: SessionCore) -> pb.Batch:
+    """A moved core's Batch for the step in which its server was given up: its environments'
+    episodes end truncated in their last state (``old.last``), and the new session's first
+    Batch (an unseeded Reset: the new server draws each episode's seed) is the autoreset, as
+    after a reconnect."""
+    first = new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id))
+    last = slice_batch(old.last, new.start - old.start, new.stop - old.start)
+    return new.interrupt(last, first)

@@ -1,0 +1,117 @@
+"""Failover across servers: what becomes of the environments of a server that a vector env spread
+over several (``reconnect=True``) gave up, because it stayed unreachable past ``failover_after``.
+
+The env gives the server up for good (its channel is closed; if it comes back it stays unused)
+and moves each of its sessions' environments to the servers left: a new session on each, the
+environments cut into contiguous pieces of sizes differing by at most one, the larger pieces to
+the servers that hold the fewest environments. Environment ``i`` keeps index ``i``: the env's
+cores stay ordered by their first environment. The cores of the servers that stayed up are not
+touched. When a core raises :class:`ServerLost` is :meth:`SessionCore.reopen
+<dinerdash._core.SessionCore.reopen>`'s decision; what the moved environments report (their
+episodes truncated, or the reset asked for) is the caller's ``start``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from ._core import SessionCore
+from ._proto import pb
+from .errors import (
+    NoServerLeft,
+    ResourceExhausted,
+    ServiceError,
+    ServiceTransportError,
+    SessionNotFound,
+)
+
+__all__ = ["fail_over", "pieces"]
+
+#: A server that refuses a new session for one of these is passed over, not given up: the
+#: environments go to the other servers left.
+PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
+
+#: ``start(lost_core, new_core)``: the new core's session is created; this resets it and returns
+#: the Batch that the env reports for the new core's environments.
+Start = Callable[[SessionCore, SessionCore], pb.Batch]
+
+
+def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
+    """Environments ``start:stop`` cut into one contiguous piece per server of ``loads``
+    (server index -> environments it holds), as ``(start, stop, server)``: the sizes differ by
+    at most one, the larger ones go to the servers holding fewest environments (ties: the lower
+    index), and empty pieces are left out."""
+    order = sorted(loads, key=lambda i: (loads[i], i))
+    m, k = stop - start, len(order)
+    out = []
+    for j, server in enumerate(order):
+        size = m // k + (j < m % k)
+        if size:
+            out.append((start, start + size, server))
+            start += size
+    return out
+
+
+def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[SessionCore]:
+    """New cores for the environments of ``core`` (whose server is given up) on the live
+    servers, given ``cores`` (the env's others, for the servers' loads), each started by
+    ``start``; its Batch becomes the new core's ``last``. A server that cannot take a session
+    now is passed over; none left raises :class:`~dinerdash.errors.NoServerLeft`."""
+    endpoint = core.endpoint
+    candidates = endpoint.live()
+    while True:
+        if not candidates:
+            lost = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
+            raise NoServerLeft(
+                f"no server left for environments {core.start}..{core.stop - 1}: every server "
+                f"of the env was given up ({lost}), each unreachable for more than "
+                f"failover_after={core.settings.failover_after:g} s",
+                address=core.conn.address,
+            )
+        loads = dict.fromkeys(candidates, 0)
+        for c in cores:
+            if c.index in loads:
+                loads[c.index] += c.size
+        made: list[SessionCore] = []
+        target = None
+        try:
+            for lo, hi, target in pieces(core.start, core.stop, loads):
+                new = SessionCore(endpoint, target, lo, hi, core.settings)
+                new.create()
+                made.append(new)
+                try:
+                    new.last = start(core, new)
+                except ServiceError as e:
+                    raise new.fail(e) from None
+            return made
+        except PASSED_OVER:
+            candidates.remove(target)
+            for new in made:
+                new.close()
+        except BaseException:
+            for new in made:
+                new.close()
+            raise
+
+
+def fail_over(cores: list[SessionCore], lost: list[SessionCore], start: Start) -> list[SessionCore]:
+    """The env's cores after the servers of the ``lost`` cores are given up and their
+    environments moved (:func:`move`), ordered by their first environment. The lost cores are
+    closed without calling their servers. On an error, the new sessions are closed again and
+    the lost cores stay (closed) where they were."""
+    endpoint = lost[0].endpoint
+    for core in lost:
+        endpoint.give_up(core.index)
+    for core in lost:
+        core.close()
+    out = [c for c in cores if all(c is not x for x in lost)]
+    kept = len(out)
+    try:
+        for core in lost:
+            out.extend(move(core, out, start))
+    except BaseException:
+        for new in out[kept:]:
+            new.close()
+        raise
+    out.sort(key=lambda c: c.start)
+    return out
