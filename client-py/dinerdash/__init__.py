@@ -15,6 +15,7 @@ Layout:
     _endpoint     Endpoint: the connections to the server(s), or the local server, reconnecting
     _core         the session core: one batched session on one server (create, reset, step,
                   decode, reconnect), shared by both environments
+    _failover     moving a lost server's environments to the servers left (failover_after)
     env           DinerDashEnv, the Gymnasium Env
     vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)
     server        LocalServer, the embedded default: a dinerdash-server subprocess
