@@ -6,6 +6,7 @@ experiment end to end.
     python -m dinerdash_agents train bc --demos demos/dinerdash_expert.npz --out runs/bc
     python -m dinerdash_agents evaluate runs/bc --episodes 100 --seed 1000 --json
     python -m dinerdash_agents paper --out docs/results
+    python -m dinerdash_agents bench-ppo --num-envs 256 --iterations 10
 
 Every command that talks to a server takes ``--address host:port`` (several separated by
 commas); without it (and without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started
@@ -13,8 +14,8 @@ and stopped, as in ``python -m dinerdash``; and ``--tls``, ``--tls-ca PATH`` and
 as there (:mod:`dinerdash.command_line`, which both programs share).
 
 The commands are shells over :mod:`~dinerdash_agents.train_imitation`,
-:mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate` and
-:mod:`~dinerdash_agents.paper`.
+:mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate`,
+:mod:`~dinerdash_agents.paper` and :mod:`~dinerdash_agents.bench`.
 """
 
 from __future__ import annotations
@@ -130,6 +131,25 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_ppo(args: argparse.Namespace) -> int:
+    import json
+
+    from .bench import bench_ppo, print_bench
+
+    result = bench_ppo(
+        algorithm=args.algorithm,
+        num_envs=args.num_envs,
+        iterations=args.iterations,
+        pipeline=args.pipeline,
+        address=args.address,
+        **connection_keywords(args),
+    )
+    print_bench(result)
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m dinerdash_agents", description=__doc__.splitlines()[0]
@@ -201,6 +221,24 @@ def _parser() -> argparse.ArgumentParser:
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
+
+    p = sub.add_parser(
+        "bench-ppo", help="PPO's end-to-end env-steps/s and where an iteration's time goes"
+    )
+    p.add_argument("--algorithm", choices=["ppo-masked", "ppo"], default="ppo-masked")
+    p.add_argument("--num-envs", type=int, default=256, help="environments stepped together")
+    p.add_argument(
+        "--iterations", type=int, default=10, help="timed iterations (after one that compiles)"
+    )
+    p.add_argument(
+        "--pipeline",
+        type=int,
+        default=2,
+        help="vector envs the environments are split into, stepped in turn (1: no overlap)",
+    )
+    p.add_argument("--json", action="store_true", help="also print the figures as JSON")
+    add_connection_arguments(p)
+    p.set_defaults(func=_cmd_bench_ppo)
     return parser
 
 

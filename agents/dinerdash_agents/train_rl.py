@@ -1,4 +1,5 @@
-"""One reinforcement-learning run (``train ppo|ppo-masked|gail``): a vector env on the server, a
+"""One reinforcement-learning run (``train ppo|ppo-masked|gail``): the environments on the server
+(two vector envs of half of them each, whose steps the trainer pipelines), a
 :class:`~dinerdash_agents.ppo.Trainer`, a progress bar, a learning curve, and periodic atomic
 checkpoints that ``--resume`` continues from.
 
@@ -25,7 +26,7 @@ from gymnasium.vector import AutoresetMode
 from . import checkpoint, ppo
 from .errors import AgentsError
 
-__all__ = ["RL_ALGORITHMS", "train_rl"]
+__all__ = ["PIPELINE", "RL_ALGORITHMS", "make_envs", "train_rl"]
 
 #: RL algorithm name -> whether its policy is masked.
 RL_ALGORITHMS = {"ppo": False, "ppo-masked": True, "gail": True}
@@ -34,6 +35,38 @@ CURVE_CSV = "curve.csv"
 CURVE_PNG = "curve.png"
 #: Seconds between two periodic checkpoints.
 CHECKPOINT_EVERY = 120.0
+#: Vector envs the environments are split into: the server steps one while the trainer acts for
+#: the other (:meth:`~dinerdash_agents.ppo.Trainer.attach`).
+PIPELINE = 2
+
+
+def make_envs(
+    config: ppo.PPOConfig, address: Any, pipeline: int = PIPELINE, **connection: Any
+) -> list[Any]:
+    """The ``config.num_envs`` training environments as ``pipeline`` SAME_STEP vector envs of as
+    equal sizes as can be (fewer if there are fewer environments), in order."""
+    import dinerdash  # noqa: F401  (registers DinerDash-v0)
+
+    n = config.num_envs
+    k = max(1, min(pipeline, n))
+    envs: list[Any] = []
+    try:
+        for j in range(k):
+            envs.append(
+                gymnasium.make_vec(
+                    "dinerdash:DinerDash-v0",
+                    num_envs=n // k + (j < n % k),
+                    address=address,
+                    autoreset_mode=AutoresetMode.SAME_STEP,
+                    max_episode_steps=config.max_episode_steps,
+                    **connection,
+                )
+            )
+    except BaseException:
+        for e in envs:
+            e.close()
+        raise
+    return envs
 
 
 def _trainer_for(algorithm: str, config: ppo.PPOConfig, steps: int, seed: int, demos: Any):
@@ -153,8 +186,6 @@ def train_rl(
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
     checkpointing to ``out``; returns the trainer. ``connection``: the vector env's connection
     keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
-    import dinerdash  # noqa: F401  (registers DinerDash-v0)
-
     if algorithm not in RL_ALGORITHMS:
         raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL_ALGORITHMS)})")
     if algorithm == "gail" and demos is None:
@@ -173,24 +204,18 @@ def train_rl(
         trainer, spent, config, demo_data = _prepare(
             algorithm, steps, num_envs, demos, resume, config
         )
-        envs = gymnasium.make_vec(
-            "dinerdash:DinerDash-v0",
-            num_envs=config.num_envs,
-            address=address,
-            autoreset_mode=AutoresetMode.SAME_STEP,
-            max_episode_steps=config.max_episode_steps,
-            **connection,
-        )
+        envs = make_envs(config, address, **connection)
         try:
             if trainer is None:
                 if config.observation_high is None:
                     # The networks scale the observation by the bounds of the server's Spec.
-                    high = envs.single_observation_space.high
+                    high = envs[0].single_observation_space.high
                     config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
                 trainer = _trainer_for(algorithm, config, steps, seed, demo_data)
             _run(trainer, envs, out, algorithm, spent, progress)
         finally:
-            envs.close()
+            for e in envs:
+                e.close()
         _save(trainer, out, algorithm, spent)
         return trainer
     finally:
