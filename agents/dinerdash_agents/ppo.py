@@ -34,6 +34,7 @@ import itertools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from typing import Any
 
 import equinox as eqx
@@ -201,14 +202,18 @@ def entropy(logits: jax.Array, mask: jax.Array | None) -> jax.Array:
     return -plogp.sum(-1)
 
 
-def make_act(masked: bool) -> Callable[..., tuple[jax.Array, ...]]:
-    @jax.jit
-    def act(model: ActorCritic, u: jax.Array, obs: jax.Array, mask: jax.Array):
-        """Sampled actions for ``obs`` (``u``: a uniform number per row), their
-        log-probabilities and the critic's values of ``obs``."""
+def make_act(masked: bool) -> Callable[..., jax.Array]:
+    @partial(jax.jit, static_argnames="treedef")
+    def act(leaves: list[jax.Array], u: jax.Array, obs: jax.Array, mask: jax.Array, *, treedef):
+        """For the model ``jax.tree.unflatten(treedef, leaves)`` (its arrays passed as a list:
+        cheaper to hand over than the module): sampled actions for ``obs`` (``u``: a uniform
+        number per row), their log-probabilities and the critic's values of ``obs``, stacked
+        in one ``(3, B)`` array so that one copy brings them to the host (an action index is
+        exact in float32)."""
+        model = jax.tree.unflatten(treedef, leaves)
         logits = masked_logits(model(obs), mask if masked else None)
         actions, logp = sample_actions(logits, u)
-        return actions, logp, model.value(obs)
+        return jnp.stack([actions.astype(jnp.float32), logp, model.value(obs)])
 
     return act
 
@@ -371,6 +376,8 @@ class Trainer:
         #: rewards learnt from, the advantages and the update, until its results are there).
         self.timings = dict.fromkeys(TIMED, 0.0)
         self._act = make_act(config.masked)
+        #: The model's arrays and structure as the acting calls of an iteration take them.
+        self._leaves, self._treedef = jax.tree.flatten(self.model)
         self._update = make_update(config, self.optimizer)
         self._buffers = Rollout(config.num_steps, config.num_envs)
         self._envs: Any = None
@@ -412,6 +419,7 @@ class Trainer:
         began = time.perf_counter()
         # The iteration's own stream, so that a resumed run draws what the original would have.
         uniform = np.random.default_rng([self.seed, self.iteration])
+        self._leaves, self._treedef = jax.tree.flatten(self.model)
         groups = self._groups
         blocking = len(groups) == 1  # nothing to overlap a step with: step() is cheaper
         self._truncations = []
@@ -431,11 +439,13 @@ class Trainer:
         """Acts for ``group``'s environments at step ``t`` and sends the actions."""
         b, rows, timings = self._buffers, group.rows, self.timings
         began = time.perf_counter()
-        a, logp, v = jax.device_get(self._act(self.model, u, group.obs, group.mask))
+        out = self._act(self._leaves, u, group.obs, group.mask, treedef=self._treedef)
+        a_logp_v = np.asarray(out)
         sent = time.perf_counter()
         timings["act"] += sent - began
+        a = a_logp_v[0].astype(np.int32)
         b.obs[t, rows], b.mask[t, rows] = group.obs, group.mask
-        b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, logp, v
+        b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
         if blocking:
             sent = time.perf_counter()
             group.sent = group.envs.step(a)
