@@ -202,7 +202,20 @@ def entropy(logits: jax.Array, mask: jax.Array | None) -> jax.Array:
     return -plogp.sum(-1)
 
 
-def make_act(masked: bool) -> Callable[..., jax.Array]:
+def make_act(masked: bool, asynchronous: bool = False) -> Callable[..., jax.Array]:
+    """The jitted acting call: ``act(leaves, u, obs, mask, treedef=...)``.
+
+    ``asynchronous``: the same computation inside a loop whose trip count (1) is an argument,
+    ``act(leaves, u, obs, mask, np.int32(1), treedef=...)``. XLA's CPU client runs a small
+    loop-free program inline in the calling thread but hands one with a loop to its own
+    threads: the call then returns at once, and the trainer decodes another vector env's step
+    while the other core computes the actions (the results are bit for bit the same)."""
+
+    def compute(model: ActorCritic, u: jax.Array, obs: jax.Array, mask: jax.Array) -> jax.Array:
+        logits = masked_logits(model(obs), mask if masked else None)
+        actions, logp = sample_actions(logits, u)
+        return jnp.stack([actions.astype(jnp.float32), logp, model.value(obs)])
+
     @partial(jax.jit, static_argnames="treedef")
     def act(leaves: list[jax.Array], u: jax.Array, obs: jax.Array, mask: jax.Array, *, treedef):
         """For the model ``jax.tree.unflatten(treedef, leaves)`` (its arrays passed as a list:
@@ -210,12 +223,15 @@ def make_act(masked: bool) -> Callable[..., jax.Array]:
         number per row), their log-probabilities and the critic's values of ``obs``, stacked
         in one ``(3, B)`` array so that one copy brings them to the host (an action index is
         exact in float32)."""
-        model = jax.tree.unflatten(treedef, leaves)
-        logits = masked_logits(model(obs), mask if masked else None)
-        actions, logp = sample_actions(logits, u)
-        return jnp.stack([actions.astype(jnp.float32), logp, model.value(obs)])
+        return compute(jax.tree.unflatten(treedef, leaves), u, obs, mask)
 
-    return act
+    @partial(jax.jit, static_argnames="treedef")
+    def act_async(leaves, u, obs, mask, once: jax.Array, *, treedef):
+        model = jax.tree.unflatten(treedef, leaves)
+        out = jnp.zeros((3, obs.shape[0]), jnp.float32)
+        return jax.lax.fori_loop(0, once, lambda _, __: compute(model, u, obs, mask), out)
+
+    return act_async if asynchronous else act
 
 
 @jax.jit
@@ -340,8 +356,10 @@ class _Group:
         self.envs, self.rows = envs, rows
         self.obs: np.ndarray = np.zeros(0)
         self.mask: np.ndarray = np.zeros(0)
-        #: The step under way: ``True`` after ``step_async``, or the results of a blocking step.
+        #: The step under way: ``True`` after ``step_async``, or the results of a blocking step;
+        #: and its index in the iteration.
         self.sent: Any = None
+        self.step = 0
 
 
 class Trainer:
@@ -376,6 +394,8 @@ class Trainer:
         #: rewards learnt from, the advantages and the update, until its results are there).
         self.timings = dict.fromkeys(TIMED, 0.0)
         self._act = make_act(config.masked)
+        self._act_async = make_act(config.masked, asynchronous=True)
+        self._once = np.int32(1)
         #: The model's arrays and structure as the acting calls of an iteration take them.
         self._leaves, self._treedef = jax.tree.flatten(self.model)
         self._update = make_update(config, self.optimizer)
@@ -415,38 +435,63 @@ class Trainer:
         return k
 
     def collect(self) -> Rollout:
-        """Plays ``num_steps`` steps of every environment into the buffers."""
+        """Plays ``num_steps`` steps of every environment into the buffers.
+
+        With several vector envs, one's step is on the server and its decoding under way while
+        the actions of the next are computed: the acting order is step 0 of every vector env in
+        turn, then step 1, ...; a vector env's step is received just before the next one's
+        actions are sent."""
         began = time.perf_counter()
         # The iteration's own stream, so that a resumed run draws what the original would have.
         uniform = np.random.default_rng([self.seed, self.iteration])
         self._leaves, self._treedef = jax.tree.flatten(self.model)
-        groups = self._groups
-        blocking = len(groups) == 1  # nothing to overlap a step with: step() is cheaper
+        groups, steps = self._groups, self.config.num_steps
         self._truncations = []
-        for t in range(self.config.num_steps):
+        if len(groups) == 1:
+            (group,) = groups
+            for t in range(steps):
+                u = uniform.random(self.config.num_envs, dtype=np.float32)
+                self._send(group, t, self._act(*self._inputs(group, u), treedef=self._treedef))
+                self._receive(group, t)
+        else:
+            turns = [(t, group) for t in range(steps) for group in groups]
             u = uniform.random(self.config.num_envs, dtype=np.float32)
+            acting = self._act_async(*self._inputs(groups[0], u), self._once, treedef=self._treedef)
+            for k, (t, group) in enumerate(turns):
+                following = turns[k + 1][1] if k + 1 < len(turns) else None
+                if following is not None and following.sent is not None:
+                    self._receive(following, following.step)
+                self._send(group, t, acting)
+                if following is not None:
+                    if following is groups[0]:  # the next step begins
+                        u = uniform.random(self.config.num_envs, dtype=np.float32)
+                    began_act = time.perf_counter()
+                    inputs = self._inputs(following, u)
+                    acting = self._act_async(*inputs, self._once, treedef=self._treedef)
+                    self.timings["act"] += time.perf_counter() - began_act
             for group in groups:
-                if group.sent is not None:
-                    self._receive(group, t - 1)
-                self._send(group, t, u[group.rows], blocking)
-        for group in groups:
-            self._receive(group, self.config.num_steps - 1)
+                self._receive(group, steps - 1)
         self._bootstrap()
         self.timings["collect"] += time.perf_counter() - began
         return self._buffers
 
-    def _send(self, group: _Group, t: int, u: np.ndarray, blocking: bool) -> None:
-        """Acts for ``group``'s environments at step ``t`` and sends the actions."""
+    def _inputs(self, group: _Group, u: np.ndarray) -> tuple[Any, ...]:
+        return self._leaves, u[group.rows], group.obs, group.mask
+
+    def _send(self, group: _Group, t: int, acting: jax.Array) -> None:
+        """Records ``group``'s step ``t`` (its observations, the actions of ``acting``, their
+        log-probabilities and values) and sends the actions: a blocking step with one vector
+        env, else ``step_async``."""
         b, rows, timings = self._buffers, group.rows, self.timings
         began = time.perf_counter()
-        out = self._act(self._leaves, u, group.obs, group.mask, treedef=self._treedef)
-        a_logp_v = np.asarray(out)
+        a_logp_v = np.asarray(acting)
         sent = time.perf_counter()
         timings["act"] += sent - began
         a = a_logp_v[0].astype(np.int32)
         b.obs[t, rows], b.mask[t, rows] = group.obs, group.mask
         b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
-        if blocking:
+        group.step = t
+        if len(self._groups) == 1:
             sent = time.perf_counter()
             group.sent = group.envs.step(a)
             timings["env"] += time.perf_counter() - sent
