@@ -75,8 +75,10 @@ def bench_ppo(
             server_pid = server.pid if server is not None else None
             server_cpu, cpu = _cpu_seconds(server_pid), time.process_time()
             began = time.perf_counter()
+            walls = []
             for _ in range(iterations):
                 trainer.step()
+                walls.append(time.perf_counter() - began - sum(walls))
             wall = time.perf_counter() - began
             cpu = time.process_time() - cpu
             server_after = _cpu_seconds(server_pid)
@@ -103,6 +105,10 @@ def bench_ppo(
         "samples_per_iteration": per_iteration,
         "seconds": wall,
         "env_steps_per_s": iterations * per_iteration / wall,
+        # The fastest and the median iteration: on a shared machine the fastest is the one
+        # least disturbed by other work.
+        "env_steps_per_s_best_iteration": per_iteration / min(walls),
+        "env_steps_per_s_median_iteration": per_iteration / sorted(walls)[len(walls) // 2],
         "ms_per_iteration": ms,
         "client_cpu_s": cpu,
         "server_cpu_s": None if server_cpu is None else server_after - server_cpu,
@@ -114,7 +120,9 @@ def print_bench(r: dict[str, Any]) -> None:
     print(
         f"{r['algorithm']}: {n} environments in {r['pipeline']} vector env(s), "
         f"{iters} iterations of {r['samples_per_iteration']} steps in {wall:.2f} s: "
-        f"{r['env_steps_per_s']:,.0f} env-steps/s end to end"
+        f"{r['env_steps_per_s']:,.0f} env-steps/s end to end (iterations: best "
+        f"{r['env_steps_per_s_best_iteration']:,.0f}/s, median "
+        f"{r['env_steps_per_s_median_iteration']:,.0f}/s)"
     )
     total = 1000 * wall / iters
     labels = {

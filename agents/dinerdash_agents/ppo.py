@@ -451,7 +451,10 @@ class Trainer:
             (group,) = groups
             for t in range(steps):
                 u = uniform.random(self.config.num_envs, dtype=np.float32)
-                self._send(group, t, self._act(*self._inputs(group, u), treedef=self._treedef))
+                began_act = time.perf_counter()
+                acting = self._act(*self._inputs(group, u), treedef=self._treedef)
+                self.timings["act"] += time.perf_counter() - began_act
+                self._send(group, t, acting)
                 self._receive(group, t)
         else:
             turns = [(t, group) for t in range(steps) for group in groups]
