@@ -70,6 +70,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         demos=args.demos,
         seed=args.seed,
         resume=args.resume,
+        pipeline=args.pipeline,
         **connection_keywords(args),
     )
     print(
@@ -151,6 +152,8 @@ def _cmd_bench_ppo(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from .train_rl import PIPELINE
+
     parser = argparse.ArgumentParser(
         prog="python -m dinerdash_agents", description=__doc__.splitlines()[0]
     )
@@ -182,6 +185,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
     p.add_argument("--num-envs", type=int, help="RL: environments stepped together (default 256)")
     p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
+    p.add_argument(
+        "--pipeline",
+        type=int,
+        default=PIPELINE,
+        help="RL: vector envs the environments are split into, one stepped by the server while "
+        f"the trainer acts for another (1: no overlap; default {PIPELINE}); speed only",
+    )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
@@ -233,8 +243,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--pipeline",
         type=int,
-        default=2,
-        help="vector envs the environments are split into, stepped in turn (1: no overlap)",
+        default=PIPELINE,
+        help=f"vector envs the environments are split into, stepped in turn (1: no overlap; "
+        f"default {PIPELINE}, as train)",
     )
     p.add_argument("--json", action="store_true", help="also print the figures as JSON")
     add_connection_arguments(p)

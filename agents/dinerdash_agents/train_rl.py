@@ -181,17 +181,22 @@ def train_rl(
     resume: str | Path | None = None,
     config: ppo.PPOConfig | None = None,
     progress: bool = True,
+    pipeline: int = PIPELINE,
     **connection: Any,
 ) -> ppo.Trainer:
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
-    checkpointing to ``out``; returns the trainer. ``connection``: the vector env's connection
-    keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
+    checkpointing to ``out``; returns the trainer. ``pipeline``: vector envs the environments
+    are split into (:func:`make_envs`; the samples do not depend on it, only the speed).
+    ``connection``: the vector env's connection keywords (``timeout``, ``tls``, ``tls_ca``,
+    ...)."""
     if algorithm not in RL_ALGORITHMS:
         raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL_ALGORITHMS)})")
     if algorithm == "gail" and demos is None:
         raise AgentsError("gail needs --demos (a file written by python -m dinerdash collect)")
     if steps is not None and steps < 1:
         raise AgentsError(f"--steps must be at least 1 (got {steps})")
+    if pipeline < 1:
+        raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
     out = Path(out)
     server = None
     if address is None and not os.environ.get("DINERDASH_ADDRESS"):
@@ -204,7 +209,7 @@ def train_rl(
         trainer, spent, config, demo_data = _prepare(
             algorithm, steps, num_envs, demos, resume, config
         )
-        envs = make_envs(config, address, **connection)
+        envs = make_envs(config, address, pipeline, **connection)
         try:
             if trainer is None:
                 if config.observation_high is None:
