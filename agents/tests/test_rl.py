@@ -260,3 +260,16 @@ def test_pipelined_halves_play_the_samples_of_one_vector_env(server_address: str
         whole.envs.close()
         for e in parts:
             e.close()
+
+
+def test_bench_ppo_reports_the_rate_and_where_the_time_goes(server_address: str, capsys):
+    argv = ["bench-ppo", "--num-envs", "8", "--iterations", "2", "--address", server_address]
+    assert agents_main([*argv, "--json"]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["pipeline"] == 2 and result["samples_per_iteration"] == 8 * 64
+    assert result["env_steps_per_s"] > 0 and "env-steps/s end to end" in out
+    parts = result["ms_per_iteration"]
+    assert parts["act"] > 0 and parts["env"] > 0 and parts["update"] > 0
+    assert agents_main([*argv, "--pipeline", "0"]) == 1
+    assert "--pipeline must be at least 1" in capsys.readouterr().err
