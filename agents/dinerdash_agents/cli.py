@@ -190,7 +190,7 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=PIPELINE,
         help="RL: vector envs the environments are split into, one stepped by the server while "
-        f"the trainer acts for another (1: no overlap; default {PIPELINE}); speed only",
+        f"the trainer acts for another (default {PIPELINE}: one, no overlap); speed only",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
@@ -244,7 +244,7 @@ def _parser() -> argparse.ArgumentParser:
         "--pipeline",
         type=int,
         default=PIPELINE,
-        help=f"vector envs the environments are split into, stepped in turn (1: no overlap; "
+        help="vector envs the environments are split into, stepped in turn (1: no overlap; "
         f"default {PIPELINE}, as train)",
     )
     p.add_argument("--json", action="store_true", help="also print the figures as JSON")

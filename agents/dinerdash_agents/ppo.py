@@ -6,10 +6,10 @@ per iteration one jitted call computes the advantages and runs every epoch and m
 update (a ``lax.scan``).
 
 Pipelining: the trainer may play on several vector envs that together hold the N environments
-(:meth:`Trainer.attach`; ``train`` uses two halves). It sends one's step with ``step_async`` and
-acts for the other while the server steps the first, so that the server and the trainer work at
-the same time. Environment ``i`` is seeded, and its actions drawn, exactly as with one vector env:
-the samples, and so the algorithm, do not depend on the split.
+(:meth:`Trainer.attach`; ``train --pipeline 2``: two halves). It sends one's step with
+``step_async`` and acts for the other while the server steps the first, so that the server and
+the trainer work at the same time. Environment ``i`` is seeded, and its actions drawn, exactly as
+with one vector env: the samples, and so the algorithm, do not depend on the split.
 
 - ``ppo-masked``: illegal actions (``info["action_mask"]``) get the logit
   :data:`~dinerdash_agents.supervised.ILLEGAL_LOGIT` when acting and in the update, so the policy

@@ -1,5 +1,5 @@
 """One reinforcement-learning run (``train ppo|ppo-masked|gail``): the environments on the server
-(two vector envs of half of them each, whose steps the trainer pipelines), a
+(one vector env, or with ``--pipeline K`` K vector envs whose steps the trainer pipelines), a
 :class:`~dinerdash_agents.ppo.Trainer`, a progress bar, a learning curve, and periodic atomic
 checkpoints that ``--resume`` continues from.
 
@@ -35,9 +35,11 @@ CURVE_CSV = "curve.csv"
 CURVE_PNG = "curve.png"
 #: Seconds between two periodic checkpoints.
 CHECKPOINT_EVERY = 120.0
-#: Vector envs the environments are split into: the server steps one while the trainer acts for
-#: the other (:meth:`~dinerdash_agents.ppo.Trainer.attach`).
-PIPELINE = 2
+#: Vector envs the environments are split into by default. With 2 the server steps one while the
+#: trainer acts for the other (:meth:`~dinerdash_agents.ppo.Trainer.attach`), but on 2 shared
+#: cores that cost more (a second call and thread hand-offs per step) than it hid: the server
+#: spends ~3 % of a core (docs/agents.md, "Speed"). The samples do not depend on it.
+PIPELINE = 1
 
 
 def make_envs(

@@ -264,7 +264,7 @@ def test_pipelined_halves_play_the_samples_of_one_vector_env(server_address: str
 
 def test_bench_ppo_reports_the_rate_and_where_the_time_goes(server_address: str, capsys):
     argv = ["bench-ppo", "--num-envs", "8", "--iterations", "2", "--address", server_address]
-    assert agents_main([*argv, "--json"]) == 0
+    assert agents_main([*argv, "--pipeline", "2", "--json"]) == 0
     out = capsys.readouterr().out
     result = json.loads(out.strip().splitlines()[-1])
     assert result["pipeline"] == 2 and result["samples_per_iteration"] == 8 * 64
