@@ -354,8 +354,10 @@ class _Group:
 
     def __init__(self, envs: Any, rows: slice) -> None:
         self.envs, self.rows = envs, rows
+        #: The current observations, masks and infos of the group's environments.
         self.obs: np.ndarray = np.zeros(0)
         self.mask: np.ndarray = np.zeros(0)
+        self.info: dict[str, Any] = {}
         #: The step under way: ``True`` after ``step_async``, or the results of a blocking step;
         #: and its index in the iteration.
         self.sent: Any = None
@@ -425,7 +427,7 @@ class Trainer:
         for part, size in zip(parts, sizes, strict=True):
             group = _Group(part, slice(start, start + size))
             obs, info = part.reset(seed=self.seed * self.config.num_envs + self.steps + start)
-            group.obs, group.mask = obs, info["action_mask"]
+            group.obs, group.mask, group.info = obs, info["action_mask"], info
             self._groups.append(group)
             start += size
         self._score = np.zeros(self.config.num_envs)
@@ -493,6 +495,7 @@ class Trainer:
         a = a_logp_v[0].astype(np.int32)
         b.obs[t, rows], b.mask[t, rows] = group.obs, group.mask
         b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
+        self.record_info(t, rows, group.info)
         group.step = t
         if len(self._groups) == 1:
             sent = time.perf_counter()
@@ -501,6 +504,12 @@ class Trainer:
         else:
             group.envs.step_async(a)
             group.sent = True
+
+    def record_info(self, t: int, rows: slice, info: dict[str, Any]) -> None:
+        """A hook for subclasses that keep more of a step than PPO does: ``info`` is the info of
+        the state environments ``rows`` acted in at step ``t`` (e.g. ``info["expert_action"]``,
+        with ``expert=`` on the vector envs); a buffer added to the :class:`Rollout` and to its
+        :meth:`~Rollout.batch` reaches the update's minibatches."""
 
     def _receive(self, group: _Group, t: int) -> None:
         """Records the outcome of ``group``'s step ``t``."""
@@ -524,7 +533,7 @@ class Trainer:
                 score[i] = 0.0
             self.episodes += int(done.sum())
             del self.recent_scores[:-100]
-        group.obs, group.mask = obs, info["action_mask"]
+        group.obs, group.mask, group.info = obs, info["action_mask"], info
 
     def _bootstrap(self) -> None:
         """The next values: the next step's values, 0 after a termination, and the critic's
