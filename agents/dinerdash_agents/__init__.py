@@ -13,7 +13,7 @@ Layout:
     supervised       the (masked) cross-entropy and the jitted minibatch loop of BC and DPGM
     bc               behaviour cloning: two FC layers with dropout between
     dpgm             DPGM: a factor graph per action, re-weighting layers, end-to-end fine-tuning
-    ppo              PPO (masked or not) against one batched session: the model and the Trainer
+    ppo              PPO (masked or not) against batched sessions: the model and the Trainer
     gail             GAIL: PPO rewarded by a discriminator trained against the demonstrations
     checkpoint       saving and loading checkpoint directories; the Policy that load() returns
     train_imitation  one ``train bc|dpgm`` run: demonstrations -> checkpoint
@@ -21,7 +21,9 @@ Layout:
                      resume
     evaluate         playing a policy through the client's vector env (dinerdash.evaluation)
     paper            the paper's experiment end to end: results.md, results.json, the bar chart
-    cli              ``python -m dinerdash_agents`` (train, evaluate, paper): a shell over the above
+    bench            ``bench-ppo``: PPO's end-to-end env-steps/s and its profile by part
+    cli              ``python -m dinerdash_agents`` (train, evaluate, paper, bench-ppo): a shell
+                     over the above
 """
 
 from __future__ import annotations

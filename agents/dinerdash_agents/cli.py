@@ -6,6 +6,7 @@ experiment end to end.
     python -m dinerdash_agents train bc --demos demos/dinerdash_expert.npz --out runs/bc
     python -m dinerdash_agents evaluate runs/bc --episodes 100 --seed 1000 --json
     python -m dinerdash_agents paper --out docs/results
+    python -m dinerdash_agents bench-ppo --num-envs 256 --iterations 10
 
 Every command that talks to a server takes ``--address host:port`` (several separated by
 commas); without it (and without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started
@@ -13,8 +14,8 @@ and stopped, as in ``python -m dinerdash``; and ``--tls``, ``--tls-ca PATH`` and
 as there (:mod:`dinerdash.command_line`, which both programs share).
 
 The commands are shells over :mod:`~dinerdash_agents.train_imitation`,
-:mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate` and
-:mod:`~dinerdash_agents.paper`.
+:mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate`,
+:mod:`~dinerdash_agents.paper` and :mod:`~dinerdash_agents.bench`.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         demos=args.demos,
         seed=args.seed,
         resume=args.resume,
+        pipeline=args.pipeline,
         **connection_keywords(args),
     )
     print(
@@ -130,7 +132,28 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_ppo(args: argparse.Namespace) -> int:
+    import json
+
+    from .bench import bench_ppo, print_bench
+
+    result = bench_ppo(
+        algorithm=args.algorithm,
+        num_envs=args.num_envs,
+        iterations=args.iterations,
+        pipeline=args.pipeline,
+        address=args.address,
+        **connection_keywords(args),
+    )
+    print_bench(result)
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
+    from .train_rl import PIPELINE
+
     parser = argparse.ArgumentParser(
         prog="python -m dinerdash_agents", description=__doc__.splitlines()[0]
     )
@@ -162,6 +185,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
     p.add_argument("--num-envs", type=int, help="RL: environments stepped together (default 256)")
     p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
+    p.add_argument(
+        "--pipeline",
+        type=int,
+        default=PIPELINE,
+        help="RL: vector envs the environments are split into, one stepped by the server while "
+        f"the trainer acts for another (default {PIPELINE}: one, no overlap); speed only",
+    )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
@@ -201,6 +231,25 @@ def _parser() -> argparse.ArgumentParser:
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
+
+    p = sub.add_parser(
+        "bench-ppo", help="PPO's end-to-end env-steps/s and where an iteration's time goes"
+    )
+    p.add_argument("--algorithm", choices=["ppo-masked", "ppo"], default="ppo-masked")
+    p.add_argument("--num-envs", type=int, default=256, help="environments stepped together")
+    p.add_argument(
+        "--iterations", type=int, default=10, help="timed iterations (after one that compiles)"
+    )
+    p.add_argument(
+        "--pipeline",
+        type=int,
+        default=PIPELINE,
+        help="vector envs the environments are split into, stepped in turn (1: no overlap; "
+        f"default {PIPELINE}, as train)",
+    )
+    p.add_argument("--json", action="store_true", help="also print the figures as JSON")
+    add_connection_arguments(p)
+    p.set_defaults(func=_cmd_bench_ppo)
     return parser
 
 

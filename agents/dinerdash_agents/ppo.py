@@ -1,8 +1,15 @@
-"""PPO, in the spirit of CleanRL's single-file PPO, against one batched server session.
+"""PPO, in the spirit of CleanRL's single-file PPO, against batched server sessions.
 
 ``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, address=..., autoreset_mode=SAME_STEP)``
-feeds a jitted actor-critic: per step one jitted call acts for all N environments; per iteration
-one jitted call runs every epoch and minibatch of the update (a ``lax.scan``).
+feeds a jitted actor-critic: per step one jitted call acts for the environments of a vector env;
+per iteration one jitted call computes the advantages and runs every epoch and minibatch of the
+update (a ``lax.scan``).
+
+Pipelining: the trainer may play on several vector envs that together hold the N environments
+(:meth:`Trainer.attach`; ``train --pipeline 2``: two halves). It sends one's step with
+``step_async`` and acts for the other while the server steps the first, so that the server and
+the trainer work at the same time. Environment ``i`` is seeded, and its actions drawn, exactly as
+with one vector env: the samples, and so the algorithm, do not depend on the split.
 
 - ``ppo-masked``: illegal actions (``info["action_mask"]``) get the logit
   :data:`~dinerdash_agents.supervised.ILLEGAL_LOGIT` when acting and in the update, so the policy
@@ -16,14 +23,18 @@ a run starts (:mod:`~dinerdash_agents.train_rl`) and kept in the checkpoint.
 Termination and truncation differ in one place, the bootstrap: after a terminated episode the
 next value is 0; after a truncated one it is the critic's value of the episode's last observation
 (``info["final_obs"]``), not of the next episode's first. Either way the advantage stops at the
-episode's end.
+episode's end. Elsewhere the next value is the value of the next step's observation, which the
+acting call computes anyway: only the truncated episodes' last observations, and the observations
+after an iteration's last step, need a critic call of their own (one per iteration).
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from typing import Any
 
 import equinox as eqx
@@ -191,17 +202,46 @@ def entropy(logits: jax.Array, mask: jax.Array | None) -> jax.Array:
     return -plogp.sum(-1)
 
 
-def make_act(masked: bool) -> Callable[..., tuple[jax.Array, ...]]:
-    @eqx.filter_jit
-    def act(model: ActorCritic, u: jax.Array, obs: jax.Array, mask: jax.Array, boot: jax.Array):
-        """Sampled actions for ``obs`` (``u``: a uniform number per row), their
-        log-probabilities and values, and in the same call the values of ``boot`` (the
-        bootstrap observations of the previous step)."""
+def make_act(masked: bool, asynchronous: bool = False) -> Callable[..., jax.Array]:
+    """The jitted acting call: ``act(leaves, u, obs, mask, treedef=...)``.
+
+    ``asynchronous``: the same computation inside a loop whose trip count (1) is an argument,
+    ``act(leaves, u, obs, mask, np.int32(1), treedef=...)``. XLA's CPU client runs a small
+    loop-free program inline in the calling thread but hands one with a loop to its own
+    threads: the call then returns at once, and the trainer decodes another vector env's step
+    while the other core computes the actions (the results are bit for bit the same)."""
+
+    def compute(model: ActorCritic, u: jax.Array, obs: jax.Array, mask: jax.Array) -> jax.Array:
         logits = masked_logits(model(obs), mask if masked else None)
         actions, logp = sample_actions(logits, u)
-        return actions, logp, model.value(obs), model.value(boot)
+        return jnp.stack([actions.astype(jnp.float32), logp, model.value(obs)])
 
-    return act
+    @partial(jax.jit, static_argnames="treedef")
+    def act(leaves: list[jax.Array], u: jax.Array, obs: jax.Array, mask: jax.Array, *, treedef):
+        """For the model ``jax.tree.unflatten(treedef, leaves)`` (its arrays passed as a list:
+        cheaper to hand over than the module): sampled actions for ``obs`` (``u``: a uniform
+        number per row), their log-probabilities and the critic's values of ``obs``, stacked
+        in one ``(3, B)`` array so that one copy brings them to the host (an action index is
+        exact in float32)."""
+        return compute(jax.tree.unflatten(treedef, leaves), u, obs, mask)
+
+    @partial(jax.jit, static_argnames="treedef")
+    def act_async(leaves, u, obs, mask, once: jax.Array, *, treedef):
+        model = jax.tree.unflatten(treedef, leaves)
+        out = jnp.zeros((3, obs.shape[0]), jnp.float32)
+        return jax.lax.fori_loop(0, once, lambda _, __: compute(model, u, obs, mask), out)
+
+    return act_async if asynchronous else act
+
+
+@jax.jit
+def _values(model: ActorCritic, obs: jax.Array) -> jax.Array:
+    return model.value(obs)
+
+
+#: The rollout's arrays that only the advantages are computed from; the update minibatches the
+#: others (and the advantages and returns).
+GAE_INPUTS = ("rewards", "values", "next_values", "terminated", "done")
 
 
 def make_update(
@@ -223,9 +263,16 @@ def make_update(
         return loss, {"policy_loss": pg, "value_loss": v_loss, "entropy": ent, "approx_kl": kl}
 
     @eqx.filter_jit
-    def update(model: ActorCritic, opt_state: Any, batch: dict[str, jax.Array], key: jax.Array):
-        """Every epoch and minibatch of one PPO update; returns the model, the optimiser state
-        and the mean of each statistic."""
+    def update(model: ActorCritic, opt_state: Any, rollout: dict[str, jax.Array], key: jax.Array):
+        """GAE over the iteration's time-major ``(T, N, ...)`` arrays (:meth:`Rollout.batch`),
+        then every epoch and minibatch of one PPO update over its ``T * N`` samples; returns
+        the model, the optimiser state and the mean of each statistic."""
+        adv, returns = gae(
+            *(rollout[k] for k in GAE_INPUTS), gamma=config.gamma, lam=config.gae_lambda
+        )
+        batch = {k: v for k, v in rollout.items() if k not in GAE_INPUTS}
+        batch = {**batch, "adv": adv, "returns": returns}
+        batch = jax.tree.map(lambda a: a.reshape(-1, *a.shape[2:]), batch)
         size = batch["obs"].shape[0]
         mb = size // config.num_minibatches
         params, static = eqx.partition(model, eqx.is_array)
@@ -266,6 +313,9 @@ def optimizer_for(config: PPOConfig, iterations: int) -> optax.GradientTransform
 
 advantages = jax.jit(gae, static_argnames=("gamma", "lam"))
 
+#: The parts of an iteration :attr:`Trainer.timings` holds.
+TIMED = ("act", "env", "bootstrap", "collect", "update")
+
 
 class Rollout:
     """Time-major buffers of one iteration: ``num_steps`` steps of ``num_envs`` environments."""
@@ -281,17 +331,37 @@ class Rollout:
         self.terminated = np.zeros((steps, envs), np.float32)
         self.done = np.zeros((steps, envs), np.float32)
 
-    def batch(self, adv: jax.Array, returns: jax.Array) -> dict[str, Any]:
-        """The iteration's samples, flattened, as the update takes them."""
-        flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
+    def batch(self, rewards: np.ndarray) -> dict[str, Any]:
+        """The iteration's arrays, time-major, as the update takes them (it computes the
+        advantages from ``rewards``, the rewards learnt from, and the :data:`GAE_INPUTS`, and
+        minibatches the others)."""
         return {
-            "obs": flat(self.obs),
-            "mask": flat(self.mask),
-            "actions": flat(self.actions),
-            "logp": flat(self.logp),
-            "adv": flat(adv),
-            "returns": flat(returns),
+            "obs": self.obs,
+            "mask": self.mask,
+            "actions": self.actions,
+            "logp": self.logp,
+            "rewards": rewards,
+            "values": self.values,
+            "next_values": self.next_values,
+            "terminated": self.terminated,
+            "done": self.done,
         }
+
+
+class _Group:
+    """One vector env of the trainer's: the environments ``rows`` of the buffers, their current
+    observations and masks, and the step sent to the server and not yet received."""
+
+    def __init__(self, envs: Any, rows: slice) -> None:
+        self.envs, self.rows = envs, rows
+        #: The current observations, masks and infos of the group's environments.
+        self.obs: np.ndarray = np.zeros(0)
+        self.mask: np.ndarray = np.zeros(0)
+        self.info: dict[str, Any] = {}
+        #: The step under way: ``True`` after ``step_async``, or the results of a blocking step;
+        #: and its index in the iteration.
+        self.sent: Any = None
+        self.step = 0
 
 
 class Trainer:
@@ -319,20 +389,47 @@ class Trainer:
         #: One row per iteration: steps, mean score of the last 100 episodes, env-steps/s.
         self.curve: list[tuple[int, float, float]] = []
         self.recent_scores: list[float] = []
+        #: Seconds spent since the trainer was made, by part of the iteration: ``act`` (the
+        #: jitted acting calls, copies included), ``env`` (waiting for the environments' steps,
+        #: the client's decoding included), ``bootstrap`` (the values of the truncated episodes'
+        #: last observations), ``collect`` (the whole of :meth:`collect`), ``update`` (the
+        #: rewards learnt from, the advantages and the update, until its results are there).
+        self.timings = dict.fromkeys(TIMED, 0.0)
         self._act = make_act(config.masked)
+        self._act_async = make_act(config.masked, asynchronous=True)
+        self._once = np.int32(1)
+        #: The model's arrays and structure as the acting calls of an iteration take them.
+        self._leaves, self._treedef = jax.tree.flatten(self.model)
         self._update = make_update(config, self.optimizer)
         self._buffers = Rollout(config.num_steps, config.num_envs)
         self._envs: Any = None
+        self._groups: list[_Group] = []
+        #: The truncated episodes of this iteration: (step, environment, last observation).
+        self._truncations: list[tuple[int, int, np.ndarray]] = []
 
     # --- the environments ------------------------------------------------------------------
 
     def attach(self, envs: Any) -> None:
-        """Starts playing on ``envs`` (a SAME_STEP vector env of ``num_envs`` environments),
-        seeding environment i with ``seed * num_envs + i`` at the first reset."""
+        """Starts playing on ``envs``: a SAME_STEP vector env of ``num_envs`` environments, or a
+        sequence of them that hold ``num_envs`` in all (environment ``i`` of the trainer is then
+        the ``i``-th counting across them in order; with several, their steps are pipelined).
+        Environment ``i`` is seeded with ``seed * num_envs + i`` at the first reset."""
+        several = isinstance(envs, Sequence)
+        parts = list(envs) if several else [envs]
+        sizes = [e.num_envs for e in parts]
+        if sum(sizes) != self.config.num_envs:
+            raise ValueError(
+                f"the vector envs hold {sum(sizes)} environments ({sizes}); the config has "
+                f"num_envs={self.config.num_envs}"
+            )
         self._envs = envs
-        obs, info = envs.reset(seed=self.seed * self.config.num_envs + self.steps)
-        self._obs, self._mask = obs, info["action_mask"]
-        self._boot = obs
+        self._groups, start = [], 0
+        for part, size in zip(parts, sizes, strict=True):
+            group = _Group(part, slice(start, start + size))
+            obs, info = part.reset(seed=self.seed * self.config.num_envs + self.steps + start)
+            group.obs, group.mask, group.info = obs, info["action_mask"], info
+            self._groups.append(group)
+            start += size
         self._score = np.zeros(self.config.num_envs)
 
     def _next_key(self) -> jax.Array:
@@ -340,42 +437,122 @@ class Trainer:
         return k
 
     def collect(self) -> Rollout:
-        """Plays ``num_steps`` steps of every environment into the buffers."""
-        b, envs = self._buffers, self._envs
+        """Plays ``num_steps`` steps of every environment into the buffers.
+
+        With several vector envs, one's step is on the server and its decoding under way while
+        the actions of the next are computed: the acting order is step 0 of every vector env in
+        turn, then step 1, ...; a vector env's step is received just before the next one's
+        actions are sent."""
+        began = time.perf_counter()
         # The iteration's own stream, so that a resumed run draws what the original would have.
         uniform = np.random.default_rng([self.seed, self.iteration])
-        for t in range(self.config.num_steps):
+        self._leaves, self._treedef = jax.tree.flatten(self.model)
+        groups, steps = self._groups, self.config.num_steps
+        self._truncations = []
+        if len(groups) == 1:
+            (group,) = groups
+            for t in range(steps):
+                u = uniform.random(self.config.num_envs, dtype=np.float32)
+                began_act = time.perf_counter()
+                acting = self._act(*self._inputs(group, u), treedef=self._treedef)
+                self.timings["act"] += time.perf_counter() - began_act
+                self._send(group, t, acting)
+                self._receive(group, t)
+        else:
+            turns = [(t, group) for t in range(steps) for group in groups]
             u = uniform.random(self.config.num_envs, dtype=np.float32)
-            a, logp, v, boot_v = jax.device_get(
-                self._act(self.model, u, self._obs, self._mask, self._boot)
-            )
-            if t > 0:
-                b.next_values[t - 1] = boot_v
-            b.obs[t], b.mask[t], b.actions[t], b.logp[t], b.values[t] = (
-                self._obs,
-                self._mask,
-                a,
-                logp,
-                v,
-            )
-            obs, reward, terminated, truncated, info = envs.step(a)
-            done = terminated | truncated
-            b.rewards[t], b.terminated[t], b.done[t] = reward, terminated, done
-            self._score += reward
-            self._boot = obs
-            if done.any():
-                self._boot = obs.copy()
-                for i in np.flatnonzero(done):
-                    self._boot[i] = info["final_obs"][i]
-                    self.recent_scores.append(float(self._score[i]))
-                    self._score[i] = 0.0
-                self.episodes += int(done.sum())
-                del self.recent_scores[:-100]
-            self._obs, self._mask = obs, info["action_mask"]
-        u = np.zeros(self.config.num_envs, np.float32)
-        *_, boot_v = self._act(self.model, u, self._obs, self._mask, self._boot)
-        b.next_values[-1] = boot_v
-        return b
+            acting = self._act_async(*self._inputs(groups[0], u), self._once, treedef=self._treedef)
+            for k, (t, group) in enumerate(turns):
+                following = turns[k + 1][1] if k + 1 < len(turns) else None
+                if following is not None and following.sent is not None:
+                    self._receive(following, following.step)
+                self._send(group, t, acting)
+                if following is not None:
+                    if following is groups[0]:  # the next step begins
+                        u = uniform.random(self.config.num_envs, dtype=np.float32)
+                    began_act = time.perf_counter()
+                    inputs = self._inputs(following, u)
+                    acting = self._act_async(*inputs, self._once, treedef=self._treedef)
+                    self.timings["act"] += time.perf_counter() - began_act
+            for group in groups:
+                self._receive(group, steps - 1)
+        self._bootstrap()
+        self.timings["collect"] += time.perf_counter() - began
+        return self._buffers
+
+    def _inputs(self, group: _Group, u: np.ndarray) -> tuple[Any, ...]:
+        return self._leaves, u[group.rows], group.obs, group.mask
+
+    def _send(self, group: _Group, t: int, acting: jax.Array) -> None:
+        """Records ``group``'s step ``t`` (its observations, the actions of ``acting``, their
+        log-probabilities and values) and sends the actions: a blocking step with one vector
+        env, else ``step_async``."""
+        b, rows, timings = self._buffers, group.rows, self.timings
+        began = time.perf_counter()
+        a_logp_v = np.asarray(acting)
+        sent = time.perf_counter()
+        timings["act"] += sent - began
+        a = a_logp_v[0].astype(np.int32)
+        b.obs[t, rows], b.mask[t, rows] = group.obs, group.mask
+        b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
+        self.record_info(t, rows, group.info)
+        group.step = t
+        if len(self._groups) == 1:
+            sent = time.perf_counter()
+            group.sent = group.envs.step(a)
+            timings["env"] += time.perf_counter() - sent
+        else:
+            group.envs.step_async(a)
+            group.sent = True
+
+    def record_info(self, t: int, rows: slice, info: dict[str, Any]) -> None:
+        """A hook for subclasses that keep more of a step than PPO does: ``info`` is the info of
+        the state environments ``rows`` acted in at step ``t`` (e.g. ``info["expert_action"]``,
+        with ``expert=`` on the vector envs); a buffer added to the :class:`Rollout` and to its
+        :meth:`~Rollout.batch` reaches the update's minibatches."""
+
+    def _receive(self, group: _Group, t: int) -> None:
+        """Records the outcome of ``group``'s step ``t``."""
+        b, rows = self._buffers, group.rows
+        if group.sent is True:
+            began = time.perf_counter()
+            obs, reward, terminated, truncated, info = group.envs.step_wait()
+            self.timings["env"] += time.perf_counter() - began
+        else:
+            obs, reward, terminated, truncated, info = group.sent
+        group.sent = None
+        done = terminated | truncated
+        b.rewards[t, rows], b.terminated[t, rows], b.done[t, rows] = reward, terminated, done
+        score = self._score[rows]
+        score += reward
+        if done.any():
+            for i in np.flatnonzero(done):
+                if not terminated[i]:  # truncated: bootstrapped from its last observation
+                    self._truncations.append((t, rows.start + i, info["final_obs"][i]))
+                self.recent_scores.append(float(score[i]))
+                score[i] = 0.0
+            self.episodes += int(done.sum())
+            del self.recent_scores[:-100]
+        group.obs, group.mask, group.info = obs, info["action_mask"], info
+
+    def _bootstrap(self) -> None:
+        """The next values: the next step's values, 0 after a termination, and the critic's
+        values of what follows the last step and of the truncated episodes' last observations
+        (one call, its rows padded to a multiple of ``num_envs`` so that it compiles once)."""
+        began = time.perf_counter()
+        b, n = self._buffers, self.config.num_envs
+        b.next_values[:-1] = b.values[1:]
+        observations = [group.obs for group in self._groups]
+        observations += [final[None] for _, _, final in self._truncations]
+        rows = np.concatenate(observations)
+        padded = np.zeros((-(-len(rows) // n) * n, OBSERVATION_SIZE), np.float32)
+        padded[: len(rows)] = rows
+        values = np.asarray(_values(self.model, padded))
+        b.next_values[-1] = values[:n]
+        for k, (t, i, _) in enumerate(self._truncations):
+            b.next_values[t, i] = values[n + k]
+        b.next_values[b.terminated > 0] = 0.0
+        self.timings["bootstrap"] += time.perf_counter() - began
 
     def rewards_of(self, rollout: Rollout) -> np.ndarray:
         """The rewards PPO learns from: the game's, scaled."""
@@ -384,21 +561,15 @@ class Trainer:
     def step(self) -> dict[str, float]:
         """One iteration: collect, then update; returns the update's statistics."""
         rollout = self.collect()
-        adv, returns = advantages(
-            self.rewards_of(rollout),
-            rollout.values,
-            rollout.next_values,
-            rollout.terminated,
-            rollout.done,
-            gamma=self.config.gamma,
-            lam=self.config.gae_lambda,
-        )
+        began = time.perf_counter()
         self.model, self.opt_state, stats = self._update(
-            self.model, self.opt_state, rollout.batch(adv, returns), self._next_key()
+            self.model, self.opt_state, rollout.batch(self.rewards_of(rollout)), self._next_key()
         )
+        stats = {k: float(v) for k, v in stats.items()}
+        self.timings["update"] += time.perf_counter() - began
         self.steps += self.per_iteration
         self.iteration += 1
-        return {k: float(v) for k, v in stats.items()}
+        return stats
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint needs beside the model to continue exactly where this left off."""

@@ -1,4 +1,5 @@
-"""One reinforcement-learning run (``train ppo|ppo-masked|gail``): a vector env on the server, a
+"""One reinforcement-learning run (``train ppo|ppo-masked|gail``): the environments on the server
+(one vector env, or with ``--pipeline K`` K vector envs whose steps the trainer pipelines), a
 :class:`~dinerdash_agents.ppo.Trainer`, a progress bar, a learning curve, and periodic atomic
 checkpoints that ``--resume`` continues from.
 
@@ -25,7 +26,7 @@ from gymnasium.vector import AutoresetMode
 from . import checkpoint, ppo
 from .errors import AgentsError
 
-__all__ = ["RL_ALGORITHMS", "train_rl"]
+__all__ = ["PIPELINE", "RL_ALGORITHMS", "make_envs", "train_rl"]
 
 #: RL algorithm name -> whether its policy is masked.
 RL_ALGORITHMS = {"ppo": False, "ppo-masked": True, "gail": True}
@@ -34,6 +35,40 @@ CURVE_CSV = "curve.csv"
 CURVE_PNG = "curve.png"
 #: Seconds between two periodic checkpoints.
 CHECKPOINT_EVERY = 120.0
+#: Vector envs the environments are split into by default. With 2 the server steps one while the
+#: trainer acts for the other (:meth:`~dinerdash_agents.ppo.Trainer.attach`), but on 2 shared
+#: cores that cost more (a second call and thread hand-offs per step) than it hid: the server
+#: spends ~3 % of a core (docs/agents.md, "Speed"). The samples do not depend on it.
+PIPELINE = 1
+
+
+def make_envs(
+    config: ppo.PPOConfig, address: Any, pipeline: int = PIPELINE, **connection: Any
+) -> list[Any]:
+    """The ``config.num_envs`` training environments as ``pipeline`` SAME_STEP vector envs of as
+    equal sizes as can be (fewer if there are fewer environments), in order."""
+    import dinerdash  # noqa: F401  (registers DinerDash-v0)
+
+    n = config.num_envs
+    k = max(1, min(pipeline, n))
+    envs: list[Any] = []
+    try:
+        for j in range(k):
+            envs.append(
+                gymnasium.make_vec(
+                    "dinerdash:DinerDash-v0",
+                    num_envs=n // k + (j < n % k),
+                    address=address,
+                    autoreset_mode=AutoresetMode.SAME_STEP,
+                    max_episode_steps=config.max_episode_steps,
+                    **connection,
+                )
+            )
+    except BaseException:
+        for e in envs:
+            e.close()
+        raise
+    return envs
 
 
 def _trainer_for(algorithm: str, config: ppo.PPOConfig, steps: int, seed: int, demos: Any):
@@ -148,19 +183,22 @@ def train_rl(
     resume: str | Path | None = None,
     config: ppo.PPOConfig | None = None,
     progress: bool = True,
+    pipeline: int = PIPELINE,
     **connection: Any,
 ) -> ppo.Trainer:
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
-    checkpointing to ``out``; returns the trainer. ``connection``: the vector env's connection
-    keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
-    import dinerdash  # noqa: F401  (registers DinerDash-v0)
-
+    checkpointing to ``out``; returns the trainer. ``pipeline``: vector envs the environments
+    are split into (:func:`make_envs`; the samples do not depend on it, only the speed).
+    ``connection``: the vector env's connection keywords (``timeout``, ``tls``, ``tls_ca``,
+    ...)."""
     if algorithm not in RL_ALGORITHMS:
         raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL_ALGORITHMS)})")
     if algorithm == "gail" and demos is None:
         raise AgentsError("gail needs --demos (a file written by python -m dinerdash collect)")
     if steps is not None and steps < 1:
         raise AgentsError(f"--steps must be at least 1 (got {steps})")
+    if pipeline < 1:
+        raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
     out = Path(out)
     server = None
     if address is None and not os.environ.get("DINERDASH_ADDRESS"):
@@ -173,24 +211,18 @@ def train_rl(
         trainer, spent, config, demo_data = _prepare(
             algorithm, steps, num_envs, demos, resume, config
         )
-        envs = gymnasium.make_vec(
-            "dinerdash:DinerDash-v0",
-            num_envs=config.num_envs,
-            address=address,
-            autoreset_mode=AutoresetMode.SAME_STEP,
-            max_episode_steps=config.max_episode_steps,
-            **connection,
-        )
+        envs = make_envs(config, address, pipeline, **connection)
         try:
             if trainer is None:
                 if config.observation_high is None:
                     # The networks scale the observation by the bounds of the server's Spec.
-                    high = envs.single_observation_space.high
+                    high = envs[0].single_observation_space.high
                     config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
                 trainer = _trainer_for(algorithm, config, steps, seed, demo_data)
             _run(trainer, envs, out, algorithm, spent, progress)
         finally:
-            envs.close()
+            for e in envs:
+                e.close()
         _save(trainer, out, algorithm, spent)
         return trainer
     finally:

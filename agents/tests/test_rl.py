@@ -191,3 +191,85 @@ def test_losing_the_server_leaves_a_resumable_checkpoint(
     with LocalServer() as again:
         assert agents_main([*argv, "--resume", str(out), "--address", again.address]) == 0
     assert json.loads((out / "checkpoint.json").read_text())["training"]["iterations"] == 5
+
+
+class _Recording:
+    """A vector env that keeps every step's observations and ``final_obs`` (for a test's own
+    bootstrap)."""
+
+    def __init__(self, envs) -> None:
+        self.envs, self.num_envs, self.steps = envs, envs.num_envs, []
+
+    def reset(self, **kwargs):
+        return self.envs.reset(**kwargs)
+
+    def step(self, actions):
+        result = self.envs.step(actions)
+        obs, _, terminated, truncated, info = result
+        self.steps.append((obs.copy(), terminated.copy(), truncated.copy(), info.get("final_obs")))
+        return result
+
+
+def test_pipelined_halves_play_the_samples_of_one_vector_env(server_address: str):
+    """Two vector envs of 4 stepped in turn give the rollout one of 8 gives (same seeds, same
+    actions), and the next values are the critic's of what follows each step: the next
+    observation, a truncated episode's last one, 0 after a termination."""
+    config = ppo.PPOConfig(num_envs=8, num_steps=64, max_episode_steps=40)
+
+    def make(n: int):
+        return gymnasium.make_vec(
+            "dinerdash:DinerDash-v0",
+            num_envs=n,
+            address=server_address,
+            autoreset_mode=AutoresetMode.SAME_STEP,
+            max_episode_steps=config.max_episode_steps,
+        )
+
+    one = ppo.Trainer(config, 3 * 8 * 64, seed=3)
+    halves = ppo.Trainer(config, 3 * 8 * 64, seed=3)
+    whole, parts = _Recording(make(8)), [make(4), make(4)]
+    try:
+        one.attach(whole)
+        halves.attach(parts)
+        for iteration in range(3):
+            a, b = one.collect(), halves.collect()
+            for name in ("obs", "mask", "actions", "rewards", "terminated", "done"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+            for name in ("logp", "values", "next_values"):
+                np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-5)
+            # The next values, recomputed from what the environments returned.
+            steps = whole.steps[-config.num_steps :]
+            expected = np.zeros_like(a.next_values)
+            for t, (obs, terminated, truncated, final_obs) in enumerate(steps):
+                following = obs.copy()
+                for i in np.flatnonzero(truncated & ~terminated):
+                    following[i] = final_obs[i]
+                values = np.asarray(one.model.value(jnp.asarray(following)))
+                expected[t] = np.where(terminated, 0.0, values)
+            np.testing.assert_allclose(a.next_values, expected, atol=1e-5)
+            if iteration == 0:
+                assert a.done.sum() >= 8 and (a.done > a.terminated).any()  # truncations
+            for trainer in (one, halves):  # the update, as step() does it after collecting
+                batch = trainer._buffers.batch(trainer.rewards_of(trainer._buffers))
+                trainer.model, trainer.opt_state, _ = trainer._update(
+                    trainer.model, trainer.opt_state, batch, trainer._next_key()
+                )
+                trainer.iteration += 1
+        assert one.recent_scores == halves.recent_scores and one.episodes == halves.episodes
+    finally:
+        whole.envs.close()
+        for e in parts:
+            e.close()
+
+
+def test_bench_ppo_reports_the_rate_and_where_the_time_goes(server_address: str, capsys):
+    argv = ["bench-ppo", "--num-envs", "8", "--iterations", "2", "--address", server_address]
+    assert agents_main([*argv, "--pipeline", "2", "--json"]) == 0
+    out = capsys.readouterr().out
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["pipeline"] == 2 and result["samples_per_iteration"] == 8 * 64
+    assert result["env_steps_per_s"] > 0 and "env-steps/s end to end" in out
+    parts = result["ms_per_iteration"]
+    assert parts["act"] > 0 and parts["env"] > 0 and parts["update"] > 0
+    assert agents_main([*argv, "--pipeline", "0"]) == 1
+    assert "--pipeline must be at least 1" in capsys.readouterr().err
