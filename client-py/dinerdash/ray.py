@@ -527,13 +527,18 @@ def masked_ppo(
     gamma 0.995, lambda 0.95, clip 0.2, entropy 0.01, 2 epochs of 4 minibatches, 32 steps per
     environment per batch).
 
+    The environments reconnect (``env_config`` ``reconnect=True``): a server that
+    :func:`start_servers` restarts is found again on its port, its episodes end truncated.
+
     ``ppo_overrides``: any ``AlgorithmConfig`` setting, applied last (``lr=1e-4``,
     ``train_batch_size_per_learner=...``); an ``env_config`` is merged into this one
-    (``env_config={"token": "...", "reconnect": True}``).
+    (``env_config={"token": "...", "timeout": 30}``).
     """
     register()
     env_config: dict[str, Any] = {
-        "address": addresses if isinstance(addresses, str) else list(addresses)
+        "address": addresses if isinstance(addresses, str) else list(addresses),
+        # A server that dies is restarted by Ray on its port (start_servers): wait for it.
+        "reconnect": True,
     }
     overrides = dict(ppo_overrides)
     env_config.update(overrides.pop("env_config", None) or {})
@@ -567,6 +572,7 @@ def masked_ppo(
             entropy_coeff=0.01,
             vf_loss_coeff=0.5 / scale**2,
             vf_clip_param=10.0 * scale**2,
+            use_kl_loss=False,
             grad_clip=0.5,
             num_epochs=2,
             train_batch_size_per_learner=batch,
