@@ -110,7 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     address = args.address or server.address
     try:
         ray.init(
-            num_cpus=max(args.env_runners, os.cpu_count() or 1), include_dashboard=False
+            address="local",  # a Ray of its own, even beside a running cluster
+            num_cpus=max(args.env_runners, os.cpu_count() or 1),
+            include_dashboard=False,
         )
         rows = []
         for name, mode in (
