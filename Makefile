@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVER := target/release/dinerdash-server
 
-.PHONY: serve build build-server test test-rust test-python test-agents lint bench soak docker-smoke venv clean wheels wheel-smoke cross-check
+.PHONY: serve build build-server test test-rust test-python test-agents lint bench bench-rllib soak docker-smoke k8s-validate venv clean wheels wheel-smoke cross-check
 
 ## Start the gRPC server on port 50051 (Ctrl-C stops it).
 serve:
@@ -20,11 +20,12 @@ build: build-server
 	cargo build --release --locked --workspace --all-targets
 
 # The sb3 extra (stable-baselines3, sb3-contrib) is for tests/test_sb3.py; it brings torch from
-# PyPI, a large download (2-3 minutes the first time).
+# PyPI, a large download (2-3 minutes the first time). The ray extra (Ray with RLlib, which pins
+# gymnasium 1.2.x) is for tests/test_ray.py.
 $(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'client-py[dev,sb3]' -e 'agents[dev]'
+	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray]' -e 'agents[dev]'
 	touch $@
 
 venv: $(VENV)/.installed
@@ -83,6 +84,11 @@ bench: build venv
 	cargo bench -p dinerdash-server
 	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m dinerdash bench
 
+## RLlib PPO's env-steps/s: dinerdash.ray's batched entry point against RLlib's default
+## vectorization, and the agents' JAX PPO, on one local server (scripts/bench_rllib.py).
+bench-rllib: build-server venv
+	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) scripts/bench_rllib.py
+
 ## Ten minutes of well-behaved trainers beside hostile clients against one server; prints the
 ## server's peak RSS, Step p50/p99, errors and sessions lost (SOAK_ARGS="--duration 60" to shorten).
 soak: build-server venv
@@ -95,6 +101,18 @@ docker-smoke:
 	$(COMPOSE) up --build --abort-on-container-exit --exit-code-from trainer; \
 	status=$$?; $(COMPOSE) down; exit $$status
 
+## The Kubernetes manifests against the API schemas of Kubernetes 1.27 and 1.37, strictly (no
+## cluster needed): kubernetes-validate from PyPI, in a venv of its own (its schemas are 100 MB).
+K8S_VENV := .k8s-venv
+$(K8S_VENV)/.installed:
+	$(PYTHON) -m venv $(K8S_VENV)
+	$(K8S_VENV)/bin/python -m pip install --quiet 'kubernetes-validate==1.37.0'
+	touch $@
+
+k8s-validate: $(K8S_VENV)/.installed
+	$(K8S_VENV)/bin/kubernetes-validate --strict -k 1.27.0 docker/k8s/*.yaml
+	$(K8S_VENV)/bin/kubernetes-validate --strict -k 1.37.0 docker/k8s/*.yaml
+
 clean:
 	cargo clean
-	rm -rf $(VENV) $(BUILD_VENV) dist
+	rm -rf $(VENV) $(BUILD_VENV) $(K8S_VENV) dist

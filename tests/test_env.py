@@ -131,9 +131,10 @@ def test_same_seed_same_trajectory_across_two_server_processes(start_server) -> 
     finally:
         a.close()
         b.close()
-    # Gymnasium's own comparison, renders included.
-    a = DinerDashEnv(s1.address, expert=True, render_mode="ansi")
-    b = DinerDashEnv(s2.address, expert=True, render_mode="ansi")
+    # Gymnasium's own comparison, renders included (rgb_array: gymnasium 1.2, which Ray pins,
+    # compares renders with ``(a == b).all()``, which a str render fails).
+    a = DinerDashEnv(s1.address, expert=True, render_mode="rgb_array")
+    b = DinerDashEnv(s2.address, expert=True, render_mode="rgb_array")
     try:
         check_environments_match(a, b, num_steps=300, seed=13)
     finally:
