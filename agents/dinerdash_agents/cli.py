@@ -69,6 +69,8 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         demos=args.demos,
         seed=args.seed,
         resume=args.resume,
+        init=args.init,
+        teacher=args.teacher,
         **connection_keywords(args),
     )
     print(
@@ -139,7 +141,9 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "train", help="train an agent: on expert demonstrations (bc, dpgm) or on the server (RL)"
     )
-    p.add_argument("algorithm", choices=["bc", "dpgm", "ppo", "ppo-masked", "gail"])
+    p.add_argument(
+        "algorithm", choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart"]
+    )
     p.add_argument(
         "--demos",
         help="the .npz written by `python -m dinerdash collect` (bc, dpgm and gail need it)",
@@ -162,6 +166,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
     p.add_argument("--num-envs", type=int, help="RL: environments stepped together (default 256)")
     p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
+    p.add_argument(
+        "--init", help="ppo-kickstart: the bc checkpoint directory its policy starts from"
+    )
+    p.add_argument(
+        "--teacher",
+        choices=["expert", "planner"],
+        default=None,
+        help="ppo-kickstart: whose action (info['expert_action']) the policy is pulled toward: "
+        "the reference expert (default) or the look-ahead planner",
+    )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 

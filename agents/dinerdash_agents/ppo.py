@@ -204,10 +204,18 @@ def make_act(masked: bool) -> Callable[..., tuple[jax.Array, ...]]:
     return act
 
 
+#: ``combine(terms, mb, logits, coefs) -> (loss, extra statistics)``: how :func:`make_update`
+#: adds up the loss terms of a minibatch (``terms``: ``policy_loss``, ``value_loss``,
+#: ``entropy``); ``coefs`` is what the update was called with. Kick-starting adds its own.
+LossCombiner = Callable[..., tuple[jax.Array, dict[str, jax.Array]]]
+
+
 def make_update(
-    config: PPOConfig, optimizer: optax.GradientTransformation
+    config: PPOConfig,
+    optimizer: optax.GradientTransformation,
+    combine: LossCombiner | None = None,
 ) -> Callable[..., tuple[Any, Any, dict[str, jax.Array]]]:
-    def loss_fn(model: ActorCritic, mb: dict[str, jax.Array]):
+    def loss_fn(model: ActorCritic, mb: dict[str, jax.Array], coefs: Any = None):
         mask = mb["mask"] if config.masked else None
         logits = masked_logits(model(mb["obs"]), mask)
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), mb["actions"][:, None], axis=1)
@@ -218,14 +226,25 @@ def make_update(
         pg = jnp.maximum(-adv * ratio, -adv * clipped).mean()
         v_loss = 0.5 * ((model.value(mb["obs"]) - mb["returns"]) ** 2).mean()
         ent = entropy(logits, mask).mean()
-        loss = pg + config.vf_coef * v_loss - config.ent_coef * ent
         kl = ((ratio - 1) - log_ratio).mean()
-        return loss, {"policy_loss": pg, "value_loss": v_loss, "entropy": ent, "approx_kl": kl}
+        stats = {"policy_loss": pg, "value_loss": v_loss, "entropy": ent, "approx_kl": kl}
+        if combine is None:
+            loss = pg + config.vf_coef * v_loss - config.ent_coef * ent
+            return loss, stats
+        loss, extra = combine(stats, mb, logits, coefs)
+        return loss, {**stats, **extra}
 
     @eqx.filter_jit
-    def update(model: ActorCritic, opt_state: Any, batch: dict[str, jax.Array], key: jax.Array):
+    def update(
+        model: ActorCritic,
+        opt_state: Any,
+        batch: dict[str, jax.Array],
+        key: jax.Array,
+        coefs: Any = None,
+    ):
         """Every epoch and minibatch of one PPO update; returns the model, the optimiser state
-        and the mean of each statistic."""
+        and the mean of each statistic. ``coefs`` (arrays) go to the ``combine`` of
+        :func:`make_update`."""
         size = batch["obs"].shape[0]
         mb = size // config.num_minibatches
         params, static = eqx.partition(model, eqx.is_array)
@@ -234,7 +253,7 @@ def make_update(
             def minibatch(carry, part):
                 params, opt_state = carry
                 grads, stats = jax.grad(
-                    lambda p: loss_fn(eqx.combine(p, static), part), has_aux=True
+                    lambda p: loss_fn(eqx.combine(p, static), part, coefs), has_aux=True
                 )(params)
                 updates, opt_state = optimizer.update(grads, opt_state, params)
                 return (eqx.apply_updates(params, updates), opt_state), stats
@@ -270,7 +289,10 @@ advantages = jax.jit(gae, static_argnames=("gamma", "lam"))
 class Rollout:
     """Time-major buffers of one iteration: ``num_steps`` steps of ``num_envs`` environments."""
 
-    def __init__(self, steps: int, envs: int) -> None:
+    def __init__(self, steps: int, envs: int, expert: bool = False) -> None:
+        #: With ``expert``: the teacher's action of each step (``info["expert_action"]`` of the
+        #: observation acted on), for kick-starting.
+        self.expert_actions = np.zeros((steps, envs), np.int32) if expert else None
         self.obs = np.zeros((steps, envs, OBSERVATION_SIZE), np.float32)
         self.mask = np.zeros((steps, envs, NUM_ACTIONS), np.bool_)
         self.actions = np.zeros((steps, envs), np.int32)
@@ -284,7 +306,7 @@ class Rollout:
     def batch(self, adv: jax.Array, returns: jax.Array) -> dict[str, Any]:
         """The iteration's samples, flattened, as the update takes them."""
         flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
-        return {
+        batch = {
             "obs": flat(self.obs),
             "mask": flat(self.mask),
             "actions": flat(self.actions),
@@ -292,13 +314,17 @@ class Rollout:
             "adv": flat(adv),
             "returns": flat(returns),
         }
+        if self.expert_actions is not None:
+            batch["expert_actions"] = flat(self.expert_actions)
+        return batch
 
 
 class Trainer:
     """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
     one iteration: collect ``num_steps`` steps of every environment, then update.
 
-    GAIL subclasses it and replaces :meth:`rewards_of`.
+    GAIL subclasses it and replaces :meth:`rewards_of`; kick-starting adds a loss term through
+    :meth:`update_coefs` and :func:`make_update`'s ``combine``.
     """
 
     def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
@@ -332,6 +358,7 @@ class Trainer:
         self._envs = envs
         obs, info = envs.reset(seed=self.seed * self.config.num_envs + self.steps)
         self._obs, self._mask = obs, info["action_mask"]
+        self._expert = info.get("expert_action")
         self._boot = obs
         self._score = np.zeros(self.config.num_envs)
 
@@ -358,6 +385,8 @@ class Trainer:
                 logp,
                 v,
             )
+            if b.expert_actions is not None:
+                b.expert_actions[t] = self._expert
             obs, reward, terminated, truncated, info = envs.step(a)
             done = terminated | truncated
             b.rewards[t], b.terminated[t], b.done[t] = reward, terminated, done
@@ -372,10 +401,15 @@ class Trainer:
                 self.episodes += int(done.sum())
                 del self.recent_scores[:-100]
             self._obs, self._mask = obs, info["action_mask"]
+            self._expert = info.get("expert_action")
         u = np.zeros(self.config.num_envs, np.float32)
         *_, boot_v = self._act(self.model, u, self._obs, self._mask, self._boot)
         b.next_values[-1] = boot_v
         return b
+
+    def update_coefs(self) -> Any:
+        """What this iteration's update passes to its loss combiner (none for PPO itself)."""
+        return None
 
     def rewards_of(self, rollout: Rollout) -> np.ndarray:
         """The rewards PPO learns from: the game's, scaled."""
@@ -394,7 +428,11 @@ class Trainer:
             lam=self.config.gae_lambda,
         )
         self.model, self.opt_state, stats = self._update(
-            self.model, self.opt_state, rollout.batch(adv, returns), self._next_key()
+            self.model,
+            self.opt_state,
+            rollout.batch(adv, returns),
+            self._next_key(),
+            self.update_coefs(),
         )
         self.steps += self.per_iteration
         self.iteration += 1
