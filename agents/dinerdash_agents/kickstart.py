@@ -55,11 +55,10 @@ TEACHERS: dict[str, bool | str] = {"expert": True, "planner": "planner"}
 
 @dataclass(frozen=True)
 class KickstartConfig(PPOConfig):
-    """PPO's hyper-parameters (a gentler learning rate and entropy bonus, as the actor starts
-    trained) plus the initialisation, the teacher and the schedules."""
+    """PPO's hyper-parameters (a smaller entropy bonus, as the actor starts sharp) plus the
+    initialisation, the teacher and the schedules."""
 
-    learning_rate: float = 1e-4
-    ent_coef: float = 0.001
+    ent_coef: float = 0.003
     #: The BC checkpoint directory the actor started from, and its network's sizes.
     init: str = ""
     bc_hidden: int = 512
@@ -71,7 +70,7 @@ class KickstartConfig(PPOConfig):
     #: ``linear``: λ_k reaches 0 after ``kick_until`` of the iterations that follow the warm-up;
     #: ``geometric``: λ_k is multiplied by ``kick_decay`` every iteration.
     kick_schedule: str = "linear"
-    kick_until: float = 0.5
+    kick_until: float = 0.25
     kick_decay: float = 0.98
     #: Iterations at the start that update only the critic.
     critic_warmup: int = 10
