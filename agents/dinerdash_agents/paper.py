@@ -78,7 +78,7 @@ AGENTS = [
 #: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000
 GAIL_STEPS = 10_000_000
-KICKSTART_STEPS = 20_000_000
+KICKSTART_STEPS = RL_STEPS
 
 
 def run_paper(
