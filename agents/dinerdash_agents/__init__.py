@@ -15,10 +15,11 @@ Layout:
     dpgm             DPGM: a factor graph per action, re-weighting layers, end-to-end fine-tuning
     ppo              PPO (masked or not) against batched sessions: the model and the Trainer
     gail             GAIL: PPO rewarded by a discriminator trained against the demonstrations
+    kickstart        kick-started PPO: a BC actor, critic warm-up, a decaying pull to a teacher
     checkpoint       saving and loading checkpoint directories; the Policy that load() returns
     train_imitation  one ``train bc|dpgm`` run: demonstrations -> checkpoint
-    train_rl         one ``train ppo|ppo-masked|gail`` run on the server: checkpoints, curve,
-                     resume
+    train_rl         one ``train ppo|ppo-masked|gail|ppo-kickstart`` run on the server:
+                     checkpoints, curve, resume
     evaluate         playing a policy through the client's vector env (dinerdash.evaluation)
     paper            the paper's experiment end to end: results.md, results.json, the bar chart
     bench            ``bench-ppo``: PPO's end-to-end env-steps/s and its profile by part

@@ -71,6 +71,8 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         seed=args.seed,
         resume=args.resume,
         pipeline=args.pipeline,
+        init=args.init,
+        teacher=args.teacher,
         **connection_keywords(args),
     )
     print(
@@ -162,7 +164,9 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "train", help="train an agent: on expert demonstrations (bc, dpgm) or on the server (RL)"
     )
-    p.add_argument("algorithm", choices=["bc", "dpgm", "ppo", "ppo-masked", "gail"])
+    p.add_argument(
+        "algorithm", choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart"]
+    )
     p.add_argument(
         "--demos",
         help="the .npz written by `python -m dinerdash collect` (bc, dpgm and gail need it)",
@@ -191,6 +195,16 @@ def _parser() -> argparse.ArgumentParser:
         default=PIPELINE,
         help="RL: vector envs the environments are split into, one stepped by the server while "
         f"the trainer acts for another (default {PIPELINE}: one, no overlap); speed only",
+    )
+    p.add_argument(
+        "--init", help="ppo-kickstart: the bc checkpoint directory its policy starts from"
+    )
+    p.add_argument(
+        "--teacher",
+        choices=["expert", "planner"],
+        default=None,
+        help="ppo-kickstart: whose action (info['expert_action']) the policy is pulled toward: "
+        "the reference expert (default) or the look-ahead planner",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)

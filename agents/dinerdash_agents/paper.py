@@ -48,6 +48,11 @@ class Agent:
     def label(self) -> str:
         if self.algorithm == "gail":
             return f"GAIL (masked PPO on a discriminator's reward), {self.episodes} demos"
+        if self.algorithm == "ppo-kickstart":
+            return (
+                f"masked PPO kick-started from `bc-{self.episodes}`, pulled toward the "
+                f"{self.teacher}'s actions (beyond the paper)"
+            )
         if self.rl:
             return f"PPO, policy {'over legal actions' if self.loss == 'masked' else 'over all 57'}"
         loss = "plain cross-entropy" if self.loss == "plain" else "cross-entropy over legal actions"
@@ -68,10 +73,12 @@ AGENTS = [
     Agent("ppo-masked", "ppo-masked", 0, "masked", 8799.1),
     Agent("ppo", "ppo", 0, "unmasked", 8799.1),
     Agent("gail-274", "gail", 274, "masked", 8254.4),
+    Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None),
 ]
-#: Environment steps of the RL agents: the paper's PPO budget, and GAIL's.
+#: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000
 GAIL_STEPS = 10_000_000
+KICKSTART_STEPS = RL_STEPS
 
 
 def run_paper(
@@ -252,8 +259,10 @@ def _train_rl(
     from .train_rl import train_rl
 
     directory = out / "checkpoints" / agent.name
-    steps = rl_steps or (GAIL_STEPS if agent.algorithm == "gail" else RL_STEPS)
+    budgets = {"gail": GAIL_STEPS, "ppo-kickstart": KICKSTART_STEPS}
+    steps = rl_steps or budgets.get(agent.algorithm, RL_STEPS)
     resume = directory if (directory / checkpoint.DESCRIPTION).is_file() else None
+    kickstart = agent.algorithm == "ppo-kickstart"
     train_rl(
         agent.algorithm,
         steps,
@@ -262,6 +271,9 @@ def _train_rl(
         demos=demos if agent.algorithm == "gail" else None,
         seed=seed,
         resume=resume,
+        # Kick-started from the BC checkpoint of the same demonstrations, trained above.
+        init=out / "checkpoints" / f"bc-{agent.episodes}" if kickstart and not resume else None,
+        teacher=agent.teacher if kickstart and not resume else None,
         **connection,
     )
     return checkpoint.load(directory), checkpoint.read_description(directory)
@@ -280,7 +292,8 @@ def _markdown(r: dict[str, Any]) -> str:
         f"Demonstrations: expert episodes of seeds {r['demonstrations']['seeds']} (the first 274 "
         "or the first 70 of them; the planner's rows: the look-ahead planner's episodes of the "
         "same seeds). RL agents: PPO on the game's reward, GAIL on a discriminator's, "
-        "environment steps in the training column. "
+        "kick-started PPO on the game's reward from BC's policy with a decaying pull toward the "
+        "teacher's actions; environment steps in the training column. "
         f"Evaluation: {EVAL_EPISODES} unseen seeds "
         f"{r['evaluation']['seeds']}, greedy actions, final score per episode. Fractions are of "
         "the expert's mean on the same seeds (the paper's of its expert's 9,921). Training: wall "

@@ -244,10 +244,18 @@ def _values(model: ActorCritic, obs: jax.Array) -> jax.Array:
 GAE_INPUTS = ("rewards", "values", "next_values", "terminated", "done")
 
 
+#: ``combine(terms, mb, logits, coefs) -> (loss, extra statistics)``: how :func:`make_update`
+#: adds up the loss terms of a minibatch (``terms``: ``policy_loss``, ``value_loss``,
+#: ``entropy``); ``coefs`` is what the update was called with. Kick-starting adds its own.
+LossCombiner = Callable[..., tuple[jax.Array, dict[str, jax.Array]]]
+
+
 def make_update(
-    config: PPOConfig, optimizer: optax.GradientTransformation
+    config: PPOConfig,
+    optimizer: optax.GradientTransformation,
+    combine: LossCombiner | None = None,
 ) -> Callable[..., tuple[Any, Any, dict[str, jax.Array]]]:
-    def loss_fn(model: ActorCritic, mb: dict[str, jax.Array]):
+    def loss_fn(model: ActorCritic, mb: dict[str, jax.Array], coefs: Any = None):
         mask = mb["mask"] if config.masked else None
         logits = masked_logits(model(mb["obs"]), mask)
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), mb["actions"][:, None], axis=1)
@@ -258,15 +266,26 @@ def make_update(
         pg = jnp.maximum(-adv * ratio, -adv * clipped).mean()
         v_loss = 0.5 * ((model.value(mb["obs"]) - mb["returns"]) ** 2).mean()
         ent = entropy(logits, mask).mean()
-        loss = pg + config.vf_coef * v_loss - config.ent_coef * ent
         kl = ((ratio - 1) - log_ratio).mean()
-        return loss, {"policy_loss": pg, "value_loss": v_loss, "entropy": ent, "approx_kl": kl}
+        stats = {"policy_loss": pg, "value_loss": v_loss, "entropy": ent, "approx_kl": kl}
+        if combine is None:
+            loss = pg + config.vf_coef * v_loss - config.ent_coef * ent
+            return loss, stats
+        loss, extra = combine(stats, mb, logits, coefs)
+        return loss, {**stats, **extra}
 
     @eqx.filter_jit
-    def update(model: ActorCritic, opt_state: Any, rollout: dict[str, jax.Array], key: jax.Array):
+    def update(
+        model: ActorCritic,
+        opt_state: Any,
+        rollout: dict[str, jax.Array],
+        key: jax.Array,
+        coefs: Any = None,
+    ):
         """GAE over the iteration's time-major ``(T, N, ...)`` arrays (:meth:`Rollout.batch`),
         then every epoch and minibatch of one PPO update over its ``T * N`` samples; returns
-        the model, the optimiser state and the mean of each statistic."""
+        the model, the optimiser state and the mean of each statistic. ``coefs`` (arrays) go to
+        the ``combine`` of :func:`make_update`."""
         adv, returns = gae(
             *(rollout[k] for k in GAE_INPUTS), gamma=config.gamma, lam=config.gae_lambda
         )
@@ -281,7 +300,7 @@ def make_update(
             def minibatch(carry, part):
                 params, opt_state = carry
                 grads, stats = jax.grad(
-                    lambda p: loss_fn(eqx.combine(p, static), part), has_aux=True
+                    lambda p: loss_fn(eqx.combine(p, static), part, coefs), has_aux=True
                 )(params)
                 updates, opt_state = optimizer.update(grads, opt_state, params)
                 return (eqx.apply_updates(params, updates), opt_state), stats
@@ -320,7 +339,10 @@ TIMED = ("act", "env", "bootstrap", "collect", "update")
 class Rollout:
     """Time-major buffers of one iteration: ``num_steps`` steps of ``num_envs`` environments."""
 
-    def __init__(self, steps: int, envs: int) -> None:
+    def __init__(self, steps: int, envs: int, expert: bool = False) -> None:
+        #: With ``expert``: the teacher's action of each step (``info["expert_action"]`` of the
+        #: observation acted on), for kick-starting.
+        self.expert_actions = np.zeros((steps, envs), np.int32) if expert else None
         self.obs = np.zeros((steps, envs, OBSERVATION_SIZE), np.float32)
         self.mask = np.zeros((steps, envs, NUM_ACTIONS), np.bool_)
         self.actions = np.zeros((steps, envs), np.int32)
@@ -335,7 +357,7 @@ class Rollout:
         """The iteration's arrays, time-major, as the update takes them (it computes the
         advantages from ``rewards``, the rewards learnt from, and the :data:`GAE_INPUTS`, and
         minibatches the others)."""
-        return {
+        batch = {
             "obs": self.obs,
             "mask": self.mask,
             "actions": self.actions,
@@ -346,6 +368,9 @@ class Rollout:
             "terminated": self.terminated,
             "done": self.done,
         }
+        if self.expert_actions is not None:
+            batch["expert_actions"] = self.expert_actions
+        return batch
 
 
 class _Group:
@@ -368,7 +393,9 @@ class Trainer:
     """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
     one iteration: collect ``num_steps`` steps of every environment, then update.
 
-    GAIL subclasses it and replaces :meth:`rewards_of`.
+    GAIL subclasses it and replaces :meth:`rewards_of`; kick-starting adds a loss term through
+    :meth:`update_coefs` and :func:`make_update`'s ``combine``, and keeps the teacher's actions
+    through :meth:`record_info`.
     """
 
     def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
@@ -554,6 +581,10 @@ class Trainer:
         b.next_values[b.terminated > 0] = 0.0
         self.timings["bootstrap"] += time.perf_counter() - began
 
+    def update_coefs(self) -> Any:
+        """What this iteration's update passes to its loss combiner (none for PPO itself)."""
+        return None
+
     def rewards_of(self, rollout: Rollout) -> np.ndarray:
         """The rewards PPO learns from: the game's, scaled."""
         return rollout.rewards * self.config.reward_scale
@@ -563,7 +594,11 @@ class Trainer:
         rollout = self.collect()
         began = time.perf_counter()
         self.model, self.opt_state, stats = self._update(
-            self.model, self.opt_state, rollout.batch(self.rewards_of(rollout)), self._next_key()
+            self.model,
+            self.opt_state,
+            rollout.batch(self.rewards_of(rollout)),
+            self._next_key(),
+            self.update_coefs(),
         )
         stats = {k: float(v) for k, v in stats.items()}
         self.timings["update"] += time.perf_counter() - began

@@ -1,7 +1,7 @@
-"""One reinforcement-learning run (``train ppo|ppo-masked|gail``): the environments on the server
-(one vector env, or with ``--pipeline K`` K vector envs whose steps the trainer pipelines), a
-:class:`~dinerdash_agents.ppo.Trainer`, a progress bar, a learning curve, and periodic atomic
-checkpoints that ``--resume`` continues from.
+"""One reinforcement-learning run (``train ppo|ppo-masked|gail|ppo-kickstart``): the environments
+on the server (one vector env, or with ``--pipeline K`` K vector envs whose steps the trainer
+pipelines), a :class:`~dinerdash_agents.ppo.Trainer`, a progress bar, a learning curve, and
+periodic atomic checkpoints that ``--resume`` continues from.
 
 A checkpoint directory of an RL run holds what every checkpoint holds (``model.eqx``,
 ``checkpoint.json``) plus the trainer's state (``trainer.eqx``: optimiser state and random key)
@@ -29,7 +29,7 @@ from .errors import AgentsError
 __all__ = ["PIPELINE", "RL_ALGORITHMS", "make_envs", "train_rl"]
 
 #: RL algorithm name -> whether its policy is masked.
-RL_ALGORITHMS = {"ppo": False, "ppo-masked": True, "gail": True}
+RL_ALGORITHMS = {"ppo": False, "ppo-masked": True, "gail": True, "ppo-kickstart": True}
 TRAINER_STATE = "trainer.eqx"
 CURVE_CSV = "curve.csv"
 CURVE_PNG = "curve.png"
@@ -71,11 +71,23 @@ def make_envs(
     return envs
 
 
-def _trainer_for(algorithm: str, config: ppo.PPOConfig, steps: int, seed: int, demos: Any):
+def _trainer_for(
+    algorithm: str,
+    config: ppo.PPOConfig,
+    steps: int,
+    seed: int,
+    demos: Any,
+    resumed: bool = False,
+):
     if algorithm == "gail":
         from . import gail
 
         return gail.GAILTrainer(config, steps, seed=seed, demos=demos)
+    if algorithm == "ppo-kickstart":
+        from . import kickstart
+
+        # A resumed run's actor comes from its checkpoint, not from --init.
+        return kickstart.KickstartTrainer(config, steps, seed=seed, load_init=not resumed)
     return ppo.Trainer(config, steps, seed=seed)
 
 
@@ -155,10 +167,10 @@ def _resume(directory: Path, algorithm: str, steps: int | None, demos: Any) -> t
             f"{directory / checkpoint.DESCRIPTION}: field 'algorithm' is {found!r}; "
             f"cannot resume it as {algorithm}"
         )
-    config = ppo.config_from_json(description["config"])
+    config = checkpoint.ALGORITHMS[algorithm].config_from_json(description["config"])
     training = description["training"]
     total = steps if steps is not None else training["total_steps"]
-    trainer = _trainer_for(algorithm, config, total, training["seed"], demos)
+    trainer = _trainer_for(algorithm, config, total, training["seed"], demos, resumed=True)
     policy = checkpoint.load(directory, algorithm)
     try:
         state = eqx.tree_deserialise_leaves(directory / TRAINER_STATE, trainer.state())
@@ -184,13 +196,16 @@ def train_rl(
     config: ppo.PPOConfig | None = None,
     progress: bool = True,
     pipeline: int = PIPELINE,
+    init: str | Path | None = None,
+    teacher: str | None = None,
     **connection: Any,
 ) -> ppo.Trainer:
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
     checkpointing to ``out``; returns the trainer. ``pipeline``: vector envs the environments
     are split into (:func:`make_envs`; the samples do not depend on it, only the speed).
-    ``connection``: the vector env's connection keywords (``timeout``, ``tls``, ``tls_ca``,
-    ...)."""
+    ``init`` and ``teacher`` (``ppo-kickstart``): the BC checkpoint its actor starts from and
+    whose actions it is pulled toward (``expert`` or ``planner``). ``connection``: the vector
+    env's connection keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
     if algorithm not in RL_ALGORITHMS:
         raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL_ALGORITHMS)})")
     if algorithm == "gail" and demos is None:
@@ -199,6 +214,10 @@ def train_rl(
         raise AgentsError(f"--steps must be at least 1 (got {steps})")
     if pipeline < 1:
         raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
+    if algorithm == "ppo-kickstart" and init is None and resume is None:
+        raise AgentsError("ppo-kickstart needs --init DIR (a bc checkpoint) or --resume DIR")
+    if (init is not None or teacher is not None) and algorithm != "ppo-kickstart":
+        raise AgentsError(f"--init and --teacher are ppo-kickstart's; {algorithm} takes neither")
     out = Path(out)
     server = None
     if address is None and not os.environ.get("DINERDASH_ADDRESS"):
@@ -211,6 +230,9 @@ def train_rl(
         trainer, spent, config, demo_data = _prepare(
             algorithm, steps, num_envs, demos, resume, config
         )
+        if algorithm == "ppo-kickstart":
+            config = _kickstart_config(config, init, teacher, resumed=trainer is not None)
+            connection = {**connection, "expert": _teacher_keyword(config)}
         envs = make_envs(config, address, pipeline, **connection)
         try:
             if trainer is None:
@@ -228,6 +250,31 @@ def train_rl(
     finally:
         if server is not None:
             server.stop()
+
+
+def _kickstart_config(
+    config: ppo.PPOConfig, init: str | Path | None, teacher: str | None, resumed: bool
+) -> ppo.PPOConfig:
+    """A new ppo-kickstart run's config: its initialisation and teacher; a resumed run's as it
+    was (``--teacher`` must agree with it)."""
+    from . import kickstart
+
+    if resumed:
+        if teacher is not None and teacher != config.teacher:
+            raise AgentsError(
+                f"--teacher {teacher}: the run being resumed has teacher {config.teacher!r}"
+            )
+        return config
+    if not isinstance(config, kickstart.KickstartConfig):
+        config = kickstart.KickstartConfig(**config.to_json())
+    config = dataclasses.replace(config, teacher=teacher or config.teacher)
+    return kickstart.config_for_init(config, init)
+
+
+def _teacher_keyword(config: ppo.PPOConfig) -> bool | str:
+    from . import kickstart
+
+    return kickstart.TEACHERS[config.teacher]
 
 
 def _prepare(
@@ -255,6 +302,10 @@ def _prepare(
         return trainer, spent, trainer.config, demo_data
     if steps is None:
         raise AgentsError("--steps is needed (or --resume DIR)")
+    if config is None and algorithm == "ppo-kickstart":
+        from . import kickstart
+
+        config = kickstart.KickstartConfig()
     config = config or ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
     if num_envs is not None:
         config = dataclasses.replace(config, num_envs=num_envs)

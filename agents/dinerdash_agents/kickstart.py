@@ -1,0 +1,217 @@
+"""Kick-started PPO (``train ppo-kickstart``): masked PPO whose actor starts as a behaviour-cloning
+network and is pulled, by a decaying auxiliary loss, toward a teacher's action at the states the
+learner itself visits (Schmitt et al. 2018, "Kickstarting deep reinforcement learning"; the
+demonstration term of DAPG, Rajeswaran et al. 2018, with the teacher asked on-line).
+
+- **The actor** is the BC checkpoint's network itself (``--init DIR``, a ``bc`` checkpoint: one
+  hidden ReLU layer, its observation scaling by ruleset v0's upper bounds, as BC trained it), so
+  the run starts at BC's score instead of a random policy's. The critic is PPO's (two tanh layers
+  over the observation scaled by the server's Spec) and starts untrained.
+- **Critic warm-up**: the first ``critic_warmup`` iterations update only the critic; the policy
+  terms are multiplied by 0, so the actor's gradients, and with Adam its updates, are exactly 0.
+  The policy then moves on advantages of a critic that already knows the BC policy's returns.
+- **The teacher**: the vector env runs with ``expert=True`` (``--teacher expert``: the reference
+  heuristic) or ``expert="planner"`` (``--teacher planner``: the look-ahead planner, which costs
+  server CPU at every step), and ``info["expert_action"]`` is stored with each step.
+- **The kick-starting loss**: ``λ_k · CE(π(·|s) over the legal actions, teacher's action)`` added
+  to PPO's loss; ``λ_k`` falls from ``kick_coef`` to 0 linearly over the first ``kick_until`` of
+  the iterations after the warm-up (``kick_schedule="linear"``), or geometrically by
+  ``kick_decay`` per iteration (``"geometric"``). The schedule is in the checkpoint's config.
+
+Everything else (sampling, GAE, the clipped update, checkpoints and ``--resume``) is
+:class:`~dinerdash_agents.ppo.Trainer`'s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from dinerdash.game import OBSERVATION_SIZE
+
+from . import bc
+from .errors import AgentsError
+from .ppo import PPOConfig, Rollout, Trainer, _forward, _mlp, make_update, observation_scale
+
+__all__ = [
+    "TEACHERS",
+    "KickstartConfig",
+    "KickstartModel",
+    "KickstartTrainer",
+    "config_for_init",
+    "init",
+    "kick_coefficient",
+    "kick_loss",
+]
+
+#: ``--teacher`` -> the vector env's ``expert`` keyword.
+TEACHERS: dict[str, bool | str] = {"expert": True, "planner": "planner"}
+
+
+@dataclass(frozen=True)
+class KickstartConfig(PPOConfig):
+    """PPO's hyper-parameters (a smaller entropy bonus, as the actor starts sharp) plus the
+    initialisation, the teacher and the schedules."""
+
+    ent_coef: float = 0.003
+    #: The BC checkpoint directory the actor started from, and its network's sizes.
+    init: str = ""
+    bc_hidden: int = 512
+    bc_dropout: float = 0.2
+    #: ``expert`` (the reference heuristic) or ``planner`` (the look-ahead planner).
+    teacher: str = "expert"
+    #: λ_k at the first iteration after the warm-up.
+    kick_coef: float = 1.0
+    #: ``linear``: λ_k reaches 0 after ``kick_until`` of the iterations that follow the warm-up;
+    #: ``geometric``: λ_k is multiplied by ``kick_decay`` every iteration.
+    kick_schedule: str = "linear"
+    kick_until: float = 0.25
+    kick_decay: float = 0.98
+    #: Iterations at the start that update only the critic.
+    critic_warmup: int = 10
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.masked:
+            raise TypeError("ppo-kickstart's policy is masked (masked=True)")
+        if self.teacher not in TEACHERS:
+            raise TypeError(f"teacher {self.teacher!r} is not one of {', '.join(TEACHERS)}")
+        if self.kick_schedule not in ("linear", "geometric"):
+            raise TypeError(f"kick_schedule {self.kick_schedule!r} is not linear or geometric")
+
+
+def config_from_json(values: dict) -> KickstartConfig:
+    return KickstartConfig(**values)
+
+
+class KickstartModel(eqx.Module):
+    """The BC network as the actor, PPO's critic beside it. Calling it gives the actor's logits
+    (dropout off), as every agent of this package does."""
+
+    actor: bc.BehaviourCloning
+    critic: list[eqx.nn.Linear]
+    #: The critic's observation scale (:func:`~dinerdash_agents.ppo.observation_scale`).
+    scale: tuple[float, ...] = eqx.field(static=True)
+
+    def __init__(self, config: KickstartConfig, key: jax.Array) -> None:
+        ka, kc = jax.random.split(key)
+        bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
+        self.actor = bc.BehaviourCloning(bc_config, ka)
+        self.critic = _mlp([OBSERVATION_SIZE, config.hidden, config.hidden, 1], 1.0, kc)
+        self.scale = observation_scale(config)
+
+    def __call__(
+        self, obs: jax.Array, mask: jax.Array | None = None, key: jax.Array | None = None
+    ) -> jax.Array:
+        del key  # never dropout: PPO's ratios need the policy that acted
+        return self.actor(obs, mask)
+
+    def value(self, obs: jax.Array) -> jax.Array:
+        return _forward(self.critic, obs / jnp.asarray(self.scale, jnp.float32))[:, 0]
+
+
+def init(config: KickstartConfig, seed: int = 0) -> KickstartModel:
+    """A model of ``config``'s shape with a random actor (a checkpoint's skeleton)."""
+    return KickstartModel(config, jax.random.PRNGKey(seed))
+
+
+def _load_bc(directory: str | Path) -> tuple[bc.BehaviourCloning, dict]:
+    from . import checkpoint
+
+    description = checkpoint.read_description(directory)
+    found = description.get("algorithm")
+    if found != "bc":
+        raise AgentsError(
+            f"--init {directory}: a {found!r} checkpoint; ppo-kickstart starts from a 'bc' one "
+            "(its actor is the BC network)"
+        )
+    return checkpoint.load(directory, "bc").model, description
+
+
+def config_for_init(config: KickstartConfig, directory: str | Path) -> KickstartConfig:
+    """``config`` with the BC checkpoint ``directory`` as its initialisation (path and sizes)."""
+    _, description = _load_bc(directory)
+    sizes = description["config"]
+    return replace(
+        config,
+        init=str(directory),
+        bc_hidden=int(sizes["hidden"]),
+        bc_dropout=float(sizes["dropout"]),
+    )
+
+
+def kick_coefficient(config: KickstartConfig, iteration: int, iterations: int) -> float:
+    """λ_k of ``iteration`` (0-based) of a run of ``iterations``: ``kick_coef`` during the
+    warm-up and at its end, then falling as ``kick_schedule`` says."""
+    after = max(iteration - config.critic_warmup, 0)
+    if config.kick_schedule == "geometric":
+        return config.kick_coef * config.kick_decay**after
+    span = max(config.kick_until * max(iterations - config.critic_warmup, 1), 1.0)
+    return config.kick_coef * max(0.0, 1.0 - after / span)
+
+
+def kick_loss(logits: jax.Array, mask: jax.Array, teacher: jax.Array) -> jax.Array:
+    """Mean cross-entropy of the teacher's actions under the masked policy (``logits`` already
+    masked); a step whose teacher action is illegal (none should be) counts 0."""
+    logp = jax.nn.log_softmax(logits)
+    picked = jnp.take_along_axis(logp, teacher[:, None], axis=1)[:, 0]
+    legal = jnp.take_along_axis(mask, teacher[:, None], axis=1)[:, 0]
+    return -jnp.where(legal, picked, 0.0).sum() / jnp.maximum(legal.sum(), 1)
+
+
+class KickstartTrainer(Trainer):
+    """Masked PPO from a BC actor, with critic warm-up and the decaying kick-starting loss.
+
+    ``load_init=False`` (a resumed run) keeps a random actor of the right shape: the checkpoint's
+    parameters replace it.
+    """
+
+    def __init__(
+        self, config: KickstartConfig, total_steps: int, seed: int = 0, load_init: bool = True
+    ) -> None:
+        if not isinstance(config, KickstartConfig):
+            raise TypeError("KickstartTrainer needs a KickstartConfig")
+        super().__init__(config, total_steps, seed)
+        model = init(config, seed)
+        if load_init:
+            if not config.init:
+                raise AgentsError("ppo-kickstart needs --init DIR (a bc checkpoint)")
+            actor, _ = _load_bc(config.init)
+            model = eqx.tree_at(lambda m: m.actor, model, actor)
+        self.model = model
+        self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
+        self._update = make_update(config, self.optimizer, combine=self._combine)
+        self._buffers = Rollout(config.num_steps, config.num_envs, expert=True)
+
+    def _combine(self, terms: dict, mb: dict, logits: jax.Array, coefs: dict):
+        c = self.config
+        kick = kick_loss(logits, mb["mask"], mb["expert_actions"])
+        policy = terms["policy_loss"] - c.ent_coef * terms["entropy"] + coefs["kick"] * kick
+        loss = coefs["policy_on"] * policy + c.vf_coef * terms["value_loss"]
+        return loss, {"kick_loss": kick}
+
+    def update_coefs(self) -> dict[str, jax.Array]:
+        return coefficients(self.config, self.iteration, self.iterations)
+
+    def record_info(self, t: int, rows: slice, info: dict[str, Any]) -> None:
+        """Keeps the teacher's action of the state acted in."""
+        expert = info.get("expert_action")
+        if expert is None:
+            raise AgentsError(
+                "ppo-kickstart needs the teacher's actions: make the vector env with "
+                f"expert={TEACHERS[self.config.teacher]!r}"
+            )
+        self._buffers.expert_actions[t, rows] = expert
+
+
+def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> dict[str, Any]:
+    """The update's ``coefs``: λ_k, and whether the policy terms count (0 in the warm-up)."""
+    return {
+        "kick": np.array(kick_coefficient(config, iteration, iterations), np.float32),
+        "policy_on": np.array(iteration >= config.critic_warmup, np.float32),
+    }
