@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from . import bc, dpgm, ppo
+from . import bc, dagger, dpgm, ppo
 from .errors import CheckpointError
 from .supervised import masked_logits
 
@@ -41,6 +41,7 @@ ALGORITHMS: dict[str, Any] = {
     "ppo": ppo,
     "ppo-masked": ppo,
     "gail": ppo,
+    "dagger": dagger,
 }
 
 
