@@ -197,11 +197,13 @@ def _parser() -> argparse.ArgumentParser:
         "(the paper's)",
     )
     p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
-    p.add_argument("--num-envs", type=int, help="RL and dagger: environments stepped together (default 256; dagger 32)")
-    p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
     p.add_argument(
-        "--teacher", choices=["planner", "expert"], help="dagger: who labels the states"
+        "--num-envs",
+        type=int,
+        help="RL and dagger: environments stepped together (default 256; dagger 32)",
     )
+    p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
+    p.add_argument("--teacher", choices=["planner", "expert"], help="dagger: who labels the states")
     p.add_argument("--rounds", type=int, help="dagger: rounds of play and retraining")
     p.add_argument("--episodes-per-round", type=int, help="dagger: training episodes per round")
     p.add_argument(

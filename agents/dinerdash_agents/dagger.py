@@ -44,7 +44,7 @@ import numpy as np
 from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
 from .errors import AgentsError
-from .supervised import cross_entropy, fit, masked_logits
+from .supervised import fit, masked_logits
 
 __all__ = [
     "Aggregate",
@@ -55,8 +55,10 @@ __all__ = [
     "init",
     "mix_actions",
     "play_round",
+    "seat_weights",
     "train_dagger",
     "training_seeds",
+    "weighted_cross_entropy",
 ]
 
 #: The teachers: the ``expert=`` keyword of the sessions for each.
@@ -70,10 +72,11 @@ CURVE_PNG = "curve.png"
 
 @dataclass(frozen=True)
 class DaggerConfig:
-    """DAgger's settings; the defaults are those of the committed results."""
+    """DAgger's settings; :data:`dinerdash_agents.paper.DAGGER_SETTINGS` holds what differs from
+    these defaults in the committed results."""
 
     teacher: str = "planner"
-    rounds: int = 10
+    rounds: int = 8
     episodes_per_round: int = 64
     schedule: str = "exponential"  # "exponential": β_i = p^(i-1); "first": β_1 = 1, then 0
     p: float = 0.5
@@ -92,7 +95,9 @@ class DaggerConfig:
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
-            raise AgentsError(f"--teacher must be one of {', '.join(TEACHERS)}, got {self.teacher!r}")
+            raise AgentsError(
+                f"--teacher must be one of {', '.join(TEACHERS)}, got {self.teacher!r}"
+            )
         if self.schedule not in ("exponential", "first"):
             raise AgentsError(f"schedule must be exponential or first, got {self.schedule!r}")
         for name in ("rounds", "episodes_per_round", "num_envs", "layers", "hidden", "epochs"):
@@ -128,7 +133,8 @@ class DaggerNet(eqx.Module):
         keys = jax.random.split(key, config.layers + 1)
         sizes = [OBSERVATION_SIZE] + [config.hidden] * config.layers
         self.layers = [
-            eqx.nn.Linear(a, b, key=k) for a, b, k in zip(sizes[:-1], sizes[1:], keys[:-1], strict=True)
+            eqx.nn.Linear(a, b, key=k)
+            for a, b, k in zip(sizes[:-1], sizes[1:], keys[:-1], strict=True)
         ]
         self.dropout = eqx.nn.Dropout(config.dropout)
         self.out = eqx.nn.Linear(config.hidden, NUM_ACTIONS, key=keys[-1])
@@ -140,7 +146,11 @@ class DaggerNet(eqx.Module):
         restricts the softmax (the caller's), it is not an input."""
         del mask
         h = obs / OBSERVATION_HIGH
-        keys = [None] * len(self.layers) if key is None else list(jax.random.split(key, len(self.layers)))
+        keys = (
+            [None] * len(self.layers)
+            if key is None
+            else list(jax.random.split(key, len(self.layers)))
+        )
         for layer, k in zip(self.layers, keys, strict=True):
             h = jax.nn.relu(jax.vmap(layer)(h))
             h = self.dropout(h, key=k, inference=k is None)
@@ -294,6 +304,22 @@ def play_round(
     return RoundPlay(scores, lengths, states, teacher_steps)
 
 
+def seat_weights(actions: np.ndarray, seat_weight: float) -> np.ndarray:
+    """Per-state loss weights: ``seat_weight`` where the teacher seats a group, 1 elsewhere,
+    scaled to mean 1 (so weight 1 everywhere is BC's masked loss)."""
+    weight = np.where(np.asarray(actions) >= FIRST_SEAT, seat_weight, 1.0).astype(np.float32)
+    return weight / weight.mean()
+
+
+def weighted_cross_entropy(
+    logits: jax.Array, actions: jax.Array, mask: jax.Array, weight: jax.Array
+) -> jax.Array:
+    """The cross-entropy over the legal actions (as
+    :func:`~dinerdash_agents.supervised.cross_entropy`), each state's term times ``weight``."""
+    logp = jax.nn.log_softmax(masked_logits(logits, mask), axis=-1)
+    return -jnp.mean(weight * jnp.take_along_axis(logp, actions[:, None], axis=-1)[:, 0])
+
+
 def _fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed: int):
     """Continues training ``model`` on the aggregate's states with more than one legal action."""
     data = aggregate.arrays()
@@ -301,14 +327,11 @@ def _fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, see
     data = {k: data[k][choice] for k in ("obs", "mask", "action")}
     if len(data["action"]) == 0:
         return model, [float("nan")]
-
-    weight = np.where(data["action"] >= FIRST_SEAT, config.seat_weight, 1.0).astype(np.float32)
-    data["weight"] = weight / weight.mean()
+    data["weight"] = seat_weights(data["action"], config.seat_weight)
 
     def loss_fn(model, batch, key):
-        logits = masked_logits(model(batch["obs"], key=key), batch["mask"])
-        logp = jnp.take_along_axis(jax.nn.log_softmax(logits, axis=-1), batch["action"][:, None], axis=-1)
-        return -jnp.mean(batch["weight"] * logp[:, 0])
+        logits = model(batch["obs"], key=key)
+        return weighted_cross_entropy(logits, batch["action"], batch["mask"], batch["weight"])
 
     return fit(
         model,
@@ -333,7 +356,9 @@ def _write_curve(directory: Path, rows: list[dict[str, Any]], title: str) -> Non
 
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
     r = [row["round"] for row in rows]
-    ax.plot(r, [row["validation_mean_score"] for row in rows], marker="o", label="learner, seeds 2000..")
+    ax.plot(
+        r, [row["validation_mean_score"] for row in rows], marker="o", label="learner, seeds 2000.."
+    )
     ax.plot(r, [row["rollout_mean_score"] for row in rows], marker=".", label="mixture policy π_i")
     ax.set_xlabel("DAgger round")
     ax.set_ylabel("mean final score")
@@ -455,6 +480,7 @@ def _train(out, config, address, seed, name, progress, connection):
         envs.close()
     assert best is not None
     seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
+    last_validation_seed = VALIDATION_SEED + config.validation_episodes - 1
     out = Path(out)
     description = {
         "name": name or out.name,
@@ -473,7 +499,7 @@ def _train(out, config, address, seed, name, progress, connection):
             "rounds": config.rounds,
             "best_round": best[1],
             "best_validation_mean_score": round(best[0], 1),
-            "validation_seeds": f"{VALIDATION_SEED}..{VALIDATION_SEED + config.validation_episodes - 1}",
+            "validation_seeds": f"{VALIDATION_SEED}..{last_validation_seed}",
             "seconds": round(seconds, 3),
             "cpu_seconds": round(cpu_seconds, 3),
             "final_losses": {"cross_entropy": round(losses[-1], 6)},

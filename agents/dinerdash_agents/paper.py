@@ -73,6 +73,12 @@ AGENTS = [
     Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
     Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
 ]
+#: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
+#: (docs/agents.md says why the planner's seat states weigh 10).
+DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
+    "dagger-planner": {"rounds": 12, "seat_weight": 10.0},
+    "dagger-expert": {"rounds": 8, "seat_weight": 1.0},
+}
 #: Environment steps of the RL agents: the paper's PPO budget, and GAIL's.
 RL_STEPS = 30_000_000
 GAIL_STEPS = 10_000_000
@@ -276,8 +282,8 @@ def _train_rl(
 def _train_dagger(
     agent: Agent, out: Path, address, seed: int, connection: dict[str, Any]
 ) -> tuple[Any, dict[str, Any]]:
-    """Runs DAgger with its default rounds and the agent's teacher, or only loads a checkpoint
-    of it that already stands (the planner's rounds take minutes)."""
+    """Runs DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`, or only loads a
+    checkpoint of it that already stands (the planner's rounds take minutes)."""
     from . import checkpoint
     from .dagger import DaggerConfig, train_dagger
 
@@ -285,7 +291,7 @@ def _train_dagger(
     if not (directory / checkpoint.DESCRIPTION).is_file():
         train_dagger(
             directory,
-            DaggerConfig(teacher=agent.teacher),
+            DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]),
             address=address,
             seed=seed,
             name=agent.name,

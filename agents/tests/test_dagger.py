@@ -90,9 +90,13 @@ def test_a_round_adds_every_visited_state_labelled_by_the_teacher(beta: float) -
     new = data["round"] == 2
     assert new.sum() == sum(lengths) and (data["round"][:2] == 1).all()
     # Exactly the visited states: each (seed, t) once, none of an idle or ended environment.
-    visited = sorted(zip(data["obs"][new, 0].astype(int), data["obs"][new, 1].astype(int), strict=True))
+    visited = sorted(
+        zip(data["obs"][new, 0].astype(int), data["obs"][new, 1].astype(int), strict=True)
+    )
     assert visited == sorted((s, t) for s in seeds for t in range(ScriptedVectorEnv.length(s)))
-    for obs, mask, label in zip(data["obs"][new], data["mask"][new], data["action"][new], strict=True):
+    for obs, mask, label in zip(
+        data["obs"][new], data["mask"][new], data["action"][new], strict=True
+    ):
         s, t = int(obs[0]), int(obs[1])
         assert label == s % 50 + 5  # the teacher's action from the info, whoever acted
         assert np.flatnonzero(mask).tolist() == sorted({0, t + 1, s % 50 + 5})
@@ -157,3 +161,22 @@ def test_a_short_dagger_run_beats_random_on_unseen_seeds(
     scores, _ = evaluate_policy(policy.act, episodes, seed=1000, address=server_address)
     # Random play loses its five groups fast (about -1,300); the expert scores about 9,000.
     assert scores.mean() > max(random_scores.mean(), 0) + 3000, scores
+
+
+def test_seat_weights_scale_the_masked_loss_of_seat_states() -> None:
+    import jax.numpy as jnp
+
+    from dinerdash_agents.supervised import cross_entropy
+
+    rng = np.random.default_rng(2)
+    logits = jnp.asarray(rng.normal(size=(6, 57)), jnp.float32)
+    mask = np.zeros((6, 57), bool)
+    mask[:, [0, 3, 15, 20]] = True
+    actions = np.array([0, 3, 15, 20, 0, 15])
+    ones = dagger.seat_weights(actions, 1.0)
+    assert np.array_equal(ones, np.ones(6, np.float32))
+    plain = cross_entropy(logits, jnp.asarray(actions), jnp.asarray(mask))
+    same = dagger.weighted_cross_entropy(logits, jnp.asarray(actions), mask, ones)
+    assert float(same) == pytest.approx(float(plain), rel=1e-6)
+    weights = dagger.seat_weights(actions, 10.0)  # 3 seat states of 6: 10 / 5.5 and 1 / 5.5
+    np.testing.assert_allclose(weights, np.array([1, 1, 10, 10, 1, 10]) / 5.5, rtol=1e-6)
