@@ -17,6 +17,10 @@ the legal actions (:func:`~dinerdash_agents.supervised.cross_entropy`, as BC's m
   ``epochs`` epochs over the whole aggregate (fresh Adam state). States with a single legal
   action ("wait" only) stay in the aggregate but are left out of the fit: their masked loss is
   exactly 0.
+- ``seat_weight``: the loss of a state where the teacher seats a group counts this many times
+  (1: BC's masked loss). The planner holds small groups until their patience runs low, which the
+  observation shows only in levels of 200; unweighted, its pupil almost never seats them in time
+  (docs/agents.md, "What limits the planner's pupil").
 - Episodes: training seeds only, from ``seed_start`` upwards, skipping the evaluation seeds
   1000..1099 and the validation seeds 2000..2099. After each round the learner plays
   ``validation_episodes`` episodes of seeds 2000.. greedily (no teacher in those sessions); the
