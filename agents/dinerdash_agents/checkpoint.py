@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from . import bc, dpgm, kickstart, ppo
+from . import bc, dagger, dpgm, kickstart, ppo
 from .errors import CheckpointError
 from .supervised import masked_logits
 
@@ -42,6 +42,7 @@ ALGORITHMS: dict[str, Any] = {
     "ppo-masked": ppo,
     "gail": ppo,
     "ppo-kickstart": kickstart,
+    "dagger": dagger,
 }
 
 

@@ -34,6 +34,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     if args.algorithm in RL_ALGORITHMS:
         return _cmd_train_rl(args)
+    if args.algorithm == "dagger":
+        return _cmd_train_dagger(args)
     from .errors import AgentsError
     from .train_imitation import default_config, train_checkpoint
 
@@ -78,6 +80,39 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
         f"mean score of the last 100 episodes {trainer.mean_recent_score:.1f}"
+    )
+    return 0
+
+
+def _cmd_train_dagger(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .dagger import DaggerConfig, train_dagger
+
+    given = {
+        "teacher": args.teacher,
+        "rounds": args.rounds,
+        "episodes_per_round": args.episodes_per_round,
+        "schedule": args.beta_schedule,
+        "p": args.beta_p,
+        "num_envs": args.num_envs,
+        "hidden": args.hidden,
+        "layers": args.layers,
+        "epochs": args.epochs,
+        "seat_weight": args.seat_weight,
+    }
+    config = dataclasses.replace(
+        DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
+    )
+    _, description = train_dagger(
+        args.out, config, address=args.address, seed=args.seed, **connection_keywords(args)
+    )
+    data, training = description["data"], description["training"]
+    print(
+        f"wrote {args.out}: dagger (teacher {config.teacher}), {config.rounds} rounds of "
+        f"{config.episodes_per_round} episodes ({data['steps']:,} labelled states), best round "
+        f"{training['best_round']} ({training['best_validation_mean_score']:,.1f} on seeds "
+        f"{training['validation_seeds']}) in {training['seconds']:.1f} s"
     )
     return 0
 
@@ -162,10 +197,13 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser(
-        "train", help="train an agent: on expert demonstrations (bc, dpgm) or on the server (RL)"
+        "train",
+        help="train an agent: on expert demonstrations (bc, dpgm), on the server (RL) or with a "
+        "teacher labelling the learner's states (dagger)",
     )
     p.add_argument(
-        "algorithm", choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart"]
+        "algorithm",
+        choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart", "dagger"],
     )
     p.add_argument(
         "--demos",
@@ -187,7 +225,11 @@ def _parser() -> argparse.ArgumentParser:
         "(the paper's)",
     )
     p.add_argument("--steps", type=int, help="RL: environment steps in all (resumed ones included)")
-    p.add_argument("--num-envs", type=int, help="RL: environments stepped together (default 256)")
+    p.add_argument(
+        "--num-envs",
+        type=int,
+        help="RL and dagger: environments stepped together (default 256; dagger 32)",
+    )
     p.add_argument("--resume", help="RL: continue the run checkpointed in this directory")
     p.add_argument(
         "--pipeline",
@@ -203,8 +245,23 @@ def _parser() -> argparse.ArgumentParser:
         "--teacher",
         choices=["expert", "planner"],
         default=None,
-        help="ppo-kickstart: whose action (info['expert_action']) the policy is pulled toward: "
-        "the reference expert (default) or the look-ahead planner",
+        help="ppo-kickstart: whose action (info['expert_action']) the policy is pulled toward "
+        "(default expert); dagger: who labels the learner's states",
+    )
+    p.add_argument("--rounds", type=int, help="dagger: rounds of play and retraining")
+    p.add_argument("--episodes-per-round", type=int, help="dagger: training episodes per round")
+    p.add_argument(
+        "--beta-schedule",
+        choices=["exponential", "first"],
+        help="dagger: β_i = p^(i-1), or β_1 = 1 then 0",
+    )
+    p.add_argument("--beta-p", type=float, help="dagger: p of the exponential schedule")
+    p.add_argument("--hidden", type=int, help="dagger: units per hidden layer")
+    p.add_argument("--layers", type=int, help="dagger: hidden layers")
+    p.add_argument(
+        "--seat-weight",
+        type=float,
+        help="dagger: loss weight of the states where the teacher seats a group (others: 1)",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)

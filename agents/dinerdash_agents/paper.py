@@ -46,6 +46,8 @@ class Agent:
 
     @property
     def label(self) -> str:
+        if self.algorithm == "dagger":
+            return f"DAgger, the {self.teacher} labelling the learner's states (beyond the paper)"
         if self.algorithm == "gail":
             return f"GAIL (masked PPO on a discriminator's reward), {self.episodes} demos"
         if self.algorithm == "ppo-kickstart":
@@ -74,7 +76,15 @@ AGENTS = [
     Agent("ppo", "ppo", 0, "unmasked", 8799.1),
     Agent("gail-274", "gail", 274, "masked", 8254.4),
     Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None),
+    Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
+    Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
 ]
+#: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
+#: (docs/agents.md says why the planner's seat states weigh 10).
+DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
+    "dagger-planner": {"rounds": 12, "seat_weight": 10.0},
+    "dagger-expert": {"rounds": 8, "seat_weight": 1.0},
+}
 #: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000
 GAIL_STEPS = 10_000_000
@@ -178,6 +188,8 @@ def _experiment(
     for agent in AGENTS:
         if agent.rl:
             policy, description = _train_rl(agent, out, demos, address, seed, rl_steps, connection)
+        elif agent.algorithm == "dagger":
+            policy, description = _train_dagger(agent, out, address, seed, connection)
         else:
             config = default_config(agent.algorithm, loss=agent.loss)
             policy, description = train_checkpoint(
@@ -279,6 +291,27 @@ def _train_rl(
     return checkpoint.load(directory), checkpoint.read_description(directory)
 
 
+def _train_dagger(
+    agent: Agent, out: Path, address, seed: int, connection: dict[str, Any]
+) -> tuple[Any, dict[str, Any]]:
+    """Runs DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`, or only loads a
+    checkpoint of it that already stands (the planner's rounds take minutes)."""
+    from . import checkpoint
+    from .dagger import DaggerConfig, train_dagger
+
+    directory = out / "checkpoints" / agent.name
+    if not (directory / checkpoint.DESCRIPTION).is_file():
+        train_dagger(
+            directory,
+            DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]),
+            address=address,
+            seed=seed,
+            name=agent.name,
+            **connection,
+        )
+    return checkpoint.load(directory), checkpoint.read_description(directory)
+
+
 def _pct(x: float | None) -> str:
     return "" if x is None else f"{100 * x:.1f} %"
 
@@ -293,7 +326,9 @@ def _markdown(r: dict[str, Any]) -> str:
         "or the first 70 of them; the planner's rows: the look-ahead planner's episodes of the "
         "same seeds). RL agents: PPO on the game's reward, GAIL on a discriminator's, "
         "kick-started PPO on the game's reward from BC's policy with a decaying pull toward the "
-        "teacher's actions; environment steps in the training column. "
+        "teacher's actions; environment steps in the training column; DAgger: rounds of the "
+        "learner's own episodes of training seeds, every state labelled by the planner or the "
+        "expert (its states in that column). "
         f"Evaluation: {EVAL_EPISODES} unseen seeds "
         f"{r['evaluation']['seeds']}, greedy actions, final score per episode. Fractions are of "
         "the expert's mean on the same seeds (the paper's of its expert's 9,921). Training: wall "

@@ -1,0 +1,520 @@
+"""DAgger (Ross, Gordon & Bagnell 2011, "A reduction of imitation learning and structured
+prediction to no-regret online learning") with the server's teachers: ``train dagger --teacher
+planner|expert``.
+
+Round ``i`` (1..R) plays ``E`` training episodes with the mixture policy
+``π_i = β_i·teacher + (1 − β_i)·learner``: per step and per environment, with probability
+``β_i`` the teacher's action is executed, else the learner's greedy action over the legal ones
+(the action the evaluation plays). The sessions run with ``expert="planner"`` (or ``expert=True``,
+the reference expert), so ``info["expert_action"]`` labels every visited state with the teacher's
+choice, whoever acted. Every visited state (observation, action mask, teacher's action) joins the
+aggregate dataset, and the learner is trained on the whole aggregate with the cross-entropy over
+the legal actions (:func:`~dinerdash_agents.supervised.cross_entropy`, as BC's masked loss).
+
+- β schedule: ``β_1 = 1`` (round 1 is the teacher's own demonstrations, so its learner is BC on
+  them), then ``β_i = p^(i−1)`` (``schedule="exponential"``) or ``β_i = 0`` (``"first"``).
+- Training is warm-started: each round continues from the previous round's network for
+  ``epochs`` epochs over the whole aggregate (fresh Adam state). States with a single legal
+  action ("wait" only) stay in the aggregate but are left out of the fit: their masked loss is
+  exactly 0.
+- ``seat_weight``: the loss of a state where the teacher seats a group counts this many times
+  (1: BC's masked loss). The planner holds small groups until their patience runs low, which the
+  observation shows only in levels of 200; unweighted, its pupil almost never seats them in time
+  (docs/agents.md, "What limits the planner's pupil").
+- Episodes: training seeds only, from ``seed_start`` upwards, skipping the evaluation seeds
+  1000..1099 and the validation seeds 2000..2099. After each round the learner plays
+  ``validation_episodes`` episodes of seeds 2000.. greedily (no teacher in those sessions); the
+  checkpoint keeps the round that scored best there (as Ross et al. pick the best policy of
+  the sequence on validation), and ``curve.csv`` lists every round.
+
+The learner is an MLP over the observation scaled by ruleset v0's upper bounds (``layers``
+hidden layers of ``hidden`` units, ReLU, dropout after each), 57 action logits.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
+
+from .errors import AgentsError
+from .supervised import fit, masked_logits
+
+__all__ = [
+    "Aggregate",
+    "DaggerConfig",
+    "DaggerNet",
+    "betas",
+    "config_from_json",
+    "init",
+    "mix_actions",
+    "play_round",
+    "seat_weights",
+    "train_dagger",
+    "training_seeds",
+    "weighted_cross_entropy",
+]
+
+#: The teachers: the ``expert=`` keyword of the sessions for each.
+TEACHERS = {"planner": "planner", "expert": True}
+#: Seeds no training episode uses: the evaluation's (1000..1099) and the validation's.
+RESERVED_SEEDS = (range(1000, 1100), range(2000, 2100))
+VALIDATION_SEED = 2000
+CURVE_CSV = "curve.csv"
+CURVE_PNG = "curve.png"
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """DAgger's settings; :data:`dinerdash_agents.paper.DAGGER_SETTINGS` holds what differs from
+    these defaults in the committed results."""
+
+    teacher: str = "planner"
+    rounds: int = 8
+    episodes_per_round: int = 64
+    schedule: str = "exponential"  # "exponential": β_i = p^(i-1); "first": β_1 = 1, then 0
+    p: float = 0.5
+    num_envs: int = 32
+    max_episode_steps: int = 5000
+    hidden: int = 512
+    layers: int = 2
+    dropout: float = 0.1
+    epochs: int = 4
+    batch_size: int = 512
+    learning_rate: float = 1e-3
+    #: Weight of the states where the teacher seats a group, against 1 for the others.
+    seat_weight: float = 1.0
+    seed_start: int = 0
+    validation_episodes: int = 50
+
+    def __post_init__(self) -> None:
+        if self.teacher not in TEACHERS:
+            raise AgentsError(
+                f"--teacher must be one of {', '.join(TEACHERS)}, got {self.teacher!r}"
+            )
+        if self.schedule not in ("exponential", "first"):
+            raise AgentsError(f"schedule must be exponential or first, got {self.schedule!r}")
+        for name in ("rounds", "episodes_per_round", "num_envs", "layers", "hidden", "epochs"):
+            if getattr(self, name) < 1:
+                raise AgentsError(f"{name} must be at least 1 (got {getattr(self, name)})")
+        if not 0.0 <= self.p <= 1.0:
+            raise AgentsError(f"p must be in [0, 1] (got {self.p})")
+
+    def to_json(self) -> dict:
+        return {**asdict(self), "betas": betas(self)}
+
+
+def config_from_json(values: dict) -> DaggerConfig:
+    values = {k: v for k, v in values.items() if k != "betas"}
+    return DaggerConfig(**values)
+
+
+def betas(config: DaggerConfig) -> list[float]:
+    """β_1..β_R: 1, then p^(i-1) ("exponential") or 0 ("first")."""
+    if config.schedule == "first":
+        return [1.0] + [0.0] * (config.rounds - 1)
+    return [float(config.p**i) for i in range(config.rounds)]
+
+
+class DaggerNet(eqx.Module):
+    """observation (40) / v0's upper bounds -> [FC hidden -> ReLU -> dropout] × layers -> FC 57."""
+
+    layers: list[eqx.nn.Linear]
+    dropout: eqx.nn.Dropout
+    out: eqx.nn.Linear
+
+    def __init__(self, config: DaggerConfig, key: jax.Array) -> None:
+        keys = jax.random.split(key, config.layers + 1)
+        sizes = [OBSERVATION_SIZE] + [config.hidden] * config.layers
+        self.layers = [
+            eqx.nn.Linear(a, b, key=k)
+            for a, b, k in zip(sizes[:-1], sizes[1:], keys[:-1], strict=True)
+        ]
+        self.dropout = eqx.nn.Dropout(config.dropout)
+        self.out = eqx.nn.Linear(config.hidden, NUM_ACTIONS, key=keys[-1])
+
+    def __call__(
+        self, obs: jax.Array, mask: jax.Array | None = None, key: jax.Array | None = None
+    ) -> jax.Array:
+        """Action logits of a batch (B, 40); dropout only when ``key`` is given. The mask only
+        restricts the softmax (the caller's), it is not an input."""
+        del mask
+        h = obs / OBSERVATION_HIGH
+        keys = (
+            [None] * len(self.layers)
+            if key is None
+            else list(jax.random.split(key, len(self.layers)))
+        )
+        for layer, k in zip(self.layers, keys, strict=True):
+            h = jax.nn.relu(jax.vmap(layer)(h))
+            h = self.dropout(h, key=k, inference=k is None)
+        return jax.vmap(self.out)(h)
+
+
+def init(config: DaggerConfig, seed: int = 0) -> DaggerNet:
+    return DaggerNet(config, jax.random.PRNGKey(seed))
+
+
+@eqx.filter_jit
+def _greedy(model: DaggerNet, obs: jax.Array, mask: jax.Array) -> jax.Array:
+    return jnp.argmax(masked_logits(model(obs, mask), mask), axis=-1)
+
+
+def greedy_actions(model: DaggerNet, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The learner's greedy action over the legal ones of each state of a batch."""
+    return np.asarray(_greedy(model, jnp.asarray(obs, jnp.float32), jnp.asarray(mask, bool)))
+
+
+def mix_actions(
+    teacher: np.ndarray, learner: np.ndarray, beta: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mixture policy's actions: per environment the teacher's with probability ``beta``,
+    else the learner's; returns them and the mask of environments where the teacher acted."""
+    from_teacher = rng.random(len(teacher)) < beta
+    return np.where(from_teacher, teacher, learner).astype(np.int64), from_teacher
+
+
+def training_seeds(start: int, count: int) -> list[int]:
+    """``count`` seeds from ``start`` upwards, skipping :data:`RESERVED_SEEDS`."""
+    seeds, s = [], start
+    while len(seeds) < count:
+        if not any(s in r for r in RESERVED_SEEDS):
+            seeds.append(s)
+        s += 1
+    return seeds
+
+
+class Aggregate:
+    """DAgger's dataset: every visited state (observation, action mask) with the teacher's action
+    in it, and the round it was visited in."""
+
+    def __init__(self) -> None:
+        self._obs: list[np.ndarray] = []
+        self._masks: list[np.ndarray] = []
+        self._labels: list[np.ndarray] = []
+        self._rounds: list[np.ndarray] = []
+        self.steps = 0
+
+    def add(self, obs: np.ndarray, masks: np.ndarray, labels: np.ndarray, round_: int) -> None:
+        """Adds a batch of visited states labelled with the teacher's actions ``labels``."""
+        obs = np.asarray(obs, np.float32).reshape(-1, OBSERVATION_SIZE)
+        masks = np.asarray(masks, np.bool_).reshape(-1, NUM_ACTIONS)
+        labels = np.asarray(labels, np.int32).reshape(-1)
+        if not len(obs) == len(masks) == len(labels):
+            raise ValueError(f"{len(obs)} observations, {len(masks)} masks, {len(labels)} labels")
+        if len(labels) and not masks[np.arange(len(labels)), labels].all():
+            raise AgentsError("a teacher's action is illegal in its own state")
+        self._obs.append(obs.copy())
+        self._masks.append(masks.copy())
+        self._labels.append(labels.copy())
+        self._rounds.append(np.full(len(labels), round_, np.int32))
+        self.steps += len(labels)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The whole aggregate: ``obs`` (T, 40), ``mask`` (T, 57), ``action`` (T,), ``round``."""
+        if not self._obs:
+            return {
+                "obs": np.zeros((0, OBSERVATION_SIZE), np.float32),
+                "mask": np.zeros((0, NUM_ACTIONS), np.bool_),
+                "action": np.zeros(0, np.int32),
+                "round": np.zeros(0, np.int32),
+            }
+        return {
+            "obs": np.concatenate(self._obs),
+            "mask": np.concatenate(self._masks),
+            "action": np.concatenate(self._labels),
+            "round": np.concatenate(self._rounds),
+        }
+
+
+@dataclass
+class RoundPlay:
+    """What one round's episodes gave: final scores, lengths, states added, teacher's share."""
+
+    scores: np.ndarray
+    lengths: np.ndarray
+    states: int
+    teacher_steps: int
+
+
+def play_round(
+    envs: Any,
+    learner: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    beta: float,
+    seeds: list[int],
+    aggregate: Aggregate,
+    round_: int,
+    rng: np.random.Generator,
+) -> RoundPlay:
+    """Plays one episode per seed of ``seeds`` with the mixture policy on ``envs`` (a vector env
+    whose infos carry ``expert_action`` and ``action_mask``; an environment that ends is reset
+    with the next seed through ``options={"reset_mask": ...}``) and adds every state visited in
+    those episodes, labelled with ``info["expert_action"]``, to ``aggregate``.
+
+    ``learner(obs, mask)`` gives the learner's actions of the batch; it is not called when
+    ``beta`` is 1. Environments left without a seed at the end play on unrecorded."""
+    n = envs.num_envs
+    queue = list(seeds)
+    first = queue[:n]
+    queue = queue[n:]
+    # Environments beyond the seeds (fewer episodes than environments) are never recorded.
+    slot = list(range(len(first)))  # episode index played by each environment, -1 idle
+    slot += [-1] * (n - len(first))
+    padded = first + [first[0]] * (n - len(first))
+    obs, info = envs.reset(seed=padded)
+    scores = np.zeros(len(seeds), np.int64)
+    lengths = np.zeros(len(seeds), np.int64)
+    next_episode = len(first)
+    states = teacher_steps = 0
+    active = np.array([s >= 0 for s in slot])
+    while active.any():
+        teacher = np.asarray(info["expert_action"], np.int64)
+        mask = np.asarray(info["action_mask"], np.bool_)
+        aggregate.add(obs[active], mask[active], teacher[active], round_)
+        states += int(active.sum())
+        learner_actions = teacher if beta >= 1.0 else np.asarray(learner(obs, mask), np.int64)
+        actions, from_teacher = mix_actions(teacher, learner_actions, beta, rng)
+        teacher_steps += int((from_teacher & active).sum())
+        obs, _, terminated, truncated, info = envs.step(actions)
+        for i in np.flatnonzero(active):
+            lengths[slot[i]] += 1
+        ended = (np.asarray(terminated) | np.asarray(truncated)) & active
+        if not ended.any():
+            continue
+        reset = np.zeros(n, np.bool_)
+        new_seeds = list(padded)
+        for i in np.flatnonzero(ended):
+            scores[slot[i]] = info["score"][i]
+            if queue:
+                new_seeds[i] = queue.pop(0)
+                slot[i] = next_episode
+                next_episode += 1
+                reset[i] = True
+            else:
+                slot[i] = -1
+                active[i] = False
+        if reset.any():
+            obs, info = envs.reset(seed=new_seeds, options={"reset_mask": reset})
+    return RoundPlay(scores, lengths, states, teacher_steps)
+
+
+def seat_weights(actions: np.ndarray, seat_weight: float) -> np.ndarray:
+    """Per-state loss weights: ``seat_weight`` where the teacher seats a group, 1 elsewhere,
+    scaled to mean 1 (so weight 1 everywhere is BC's masked loss)."""
+    weight = np.where(np.asarray(actions) >= FIRST_SEAT, seat_weight, 1.0).astype(np.float32)
+    return weight / weight.mean()
+
+
+def weighted_cross_entropy(
+    logits: jax.Array, actions: jax.Array, mask: jax.Array, weight: jax.Array
+) -> jax.Array:
+    """The cross-entropy over the legal actions (as
+    :func:`~dinerdash_agents.supervised.cross_entropy`), each state's term times ``weight``."""
+    logp = jax.nn.log_softmax(masked_logits(logits, mask), axis=-1)
+    return -jnp.mean(weight * jnp.take_along_axis(logp, actions[:, None], axis=-1)[:, 0])
+
+
+def _fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed: int):
+    """Continues training ``model`` on the aggregate's states with more than one legal action."""
+    data = aggregate.arrays()
+    choice = data["mask"].sum(axis=1) > 1
+    data = {k: data[k][choice] for k in ("obs", "mask", "action")}
+    if len(data["action"]) == 0:
+        return model, [float("nan")]
+    data["weight"] = seat_weights(data["action"], config.seat_weight)
+
+    def loss_fn(model, batch, key):
+        logits = model(batch["obs"], key=key)
+        return weighted_cross_entropy(logits, batch["action"], batch["mask"], batch["weight"])
+
+    return fit(
+        model,
+        loss_fn,
+        data,
+        epochs=config.epochs,
+        batch_size=config.batch_size,
+        learning_rate=config.learning_rate,
+        seed=seed,
+    )
+
+
+def _write_curve(directory: Path, rows: list[dict[str, Any]], title: str) -> None:
+    with open(directory / CURVE_CSV, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    r = [row["round"] for row in rows]
+    ax.plot(
+        r, [row["validation_mean_score"] for row in rows], marker="o", label="learner, seeds 2000.."
+    )
+    ax.plot(r, [row["rollout_mean_score"] for row in rows], marker=".", label="mixture policy π_i")
+    ax.set_xlabel("DAgger round")
+    ax.set_ylabel("mean final score")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(directory / CURVE_PNG)
+    plt.close(fig)
+
+
+def train_dagger(
+    out: str | Path,
+    config: DaggerConfig,
+    *,
+    address: str | list[str] | None = None,
+    seed: int = 0,
+    name: str | None = None,
+    progress: bool = True,
+    **connection: Any,
+) -> tuple[Any, dict]:
+    """Runs ``config.rounds`` DAgger rounds against ``address`` (default: ``DINERDASH_ADDRESS``,
+    else a local server started here) and writes the best round's learner to ``out``; returns
+    its :class:`~dinerdash_agents.checkpoint.Policy` and description."""
+    import dinerdash  # noqa: F401  (registers DinerDash-v0)
+
+    server = None
+    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
+        from dinerdash.server import LocalServer
+
+        # Started before any JAX work: forking a process with JAX's threads running is unsafe.
+        server = LocalServer()
+        address = server.address
+    try:
+        return _train(Path(out), config, address, seed, name, progress, connection)
+    finally:
+        if server is not None:
+            server.stop()
+
+
+def _train(out, config, address, seed, name, progress, connection):
+    import gymnasium
+
+    from . import __version__, checkpoint
+    from .evaluate import evaluate_policy
+
+    start, cpu_start = time.monotonic(), time.process_time()
+    rng = np.random.default_rng(seed)
+    model = init(config, seed)
+    aggregate = Aggregate()
+    seeds = training_seeds(config.seed_start, config.rounds * config.episodes_per_round)
+    schedule = betas(config)
+    rows: list[dict[str, Any]] = []
+    best: tuple[float, int, DaggerNet] | None = None
+    environment_steps = 0
+    losses: list[float] = []
+    n = max(1, min(config.num_envs, config.episodes_per_round))
+    envs = gymnasium.make_vec(
+        "dinerdash:DinerDash-v0",
+        num_envs=n,
+        address=address,
+        expert=TEACHERS[config.teacher],
+        max_episode_steps=config.max_episode_steps,
+        **connection,
+    )
+    try:
+        for r, beta in enumerate(schedule, start=1):
+            began = time.monotonic()
+            round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
+            played = play_round(
+                envs,
+                lambda obs, mask, m=model: greedy_actions(m, obs, mask),
+                beta,
+                round_seeds,
+                aggregate,
+                r,
+                rng,
+            )
+            environment_steps += played.states
+            model, losses = _fit_round(model, aggregate, config, seed + r)
+            val_scores, _ = evaluate_policy(
+                lambda obs, mask, m=model: greedy_actions(m, obs, mask),
+                config.validation_episodes,
+                seed=VALIDATION_SEED,
+                address=address,
+                num_envs=config.validation_episodes,
+                max_steps=config.max_episode_steps,
+                **connection,
+            )
+            val = float(np.mean(val_scores))
+            if best is None or val > best[0]:
+                best = (val, r, model)
+            rows.append(
+                {
+                    "round": r,
+                    "beta": round(beta, 6),
+                    "episodes": len(round_seeds),
+                    "seeds": f"{round_seeds[0]}..{round_seeds[-1]}",
+                    "dataset_steps": aggregate.steps,
+                    "teacher_share": round(played.teacher_steps / max(played.states, 1), 4),
+                    "rollout_mean_score": round(float(np.mean(played.scores)), 1),
+                    "rollout_mean_length": round(float(np.mean(played.lengths)), 1),
+                    "validation_mean_score": round(val, 1),
+                    "validation_sd": round(float(np.std(val_scores)), 1),
+                    "final_loss": round(losses[-1], 5),
+                    "round_seconds": round(time.monotonic() - began, 1),
+                }
+            )
+            if progress:
+                row = rows[-1]
+                print(
+                    f"dagger {config.teacher} round {r}/{config.rounds} β={beta:.3g}: "
+                    f"mixture {row['rollout_mean_score']:,.0f}, learner on seeds "
+                    f"{VALIDATION_SEED}.. {val:,.0f}, {aggregate.steps:,} states, "
+                    f"{row['round_seconds']:.0f} s",
+                    flush=True,
+                )
+    finally:
+        envs.close()
+    assert best is not None
+    seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
+    last_validation_seed = VALIDATION_SEED + config.validation_episodes - 1
+    out = Path(out)
+    description = {
+        "name": name or out.name,
+        "algorithm": "dagger",
+        "package_version": __version__,
+        "config": config.to_json(),
+        "data": {
+            "teacher": config.teacher,
+            "episodes": len(seeds),
+            "seeds": [seeds[0], seeds[-1]],
+            "steps": aggregate.steps,
+            "environment_steps": environment_steps,
+        },
+        "training": {
+            "seed": seed,
+            "rounds": config.rounds,
+            "best_round": best[1],
+            "best_validation_mean_score": round(best[0], 1),
+            "validation_seeds": f"{VALIDATION_SEED}..{last_validation_seed}",
+            "seconds": round(seconds, 3),
+            "cpu_seconds": round(cpu_seconds, 3),
+            "final_losses": {"cross_entropy": round(losses[-1], 6)},
+        },
+    }
+    title = f"DAgger, teacher {config.teacher}: {out.name}"
+    checkpoint.save(out, best[2], description, extra=lambda tmp: _write_curve(tmp, rows, title))
+    return checkpoint.Policy(best[2], checkpoint.read_description(out)), description
+
+
+def iter_rows(directory: str | Path) -> Iterator[dict[str, str]]:
+    """The rows of a DAgger checkpoint's ``curve.csv``."""
+    with open(Path(directory) / CURVE_CSV, newline="") as f:
+        yield from csv.DictReader(f)

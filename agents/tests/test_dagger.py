@@ -1,0 +1,182 @@
+"""DAgger: the aggregation and labelling of one round on a scripted vector env (every visited
+state, labelled with the teacher's action from the info, masks kept), the β mixture, the
+schedules, the checkpoint, and a short run against a real local server that beats random play."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
+
+from dinerdash_agents import dagger, load
+from dinerdash_agents.cli import main
+from dinerdash_agents.errors import AgentsError
+from dinerdash_agents.evaluate import evaluate_policy
+
+
+class ScriptedVectorEnv:
+    """A vector env whose episode of seed ``s`` lasts ``s % 4 + 2`` steps. The observation of
+    step ``t`` of seed ``s`` has ``s`` at index 0 and ``t`` at index 1; its mask allows actions
+    0, ``t + 1`` and ``s % 50 + 5``, and the teacher's action is ``s % 50 + 5``. Every action
+    taken is logged with the (seed, step) it was taken in."""
+
+    def __init__(self, num_envs: int) -> None:
+        self.num_envs = num_envs
+        self.seed = [0] * num_envs
+        self.t = [0] * num_envs
+        self.taken: list[tuple[int, int, int]] = []
+        self.resets: list[list[int]] = []
+
+    @staticmethod
+    def length(seed: int) -> int:
+        return seed % 4 + 2
+
+    def _state(self):
+        obs = np.zeros((self.num_envs, OBSERVATION_SIZE), np.float32)
+        mask = np.zeros((self.num_envs, NUM_ACTIONS), np.bool_)
+        teacher = np.zeros(self.num_envs, np.int64)
+        for i, (s, t) in enumerate(zip(self.seed, self.t, strict=True)):
+            obs[i, :2] = (s, t)
+            if t < 0:  # ended: only waiting is legal (an idle environment plays on unrecorded)
+                mask[i, 0] = True
+                continue
+            mask[i, [0, t + 1, s % 50 + 5]] = True
+            teacher[i] = s % 50 + 5
+        score = np.array([100 * s + t for s, t in zip(self.seed, self.t, strict=True)])
+        return obs, {"action_mask": mask, "expert_action": teacher, "score": score}
+
+    def reset(self, *, seed, options=None):
+        reset = (options or {}).get("reset_mask", np.ones(self.num_envs, np.bool_))
+        self.resets.append([int(s) for s, r in zip(seed, reset, strict=True) if r])
+        for i in np.flatnonzero(reset):
+            self.seed[i], self.t[i] = int(seed[i]), 0
+        return self._state()
+
+    def step(self, actions):
+        terminated = np.zeros(self.num_envs, np.bool_)
+        for i, a in enumerate(actions):
+            self.taken.append((self.seed[i], self.t[i], int(a)))
+            self.t[i] += 1
+            if self.t[i] == self.length(self.seed[i]):
+                terminated[i] = True
+        obs, info = self._state()
+        for i in np.flatnonzero(terminated):  # autoreset on the next step, as NEXT_STEP does
+            self.t[i] = -1 - 1000  # an unplayable state: the loop must reset or idle it
+        return obs, np.zeros(self.num_envs), terminated, np.zeros(self.num_envs, np.bool_), info
+
+
+def learner_picks_t_plus_1(obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A learner that always takes action ``t + 1`` (legal in the scripted env)."""
+    return obs[:, 1].astype(np.int64) + 1
+
+
+@pytest.mark.parametrize("beta", [1.0, 0.0])
+def test_a_round_adds_every_visited_state_labelled_by_the_teacher(beta: float) -> None:
+    seeds = [3, 4, 5, 6, 7, 9, 10]  # 7 episodes on 3 environments: resets with the next seed
+    envs = ScriptedVectorEnv(3)
+    aggregate = dagger.Aggregate()
+    aggregate.add(np.ones((2, 40)), np.ones((2, 57), bool), [1, 2], round_=1)  # an earlier round
+    played = dagger.play_round(
+        envs, learner_picks_t_plus_1, beta, seeds, aggregate, 2, np.random.default_rng(0)
+    )
+    lengths = [ScriptedVectorEnv.length(s) for s in seeds]
+    assert played.states == sum(lengths)
+    assert list(played.lengths) == lengths
+    assert aggregate.steps == 2 + sum(lengths)
+    data = aggregate.arrays()
+    new = data["round"] == 2
+    assert new.sum() == sum(lengths) and (data["round"][:2] == 1).all()
+    # Exactly the visited states: each (seed, t) once, none of an idle or ended environment.
+    visited = sorted(
+        zip(data["obs"][new, 0].astype(int), data["obs"][new, 1].astype(int), strict=True)
+    )
+    assert visited == sorted((s, t) for s in seeds for t in range(ScriptedVectorEnv.length(s)))
+    for obs, mask, label in zip(
+        data["obs"][new], data["mask"][new], data["action"][new], strict=True
+    ):
+        s, t = int(obs[0]), int(obs[1])
+        assert label == s % 50 + 5  # the teacher's action from the info, whoever acted
+        assert np.flatnonzero(mask).tolist() == sorted({0, t + 1, s % 50 + 5})
+    # The mixture: β = 1 executes the teacher's action, β = 0 the learner's.
+    recorded = [(s, t, a) for s, t, a in envs.taken if s in seeds and t >= 0]
+    for s, t, a in recorded:
+        assert a == (s % 50 + 5 if beta == 1.0 else t + 1)
+    assert played.teacher_steps == (sum(lengths) if beta == 1.0 else 0)
+    # Seeds were given in order, each once; the final scores are the info's at each end.
+    assert sorted(s for batch in envs.resets for s in batch if s in seeds) == seeds
+    assert list(played.scores) == [100 * s + ScriptedVectorEnv.length(s) for s in seeds]
+
+
+def test_the_mixture_follows_beta() -> None:
+    rng = np.random.default_rng(1)
+    teacher, learner = np.full(20_000, 7), np.full(20_000, 3)
+    actions, from_teacher = dagger.mix_actions(teacher, learner, 0.25, rng)
+    assert np.array_equal(actions == 7, from_teacher)
+    assert abs(from_teacher.mean() - 0.25) < 0.02
+    assert (dagger.mix_actions(teacher, learner, 1.0, rng)[0] == 7).all()
+    assert (dagger.mix_actions(teacher, learner, 0.0, rng)[0] == 3).all()
+
+
+def test_schedules_seeds_and_refusals() -> None:
+    assert dagger.betas(dagger.DaggerConfig(rounds=4, p=0.5)) == [1.0, 0.5, 0.25, 0.125]
+    assert dagger.betas(dagger.DaggerConfig(rounds=3, schedule="first")) == [1.0, 0.0, 0.0]
+    seeds = dagger.training_seeds(995, 10)
+    assert seeds == [995, 996, 997, 998, 999, 1100, 1101, 1102, 1103, 1104]
+    assert not set(dagger.training_seeds(0, 3000)) & set(range(1000, 1100))
+    with pytest.raises(AgentsError, match="--teacher"):
+        dagger.DaggerConfig(teacher="oracle")
+    aggregate = dagger.Aggregate()
+    mask = np.zeros((1, 57), bool)
+    mask[0, 0] = True
+    with pytest.raises(AgentsError, match="illegal"):
+        aggregate.add(np.zeros((1, 40)), mask, [4], round_=1)
+
+
+def test_a_short_dagger_run_beats_random_on_unseen_seeds(
+    server_address: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "dagger"
+    argv = ["train", "dagger", "--teacher", "expert", "--rounds", "2"]
+    argv += ["--episodes-per-round", "8", "--num-envs", "8", "--epochs", "6"]
+    argv += ["--out", str(out), "--address", server_address]
+    assert main(argv) == 0
+    assert "dagger (teacher expert), 2 rounds" in capsys.readouterr().out
+    description = json.loads((out / "checkpoint.json").read_text())
+    assert description["algorithm"] == "dagger"
+    assert description["config"]["betas"] == [1.0, 0.5]
+    rows = list(dagger.iter_rows(out))
+    assert [int(r["round"]) for r in rows] == [1, 2]
+    assert int(rows[-1]["dataset_steps"]) == description["data"]["steps"]
+    policy = load(out)
+    episodes = 4
+    random_scores, _ = evaluate_policy(
+        lambda obs, mask: np.random.default_rng(0).integers(0, 57, size=len(obs)),
+        episodes,
+        seed=1000,
+        address=server_address,
+    )
+    scores, _ = evaluate_policy(policy.act, episodes, seed=1000, address=server_address)
+    # Random play loses its five groups fast (about -1,300); the expert scores about 9,000.
+    assert scores.mean() > max(random_scores.mean(), 0) + 3000, scores
+
+
+def test_seat_weights_scale_the_masked_loss_of_seat_states() -> None:
+    import jax.numpy as jnp
+
+    from dinerdash_agents.supervised import cross_entropy
+
+    rng = np.random.default_rng(2)
+    logits = jnp.asarray(rng.normal(size=(6, 57)), jnp.float32)
+    mask = np.zeros((6, 57), bool)
+    mask[:, [0, 3, 15, 20]] = True
+    actions = np.array([0, 3, 15, 20, 0, 15])
+    ones = dagger.seat_weights(actions, 1.0)
+    assert np.array_equal(ones, np.ones(6, np.float32))
+    plain = cross_entropy(logits, jnp.asarray(actions), jnp.asarray(mask))
+    same = dagger.weighted_cross_entropy(logits, jnp.asarray(actions), mask, ones)
+    assert float(same) == pytest.approx(float(plain), rel=1e-6)
+    weights = dagger.seat_weights(actions, 10.0)  # 3 seat states of 6: 10 / 5.5 and 1 / 5.5
+    np.testing.assert_allclose(weights, np.array([1, 1, 10, 10, 1, 10]) / 5.5, rtol=1e-6)
