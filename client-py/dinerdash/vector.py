@@ -117,6 +117,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     sessions; a later full ``reset()`` opens new ones.
     """
 
+    #: Until ``__init__`` has opened the sessions: an env whose arguments were refused has nothing
+    #: to close when it is collected (gymnasium's ``__del__`` closes every vector env).
+    _closed = True
+
     def __init__(
         self,
         num_envs: int = 1,
