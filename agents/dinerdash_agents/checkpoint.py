@@ -59,6 +59,14 @@ class Policy:
         self.description = description
         self.algorithm: str = description["algorithm"]
         self.name: str = description.get("name", self.algorithm)
+        # A DAgger learner with memory sees its observations' history (dagger.MemoryFeatures):
+        # such a policy is stateful, one memory per environment of the batches it is given.
+        config = description.get("config") or {}
+        self._memory = (
+            dagger.MemoryFeatures()
+            if self.algorithm == "dagger" and config.get("memory", False)
+            else None
+        )
 
     def act(self, obs: Any, action_mask: Any | None = None) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float32)
@@ -72,6 +80,8 @@ class Policy:
             mask = np.asarray(action_mask, dtype=np.bool_).reshape(obs.shape[0], NUM_ACTIONS)
         else:
             mask = np.ones((obs.shape[0], NUM_ACTIONS), dtype=np.bool_)
+        if self._memory is not None:
+            obs = self._memory.augment(obs)
         actions = np.asarray(_greedy(self.model, obs, mask, use_mask), dtype=np.int64)
         return actions[0] if single else actions
 

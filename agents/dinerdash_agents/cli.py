@@ -100,6 +100,7 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
         "layers": args.layers,
         "epochs": args.epochs,
         "seat_weight": args.seat_weight,
+        "memory": True if args.memory else None,
     }
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
@@ -262,6 +263,12 @@ def _parser() -> argparse.ArgumentParser:
         "--seat-weight",
         type=float,
         help="dagger: loss weight of the states where the teacher seats a group (others: 1)",
+    )
+    p.add_argument(
+        "--memory",
+        action="store_true",
+        help="dagger: the learner also sees, per table and queue place, the steps since its "
+        "group's patience level changed (computed from the episode's observations)",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)

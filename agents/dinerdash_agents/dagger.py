@@ -45,7 +45,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
+from dinerdash.game import (
+    FIRST_SEAT,
+    NUM_ACTIONS,
+    NUM_TABLES,
+    OBSERVATION_HIGH,
+    OBSERVATION_SIZE,
+    QUEUE_CAPACITY,
+)
 
 from .errors import AgentsError
 from .supervised import fit, masked_logits
@@ -54,6 +61,7 @@ __all__ = [
     "Aggregate",
     "DaggerConfig",
     "DaggerNet",
+    "MemoryFeatures",
     "betas",
     "config_from_json",
     "init",
@@ -96,6 +104,8 @@ class DaggerConfig:
     seat_weight: float = 1.0
     seed_start: int = 0
     validation_episodes: int = 50
+    #: The learner also sees :class:`MemoryFeatures` of the episode's observations so far.
+    memory: bool = False
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -126,8 +136,148 @@ def betas(config: DaggerConfig) -> list[float]:
     return [float(config.p**i) for i in range(config.rounds)]
 
 
+#: Steps since a patience level changed are counted up to this many (a type-2 group spends
+#: about 29 ticks in a level, plus up to 14 while a refilled grace buffer drains).
+MEMORY_CAP = 48
+#: Patience slots the memory follows: the six tables, then the seven places of the queue.
+MEMORY_SLOTS = NUM_TABLES + QUEUE_CAPACITY
+#: Per slot: steps since its level changed / MEMORY_CAP; 1 for a type-2 group (its patience
+#: started at level 4); 1 once its level has changed since it arrived.
+MEMORY_SIZE = 3 * MEMORY_SLOTS
+
+
+class _Group:
+    __slots__ = ("changed", "count", "level", "size", "type2")
+
+    def __init__(self, level: int, size: int) -> None:
+        self.level, self.size = level, size
+        self.count, self.type2, self.changed = 0, level >= 4, False
+
+    def see(self, level: int) -> None:
+        if level != self.level:
+            self.level, self.count, self.changed = level, 0, True
+        else:
+            self.count = min(self.count + 1, MEMORY_CAP)
+
+
+def _queue(obs: np.ndarray) -> list[tuple[int, int]]:
+    return [
+        (int(obs[24 + 2 * g]), int(obs[25 + 2 * g]))
+        for g in range(QUEUE_CAPACITY)
+        if obs[25 + 2 * g] > 0
+    ]
+
+
+def is_episode_start(obs: np.ndarray) -> bool:
+    """Whether ``obs`` looks like the first observation of an episode (docs/rules.md §3): every
+    table free and clean, no food on the counters, empty hands, and one group waiting at its
+    starting patience level (3 or 4)."""
+    tables = obs[: 3 * NUM_TABLES].reshape(NUM_TABLES, 3)
+    queue = _queue(obs)
+    return bool(
+        (tables[:, 0] == 0).all()
+        and (obs[18:24] == 0).all()
+        and (obs[38:40] == 0).all()
+        and len(queue) == 1
+        and queue[0][0] >= 3
+    )
+
+
+class _Memory:
+    """One environment's patience memory (see :class:`MemoryFeatures`)."""
+
+    def __init__(self, obs: np.ndarray) -> None:
+        self.tables: list[_Group | None] = [None] * NUM_TABLES
+        self.queue = [_Group(level, size) for level, size in _queue(obs)]
+
+    def step(self, obs: np.ndarray) -> None:
+        # The queue: new places matched in order to the old groups whose size is the same and
+        # whose level is the same or one lower; unmatched old groups left (seated or walked
+        # out), unmatched new ones at the back arrived.
+        old, left, queue, i = self.queue, [], [], 0
+        for level, size in _queue(obs):
+            while i < len(old) and not (
+                old[i].size == size and level in (old[i].level, old[i].level - 1)
+            ):
+                left.append(old[i])
+                i += 1
+            if i < len(old):
+                old[i].see(level)
+                queue.append(old[i])
+                i += 1
+            else:
+                queue.append(_Group(level, size))
+        left.extend(old[i:])
+        self.queue = queue
+        # The tables: a group newly at a table is the first group that left the queue and fits.
+        for t in range(NUM_TABLES):
+            level, seats = int(obs[3 * t + 2]), int(obs[3 * t + 1])
+            group = self.tables[t]
+            if level < 0:
+                self.tables[t] = None
+            elif group is not None:
+                group.see(level)
+            else:
+                for k, g in enumerate(left):
+                    if g.size <= seats and level in (g.level, g.level - 1):
+                        g.see(level)
+                        self.tables[t] = left.pop(k)
+                        break
+                else:
+                    self.tables[t] = _Group(level, 0)
+
+    def features(self) -> np.ndarray:
+        out = np.zeros((MEMORY_SLOTS, 3), np.float32)
+        for k, g in enumerate(self.tables + self.queue):
+            if g is not None:
+                out[k] = (g.count / MEMORY_CAP, float(g.type2), float(g.changed))
+        return out.reshape(-1)
+
+
+class MemoryFeatures:
+    """The learner's memory, computed on the client from each environment's own observations:
+    for each table and each place in the queue (v0 shows their group's patience only as
+    ``P div 200``), the steps since that group's level last changed (one step is one tick,
+    capped at :data:`MEMORY_CAP`), whether its patience started at level 4 (type 2: it loses 7 a
+    tick instead of 12) and whether its level has changed yet. Groups are followed as the queue
+    moves up and as they are seated. An environment's memory starts afresh on an observation
+    that :func:`is_episode_start`, so the features are a function of the observations alone
+    (whoever acted) and training, validation and ``evaluate`` compute them alike. (An
+    unchanged start, the first group still waiting alone, goes on counting.)
+
+    ``augment(obs)`` takes a batch (B, 40), one step of B environments, and returns (B, 40 +
+    :data:`MEMORY_SIZE`); a batch of another size starts every memory afresh."""
+
+    def __init__(self) -> None:
+        self._memories: list[_Memory] = []
+        self._last = np.zeros((0, OBSERVATION_SIZE), np.float32)
+
+    def augment(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        if obs.ndim != 2 or obs.shape[1] != OBSERVATION_SIZE:
+            raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
+        fresh = len(self._memories) != len(obs)
+        if fresh:
+            self._memories = [_Memory(o) for o in obs]
+        else:
+            for k, (o, last) in enumerate(zip(obs, self._last, strict=True)):
+                if is_episode_start(o) and not np.array_equal(o, last):
+                    self._memories[k] = _Memory(o)
+                else:
+                    self._memories[k].step(o)
+        self._last = obs.copy()
+        feats = np.stack([m.features() for m in self._memories])
+        return np.concatenate([obs, feats], axis=1)
+
+
+def input_size(config: DaggerConfig) -> int:
+    """The learner's input width: the observation, and the memory features with ``memory``."""
+    return OBSERVATION_SIZE + (MEMORY_SIZE if config.memory else 0)
+
+
 class DaggerNet(eqx.Module):
-    """observation (40) / v0's upper bounds -> [FC hidden -> ReLU -> dropout] × layers -> FC 57."""
+    """observation (40) / v0's upper bounds [+ memory features] -> [FC hidden -> ReLU -> dropout]
+    × layers -> FC 57."""
 
     layers: list[eqx.nn.Linear]
     dropout: eqx.nn.Dropout
@@ -135,7 +285,7 @@ class DaggerNet(eqx.Module):
 
     def __init__(self, config: DaggerConfig, key: jax.Array) -> None:
         keys = jax.random.split(key, config.layers + 1)
-        sizes = [OBSERVATION_SIZE] + [config.hidden] * config.layers
+        sizes = [input_size(config)] + [config.hidden] * config.layers
         self.layers = [
             eqx.nn.Linear(a, b, key=k)
             for a, b, k in zip(sizes[:-1], sizes[1:], keys[:-1], strict=True)
@@ -149,7 +299,9 @@ class DaggerNet(eqx.Module):
         """Action logits of a batch (B, 40); dropout only when ``key`` is given. The mask only
         restricts the softmax (the caller's), it is not an input."""
         del mask
-        h = obs / OBSERVATION_HIGH
+        h = jnp.concatenate(
+            [obs[:, :OBSERVATION_SIZE] / OBSERVATION_HIGH, obs[:, OBSERVATION_SIZE:]], axis=1
+        )
         keys = (
             [None] * len(self.layers)
             if key is None
@@ -198,7 +350,8 @@ class Aggregate:
     """DAgger's dataset: every visited state (observation, action mask) with the teacher's action
     in it, and the round it was visited in."""
 
-    def __init__(self) -> None:
+    def __init__(self, width: int = OBSERVATION_SIZE) -> None:
+        self.width = width
         self._obs: list[np.ndarray] = []
         self._masks: list[np.ndarray] = []
         self._labels: list[np.ndarray] = []
@@ -207,7 +360,7 @@ class Aggregate:
 
     def add(self, obs: np.ndarray, masks: np.ndarray, labels: np.ndarray, round_: int) -> None:
         """Adds a batch of visited states labelled with the teacher's actions ``labels``."""
-        obs = np.asarray(obs, np.float32).reshape(-1, OBSERVATION_SIZE)
+        obs = np.asarray(obs, np.float32).reshape(-1, self.width)
         masks = np.asarray(masks, np.bool_).reshape(-1, NUM_ACTIONS)
         labels = np.asarray(labels, np.int32).reshape(-1)
         if not len(obs) == len(masks) == len(labels):
@@ -224,7 +377,7 @@ class Aggregate:
         """The whole aggregate: ``obs`` (T, 40), ``mask`` (T, 57), ``action`` (T,), ``round``."""
         if not self._obs:
             return {
-                "obs": np.zeros((0, OBSERVATION_SIZE), np.float32),
+                "obs": np.zeros((0, self.width), np.float32),
                 "mask": np.zeros((0, NUM_ACTIONS), np.bool_),
                 "action": np.zeros(0, np.int32),
                 "round": np.zeros(0, np.int32),
@@ -255,6 +408,7 @@ def play_round(
     aggregate: Aggregate,
     round_: int,
     rng: np.random.Generator,
+    memory: MemoryFeatures | None = None,
 ) -> RoundPlay:
     """Plays one episode per seed of ``seeds`` with the mixture policy on ``envs`` (a vector env
     whose infos carry ``expert_action`` and ``action_mask``; an environment that ends is reset
@@ -262,7 +416,9 @@ def play_round(
     those episodes, labelled with ``info["expert_action"]``, to ``aggregate``.
 
     ``learner(obs, mask)`` gives the learner's actions of the batch; it is not called when
-    ``beta`` is 1. Environments left without a seed at the end play on unrecorded."""
+    ``beta`` is 1. Environments left without a seed at the end play on unrecorded. With
+    ``memory``, every observation is first extended by its :class:`MemoryFeatures` (for the
+    learner and the aggregate alike)."""
     n = envs.num_envs
     queue = list(seeds)
     first = queue[:n]
@@ -278,6 +434,8 @@ def play_round(
     states = teacher_steps = 0
     active = np.array([s >= 0 for s in slot])
     while active.any():
+        if memory is not None:
+            obs = memory.augment(obs)
         teacher = np.asarray(info["expert_action"], np.int64)
         mask = np.asarray(info["action_mask"], np.bool_)
         aggregate.add(obs[active], mask[active], teacher[active], round_)
@@ -412,7 +570,7 @@ def _train(out, config, address, seed, name, progress, connection):
     start, cpu_start = time.monotonic(), time.process_time()
     rng = np.random.default_rng(seed)
     model = init(config, seed)
-    aggregate = Aggregate()
+    aggregate = Aggregate(input_size(config))
     seeds = training_seeds(config.seed_start, config.rounds * config.episodes_per_round)
     schedule = betas(config)
     rows: list[dict[str, Any]] = []
@@ -440,11 +598,13 @@ def _train(out, config, address, seed, name, progress, connection):
                 aggregate,
                 r,
                 rng,
+                MemoryFeatures() if config.memory else None,
             )
             environment_steps += played.states
             model, losses = _fit_round(model, aggregate, config, seed + r)
+            view = MemoryFeatures().augment if config.memory else (lambda obs: obs)
             val_scores, _ = evaluate_policy(
-                lambda obs, mask, m=model: greedy_actions(m, obs, mask),
+                lambda obs, mask, m=model, view=view: greedy_actions(m, view(obs), mask),
                 config.validation_episodes,
                 seed=VALIDATION_SEED,
                 address=address,

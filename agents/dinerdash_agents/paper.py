@@ -47,7 +47,15 @@ class Agent:
     @property
     def label(self) -> str:
         if self.algorithm == "dagger":
-            return f"DAgger, the {self.teacher} labelling the learner's states (beyond the paper)"
+            memory = (
+                ", the learner remembering how long each patience level has lasted"
+                if DAGGER_SETTINGS.get(self.name, {}).get("memory")
+                else ""
+            )
+            return (
+                f"DAgger, the {self.teacher} labelling the learner's states{memory} "
+                "(beyond the paper)"
+            )
         if self.algorithm == "gail":
             return f"GAIL (masked PPO on a discriminator's reward), {self.episodes} demos"
         if self.algorithm == "ppo-kickstart":
@@ -78,12 +86,14 @@ AGENTS = [
     Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None),
     Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
     Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
+    Agent("dagger-planner-memory", "dagger", 0, "masked", None, teacher="planner"),
 ]
 #: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
 #: (docs/agents.md says why the planner's seat states weigh 10).
 DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
     "dagger-planner": {"rounds": 12, "seat_weight": 10.0},
     "dagger-expert": {"rounds": 8, "seat_weight": 1.0},
+    "dagger-planner-memory": {"rounds": 12, "seat_weight": 4.0, "memory": True},
 }
 #: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000

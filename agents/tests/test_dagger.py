@@ -180,3 +180,80 @@ def test_seat_weights_scale_the_masked_loss_of_seat_states() -> None:
     assert float(same) == pytest.approx(float(plain), rel=1e-6)
     weights = dagger.seat_weights(actions, 10.0)  # 3 seat states of 6: 10 / 5.5 and 1 / 5.5
     np.testing.assert_allclose(weights, np.array([1, 1, 10, 10, 1, 10]) / 5.5, rtol=1e-6)
+
+
+def _restaurant(tables=(), queue=(), hands=(0, 0)) -> np.ndarray:
+    """An observation: ``tables`` of (table, state, seats, level), ``queue`` of (level, size)."""
+    obs = np.zeros(OBSERVATION_SIZE, np.float32)
+    obs[2:18:3] = -1
+    for t, state, seats, level in tables:
+        obs[3 * (t - 1) : 3 * t] = (state, seats, level)
+    for g, (level, size) in enumerate(queue):
+        obs[24 + 2 * g : 26 + 2 * g] = (level, size)
+    obs[38:40] = hands
+    return obs
+
+
+def _slot(features: np.ndarray, slot: int) -> tuple[float, float, float]:
+    """(steps since the level changed, type 2, changed) of memory slot ``slot`` (tables 0..5,
+    queue places 6..12) of an augmented observation."""
+    count, type2, changed = features[OBSERVATION_SIZE + 3 * slot : OBSERVATION_SIZE + 3 * slot + 3]
+    return round(count * dagger.MEMORY_CAP), type2, changed
+
+
+def test_memory_follows_each_groups_patience_through_the_queue_and_to_its_table() -> None:
+    memory = dagger.MemoryFeatures()
+    start = _restaurant(queue=[(3, 2)])
+    assert dagger.is_episode_start(start)
+    # Environment 1 stays at the start; environment 0 plays the story below.
+    story = [
+        start,
+        start,
+        start,
+        _restaurant(queue=[(2, 2)]),  # the grace buffer is gone: level 3 -> 2
+        _restaurant(queue=[(2, 2), (4, 5)]),  # a type-2 group of 5 arrives
+        _restaurant(queue=[(2, 2), (4, 5)]),
+        # group 1 (2 people) sits at table 3 (2 seats); the group of 5 moves up to place 1
+        _restaurant(tables=[(3, 1, 2, 2)], queue=[(4, 5)]),
+        _restaurant(tables=[(3, 1, 2, 2)], queue=[(3, 5)]),
+    ]
+    rows = [memory.augment(np.stack([obs, start])) for obs in story]
+    assert all(r.shape == (2, OBSERVATION_SIZE + dagger.MEMORY_SIZE) for r in rows)
+    np.testing.assert_array_equal(rows[-1][:, :OBSERVATION_SIZE], np.stack([story[-1], start]))
+    first = 6
+    assert [_slot(r[0], first) for r in rows[:4]] == [(0, 0, 0), (1, 0, 0), (2, 0, 0), (0, 0, 1)]
+    assert _slot(rows[5][0], first) == (2, 0, 1)
+    assert _slot(rows[5][0], first + 1) == (1, 1, 0)
+    # Seated: table 3 carries the group's memory on, the queue's place 1 is the group of 5.
+    assert _slot(rows[6][0], 2) == (3, 0, 1)
+    assert _slot(rows[6][0], first) == (2, 1, 0)
+    assert _slot(rows[7][0], first) == (0, 1, 1)
+    assert _slot(rows[7][0], 2) == (4, 0, 1)
+    assert all(_slot(rows[7][0], t) == (0, 0, 0) for t in (0, 1, 3, 4, 5))
+    # The other environment's unchanged start goes on counting (its first group waits alone).
+    assert [_slot(r[1], first)[0] for r in rows] == list(range(len(rows)))
+    # A new episode starts the memory afresh; the counter is capped.
+    again = memory.augment(np.stack([start, start]))
+    assert _slot(again[0], first) == (0, 0, 0) and _slot(again[0], 2) == (0, 0, 0)
+    assert _slot(again[1], first)[0] == len(rows)
+    busy = _restaurant(tables=[(1, 4, 4, 2)], queue=[(3, 2)])
+    for _ in range(dagger.MEMORY_CAP + 5):
+        last = memory.augment(np.stack([busy, busy]))
+    assert _slot(last[0], 0)[0] == dagger.MEMORY_CAP
+
+
+def test_a_checkpoint_with_memory_plays_through_its_own_memory(tmp_path: Path) -> None:
+    from dinerdash_agents import checkpoint
+
+    config = dagger.DaggerConfig(memory=True, hidden=8, layers=1)
+    model = dagger.init(config, 0)
+    description = {"name": "m", "algorithm": "dagger", "config": config.to_json()}
+    checkpoint.save(tmp_path / "m", model, description)
+    policy = load(tmp_path / "m")
+    start = _restaurant(queue=[(3, 2)])
+    obs = np.stack([start, _restaurant(queue=[(2, 2)])])
+    mask = np.zeros((2, NUM_ACTIONS), np.bool_)
+    mask[:, :2] = True
+    expected = dagger.greedy_actions(model, dagger.MemoryFeatures().augment(obs), mask)
+    np.testing.assert_array_equal(policy.act(obs, mask), expected)
+    assert dagger.input_size(config) == OBSERVATION_SIZE + dagger.MEMORY_SIZE
