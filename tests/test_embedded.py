@@ -12,6 +12,7 @@ import dinerdash
 import gymnasium
 import pytest
 from dinerdash import LocalServer, ServerBinaryNotFound
+from dinerdash.server import local_server_unless_addressed
 
 from .conftest import server_binary
 
@@ -83,6 +84,22 @@ def test_rollout_starts_and_stops_its_own_server(binary_env) -> None:
     episodes = list(dinerdash.rollout("random", episodes=2))
     assert [ep.seed for ep in episodes] == [0, 1]
     assert set(children_named_server()) <= before
+
+
+def test_commands_start_a_server_only_without_an_address(
+    binary_env, address: str, monkeypatch
+) -> None:
+    monkeypatch.delenv("DINERDASH_ADDRESS", raising=False)
+    with local_server_unless_addressed(address) as (given, server):
+        assert given == address and server is None
+    with local_server_unless_addressed(None) as (local, server):
+        assert isinstance(server, LocalServer) and server.is_running()
+        assert local == server.address
+        pid = server.pid
+    assert gone(pid) and pid not in children_named_server()
+    monkeypatch.setenv("DINERDASH_ADDRESS", address)
+    with local_server_unless_addressed(None) as (named, server):
+        assert named is None and server is None  # the env var names the server
 
 
 def test_dinerdash_address_is_used_instead(binary_env, address: str, monkeypatch) -> None:

@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from dinerdash.server import local_server_unless_addressed
+
 from . import ppo
 from .errors import AgentsError
 from .train_rl import PIPELINE, RL_ALGORITHMS, make_envs
@@ -53,13 +55,8 @@ def bench_ppo(
         raise AgentsError(f"--iterations must be at least 1 (got {iterations})")
     if pipeline < 1:
         raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
-    server = None
-    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
-        from dinerdash.server import LocalServer
-
-        server = LocalServer()  # before any JAX work, as train_rl does
-        address = server.address
-    try:
+    # A local server, if any, starts before any JAX work.
+    with local_server_unless_addressed(address) as (address, server):
         config = ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
         if num_envs is not None:
             config = dataclasses.replace(config, num_envs=num_envs)
@@ -85,9 +82,6 @@ def bench_ppo(
         finally:
             for e in envs:
                 e.close()
-    finally:
-        if server is not None:
-            server.stop()
     t = {k: 1000 * v / iterations for k, v in trainer.timings.items()}
     ms = {
         "act": t["act"],

@@ -34,7 +34,6 @@ hidden layers of ``hidden`` units, ReLU, dropout after each), 57 action logits.
 from __future__ import annotations
 
 import csv
-import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -53,6 +52,7 @@ from dinerdash.game import (
     OBSERVATION_SIZE,
     QUEUE_CAPACITY,
 )
+from dinerdash.server import local_server_unless_addressed
 
 from .errors import AgentsError
 from .supervised import fit, masked_logits
@@ -547,18 +547,9 @@ def train_dagger(
     its :class:`~dinerdash_agents.checkpoint.Policy` and description."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
-    server = None
-    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
-        from dinerdash.server import LocalServer
-
-        # Started before any JAX work: forking a process with JAX's threads running is unsafe.
-        server = LocalServer()
-        address = server.address
-    try:
+    # A local server, if any, starts before any JAX work.
+    with local_server_unless_addressed(address) as (address, _):
         return _train(Path(out), config, address, seed, name, progress, connection)
-    finally:
-        if server is not None:
-            server.stop()
 
 
 def _train(out, config, address, seed, name, progress, connection):

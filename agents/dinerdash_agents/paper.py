@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from dinerdash.server import local_server_unless_addressed
 
 from .train_rl import RL_ALGORITHMS
 
@@ -117,22 +118,13 @@ def run_paper(
     (``timeout``, ``tls``, ``tls_ca``, ...)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    from dinerdash.server import LocalServer
-
-    server = None
-    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
-        # Started before any JAX work: forking a process with JAX's threads running is unsafe.
-        server = LocalServer()
-        address = server.address
-    try:
+    # A local server, if any, starts before any JAX work.
+    with local_server_unless_addressed(address) as (address, _):
         with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
             if demos is None:
                 demos = _collect(Path(tmp), address, "expert", connection)
             planner_demos = _collect(Path(tmp), address, "planner", connection)
             return _experiment(out, Path(demos), planner_demos, address, seed, rl_steps, connection)
-    finally:
-        if server is not None:
-            server.stop()
 
 
 def _collect(

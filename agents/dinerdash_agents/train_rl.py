@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from typing import Any
 import equinox as eqx
 import gymnasium
 from dinerdash.evaluation import Progress
+from dinerdash.server import local_server_unless_addressed
 from gymnasium.vector import AutoresetMode
 
 from . import checkpoint, ppo
@@ -219,14 +219,8 @@ def train_rl(
     if (init is not None or teacher is not None) and algorithm != "ppo-kickstart":
         raise AgentsError(f"--init and --teacher are ppo-kickstart's; {algorithm} takes neither")
     out = Path(out)
-    server = None
-    if address is None and not os.environ.get("DINERDASH_ADDRESS"):
-        from dinerdash.server import LocalServer
-
-        # Started before any JAX work: forking a process with JAX's threads running is unsafe.
-        server = LocalServer()
-        address = server.address
-    try:
+    # A local server, if any, starts before any JAX work.
+    with local_server_unless_addressed(address) as (address, _):
         trainer, spent, config, demo_data = _prepare(
             algorithm, steps, num_envs, demos, resume, config
         )
@@ -247,9 +241,6 @@ def train_rl(
                 e.close()
         _save(trainer, out, algorithm, spent)
         return trainer
-    finally:
-        if server is not None:
-            server.stop()
 
 
 def _kickstart_config(

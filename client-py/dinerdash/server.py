@@ -23,12 +23,13 @@ import tempfile
 import threading
 import time
 import weakref
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import LocalServerError, ServerBinaryNotFound
 
-__all__ = ["LocalServer", "find_server_binary"]
+__all__ = ["LocalServer", "find_server_binary", "local_server_unless_addressed"]
 
 _LISTENING = re.compile(r"^dinerdash-server listening on (\S+)\s*$")
 _BUILD_HINT = (
@@ -242,3 +243,18 @@ def _pump(stream, lines: queue.Queue) -> None:
     except (OSError, ValueError):
         pass
     lines.put(None)
+
+
+@contextmanager
+def local_server_unless_addressed(
+    address: str | list[str] | None,
+) -> Iterator[tuple[str | list[str] | None, LocalServer | None]]:
+    """``(address, server)`` for a command that plays against ``address``: as given, with no
+    server started, when ``address`` or ``DINERDASH_ADDRESS`` names one; else the address of a
+    :class:`LocalServer` started here and stopped on exit. Start it before any JAX work: forking
+    a process while JAX's threads run is unsafe."""
+    if address is not None or os.environ.get("DINERDASH_ADDRESS"):
+        yield address, None
+        return
+    with LocalServer() as server:
+        yield server.address, server
