@@ -120,7 +120,8 @@ def init(config: KickstartConfig, seed: int = 0) -> KickstartModel:
     return KickstartModel(config, jax.random.PRNGKey(seed))
 
 
-def _load_bc(directory: str | Path) -> tuple[bc.BehaviourCloning, dict]:
+def _bc_description(directory: str | Path) -> dict:
+    """The description of the checkpoint ``directory``, which must be a ``bc`` one."""
     from . import checkpoint
 
     description = checkpoint.read_description(directory)
@@ -130,13 +131,19 @@ def _load_bc(directory: str | Path) -> tuple[bc.BehaviourCloning, dict]:
             f"--init {directory}: a {found!r} checkpoint; ppo-kickstart starts from a 'bc' one "
             "(its actor is the BC network)"
         )
-    return checkpoint.load(directory, "bc").model, description
+    return description
+
+
+def _load_bc(directory: str | Path) -> bc.BehaviourCloning:
+    from . import checkpoint
+
+    _bc_description(directory)
+    return checkpoint.load(directory, "bc").model
 
 
 def config_for_init(config: KickstartConfig, directory: str | Path) -> KickstartConfig:
     """``config`` with the BC checkpoint ``directory`` as its initialisation (path and sizes)."""
-    _, description = _load_bc(directory)
-    sizes = description["config"]
+    sizes = _bc_description(directory)["config"]
     return replace(
         config,
         init=str(directory),
@@ -181,8 +188,7 @@ class KickstartTrainer(Trainer):
         if load_init:
             if not config.init:
                 raise AgentsError("ppo-kickstart needs --init DIR (a bc checkpoint)")
-            actor, _ = _load_bc(config.init)
-            model = eqx.tree_at(lambda m: m.actor, model, actor)
+            model = eqx.tree_at(lambda m: m.actor, model, _load_bc(config.init))
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
