@@ -8,13 +8,15 @@
 
 Layout:
     game          the game's numbers (actions, observation size and bounds), defined once
-    connection    ConnectOptions (how to connect, built once per env), the channel and the one
-                  call wrapper (address rules, deadline, TLS, errors, retries)
+    connection    ConnectOptions (how to connect, one value for envs, rollout and agents), the
+                  channel and the one call wrapper (address rules, deadline, TLS, errors, retries)
     errors        the exception hierarchy (mapped from the server's structured error details)
     _arguments    the envs' Python arguments checked and turned into protocol messages
     _endpoint     Endpoint: the connections to the server(s), or the local server, reconnecting
     _core         the session core: one batched session on one server (create, reset, step,
-                  decode, reconnect), shared by both environments
+                  reconnect), shared by both environments
+    _caller       the caller thread that makes a core's Steps for step_async / step_wait
+    _decode       reply decoding: Batch fields to numpy observations and Gymnasium infos
     _failover     moving a lost server's environments to the servers left (failover_after)
     env           DinerDashEnv, the Gymnasium Env
     vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)
@@ -37,7 +39,7 @@ import gymnasium
 from . import _tuning  # noqa: F401  (first: gRPC settings must precede the first import of grpc)
 from ._version import ServerVersionWarning
 from ._version import __version__ as __version__
-from .connection import Connection
+from .connection import Connection, ConnectOptions
 from .env import DinerDashEnv, Snapshot
 from .errors import (
     EnvClosed,
@@ -61,6 +63,7 @@ from .server import LocalServer
 from .vector import DinerDashVectorEnv
 
 __all__ = [
+    "ConnectOptions",
     "Connection",
     "DinerDashEnv",
     "DinerDashVectorEnv",

@@ -1,12 +1,9 @@
 """The environments' Python arguments checked and turned into protocol messages: ``expert=``,
-``config=`` and a reset's ``config`` option, arrival lists, ``render_mode=``, ``failover_after=``
-and reset options.
+``config=`` and a reset's ``config`` option, arrival lists, ``render_mode=`` and reset options.
 Both environments (and :func:`~dinerdash.rollout`) take them the same way from here."""
 
 from __future__ import annotations
 
-import math
-import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -33,24 +30,6 @@ def expert_fields(expert: bool | str) -> dict[str, Any]:
             raise ValueError(f"expert must be a bool or one of {sorted(EXPERTS)}, got {expert!r}")
         return {"expert_actions": True, "expert_policy": EXPERTS[expert]}
     return {"expert_actions": bool(expert), "expert_policy": pb.POLICY_EXPERT}
-
-
-def check_failover_after(failover_after: Any) -> float | None:
-    """``failover_after=`` as seconds: ``None``, or a positive finite number (not a bool)."""
-    if failover_after is None:
-        return None
-    if isinstance(failover_after, bool) or not isinstance(failover_after, numbers.Real):
-        raise TypeError(
-            "failover_after: expected a number of seconds or None, got "
-            f"{type(failover_after).__name__} {failover_after!r}"
-        )
-    seconds = float(failover_after)
-    if not (seconds > 0 and math.isfinite(seconds)):
-        raise ValueError(
-            "failover_after: expected a positive, finite number of seconds (or None: a lost "
-            f"server is waited for reconnect_timeout, as without failover), got {failover_after!r}"
-        )
-    return seconds
 
 
 def make_config(config: Config) -> pb.GameConfig | None:

@@ -2,8 +2,8 @@
 server, and everything both environments do with such a session; and :class:`SessionOwner`, what
 the two environments share (their endpoint and the server's Spec).
 
-It creates the session, resets and steps it (blocking, or started on every server first and then
-collected), checks actions, decodes the packed replies, and, with ``reconnect=True``, waits for a
+It creates the session, resets and steps it (blocking, or handed to its :mod:`caller thread
+<dinerdash._caller>` and collected later), checks actions, and, with ``reconnect=True``, waits for a
 lost server and reopens the session there; or, when the env has other servers and the lost one
 stays away past ``failover_after``, raises :class:`ServerLost` for the env to move the core's
 environments (:mod:`dinerdash._failover`). :class:`~dinerdash.DinerDashEnv` is one core of one
@@ -14,12 +14,7 @@ environment by its index in the vector env (from the error's structured ``env_in
 
 from __future__ import annotations
 
-import queue
-import threading
-import time
-import weakref
 from dataclasses import dataclass, field
-from types import MethodType
 from typing import Any
 
 import grpc
@@ -27,6 +22,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 
 from ._arguments import config_dict
+from ._caller import Caller
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection
@@ -37,7 +33,7 @@ from .errors import (
     ServiceTransportError,
     SessionNotFound,
 )
-from .game import NUM_ACTIONS, OBSERVATION_SIZE
+from .game import NUM_ACTIONS
 
 _WIRE_AUTORESET = {
     AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
@@ -127,72 +123,6 @@ class SessionOwner:
     def game_config(self) -> dict[str, int]:
         """The effective game configuration, every field present."""
         return config_dict(self.spec_proto.config)
-
-
-class Caller:
-    """A thread that makes one session core's blocking calls, so that the caller can send a Step,
-    work, and collect the Batch later (:meth:`~dinerdash.DinerDashVectorEnv.step_async`).
-
-    Measured on the project's 2-core machine, a blocking grpcio call handed to this thread costs
-    about 30 us more CPU than the same call made in place, where a grpcio future (whose reply
-    crosses gRPC's own completion thread and a condition variable) costs two to three times the
-    call. The thread holds the work function only; it ends at :meth:`close`, once its current
-    call (cancelled by the closing channel) has returned, or when the object whose method the
-    work is is collected (an env dropped without ``close()``): the thread holds it weakly."""
-
-    __slots__ = ("_replies", "_reply", "_requests")
-
-    def __init__(self, work: MethodType, name: str) -> None:
-        self._requests: queue.SimpleQueue = queue.SimpleQueue()
-        self._replies: queue.SimpleQueue = queue.SimpleQueue()
-        self._reply: tuple[bool, Any] | None = None
-        threading.Thread(
-            target=_serve,
-            args=(weakref.WeakMethod(work), self._requests, self._replies),
-            name=name,
-            daemon=True,
-        ).start()
-        weakref.finalize(work.__self__, self._requests.put, None)
-
-    def submit(self, item: Any) -> None:
-        self._requests.put(item)
-
-    def wait(self, deadline: float | None = None) -> bool:
-        """True when the reply is in by ``deadline`` (``None``: waits for it); it is then kept for
-        :meth:`result`. An interrupted wait (Ctrl-C) loses nothing: the reply stays queued."""
-        if self._reply is None:
-            try:
-                if deadline is None:
-                    self._reply = self._replies.get()
-                else:
-                    self._reply = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                return False
-        return True
-
-    def result(self) -> Any:
-        """The work's return value for the oldest submitted item, or its exception raised."""
-        reply = self._reply if self._reply is not None else self._replies.get()
-        self._reply = None
-        ok, value = reply
-        if ok:
-            return value
-        raise value
-
-    def close(self) -> None:
-        self._requests.put(None)
-
-
-def _serve(work: weakref.WeakMethod, requests: queue.SimpleQueue, replies: queue.SimpleQueue):
-    while (item := requests.get()) is not None:
-        method = work()
-        if method is None:
-            return
-        try:
-            replies.put((True, method(item)))
-        except BaseException as e:
-            replies.put((False, e))
-        del method
 
 
 class SessionCore:
@@ -477,81 +407,3 @@ class SessionCore:
             return self.conn.call("Render", request).text
         except ServiceError as e:
             raise self.fail(e) from None
-
-
-# -- decoding -------------------------------------------------------------------------------------
-
-
-def slice_batch(batch: pb.Batch, lo: int, hi: int) -> pb.Batch:
-    """Environments ``lo:hi`` of ``batch``: every packed field cut at its width per environment
-    (the observations' 40 bytes, a score's 4, ...), every repeated field sliced."""
-    n = len(batch.observations) // OBSERVATION_SIZE
-    out = pb.Batch(num_envs=hi - lo)
-    for desc, value in batch.ListFields():
-        if desc.name == "num_envs":
-            continue
-        if isinstance(value, bytes):
-            width = len(value) // n
-            setattr(out, desc.name, value[lo * width : hi * width])
-        else:  # repeated: seeds, stream_episodes
-            getattr(out, desc.name).extend(value[lo:hi])
-    return out
-
-
-def join(batches: list[pb.Batch], name: str) -> bytes:
-    """Field ``name`` of every core's Batch, in environment order."""
-    if len(batches) == 1:
-        return getattr(batches[0], name)
-    return b"".join([getattr(b, name) for b in batches])
-
-
-def seeds(batches: list[pb.Batch]) -> np.ndarray:
-    if len(batches) == 1:
-        return np.array(batches[0].seeds, dtype=np.uint64)
-    return np.array([s for b in batches for s in b.seeds], dtype=np.uint64)
-
-
-def decode(
-    batches: list[pb.Batch],
-    num_envs: int,
-    expert: bool,
-    prefix: str = "",
-    present: np.ndarray | None = None,
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Observations ``(N, 40)`` and infos of the state the batches return, or with
-    ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
-    Gymnasium ``_key`` mask."""
-    n = num_envs
-    if present is None:
-        present = np.ones(n, dtype=np.bool_)
-
-    def field(name: str, dtype: str) -> np.ndarray:
-        return np.frombuffer(join(batches, prefix + name), dtype=dtype)
-
-    obs = field("observations", "i1").reshape(n, OBSERVATION_SIZE).astype(np.float32)
-    info: dict[str, Any] = {
-        "action_mask": field("action_masks", "?").reshape(n, NUM_ACTIONS).copy(),
-        "score": field("scores", "<i4").astype(np.int64),
-        "lost": field("lost", "<u4").astype(np.int64),
-        "tick": field("ticks", "<u4").astype(np.int64),
-    }
-    if expert:
-        info["expert_action"] = field("expert_actions", "u1").astype(np.int64)
-    for key in list(info):
-        info[f"_{key}"] = present.copy()
-    return obs, info
-
-
-def decode_one(batch: pb.Batch, expert: bool) -> tuple[np.ndarray, dict[str, Any]]:
-    """The observation ``(40,)`` and info of a one-environment Batch: :func:`decode` without the
-    batch axis, with plain ``int`` values (cheaper than numpy for one environment)."""
-    obs = np.frombuffer(batch.observations, dtype=np.int8).astype(np.float32)
-    info: dict[str, Any] = {
-        "action_mask": np.frombuffer(batch.action_masks, dtype=np.bool_).copy(),
-        "score": int.from_bytes(batch.scores, "little", signed=True),
-        "lost": int.from_bytes(batch.lost, "little"),
-        "tick": int.from_bytes(batch.ticks, "little"),
-    }
-    if expert:
-        info["expert_action"] = batch.expert_actions[0]
-    return obs, info

@@ -1,8 +1,9 @@
 """The channel to a DinerDash server and the one call wrapper every RPC goes through.
 
-Everything about the network lives here: how to connect (:class:`ConnectOptions`, built once from
-an environment's keywords), the channel options, the address rules (a ``host:port``, a
-comma-separated or Python list of them, or a DNS name that resolves to several replicas), the
+Everything about the network lives here: how to connect (:class:`ConnectOptions`, one value for
+every environment, rollout and agent command), the channel options, the address rules (a
+``host:port``, a comma-separated or Python list of them, or a DNS name that resolves to several
+replicas), the
 mapping from gRPC statuses to the typed exceptions of :mod:`dinerdash.errors`, the deadline every
 call carries, TLS, and the retry policy: only ``UNAVAILABLE`` is retried, with exponential backoff
 and a bounded number of attempts.
@@ -10,7 +11,10 @@ and a bounded number of attempts.
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
+import math
+import numbers
 import os
 import socket
 import ssl
@@ -33,6 +37,7 @@ from .errors import (
 
 __all__ = [
     "CHANNEL_OPTIONS",
+    "CONNECT_FIELDS",
     "DEFAULT_PORT",
     "DEFAULT_TIMEOUT",
     "ConnectOptions",
@@ -101,6 +106,24 @@ def call_timeout(timeout: float | None) -> float:
     if not 0 < timeout < float("inf"):
         raise ValueError(f"timeout: expected a positive number of seconds, got {timeout!r}")
     return timeout
+
+
+def check_failover_after(failover_after: Any) -> float | None:
+    """``failover_after=`` as seconds: ``None``, or a positive finite number (not a bool)."""
+    if failover_after is None:
+        return None
+    if isinstance(failover_after, bool) or not isinstance(failover_after, numbers.Real):
+        raise TypeError(
+            "failover_after: expected a number of seconds or None, got "
+            f"{type(failover_after).__name__} {failover_after!r}"
+        )
+    seconds = float(failover_after)
+    if not (seconds > 0 and math.isfinite(seconds)):
+        raise ValueError(
+            "failover_after: expected a positive, finite number of seconds (or None: a lost "
+            f"server is waited for reconnect_timeout, as without failover), got {failover_after!r}"
+        )
+    return seconds
 
 
 def tls_credentials(
@@ -219,14 +242,22 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
 
 @dataclass(frozen=True)
 class ConnectOptions:
-    """How to reach the server(s): built once from the keywords of an environment (or of
-    :func:`~dinerdash.rollout`) and passed down as is, to the endpoint that connects and from it
-    to every :class:`Connection`.
+    """How to reach the server(s) and what to do when one is lost: one value, built once and
+    handed to :func:`gymnasium.make`, :func:`gymnasium.make_vec`, :func:`~dinerdash.rollout` or
+    an agent's command as ``connect=``::
+
+        connect = dinerdash.ConnectOptions(["10.0.0.5:50051", "10.0.0.6:50051"], reconnect=True)
+        env = gymnasium.make("dinerdash:DinerDash-v0", connect=connect)
+        envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=64, connect=connect)
+
+    Every field is also a keyword of those functions (``address=``, ``timeout=``, ...): sugar for
+    this value, and a keyword given beside ``connect=`` overrides that field of it
+    (:meth:`merged`).
 
     Attributes:
-        address: as given: a ``host:port``, several (a comma-separated string or a list, kept as
-            a tuple), or a DNS name; ``None``: ``DINERDASH_ADDRESS``, else a local server. It is
-            resolved at each connect, so that a DNS name that moved is followed.
+        address: a ``host:port``, several (a comma-separated string or a list, kept as a tuple),
+            or a DNS name; ``None``: ``DINERDASH_ADDRESS``, else a local server. It is resolved
+            at each connect, so that a DNS name that moved is followed.
         token: the auth token (``None``: ``DINERDASH_AUTH_TOKEN``).
         connect_timeout: seconds to wait for a server to answer at first.
         timeout: every call's deadline in seconds, resolved here (:func:`call_timeout`).
@@ -234,6 +265,13 @@ class ConnectOptions:
             ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says, as for the
             local server).
         server_binary: the local server's binary, when one is started.
+        reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), open a new
+            session there and report the interrupted episodes as truncated, instead of raising.
+        reconnect_timeout: seconds a lost server is waited for (the last one left, for a vector
+            env with failover).
+        failover_after: a vector env over several servers with ``reconnect=True``: seconds a lost
+            server is waited for before its environments move to the others; ``None``: no
+            failover. The single env has one server and ignores it.
     """
 
     address: str | tuple[str, ...] | None = None
@@ -243,11 +281,39 @@ class ConnectOptions:
     tls: bool = False
     tls_ca: str | os.PathLike | bool | None = None
     server_binary: str | os.PathLike | None = None
+    reconnect: bool = False
+    reconnect_timeout: float = 60.0
+    failover_after: float | None = 10.0
 
     def __post_init__(self) -> None:
         if self.address is not None and not isinstance(self.address, str):
             object.__setattr__(self, "address", tuple(self.address))
         object.__setattr__(self, "timeout", call_timeout(self.timeout))
+        object.__setattr__(self, "reconnect", bool(self.reconnect))
+        for name in ("connect_timeout", "reconnect_timeout"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
+                raise ValueError(f"{name}: expected a positive number of seconds, got {value!r}")
+        object.__setattr__(self, "failover_after", check_failover_after(self.failover_after))
+
+    @classmethod
+    def merged(cls, connect: ConnectOptions | None, caller: str, **keywords: Any) -> ConnectOptions:
+        """``connect`` (``None``: the defaults) with the connection ``keywords`` a function was
+        given beside it put in; a keyword that is no field is refused as Python refuses one, in
+        ``caller``'s name. ``address=None`` keeps ``connect``'s address."""
+        unknown = sorted(set(keywords) - set(CONNECT_FIELDS))
+        if unknown:
+            raise TypeError(
+                f"{caller}() got unexpected keyword argument(s) {', '.join(map(repr, unknown))}; "
+                f"the connection keywords are {', '.join(CONNECT_FIELDS)}"
+            )
+        if keywords.get("address", 0) is None:
+            del keywords["address"]
+        if connect is None:
+            return cls(**keywords)
+        if not isinstance(connect, ConnectOptions):
+            raise TypeError(f"connect: expected a ConnectOptions, got {type(connect).__name__}")
+        return dataclasses.replace(connect, **keywords) if keywords else connect
 
     def connect(self, address: str) -> Connection:
         """A :class:`Connection` to one server, with these options."""
@@ -259,6 +325,10 @@ class ConnectOptions:
             tls=self.tls,
             tls_ca=self.tls_ca,
         )
+
+
+#: The keywords that :class:`ConnectOptions` stands for, in its field order.
+CONNECT_FIELDS = tuple(f.name for f in dataclasses.fields(ConnectOptions))
 
 
 class Connection:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import os
 import random
 import struct
 from collections.abc import Sequence
@@ -26,7 +25,8 @@ from ._arguments import (
     make_arrivals,
     make_config,
 )
-from ._core import SessionCore, SessionOwner, Settings, check_actions, decode_one
+from ._core import SessionCore, SessionOwner, Settings, check_actions
+from ._decode import decode_one
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection, ConnectOptions
@@ -142,6 +142,10 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
       ``DINERDASH_TLS_CA``); ``tls=True``: TLS trusting the system's roots.
     * ``token``: auth token (default ``DINERDASH_AUTH_TOKEN``); ``connect_timeout``,
       ``reconnect_timeout`` in seconds; ``server_binary`` for the local server; ``ansi_color``.
+    * ``connect``: a :class:`~dinerdash.ConnectOptions` holding the connection keywords above
+      (``address``, ``token``, ``timeout``, ``tls``, ``tls_ca``, ``connect_timeout``,
+      ``reconnect``, ``reconnect_timeout``, ``server_binary``) as one value; a keyword given beside
+      it overrides its field.
 
     Reset options: ``{"arrivals": [(customer_type, size), ...], "config": {...}}``.
 
@@ -161,23 +165,20 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         address: str | Sequence[str] | None = None,
         *,
         expert: bool | str = False,
-        reconnect: bool = False,
         config: Config = None,
         render_mode: str | None = None,
-        token: str | None = None,
-        connect_timeout: float = 10.0,
-        reconnect_timeout: float = 60.0,
-        server_binary: str | None = None,
         ansi_color: bool = False,
-        timeout: float | None = None,
-        tls: bool = False,
-        tls_ca: str | os.PathLike | None = None,
+        connect: ConnectOptions | None = None,
+        **connection: Any,
     ) -> None:
         self.render_mode = check_render_mode(render_mode)
         expert_request = expert_fields(expert)
         self.expert = expert_request["expert_actions"]
-        self.reconnect = bool(reconnect)
-        self.reconnect_timeout = reconnect_timeout
+        self._options = ConnectOptions.merged(
+            connect, "DinerDashEnv", address=address, **connection
+        )
+        self.reconnect = self._options.reconnect
+        self.reconnect_timeout = self._options.reconnect_timeout
         self.ansi_color = ansi_color
         self._settings = Settings(
             num_envs=1,
@@ -186,16 +187,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             expert=self.expert,
             expert_policy=expert_request["expert_policy"],
             reconnect=self.reconnect,
-            reconnect_timeout=reconnect_timeout,
-        )
-        self._options = ConnectOptions(
-            address,
-            token=token,
-            connect_timeout=connect_timeout,
-            timeout=timeout,
-            tls=tls,
-            tls_ca=tls_ca,
-            server_binary=server_binary,
+            reconnect_timeout=self.reconnect_timeout,
         )
         self._last_obs: np.ndarray | None = None
         self._last_info: dict[str, Any] = {}

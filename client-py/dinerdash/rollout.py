@@ -7,9 +7,9 @@ round trip per step.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -88,12 +88,8 @@ def rollout(
     config: Config = None,
     max_steps: int | None = None,
     action_masks: bool = False,
-    token: str | None = None,
-    connect_timeout: float = 10.0,
-    server_binary: str | None = None,
-    timeout: float | None = None,
-    tls: bool = False,
-    tls_ca: str | os.PathLike | None = None,
+    connect: ConnectOptions | None = None,
+    **connection: Any,
 ) -> Iterator[Episode]:
     """Plays ``policy`` (``"expert"``, ``"random"`` or ``"planner"``) on the server, one episode
     per seed, and yields the :class:`Episode` objects in seed order as they arrive.
@@ -101,7 +97,8 @@ def rollout(
     Give either ``seeds`` or ``episodes`` (seeds ``seed .. seed + episodes - 1``). Long seed lists
     are sent in chunks of the server's ``max_rollout_episodes``. Without ``address`` (and
     ``DINERDASH_ADDRESS``) a local server is started for the duration of the iteration.
-    ``timeout``, ``tls`` and ``tls_ca`` are as for the environments (the stream itself has no
+    ``connect`` (a :class:`~dinerdash.ConnectOptions`) and the connection keywords (``token``,
+    ``timeout``, ``tls``, ``tls_ca``, ...) are as for the environments (the stream itself has no
     overall deadline; keepalive pings notice a dead server)::
 
         for ep in dinerdash.rollout("expert", episodes=10):
@@ -114,15 +111,7 @@ def rollout(
             raise ValueError("give seeds or episodes")
         seeds = range(seed, seed + episodes)
     seeds = [int(s) for s in seeds]
-    options = ConnectOptions(
-        address,
-        token=token,
-        connect_timeout=connect_timeout,
-        timeout=timeout,
-        tls=tls,
-        tls_ca=tls_ca,
-        server_binary=server_binary,
-    )
+    options = ConnectOptions.merged(connect, "rollout", address=address, **connection)
     endpoint = Endpoint(options, pick=0)
     try:
         conn = endpoint.connections[0]

@@ -19,7 +19,6 @@ their indices, and the other servers' sessions are not touched.
 from __future__ import annotations
 
 import multiprocessing
-import os
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -35,7 +34,6 @@ from . import render as _render
 from ._arguments import (
     RENDER_MODES,
     Config,
-    check_failover_after,
     check_options,
     check_render_mode,
     expert_fields,
@@ -48,11 +46,8 @@ from ._core import (
     SessionOwner,
     Settings,
     check_actions,
-    decode,
-    join,
-    seeds,
-    slice_batch,
 )
+from ._decode import decode, join, seeds, slice_batch
 from ._endpoint import Endpoint
 from ._failover import fail_over
 from ._proto import pb
@@ -100,6 +95,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         render_mode: ``"ansi"`` or ``"rgb_array"``; ``render()`` returns one frame per env.
         timeout, tls, tls_ca: every call's deadline and TLS, as for the single env.
         token, connect_timeout, reconnect_timeout, server_binary, ansi_color: as for the single env.
+        connect: a :class:`~dinerdash.ConnectOptions` holding the connection keywords (address,
+            token, timeout, TLS, reconnect, failover_after, ...) as one value; a keyword given
+            beside it overrides its field.
 
     Reset: ``reset(seed=s)`` seeds environment ``i`` with ``s + i``; ``seed`` may also be a list
     of N seeds. Options: ``{"arrivals": one list of (type, size) pairs or N lists,
@@ -127,20 +125,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         address: str | Sequence[str] | None = None,
         *,
         expert: bool | str = False,
-        reconnect: bool = False,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         config: Config = None,
         max_episode_steps: int | None = None,
         render_mode: str | None = None,
-        token: str | None = None,
-        connect_timeout: float = 10.0,
-        reconnect_timeout: float = 60.0,
-        failover_after: float | None = 10.0,
-        server_binary: str | None = None,
         ansi_color: bool = False,
-        timeout: float | None = None,
-        tls: bool = False,
-        tls_ca: str | os.PathLike | None = None,
+        connect: ConnectOptions | None = None,
+        **connection: Any,
     ) -> None:
         mode = AutoresetMode(autoreset_mode)
         self.metadata = {
@@ -153,9 +144,12 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.num_envs = int(num_envs)
         expert_request = expert_fields(expert)
         self.expert = expert_request["expert_actions"]
-        self.reconnect = bool(reconnect)
-        self.reconnect_timeout = reconnect_timeout
-        self.failover_after = check_failover_after(failover_after)
+        self._options = ConnectOptions.merged(
+            connect, "DinerDashVectorEnv", address=address, **connection
+        )
+        self.reconnect = self._options.reconnect
+        self.reconnect_timeout = self._options.reconnect_timeout
+        self.failover_after = self._options.failover_after
         self.ansi_color = ansi_color
         config = make_config(config)
         if max_episode_steps is not None:
@@ -171,17 +165,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             expert=self.expert,
             expert_policy=expert_request["expert_policy"],
             reconnect=self.reconnect,
-            reconnect_timeout=reconnect_timeout,
+            reconnect_timeout=self.reconnect_timeout,
             failover_after=self.failover_after,
-        )
-        self._options = ConnectOptions(
-            address,
-            token=token,
-            connect_timeout=connect_timeout,
-            timeout=timeout,
-            tls=tls,
-            tls_ca=tls_ca,
-            server_binary=server_binary,
         )
         self._open()
         spec = self.spec_proto
