@@ -165,6 +165,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
         demos=args.demos,
         seed=args.seed,
         rl_steps=args.rl_steps,
+        update=args.update,
         **connection_keywords(args),
     )
     return 0
@@ -306,6 +307,12 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="environment steps of each RL agent (default: 3e7 for PPO, 1e7 for GAIL); a run "
         "already checkpointed under OUT/checkpoints is continued to it, or only loaded",
+    )
+    p.add_argument(
+        "--update",
+        action="store_true",
+        help="keep the rows of OUT/results.json, train and evaluate only the agents it lacks, "
+        "and write the report (with its confidence intervals) again",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
