@@ -47,9 +47,7 @@ def _known(name: str, known: dict) -> str | None:
     return None
 
 
-def imports_of(
-    module: str, path: Path, is_package: bool, package: str, known: dict
-) -> set[str]:
+def imports_of(module: str, path: Path, is_package: bool, package: str, known: dict) -> set[str]:
     """The modules of ``package`` that ``module``'s code imports, anywhere in the file."""
     out: set[str] = set()
     here = module if is_package else module.rpartition(".")[0]
