@@ -179,7 +179,7 @@ def test_a_killed_server_moves_its_environments(three, mode, step) -> None:
         reference.close()
 
 
-def test_a_server_lost_at_a_reset_moves_and_resets_its_environments(three, start_server) -> None:
+def test_a_server_lost_at_a_reset_moves_and_resets_its_environments(three) -> None:
     addresses = [s.address for s in three]
     reference = DinerDashVectorEnv(N, addresses[2], expert=True)
     envs = DinerDashVectorEnv(
@@ -201,16 +201,11 @@ def test_a_server_lost_at_a_reset_moves_and_resets_its_environments(three, start
             slice(5, 7),
         ]
         assert envs.addresses == [addresses[1], addresses[2]]
-        slices = envs.env_slices
         for t in range(30):
             actions = b[-1]["expert_action"]
             a, b = envs.step(actions), reference.step(actions)
             assert_same_envs(a, b, range(N), f"step {t}")
-            if t == 10:  # the lost server comes back: it stays unused
-                back = three[0].restart()
-                start_server.started.append(back)
-        assert live_sessions(back.address) == 0
-        assert envs.env_slices == slices and envs.lost_addresses == [addresses[0]]
+        # A lost server that comes back is taken back: tests/test_membership.py.
     finally:
         envs.close()
         reference.close()
