@@ -158,15 +158,21 @@ class Endpoint:
         log.info("dinerdash: took in %s: a new replica", conn.address)
         return len(self.connections) - 1
 
-    def drain(self, index: int, remaining: float) -> None:
-        """Server ``index`` said it drains, with ``remaining`` seconds until its deadline."""
-        if index not in self.draining and index not in self.given_up:
-            self.draining[index] = time.monotonic() + remaining
+    def drain(self, index: int, remaining: float | None) -> None:
+        """Server ``index`` said it drains, with ``remaining`` seconds until its deadline
+        (``None``: not said, as when it refuses a session; a later Batch says it)."""
+        if index in self.given_up:
+            return
+        deadline = float("inf") if remaining is None else time.monotonic() + remaining
+        if index not in self.draining:
             log.info(
-                "dinerdash: %s drains (%.1f s left): its environments move at their episode ends",
+                "dinerdash: %s drains (%s): its environments move at their episode ends",
                 self.addresses[index],
-                remaining,
+                "deadline unknown" if remaining is None else f"{remaining:.1f} s left",
             )
+        elif remaining is None:
+            return
+        self.draining[index] = deadline
 
     def close(self) -> None:
         for conn in self.connections:

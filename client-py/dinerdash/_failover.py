@@ -96,7 +96,7 @@ def move(
             return made
         except PASSED_OVER as e:
             if getattr(e, "reason", None) == "DRAINING":
-                endpoint.drain(target, 0.0)
+                endpoint.drain(target, None)
             candidates.remove(target)
             for new in made:
                 new.close()

@@ -53,7 +53,7 @@ from ._core import (
 )
 from ._decode import decode, join, seeds, slice_batch
 from ._endpoint import Endpoint
-from ._failover import fail_over
+from ._failover import PASSED_OVER, fail_over
 from ._membership import Membership, await_replies, boundary, handover
 from ._proto import pb
 from .connection import ConnectOptions
@@ -570,10 +570,14 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                     cut = not at_end[i - core.start]
                     if cut and core.index not in late:
                         continue
+                    if not targets:
+                        break
                     dest = min(targets, key=lambda j: (loads[j], j))
                     if not draining and loads[core.index] - loads[dest] <= 1:
                         break
-                    self._hand_over(core, i, dest, cut)
+                    if not self._hand_over(core, i, dest, cut):
+                        targets = [j for j in targets if j != dest]
+                        continue
                     loads[core.index] -= 1
                     loads[dest] += 1
                     moved = True
@@ -586,14 +590,20 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             if not any(c.index == i for c in self._cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
 
-    def _hand_over(self, core: SessionCore, i: int, dest: int, cut: bool) -> None:
+    def _hand_over(self, core: SessionCore, i: int, dest: int, cut: bool) -> bool:
         """Environment ``i`` of ``core`` moves to a new session on server ``dest`` (created
         and reset now; unseeded: the new server draws the episode's seed, as an autoreset
-        does): its Batch of this step becomes the new core's (:func:`handover`)."""
+        does): its Batch of this step becomes the new core's (:func:`handover`). False when
+        ``dest`` cannot take it now (it drains, is full or unreachable): it stays, for now."""
         new = SessionCore(self._endpoint, dest, i, i + 1, self._settings)
-        new.create()
         try:
+            new.create()
             first = new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id))
+        except PASSED_OVER as e:
+            new.close()
+            if getattr(e, "reason", None) == "DRAINING":
+                self._endpoint.drain(dest, None)
+            return False
         except BaseException:
             new.close()
             raise
@@ -603,6 +613,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         core.disown(i, i + 1)
         self._cores.append(new)
         self._moves += 1
+        return True
 
     def action_masks(self) -> np.ndarray:
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
