@@ -20,7 +20,7 @@ import pytest
 from dinerdash import DinerDashVectorEnv, ServiceTimeout, ServiceTransportError
 from gymnasium.vector import AutoresetMode
 
-from .test_failover import assert_same_envs
+from .test_failover import assert_same_envs, live_sessions
 from .trajectories import async_step, plain_step
 
 N = 7  # slices of 3, 2 and 2: the middle server's environments 3..4 move
@@ -290,6 +290,8 @@ def test_a_lost_server_that_returns_is_taken_back(three, start_server, mode) -> 
         )
         assert envs.rejoins == 1 and envs.moves >= 2
         assert sorted(loads(envs).values()) == [2, 2, 3]
+        # The sessions the failover opened moved back whole: no session keeps an unused slot.
+        assert sum(live_sessions(a) for a in envs.addresses) == len(envs.env_slices)
     finally:
         envs.close()
 

@@ -134,6 +134,7 @@ class SessionCore:
         "caller",
         "drain_ms",
         "endpoint",
+        "entering",
         "index",
         "last",
         "owned",
@@ -141,6 +142,7 @@ class SessionCore:
         "reconnected",
         "session_id",
         "settings",
+        "source",
         "spec",
         "start",
         "stop",
@@ -172,6 +174,11 @@ class SessionCore:
         self.owned: np.ndarray | None = None
         #: The server's ``drain_remaining_ms`` in the last Batch it sent (0: not draining).
         self.drain_ms = 0
+        #: A transfer (:mod:`dinerdash._membership`): the core whose environments this one takes
+        #: over, each at its episode end; ``entering``: those whose autoreset (NEXT_STEP) is
+        #: played here at the next step.
+        self.source: SessionCore | None = None
+        self.entering: set[int] = set()
 
     @property
     def conn(self) -> Connection:
@@ -206,6 +213,17 @@ class SessionCore:
         if self.owned is None:
             self.owned = np.ones(self.size, dtype=np.bool_)
         self.owned[lo - self.start : hi - self.start] = False
+
+    def holds(self, i: int) -> bool:
+        """Environment ``i`` of the env is this core's."""
+        return self.start <= i < self.stop and (self.owned is None or self.owned[i - self.start])
+
+    def own(self, envs) -> None:
+        """Environments ``envs`` (indices of the env) are this core's from now on."""
+        for i in envs:
+            self.owned[i - self.start] = True
+        if self.owned.all():
+            self.owned = None
 
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up

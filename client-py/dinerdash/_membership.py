@@ -32,7 +32,7 @@ from ._proto import pb
 from .connection import Connection, ConnectOptions, _split_host_port
 from .errors import ServiceError
 
-__all__ = ["Membership", "await_replies", "handover"]
+__all__ = ["Membership", "await_replies", "boundary", "handover", "splice"]
 
 log = logging.getLogger("dinerdash")
 
@@ -247,3 +247,52 @@ def handover(ended: pb.Batch, first: pb.Batch, mode: AutoresetMode, cut: bool) -
     out.reset = b"\x01" * n
     out.ClearField("stream_episodes")
     return out, None
+
+
+#: What a step reports of an episode's outcome (the rest is the environment's state).
+OUTCOME = ("rewards", "terminated", "truncated")
+FINAL = (
+    "final_observations",
+    "final_scores",
+    "final_lost",
+    "final_ticks",
+    "final_action_masks",
+    "final_expert_actions",
+)
+
+
+def splice(base: pb.Batch, other: pb.Batch, mask: np.ndarray, fields=None) -> pb.Batch:
+    """``base`` with the environments of ``mask`` taken from ``other`` (a Batch of the same
+    environments) for ``fields`` (default: every field ``other`` has but the episode outcome
+    and ``final_*``); a field missing on one side counts as zeros."""
+    n = len(mask)
+    out = pb.Batch()
+    out.CopyFrom(base)
+    if fields is None:
+        fields = [
+            d.name
+            for d, _ in other.ListFields()
+            if d.name not in OUTCOME + FINAL and d.name not in ("num_envs", "stream_episodes")
+        ]
+    for name in fields:
+        if name == "seeds":
+            mine = list(base.seeds) or [0] * n
+            theirs = list(other.seeds) or [0] * n
+            del out.seeds[:]
+            out.seeds.extend(t if m else b for b, t, m in zip(mine, theirs, mask, strict=True))
+            continue
+        a, b = getattr(base, name), getattr(other, name)
+        if not a and not b:
+            continue
+        width = max(len(a), len(b)) // n
+        joined = _rows(a, n, width).copy()
+        joined[mask] = _rows(b, n, width)[mask]
+        setattr(out, name, joined.tobytes())
+    return out
+
+
+def _rows(data: bytes, n: int, width: int) -> np.ndarray:
+    """A packed field as one row of bytes per environment (zeros when absent)."""
+    if not data:
+        return np.zeros((n, width), np.uint8)
+    return np.frombuffer(data, np.uint8).reshape(n, width)

@@ -53,11 +53,19 @@ from ._core import (
 )
 from ._decode import decode, join, seeds, slice_batch
 from ._endpoint import Endpoint
-from ._failover import PASSED_OVER, fail_over
-from ._membership import Membership, await_replies, boundary, handover
+from ._failover import PASSED_OVER, fail_over, pieces
+from ._membership import (
+    FINAL,
+    OUTCOME,
+    Membership,
+    await_replies,
+    boundary,
+    handover,
+    splice,
+)
 from ._proto import pb
 from .connection import ConnectOptions
-from .errors import EnvClosed, InvalidArgument
+from .errors import EnvClosed, InvalidArgument, ServiceError
 from .game import observation_space
 
 __all__ = ["DinerDashVectorEnv"]
@@ -339,6 +347,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         def start(old: SessionCore, new: SessionCore) -> pb.Batch:
             return new.conn.call("Reset", new.reset_request(**given))
 
+        for core in self._cores:
+            core.entering = set()
+        if mask is None:
+            self._complete_transfers()
         if mask is None and self._failover_on():
             # A full reset ends every episode: the environments of a draining server move now.
             drained = [c for c in self._cores if c.index in endpoint.draining]
@@ -534,12 +546,14 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 conn.close()
 
     def _settle(self) -> None:
-        """After a step: notes which servers drain, then moves environments that are at their
-        episode end (:func:`~dinerdash._membership.boundary`) off draining servers and from the
-        most loaded servers onto the least loaded, until the loads differ by at most one. The
-        environments of a server whose drain deadline is about to pass move at once, their
-        episodes cut (truncated, ``info["reconnected"]``). Not in DISABLED mode, where the
-        caller resets finished environments: they move at a full reset."""
+        """After a step: notes which servers drain, then moves environments between servers at
+        their own episode ends (:func:`~dinerdash._membership.boundary`): off draining servers,
+        and from the most loaded servers onto the least loaded until the loads differ by at
+        most one. A move is a transfer (:meth:`_plan`): a session on the new server for a
+        contiguous run of environments, each of which enters it at its episode end
+        (:meth:`_enter`). The environments of a server whose drain deadline is about to pass
+        move at once, their episodes cut (truncated, ``info["reconnected"]``). Not in DISABLED
+        mode, where the caller resets finished environments: they move at a full reset."""
         endpoint = self._endpoint
         now = time.monotonic()
         interval, self._last_finish = now - self._last_finish, now
@@ -548,47 +562,195 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 endpoint.drain(core.index, core.drain_ms / 1000)
         if self.autoreset_mode == AutoresetMode.DISABLED:
             return
+        # NEXT_STEP: the environments whose episode ended at the last step autoreset here.
+        for new in [c for c in self._cores if c.entering]:
+            self._enter(new, sorted(new.entering))
+            new.entering = set()
         targets = endpoint.open_to_new()
-        if not targets:
-            return
-        loads = dict.fromkeys(targets, 0)
-        for core in self._cores:
-            loads[core.index] = loads.get(core.index, 0) + core.load
+        if targets:
+            self._plan(targets)
         # A drain deadline closer than a few steps (and two seconds): move now, cut.
         margin = max(2.0, 3 * interval)
         late = {i for i, t in endpoint.draining.items() if t - now < margin}
-        moved = False
-        for core in list(self._cores):
-            if core.last is None:
-                continue
-            draining = core.index in endpoint.draining
-            if not draining and loads[core.index] <= min(loads[i] for i in targets) + 1:
-                continue
-            at_end = boundary(core.last, self.autoreset_mode)
+        for new in [c for c in self._cores if c.source is not None]:
+            source = new.source
+            ended = boundary(source.last, self.autoreset_mode)
+            due = [
+                i
+                for i in range(new.start, new.stop)
+                if source.holds(i) and ended[i - source.start] and not new.holds(i)
+            ]
+            if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+                new.entering.update(due)
+            elif due:
+                self._enter(new, due)
+        for core in [c for c in self._cores if c.index in late and c.load]:
+            targets = [j for j in endpoint.open_to_new() if j != core.index]
             for lo, hi in core.runs():
                 for i in range(lo, hi):
-                    cut = not at_end[i - core.start]
-                    if cut and core.index not in late:
-                        continue
-                    if not targets:
-                        break
-                    dest = min(targets, key=lambda j: (loads[j], j))
-                    if not draining and loads[core.index] - loads[dest] <= 1:
-                        break
-                    if not self._hand_over(core, i, dest, cut):
-                        targets = [j for j in targets if j != dest]
-                        continue
-                    loads[core.index] -= 1
-                    loads[dest] += 1
-                    moved = True
-        if moved:
-            for core in [c for c in self._cores if c.load == 0]:
-                core.close()
-                self._cores.remove(core)
-            self._cores.sort(key=lambda c: c.start)
+                    if targets and i not in self._entering():
+                        dest = min(targets, key=lambda j: (self._load(j), j))
+                        self._hand_over(core, i, dest, cut=True)
+        self._tidy()
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self._cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
+
+    def _entering(self) -> set[int]:
+        return {i for c in self._cores for i in c.entering}
+
+    def _load(self, server: int) -> int:
+        """Environments server ``server`` holds, or will once its transfers are done."""
+        load = 0
+        for c in self._cores:
+            if c.index == server:
+                load += c.load
+            if c.source is not None:
+                pending = sum(c.source.holds(i) and not c.holds(i) for i in range(c.start, c.stop))
+                load += pending if c.index == server else 0
+                load -= pending if c.source.index == server else 0
+        return load
+
+    def _plan(self, targets: list[int]) -> None:
+        """Opens the transfers that, once done, leave no environment on a draining server and
+        loads that differ by at most one: each a session on a server of ``targets`` for a run
+        of another server's environments, the run a whole session's when one fits."""
+        endpoint = self._endpoint
+        covered = {
+            i
+            for c in self._cores
+            if c.source is not None
+            for i in range(c.start, c.stop)
+            if c.source.holds(i)
+        }
+
+        def runs(core: SessionCore) -> list[tuple[int, int]]:
+            out = []
+            for lo, hi in core.runs():
+                i = lo
+                while i < hi:
+                    if i in covered:
+                        i += 1
+                        continue
+                    j = i
+                    while j < hi and j not in covered:
+                        j += 1
+                    out.append((i, j))
+                    i = j
+            return out
+
+        for core in [c for c in self._cores if c.index in endpoint.draining]:
+            for lo, hi in runs(core):
+                loads = {j: self._load(j) for j in targets}
+                for a, b, dest in pieces(lo, hi, loads):
+                    if self._transfer(core, a, b, dest):
+                        covered.update(range(a, b))
+        for _ in range(4 * len(self._cores) + 4):
+            loads = {j: self._load(j) for j in targets}
+            dest = min(targets, key=lambda j: (loads[j], j))
+            most = max(loads.values())
+            k = (most - loads[dest]) // 2
+            if k < 1:
+                return
+            choices = [
+                (core, lo, hi)
+                for core in self._cores
+                if core.index in targets and loads[core.index] == most and core.source is None
+                for lo, hi in runs(core)
+            ]
+            whole = [x for x in choices if x[2] - x[1] <= k and x[2] - x[1] == x[0].load]
+            if whole:
+                core, lo, hi = max(whole, key=lambda x: (x[2] - x[1], -x[1]))
+            elif choices:
+                core, lo, hi = max(choices, key=lambda x: (x[2] - x[1], -x[1]))
+                lo = max(lo, hi - k)
+            else:
+                return
+            if not self._transfer(core, lo, hi, dest):
+                return
+            covered.update(range(lo, hi))
+
+    def _transfer(self, source: SessionCore, lo: int, hi: int, dest: int) -> bool:
+        """Opens a session on server ``dest`` for environments ``lo:hi`` of ``source``, each to
+        enter it at its episode end; until then its slots are stepped, their results unused.
+        False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
+        new = SessionCore(self._endpoint, dest, lo, hi, self._settings)
+        try:
+            new.create()
+            new.last = new.note(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
+        except PASSED_OVER as e:
+            new.close()
+            if getattr(e, "reason", None) == "DRAINING":
+                self._endpoint.drain(dest, None)
+            return False
+        except BaseException:
+            new.close()
+            raise
+        new.owned = np.zeros(new.size, dtype=np.bool_)
+        new.source = source
+        self._cores.append(new)
+        self._cores.sort(key=lambda c: c.start)
+        return True
+
+    def _enter(self, new: SessionCore, envs: list[int]) -> None:
+        """Environments ``envs`` of ``new.source`` enter ``new`` at their episode end: their
+        slots are reset (unseeded: the new server draws the seeds, as an autoreset does) and
+        their report of this step is the new episode's start (NEXT_STEP: this step is their
+        autoreset; SAME_STEP: the ended episode's outcome and ``final_*`` from the old server)."""
+        envs = [i for i in envs if new.source.holds(i)]
+        if not envs:
+            return
+        mask = np.zeros(new.size, dtype=np.bool_)
+        mask[[i - new.start for i in envs]] = True
+        request = pb.ResetRequest(session_id=new.session_id, reset_mask=mask.tobytes())
+        try:
+            first = new.note(new.conn.call("Reset", request))
+        except ServiceError:
+            return  # its server is going: the transfer is dropped at the next failover
+        batch = splice(new.last, first, mask)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            old = slice_batch(
+                new.source.last, new.start - new.source.start, new.stop - new.source.start
+            )
+            batch = splice(batch, old, mask, OUTCOME + FINAL)
+        else:
+            zeros = pb.Batch(
+                rewards=bytes(4 * new.size),
+                terminated=bytes(new.size),
+                truncated=bytes(new.size),
+            )
+            batch = splice(batch, zeros, mask, OUTCOME)
+        batch = splice(batch, pb.Batch(reset=b"\x01" * new.size), mask, ("reset",))
+        new.last = batch
+        for i in envs:
+            new.source.disown(i, i + 1)
+        new.own(envs)
+        self._moves += len(envs)
+
+    def _tidy(self) -> None:
+        """Closes the sessions whose environments have all moved, and ends the transfers that
+        are done or whose source is gone (a failover)."""
+        for core in list(self._cores):
+            if core.source is not None:
+                if core.owned is None:
+                    core.source = None
+                elif core.source not in self._cores or not any(
+                    core.source.holds(i) for i in range(core.start, core.stop)
+                ):
+                    core.source, core.entering = None, set()
+            if core.load == 0 and core.source is None:
+                core.close()
+                self._cores.remove(core)
+
+    def _complete_transfers(self) -> None:
+        """A full reset starts every episode: the transfers in progress are done at once."""
+        for new in [c for c in self._cores if c.source is not None]:
+            envs = [i for i in range(new.start, new.stop) if new.source.holds(i)]
+            for i in envs:
+                new.source.disown(i, i + 1)
+            new.own(envs)
+            new.entering = set()
+        self._tidy()
 
     def _hand_over(self, core: SessionCore, i: int, dest: int, cut: bool) -> bool:
         """Environment ``i`` of ``core`` moves to a new session on server ``dest`` (created
