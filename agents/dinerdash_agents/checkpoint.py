@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from . import bc, dagger, dpgm, kickstart, ppo
+from . import bc, dagger, dpgm, kickstart, ppo, recurrent
 from .errors import CheckpointError
 from .supervised import masked_logits
 
@@ -43,6 +43,7 @@ ALGORITHMS: dict[str, Any] = {
     "gail": ppo,
     "ppo-kickstart": kickstart,
     "dagger": dagger,
+    "dagger-recurrent": recurrent,
 }
 
 
@@ -184,4 +185,6 @@ def load(directory: str | Path, algorithm: str | None = None) -> Policy:
     except Exception as e:  # equinox/numpy raise several types for a truncated or foreign file
         raise CheckpointError(f"{params} does not hold {found} parameters: {e!r}") from e
     jax.block_until_ready(jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array)))
-    return Policy(model, description)
+    # A module whose policy keeps state (one memory per environment) builds its own.
+    make_policy = getattr(module, "make_policy", None)
+    return make_policy(model, description) if make_policy else Policy(model, description)
