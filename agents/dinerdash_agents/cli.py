@@ -138,6 +138,7 @@ def _cmd_train_recurrent(args: argparse.Namespace) -> int:
         "chunk": args.chunk,
         "epochs": args.epochs,
         "seat_weight": args.seat_weight,
+        "memory": True if args.memory else None,
     }
     config = dataclasses.replace(
         RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
@@ -315,8 +316,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--memory",
         action="store_true",
-        help="dagger: the learner also sees, per table and queue place, the steps since its "
-        "group's patience level changed (computed from the episode's observations)",
+        help="dagger, dagger-recurrent: the learner also sees, per table and queue place, the "
+        "steps since its group's patience level changed (computed from the episode's "
+        "observations)",
     )
     p.add_argument(
         "--kind",

@@ -53,6 +53,16 @@ class Agent:
 
     @property
     def label(self) -> str:
+        if self.algorithm == "dagger-recurrent":
+            settings = RECURRENT_SETTINGS.get(self.name, {})
+            memory = " and the hand-made memory features" if settings.get("memory") else ""
+            what = (
+                f"an MLP over the last {settings.get('stack', 8)} observations{memory} "
+                "(frame-stacked baseline)"
+                if settings.get("kind") == "stack"
+                else f"a GRU over the episode's observations{memory}"
+            )
+            return f"DAgger, the {self.teacher} labelling the states of {what} (beyond the paper)"
         if self.algorithm == "dagger":
             memory = (
                 ", the learner remembering how long each patience level has lasted"

@@ -51,6 +51,7 @@ import numpy as np
 import optax
 from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, NUM_TABLES, OBSERVATION_HIGH, OBSERVATION_SIZE
 
+from .dagger import MEMORY_SIZE, MemoryFeatures
 from .errors import AgentsError
 from .supervised import masked_logits
 
@@ -99,6 +100,9 @@ class RecurrentConfig:
     seat_weight: float = 4.0
     seed_start: int = 0
     validation_episodes: int = 50
+    #: The learner also sees :class:`~dinerdash_agents.dagger.MemoryFeatures` (hand-made
+    #: memory computed from the same observations) beside each observation.
+    memory: bool = False
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -140,9 +144,10 @@ def episode_starts(obs: np.ndarray, last: np.ndarray | None) -> np.ndarray:
     """Which rows of a batch ``obs`` (B, 40) start an episode, given each environment's previous
     observation ``last`` (None: all do): the observation looks like an episode's first
     (:func:`~dinerdash_agents.dagger.is_episode_start`, vectorised) and differs from ``last``."""
-    obs = np.asarray(obs)
+    obs = np.asarray(obs)[:, :OBSERVATION_SIZE]
     if last is None:
         return np.ones(len(obs), np.bool_)
+    last = np.asarray(last)[:, :OBSERVATION_SIZE]
     tables_free = (obs[:, 0 : 3 * NUM_TABLES : 3] == 0).all(axis=1)
     empty = (obs[:, 18:24] == 0).all(axis=1) & (obs[:, 38:40] == 0).all(axis=1)
     sizes, levels = obs[:, 25:39:2], obs[:, 24:38:2]
@@ -163,6 +168,18 @@ def sequence_starts(obs: np.ndarray) -> np.ndarray:
     return first
 
 
+def input_size(config: RecurrentConfig) -> int:
+    """Features per step: the observation, and the memory features with ``memory``."""
+    return OBSERVATION_SIZE + (MEMORY_SIZE if config.memory else 0)
+
+
+def _scaled(obs: jax.Array) -> jax.Array:
+    """The observation divided by v0's upper bounds; memory features (already in [0, 1]) kept."""
+    return jnp.concatenate(
+        [obs[..., :OBSERVATION_SIZE] / OBSERVATION_HIGH, obs[..., OBSERVATION_SIZE:]], axis=-1
+    )
+
+
 def _linear(layer: eqx.nn.Linear, x: jax.Array) -> jax.Array:
     """``layer`` over the last axis of ``x`` of any leading shape."""
     return x @ layer.weight.T + layer.bias
@@ -177,8 +194,9 @@ class GruNet(eqx.Module):
 
     def __init__(self, config: RecurrentConfig, key: jax.Array) -> None:
         k1, k2, k3 = jax.random.split(key, 3)
-        self.cell = eqx.nn.GRUCell(OBSERVATION_SIZE, config.hidden, key=k1)
-        self.head = eqx.nn.Linear(OBSERVATION_SIZE + config.hidden, config.hidden, key=k2)
+        width = input_size(config)
+        self.cell = eqx.nn.GRUCell(width, config.hidden, key=k1)
+        self.head = eqx.nn.Linear(width + config.hidden, config.hidden, key=k2)
         self.out = eqx.nn.Linear(config.hidden, NUM_ACTIONS, key=k3)
 
     def initial_state(self, n: int) -> jax.Array:
@@ -189,7 +207,7 @@ class GruNet(eqx.Module):
     ) -> tuple[jax.Array, jax.Array]:
         """Logits (T, B, 57) of time-major ``obs`` (T, B, 40) with start flags ``first`` (T, B)
         from ``state`` (B, hidden); and the state after the last step."""
-        x = obs / OBSERVATION_HIGH
+        x = _scaled(obs)
         cell = jax.vmap(self.cell)
 
         def step(h, inputs):
@@ -209,31 +227,33 @@ class StackNet(eqx.Module):
     layers: list[eqx.nn.Linear]
     out: eqx.nn.Linear
     stack: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
 
     def __init__(self, config: RecurrentConfig, key: jax.Array) -> None:
         k1, k2, k3 = jax.random.split(key, 3)
         self.stack = config.stack
+        self.width = input_size(config)
         self.layers = [
-            eqx.nn.Linear(OBSERVATION_SIZE * config.stack, config.hidden, key=k1),
+            eqx.nn.Linear(self.width * config.stack, config.hidden, key=k1),
             eqx.nn.Linear(config.hidden, config.hidden, key=k2),
         ]
         self.out = eqx.nn.Linear(config.hidden, NUM_ACTIONS, key=k3)
 
     def initial_state(self, n: int) -> jax.Array:
-        return jnp.zeros((n, OBSERVATION_SIZE * (self.stack - 1)), jnp.float32)
+        return jnp.zeros((n, self.width * (self.stack - 1)), jnp.float32)
 
     def unroll(
         self, state: jax.Array, obs: jax.Array, first: jax.Array
     ) -> tuple[jax.Array, jax.Array]:
         """As :meth:`GruNet.unroll`; the state is the window (B, 40·(stack − 1))."""
-        x = obs / OBSERVATION_HIGH
+        x = _scaled(obs)
         repeats = self.stack - 1
 
         def step(window, inputs):
             x_t, first_t = inputs
             window = jnp.where(first_t[:, None], jnp.tile(x_t, (1, repeats)), window)
             frame = jnp.concatenate([window, x_t], axis=-1)
-            return frame[:, OBSERVATION_SIZE:], frame
+            return frame[:, self.width :], frame
 
         last, frames = jax.lax.scan(step, state, (x, first))
         z = frames
@@ -268,9 +288,13 @@ class RecurrentPolicy:
         self.name: str = description.get("name", self.algorithm)
         self.state: jax.Array | None = None
         self._last: np.ndarray | None = None
+        config = description.get("config") or {}
+        self._with_memory = bool(config.get("memory", False))
+        self._memory = MemoryFeatures() if self._with_memory else None
 
     def reset(self) -> None:
         self.state, self._last = None, None
+        self._memory = MemoryFeatures() if self._with_memory else None
 
     def act(
         self, obs: Any, action_mask: Any | None = None, episode_start: Any | None = None
@@ -289,12 +313,15 @@ class RecurrentPolicy:
             else np.ones((n, NUM_ACTIONS), np.bool_)
         )
         if self.state is None or self.state.shape[0] != n:
-            self.state, self._last = self.model.initial_state(n), None
+            self.reset()
+            self.state = self.model.initial_state(n)
         first = episode_starts(obs, self._last)
         if episode_start is not None:
             first |= np.asarray(episode_start, np.bool_).reshape(n)
-        actions, self.state = _act(self.model, self.state, obs, mask, first, use_mask)
         self._last = obs.copy()
+        if self._memory is not None:
+            obs = self._memory.augment(obs)
+        actions, self.state = _act(self.model, self.state, obs, mask, first, use_mask)
         actions = np.asarray(actions, dtype=np.int64)
         return actions[0] if single else actions
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from dinerdash.server import local_server_unless_addressed
 
-from .dagger import VALIDATION_SEED, training_seeds
+from .dagger import VALIDATION_SEED, MemoryFeatures, training_seeds
 from .recurrent import (
     ALGORITHM,
     TEACHERS,
@@ -35,13 +35,16 @@ def play_round(
     beta: float,
     seeds: list[int],
     rng: np.random.Generator,
+    memory: MemoryFeatures | None = None,
 ) -> tuple[list[Episode], np.ndarray]:
     """Plays one episode per seed of ``seeds`` with the mixture ``β·teacher + (1 − β)·learner``
     on ``envs`` (a vector env whose infos carry ``expert_action`` and ``action_mask``; an
     environment that ends is reset with the next seed through ``options={"reset_mask": ...}``);
     returns the recorded episodes, in the order of ``seeds``, and their final scores. The
     learner steps its state on every observation of every environment, whoever acts (it is not
-    called at all when ``beta`` is 1). Environments left without a seed play on unrecorded."""
+    called at all when ``beta`` is 1). Environments left without a seed play on unrecorded.
+    With ``memory``, the recorded observations are extended by its features (as the learner's
+    own, which it computes itself)."""
     n = envs.num_envs
     queue = list(seeds)
     first, queue = queue[:n], queue[n:]
@@ -60,9 +63,10 @@ def play_round(
     while active.any():
         teacher = np.asarray(info["expert_action"], np.int64)
         mask = np.asarray(info["action_mask"], np.bool_)
+        seen = obs if memory is None else memory.augment(obs)
         for i in np.flatnonzero(active):
             r = record[slot[i]]
-            r["obs"].append(np.asarray(obs[i], np.float32))
+            r["obs"].append(np.asarray(seen[i], np.float32))
             r["mask"].append(mask[i])
             r["action"].append(teacher[i])
         if learner is None:
@@ -130,7 +134,11 @@ def _train(out, config, address, seed, name, progress, connection):
     start, cpu_start = time.monotonic(), time.process_time()
     rng = np.random.default_rng(seed)
     model = init(config, seed)
-    description_stub = {"algorithm": ALGORITHM, "name": name or out.name}
+    description_stub = {
+        "algorithm": ALGORITHM,
+        "name": name or out.name,
+        "config": config.to_json(),
+    }
     seeds = training_seeds(config.seed_start, config.rounds * config.episodes_per_round)
     aggregate: list[Episode] = []
     rows: list[dict[str, Any]] = []
@@ -150,7 +158,8 @@ def _train(out, config, address, seed, name, progress, connection):
             began = time.monotonic()
             round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
             learner = None if beta >= 1.0 else RecurrentPolicy(model, description_stub)
-            episodes, scores = play_round(envs, learner, beta, round_seeds, rng)
+            memory = MemoryFeatures() if config.memory else None
+            episodes, scores = play_round(envs, learner, beta, round_seeds, rng, memory)
             aggregate.extend(episodes)
             played = time.monotonic() - began
             model, losses = fit_round(model, aggregate, config, seed + r)

@@ -144,9 +144,9 @@ def test_chunks_start_from_the_lane_state_of_one_forward_pass(kind: str) -> None
             )
 
 
-@pytest.mark.parametrize("kind", KINDS)
-def test_checkpoint_round_trip(kind: str, tmp_path: Path) -> None:
-    cfg = config(kind)
+@pytest.mark.parametrize(("kind", "memory"), [("gru", False), ("stack", False), ("gru", True)])
+def test_checkpoint_round_trip(kind: str, memory: bool, tmp_path: Path) -> None:
+    cfg = config(kind, memory=memory)
     model = rec.init(cfg, 7)
     description = {"name": "r", "algorithm": rec.ALGORITHM, "config": cfg.to_json()}
     checkpoint.save(tmp_path / "r", model, description)
