@@ -104,6 +104,8 @@ AGENTS = [
     Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
     Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, teacher="planner"),
+    Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, teacher="planner", training_seeds=3),
+    Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, teacher="planner"),
 ]
 #: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
 #: (docs/agents.md says why the planner's seat states weigh 10).
@@ -114,7 +116,10 @@ DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
 }
 #: The recurrent and frame-stacked DAgger rows' settings beyond
 #: :class:`~dinerdash_agents.recurrent.RecurrentConfig`'s defaults.
-RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {}
+RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {
+    "dagger-gru": {"kind": "gru", "hidden": 256, "rounds": 4},
+    "dagger-stack": {"kind": "stack", "stack": 8, "hidden": 256, "rounds": 4},
+}
 #: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000
 GAIL_STEPS = 10_000_000
@@ -392,7 +397,8 @@ def _train_sequence(agent, out, address, seed, k, connection):
     """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
     :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
     from . import checkpoint
-    from .recurrent import RecurrentConfig, train_recurrent
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
 
     directory = agent.directory(out, k)
     if not (directory / checkpoint.DESCRIPTION).is_file():

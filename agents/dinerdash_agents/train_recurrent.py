@@ -145,67 +145,73 @@ def _train(out, config, address, seed, name, progress, connection):
     best = None
     losses: list[float] = [float("nan")]
     n = max(1, min(config.num_envs, config.episodes_per_round))
-    envs = gymnasium.make_vec(
-        "dinerdash:DinerDash-v0",
-        num_envs=n,
-        address=address,
-        expert=TEACHERS[config.teacher],
-        max_episode_steps=config.max_episode_steps,
-        **connection,
-    )
-    try:
-        for r, beta in enumerate(betas(config), start=1):
-            began = time.monotonic()
-            round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
-            learner = None if beta >= 1.0 else RecurrentPolicy(model, description_stub)
-            memory = MemoryFeatures() if config.memory else None
+
+    def make_envs():
+        return gymnasium.make_vec(
+            "dinerdash:DinerDash-v0",
+            num_envs=n,
+            address=address,
+            expert=TEACHERS[config.teacher],
+            max_episode_steps=config.max_episode_steps,
+            **connection,
+        )
+
+    for r, beta in enumerate(betas(config), start=1):
+        began = time.monotonic()
+        round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
+        learner = None if beta >= 1.0 else RecurrentPolicy(model, description_stub)
+        memory = MemoryFeatures() if config.memory else None
+        # A session per round: the server expires a session left idle while the learner
+        # trains (minutes on a loaded machine).
+        envs = make_envs()
+        try:
             episodes, scores = play_round(envs, learner, beta, round_seeds, rng, memory)
-            aggregate.extend(episodes)
-            played = time.monotonic() - began
-            model, losses = fit_round(model, aggregate, config, seed + r)
-            fitted = time.monotonic() - began - played
-            val_scores, _ = evaluate_policy(
-                RecurrentPolicy(model, description_stub).act,
-                config.validation_episodes,
-                seed=VALIDATION_SEED,
-                address=address,
-                num_envs=config.validation_episodes,
-                max_steps=config.max_episode_steps,
-                **connection,
+        finally:
+            envs.close()
+        aggregate.extend(episodes)
+        played = time.monotonic() - began
+        model, losses = fit_round(model, aggregate, config, seed + r)
+        fitted = time.monotonic() - began - played
+        val_scores, _ = evaluate_policy(
+            RecurrentPolicy(model, description_stub).act,
+            config.validation_episodes,
+            seed=VALIDATION_SEED,
+            address=address,
+            num_envs=config.validation_episodes,
+            max_steps=config.max_episode_steps,
+            **connection,
+        )
+        val = float(np.mean(val_scores))
+        if best is None or val > best[0]:
+            best = (val, r, model)
+        states = sum(len(e) for e in aggregate)
+        rows.append(
+            {
+                "round": r,
+                "beta": round(beta, 6),
+                "episodes": len(round_seeds),
+                "seeds": f"{round_seeds[0]}..{round_seeds[-1]}",
+                "dataset_steps": states,
+                "rollout_mean_score": round(float(np.mean(scores)), 1),
+                "rollout_mean_length": round(float(np.mean([len(e) for e in episodes])), 1),
+                "validation_mean_score": round(val, 1),
+                "validation_sd": round(float(np.std(val_scores)), 1),
+                "final_loss": round(losses[-1], 5),
+                "play_seconds": round(played, 1),
+                "fit_seconds": round(fitted, 1),
+                "round_seconds": round(time.monotonic() - began, 1),
+            }
+        )
+        if progress:
+            row = rows[-1]
+            print(
+                f"dagger-recurrent {config.kind} round {r}/{config.rounds} β={beta:.3g}: "
+                f"mixture {row['rollout_mean_score']:,.0f}, learner on seeds "
+                f"{VALIDATION_SEED}.. {val:,.0f}, {states:,} states, loss "
+                f"{row['final_loss']:.4f}, play {played:.0f} s, fit {fitted:.0f} s, "
+                f"{row['round_seconds']:.0f} s",
+                flush=True,
             )
-            val = float(np.mean(val_scores))
-            if best is None or val > best[0]:
-                best = (val, r, model)
-            states = sum(len(e) for e in aggregate)
-            rows.append(
-                {
-                    "round": r,
-                    "beta": round(beta, 6),
-                    "episodes": len(round_seeds),
-                    "seeds": f"{round_seeds[0]}..{round_seeds[-1]}",
-                    "dataset_steps": states,
-                    "rollout_mean_score": round(float(np.mean(scores)), 1),
-                    "rollout_mean_length": round(float(np.mean([len(e) for e in episodes])), 1),
-                    "validation_mean_score": round(val, 1),
-                    "validation_sd": round(float(np.std(val_scores)), 1),
-                    "final_loss": round(losses[-1], 5),
-                    "play_seconds": round(played, 1),
-                    "fit_seconds": round(fitted, 1),
-                    "round_seconds": round(time.monotonic() - began, 1),
-                }
-            )
-            if progress:
-                row = rows[-1]
-                print(
-                    f"dagger-recurrent {config.kind} round {r}/{config.rounds} β={beta:.3g}: "
-                    f"mixture {row['rollout_mean_score']:,.0f}, learner on seeds "
-                    f"{VALIDATION_SEED}.. {val:,.0f}, {states:,} states, loss "
-                    f"{row['final_loss']:.4f}, play {played:.0f} s, fit {fitted:.0f} s, "
-                    f"{row['round_seconds']:.0f} s",
-                    flush=True,
-                )
-    finally:
-        envs.close()
     assert best is not None
     seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
     states = sum(len(e) for e in aggregate)
