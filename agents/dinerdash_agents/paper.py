@@ -16,9 +16,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from dinerdash.server import local_server_unless_addressed
 
-from .train_rl import RL_ALGORITHMS
+from . import checkpoint
+from .connect import ConnectOptions, options, served
+from .dagger import DaggerConfig
+from .evaluate import evaluate_policy
+from .train_dagger import train_dagger
+from .train_imitation import default_config, train_checkpoint
+from .train_rl import RL_ALGORITHMS, train_rl
 
 __all__ = ["AGENTS", "EVAL_EPISODES", "EVAL_SEED", "run_paper"]
 
@@ -130,14 +135,16 @@ def run_paper(
     out: str | Path,
     *,
     address: str | list[str] | None = None,
+    connect: ConnectOptions | None = None,
     demos: str | Path | None = None,
     seed: int = 0,
     rl_steps: int | None = None,
     update: bool = False,
     **connection: Any,
 ) -> dict[str, Any]:
-    """Runs the experiment against ``address`` (default: ``DINERDASH_ADDRESS``, else a local
-    server started here) and writes its results under ``out``; returns them. ``demos``: the
+    """Runs the experiment against the server(s) of ``connect`` (with ``address`` and the
+    connection keywords put in; none named: ``DINERDASH_ADDRESS``, else a local server started
+    here) and writes its results under ``out``; returns them. ``demos``: the
     expert's demonstrations to use instead of collecting them; ``rl_steps``: every RL agent's
     budget instead of the paper's; ``update``: keep the rows (and the expert's, planner's and
     random play's) of ``out/results.json`` and only train and evaluate the agents it lacks, then
@@ -153,7 +160,8 @@ def run_paper(
     ):
         return _write(out, previous)
     # A local server, if any, starts before any JAX work.
-    with local_server_unless_addressed(address) as (address, _):
+    connect = options(connect, "run_paper", address, **connection)
+    with served(connect) as (connect, _):
         with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
             if previous is not None:
                 # Only agents missing from the previous results are trained: the demonstrations
@@ -163,9 +171,9 @@ def run_paper(
             else:
                 needs = {"expert", "planner"}
             if demos is None and "expert" in needs:
-                demos = _collect(Path(tmp), address, "expert", connection)
+                demos = _collect(Path(tmp), connect, "expert")
             planner_demos = (
-                _collect(Path(tmp), address, "planner", connection)
+                _collect(Path(tmp), connect, "planner")
                 if "planner" in needs
                 else Path("dinerdash_planner.npz")
             )
@@ -173,17 +181,14 @@ def run_paper(
                 out,
                 Path(demos or "dinerdash_expert.npz"),
                 planner_demos,
-                address,
+                connect,
                 seed,
                 rl_steps,
-                connection,
                 previous,
             )
 
 
-def _collect(
-    directory: Path, address: str | list[str], policy: str, connection: dict[str, Any]
-) -> Path:
+def _collect(directory: Path, connect: ConnectOptions, policy: str) -> Path:
     """The ``policy``'s demonstrations of seeds 0..273, as ``python -m dinerdash collect``
     writes them."""
     from dinerdash.evaluation import Progress, collect
@@ -194,9 +199,8 @@ def _collect(
         policy=policy,
         episodes=DEMO_EPISODES,
         seed=0,
-        address=address,
+        connect=connect,
         progress=progress,
-        **connection,
     )
     progress.close()
     print(f"wrote {collected.path}: {DEMO_EPISODES} episodes, {collected.steps} steps")
@@ -207,16 +211,12 @@ def _experiment(
     out: Path,
     demos: Path,
     planner_demos: Path,
-    address,
+    connect: ConnectOptions,
     seed: int,
     rl_steps: int | None,
-    connection: dict[str, Any],
     previous: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     from dinerdash.evaluation import Progress, evaluate_through_env
-
-    from .evaluate import evaluate_policy
-    from .train_imitation import default_config, train_checkpoint
 
     rows: list[dict[str, Any]] = []
 
@@ -232,7 +232,7 @@ def _experiment(
             "mean_length": float(np.mean(lengths)),
         }
 
-    common = {"seed": EVAL_SEED, "address": address, "num_envs": EVAL_EPISODES, **connection}
+    common = {"seed": EVAL_SEED, "connect": connect, "num_envs": EVAL_EPISODES}
     if previous is not None:
         expert, random, planner = previous["expert"], previous["random"], previous["planner"]
     else:
@@ -252,23 +252,17 @@ def _experiment(
             rows.extend(row for name, row in kept.items() if name.split(" (")[0] == agent.name)
             continue
         if agent.training_seeds > 1 or agent.algorithm in SEQUENCE_ALGORITHMS:
-            rows.extend(_sequence_rows(agent, out, address, seed, connection, evaluate, common))
+            rows.extend(_sequence_rows(agent, out, connect, seed, evaluate, common))
             continue
-        if agent.rl:
-            policy, description = _train_rl(agent, out, demos, address, seed, rl_steps, connection)
-        elif agent.algorithm == "dagger":
-            policy, description = _train_dagger(agent, out, address, seed, connection)
-        else:
-            config = default_config(agent.algorithm, loss=agent.loss)
-            policy, description = train_checkpoint(
-                agent.algorithm,
-                demos if agent.teacher == "expert" else planner_demos,
-                out / "checkpoints" / agent.name,
-                episodes=agent.episodes,
-                seed=seed,
-                config=config,
-                name=agent.name,
-            )
+        run = _RUNS.get(agent.algorithm, _train_rl)
+        policy, description = run(
+            agent,
+            out,
+            demos if agent.teacher == "expert" else planner_demos,
+            connect,
+            seed,
+            rl_steps,
+        )
         masks = [True, False] if agent.loss in ("plain", "unmasked") else [True]
         for use_mask in masks:
             name = agent.name + ("" if use_mask else " (no mask)")
@@ -354,14 +348,12 @@ def _write(out: Path, results: dict[str, Any]) -> dict[str, Any]:
 SEQUENCE_ALGORITHMS = ("dagger-recurrent",)
 
 
-def _sequence_rows(agent, out, address, seed, connection, evaluate, common) -> list[dict]:
+def _sequence_rows(agent, out, connect, seed, evaluate, common) -> list[dict]:
     """One row for an agent of several training seeds: each seed's checkpoint trained (unless it
     stands) and evaluated; ``runs`` holds every seed's scores, ``scores`` seed 0's."""
-    from .evaluate import evaluate_policy
-
     runs, descriptions = [], []
     for k in range(agent.training_seeds):
-        policy, description = _train_sequence(agent, out, address, seed + k, k, connection)
+        policy, description = _train_sequence(agent, out, connect, seed + k, k)
         result = evaluate(
             f"{agent.name} seed {k}",
             lambda p, act=policy.act: evaluate_policy(act, EVAL_EPISODES, progress=p, **common),
@@ -393,7 +385,7 @@ def _sequence_rows(agent, out, address, seed, connection, evaluate, common) -> l
     ]
 
 
-def _train_sequence(agent, out, address, seed, k, connection):
+def _train_sequence(agent, out, connect, seed, k):
     """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
     :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
     from . import checkpoint
@@ -405,27 +397,43 @@ def _train_sequence(agent, out, address, seed, k, connection):
         train_recurrent(
             directory,
             RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
-            address=address,
+            connect=connect,
             seed=seed,
             name=directory.name,
-            **connection,
         )
     return checkpoint.load(directory), checkpoint.read_description(directory)
+
+
+def _train_imitation(
+    agent: Agent,
+    out: Path,
+    demos: Path,
+    connect: ConnectOptions,
+    seed: int,
+    rl_steps: int | None,
+) -> tuple[Any, dict[str, Any]]:
+    """Trains an imitation agent on the first ``agent.episodes`` of ``demos`` (seconds)."""
+    return train_checkpoint(
+        agent.algorithm,
+        demos,
+        out / "checkpoints" / agent.name,
+        episodes=agent.episodes,
+        seed=seed,
+        config=default_config(agent.algorithm, loss=agent.loss),
+        name=agent.name,
+    )
 
 
 def _train_rl(
     agent: Agent,
     out: Path,
     demos: Path,
-    address,
+    connect: ConnectOptions,
     seed: int,
     rl_steps: int | None,
-    connection: dict[str, Any],
 ) -> tuple[Any, dict[str, Any]]:
     """Trains an RL agent, or continues its run where a checkpoint of it already stands (a
     finished run is only loaded: the full budgets take tens of minutes)."""
-    from . import checkpoint
-    from .train_rl import train_rl
 
     directory = out / "checkpoints" / agent.name
     budgets = {"gail": GAIL_STEPS, "ppo-kickstart": KICKSTART_STEPS}
@@ -436,37 +444,42 @@ def _train_rl(
         agent.algorithm,
         steps,
         directory,
-        address=address,
+        connect=connect,
         demos=demos if agent.algorithm == "gail" else None,
         seed=seed,
         resume=resume,
         # Kick-started from the BC checkpoint of the same demonstrations, trained above.
         init=out / "checkpoints" / f"bc-{agent.episodes}" if kickstart and not resume else None,
         teacher=agent.teacher if kickstart and not resume else None,
-        **connection,
     )
     return checkpoint.load(directory), checkpoint.read_description(directory)
 
 
 def _train_dagger(
-    agent: Agent, out: Path, address, seed: int, connection: dict[str, Any]
+    agent: Agent,
+    out: Path,
+    demos: Path,
+    connect: ConnectOptions,
+    seed: int,
+    rl_steps: int | None,
 ) -> tuple[Any, dict[str, Any]]:
     """Runs DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`, or only loads a
     checkpoint of it that already stands (the planner's rounds take minutes)."""
-    from . import checkpoint
-    from .dagger import DaggerConfig, train_dagger
 
     directory = out / "checkpoints" / agent.name
     if not (directory / checkpoint.DESCRIPTION).is_file():
         train_dagger(
             directory,
             DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]),
-            address=address,
+            connect=connect,
             seed=seed,
             name=agent.name,
-            **connection,
         )
     return checkpoint.load(directory), checkpoint.read_description(directory)
+
+
+#: How each agent's policy is had, by algorithm (the RL ones: :func:`_train_rl`).
+_RUNS = {"bc": _train_imitation, "dpgm": _train_imitation, "dagger": _train_dagger}
 
 
 def _pct(x: float | None) -> str:

@@ -51,6 +51,7 @@ import numpy as np
 import optax
 from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, NUM_TABLES, OBSERVATION_HIGH, OBSERVATION_SIZE
 
+from . import checkpoint
 from .dagger import MEMORY_SIZE, MemoryFeatures
 from .errors import AgentsError
 from .supervised import masked_logits
@@ -460,3 +461,12 @@ def fit_round(
             losses.append(loss)
         history.append(float(np.mean(jax.device_get(losses))))
     return eqx.combine(params, static), history
+
+
+checkpoint.register(
+    ALGORITHM,
+    module=__name__,
+    config_from_json=config_from_json,
+    init=init,
+    policy=make_policy,
+)

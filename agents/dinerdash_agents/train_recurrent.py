@@ -10,10 +10,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+import gymnasium
 import numpy as np
-from dinerdash.server import local_server_unless_addressed
 
+from . import checkpoint
+from ._version import __version__
+from .connect import ConnectOptions, options, served
+from .curves import write_curve
 from .dagger import VALIDATION_SEED, MemoryFeatures, training_seeds
+from .evaluate import evaluate_policy
 from .recurrent import (
     ALGORITHM,
     TEACHERS,
@@ -26,7 +31,24 @@ from .recurrent import (
     sequence_starts,
 )
 
-__all__ = ["play_round", "train_recurrent"]
+__all__ = ["CURVE_COLUMNS", "play_round", "train_recurrent"]
+
+#: The columns of a run's ``curve.csv``, one row per round.
+CURVE_COLUMNS = (
+    "round",
+    "beta",
+    "episodes",
+    "seeds",
+    "dataset_steps",
+    "rollout_mean_score",
+    "rollout_mean_length",
+    "validation_mean_score",
+    "validation_sd",
+    "final_loss",
+    "play_seconds",
+    "fit_seconds",
+    "round_seconds",
+)
 
 
 def play_round(
@@ -109,28 +131,25 @@ def train_recurrent(
     config: RecurrentConfig,
     *,
     address: str | list[str] | None = None,
+    connect: ConnectOptions | None = None,
     seed: int = 0,
     name: str | None = None,
     progress: bool = True,
     **connection: Any,
 ) -> tuple[RecurrentPolicy, dict]:
-    """Runs ``config.rounds`` rounds of sequence DAgger against ``address`` (default:
-    ``DINERDASH_ADDRESS``, else a local server started here) and writes the best round's learner
-    to ``out``; returns its policy and description."""
+    """Runs ``config.rounds`` rounds of sequence DAgger against the server(s) of ``connect``
+    (with ``address`` and the connection keywords put in; none named: ``DINERDASH_ADDRESS``,
+    else a local server started here) and writes the best round's learner to ``out``; returns
+    its policy and description."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
+    connect = options(connect, "train_recurrent", address, **connection)
     # A local server, if any, starts before any JAX work.
-    with local_server_unless_addressed(address) as (address, _):
-        return _train(Path(out), config, address, seed, name, progress, connection)
+    with served(connect) as (connect, _):
+        return _train(Path(out), config, connect, seed, name, progress)
 
 
-def _train(out, config, address, seed, name, progress, connection):
-    import gymnasium
-
-    from . import __version__, checkpoint
-    from .dagger import _write_curve
-    from .evaluate import evaluate_policy
-
+def _train(out, config, connect, seed, name, progress):
     start, cpu_start = time.monotonic(), time.process_time()
     rng = np.random.default_rng(seed)
     model = init(config, seed)
@@ -150,10 +169,9 @@ def _train(out, config, address, seed, name, progress, connection):
         return gymnasium.make_vec(
             "dinerdash:DinerDash-v0",
             num_envs=n,
-            address=address,
+            connect=connect,
             expert=TEACHERS[config.teacher],
             max_episode_steps=config.max_episode_steps,
-            **connection,
         )
 
     for r, beta in enumerate(betas(config), start=1):
@@ -176,10 +194,9 @@ def _train(out, config, address, seed, name, progress, connection):
             RecurrentPolicy(model, description_stub).act,
             config.validation_episodes,
             seed=VALIDATION_SEED,
-            address=address,
+            connect=connect,
             num_envs=config.validation_episodes,
             max_steps=config.max_episode_steps,
-            **connection,
         )
         val = float(np.mean(val_scores))
         if best is None or val > best[0]:
@@ -242,5 +259,21 @@ def _train(out, config, address, seed, name, progress, connection):
         },
     }
     title = f"sequence DAgger ({config.kind}), teacher {config.teacher}: {out.name}"
-    checkpoint.save(out, best[2], description, extra=lambda tmp: _write_curve(tmp, rows, title))
+
+    def curve(tmp: Path) -> None:
+        write_curve(
+            tmp,
+            CURVE_COLUMNS,
+            rows,
+            lines={
+                "validation_mean_score": f"learner, seeds {VALIDATION_SEED}..",
+                "rollout_mean_score": "mixture policy π_i",
+            },
+            xlabel="DAgger round",
+            ylabel="mean final score",
+            title=title,
+            marker="o",
+        )
+
+    checkpoint.save(out, best[2], description, extra=curve)
     return RecurrentPolicy(best[2], checkpoint.read_description(out)), description
