@@ -26,6 +26,8 @@ def slice_batch(batch: pb.Batch, lo: int, hi: int) -> pb.Batch:
         if isinstance(value, bytes):
             width = len(value) // n
             setattr(out, desc.name, value[lo * width : hi * width])
+        elif isinstance(value, int):  # about the whole session: drain_remaining_ms
+            setattr(out, desc.name, value)
         else:  # repeated: seeds, stream_episodes
             getattr(out, desc.name).extend(value[lo:hi])
     return out
