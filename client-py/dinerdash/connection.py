@@ -33,6 +33,7 @@ from .errors import (
     ServiceTransportError,
     TLSMismatch,
     error_for_rpc,
+    reason_of,
 )
 
 __all__ = [
@@ -481,6 +482,7 @@ class Connection:
             error.code() != grpc.StatusCode.UNAVAILABLE
             or self.retries <= 0
             or method in NOT_RETRIED
+            or reason_of(error) == "DRAINING"
         ):
             raise self._error(method, error, attempts=1) from None
         time.sleep(self.retry_backoff)
@@ -534,7 +536,13 @@ class Connection:
         retries = self.retries if retries is None else retries
         if method in NOT_RETRIED:
             retries = 0
-        if error.code() == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
+        if (
+            error.code() == grpc.StatusCode.UNAVAILABLE
+            and attempt < retries
+            and not self._closed
+            # A draining server will not take the session however often it is asked.
+            and reason_of(error) != "DRAINING"
+        ):
             time.sleep(self.retry_backoff * (2**attempt))
             return attempt + 1
         raise self._error(method, error, attempts=attempt + 1, timeout=timeout) from None
