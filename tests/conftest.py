@@ -93,13 +93,18 @@ class ServerProcess:
         self.proc.stdout.close()
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
+        """SIGTERM, repeated while the server drains (the first one starts a drain that serves
+        the sessions left; a later one ends it at once), SIGKILL after 10 s."""
+        deadline = time.monotonic() + 10
+        while self.proc.poll() is None and time.monotonic() < deadline:
             self.proc.terminate()
             try:
-                self.proc.wait(timeout=10)
+                self.proc.wait(timeout=0.2)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+                pass
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
         self.proc.stdout.close()
 
     def restart(self) -> ServerProcess:

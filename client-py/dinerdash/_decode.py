@@ -1,7 +1,9 @@
 """Reply decoding: the packed fields of the server's ``Batch`` replies turned into the numpy
 observations and Gymnasium infos the environments return (:func:`decode` for a vector env,
-:func:`decode_one` for the single env), and a Batch cut (:func:`slice_batch`) or joined
-(:func:`join`) along its environments when an env's environments live on several servers."""
+:func:`decode_one` for the single env), a Batch cut (:func:`slice_batch`) or joined
+(:func:`join`) along its environments when an env's environments live on several servers, and
+what a Batch says about its server (:func:`drain_remaining_ms`: whether it drains before a
+restart)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,16 @@ import numpy as np
 from ._proto import pb
 from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
-__all__ = ["decode", "decode_one", "join", "seeds", "slice_batch"]
+__all__ = ["decode", "decode_one", "drain_remaining_ms", "join", "seeds", "slice_batch"]
+
+
+def drain_remaining_ms(batch: pb.Batch | None) -> int:
+    """Milliseconds left before the server that sent ``batch`` ends its session, when that server
+    is draining before a restart (it got SIGTERM: it serves its sessions for up to its
+    ``--drain-timeout`` and takes no new ones); 0 when it is not draining, or when there is no
+    Batch yet. Each server's Batch says it for that server: a vector env reads it per core
+    (``core.last``)."""
+    return 0 if batch is None else batch.drain_remaining_ms
 
 
 def slice_batch(batch: pb.Batch, lo: int, hi: int) -> pb.Batch:
@@ -26,6 +37,8 @@ def slice_batch(batch: pb.Batch, lo: int, hi: int) -> pb.Batch:
         if isinstance(value, bytes):
             width = len(value) // n
             setattr(out, desc.name, value[lo * width : hi * width])
+        elif isinstance(value, int):  # about the whole session: drain_remaining_ms
+            setattr(out, desc.name, value)
         else:  # repeated: seeds, stream_episodes
             getattr(out, desc.name).extend(value[lo:hi])
     return out

@@ -33,7 +33,7 @@ from .errors import (
     ServiceTransportError,
     TLSMismatch,
     error_for_rpc,
-    status_details,
+    reason_of,
 )
 
 __all__ = [
@@ -509,6 +509,7 @@ class Connection:
             error.code() != grpc.StatusCode.UNAVAILABLE
             or self.retries <= 0
             or method in NOT_RETRIED
+            or reason_of(error) == "DRAINING"
         ):
             raise self._error(method, error, attempts=1) from None
         time.sleep(self.retry_backoff)
@@ -560,9 +561,16 @@ class Connection:
         timeout: float | None = None,
     ) -> int:
         retries = self.retries if retries is None else retries
-        if method in NOT_RETRIED or b"DRAINING" in (status_details(error) or b""):
-            retries = 0  # a draining server stays so: the caller goes elsewhere at once
-        if error.code() == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
+        if method in NOT_RETRIED:
+            retries = 0
+        if (
+            error.code() == grpc.StatusCode.UNAVAILABLE
+            and attempt < retries
+            and not self._closed
+            # A draining server will not take the session however often it is asked: the caller
+            # goes elsewhere at once.
+            and reason_of(error) != "DRAINING"
+        ):
             time.sleep(self.retry_backoff * (2**attempt))
             return attempt + 1
         raise self._error(method, error, attempts=attempt + 1, timeout=timeout) from None

@@ -16,6 +16,8 @@ attaches (a ``google.rpc.Status`` in the ``grpc-status-details-bin`` trailer: ``
     ├── ServiceTimeout (TimeoutError) DEADLINE_EXCEEDED
     ├── ServiceInternalError          INTERNAL, UNKNOWN and any other code
     ├── ServiceTransportError (OSError)  UNAVAILABLE after the retries, or no connection
+    │   ├── ServerDraining            reason DRAINING: the server drains before a restart and
+    │   │                             starts no new session (CreateSession, Fork, Restore, Rollout)
     │   ├── TLSMismatch               a plaintext client met a TLS server (or the other way round)
     │   └── NoServerLeft              a vector env over several servers lost every one of them
     └── EnvClosed                     the env was closed; ``reset()`` opens a new session
@@ -39,6 +41,7 @@ __all__ = [
     "NoServerLeft",
     "ResourceExhausted",
     "ServerBinaryNotFound",
+    "ServerDraining",
     "ServiceError",
     "ServiceInternalError",
     "ServiceTimeout",
@@ -48,6 +51,7 @@ __all__ = [
     "Unauthenticated",
     "error_for_rpc",
     "error_for_status",
+    "reason_of",
 ]
 
 #: The ``ErrorInfo.domain`` of the DinerDash service's errors.
@@ -131,6 +135,20 @@ class ServiceTransportError(ServiceError, OSError):
     """The server could not be reached: refused, lost, or still down after the retries."""
 
 
+class ServerDraining(ServiceTransportError):
+    """The server is draining before a planned restart (it got SIGTERM): it serves the sessions
+    it has until its drain timeout, but starts no new one; CreateSession, Fork, Restore and
+    Rollout are refused with ``UNAVAILABLE`` and reason ``DRAINING``. Not retried on the same
+    server: create the session on another one (or, for a single server, after its restart).
+    ``drain_remaining_ms`` is the time the server had left when it refused."""
+
+    @property
+    def drain_remaining_ms(self) -> int | None:
+        """Milliseconds left before the server ends the sessions it still serves."""
+        value = self.metadata.get("drain_remaining_ms", "")
+        return int(value) if value.isdigit() else None
+
+
 class TLSMismatch(ServiceTransportError):
     """The client and the server disagree about TLS: pass ``tls=True`` or ``tls_ca=PATH`` (or
     ``DINERDASH_TLS_CA``) for a server started with ``--tls-cert``, and neither for a plaintext
@@ -171,7 +189,10 @@ _BY_CODE: dict[grpc.StatusCode, type[ServiceError]] = {
 
 
 #: Reasons with a more precise class than their status code's.
-_BY_REASON: dict[str, type[ServiceError]] = {"EPISODE_OVER": EpisodeOver}
+_BY_REASON: dict[str, type[ServiceError]] = {
+    "EPISODE_OVER": EpisodeOver,
+    "DRAINING": ServerDraining,
+}
 
 
 def error_for_status(
@@ -201,6 +222,11 @@ def status_details(error: grpc.RpcError) -> bytes | None:
         if key == _DETAILS_KEY:
             return value
     return None
+
+
+def reason_of(error: grpc.RpcError) -> str | None:
+    """The server's ``ErrorInfo.reason`` of a failed call, if its trailers carry one."""
+    return _decode_details(status_details(error))[0]
 
 
 def error_for_rpc(error: grpc.RpcError, details: str, address: str | None) -> ServiceError:

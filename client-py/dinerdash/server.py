@@ -2,8 +2,9 @@
 
 :class:`LocalServer` starts the binary on a free port (``--port 0``), waits for the line
 ``dinerdash-server listening on HOST:PORT`` (with a timeout and a readable error), and always stops
-it: terminate, wait, then kill. On Linux the child also gets ``PR_SET_PDEATHSIG``, so it dies with
-the Python process even when that one is killed without a chance to clean up.
+it: SIGTERM (repeated, since the first one only starts the server's drain), wait, then kill. On
+Linux the child also gets ``PR_SET_PDEATHSIG``, so it dies with the Python process even when that
+one is killed without a chance to clean up.
 
 The binary is, in this order: the ``binary`` argument, ``DINERDASH_SERVER``, the binary of the
 installed ``dinerdash-server`` wheel (``pip install 'dinerdash[server]'``), ``dinerdash-server`` on
@@ -95,14 +96,23 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         pass
 
 
+#: Seconds between the SIGTERMs that stop a server: its first one starts a drain that serves the
+#: sessions left for up to ``--drain-timeout``; the next one, once that was handled, ends it.
+_SIGTERM_EVERY = 0.2
+
+
 def _stop_process(proc: subprocess.Popen, timeout: float) -> None:
-    if proc.poll() is None:
+    """Stops ``proc`` at once: SIGTERM, again while it drains, and SIGKILL after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None and time.monotonic() < deadline:
         proc.terminate()
         try:
-            proc.wait(timeout=timeout)
+            proc.wait(timeout=min(_SIGTERM_EVERY, max(0.0, deadline - time.monotonic())))
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+            pass
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
     if proc.stdout is not None:
         proc.stdout.close()
 

@@ -90,6 +90,11 @@ pub struct ServeArgs {
     /// PEM private key of --tls-cert.
     #[arg(long, requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// On SIGTERM/SIGINT, serve the sessions left for this long at most (seconds, or with ms,
+    /// s, m or h) while refusing new ones, then stop; 0 stops at once. A second signal stops at
+    /// once. Give orchestrators a longer grace period (terminationGracePeriodSeconds).
+    #[arg(long, default_value = "30", value_parser = parse_drain_timeout)]
+    pub drain_timeout: Duration,
 }
 
 /// Why the flags describe no server that may start.
@@ -198,6 +203,19 @@ pub fn parse_duration(text: &str) -> Result<Duration, String> {
     parse_scaled(text, MS, "seconds", "5m").map(Duration::from_millis)
 }
 
+/// A duration as [`parse_duration`] reads it, or zero ("0", "0s").
+pub fn parse_drain_timeout(text: &str) -> Result<Duration, String> {
+    let number = ["ms", "s", "m", "h"]
+        .iter()
+        .find_map(|unit| text.trim().strip_suffix(unit))
+        .unwrap_or(text)
+        .trim();
+    if number.parse::<u64>() == Ok(0) {
+        return Ok(Duration::ZERO);
+    }
+    parse_duration(text)
+}
+
 /// "1073741824", "512MiB", "2GiB", "64KiB" (also KB, MB, GB as powers of 1000) as bytes.
 pub fn parse_bytes(text: &str) -> Result<u64, String> {
     const UNITS: &[(&str, u64)] = &[
@@ -235,6 +253,9 @@ pub struct ServerConfig {
     pub tenants: Vec<Token>,
     /// What each connection may hold when its requests carry no tenant token.
     pub connection_share: Share,
+    /// How long the sessions left are served once the shutdown future completes, while new
+    /// ones are refused (`--drain-timeout`); zero (the default here) stops at once.
+    pub drain_timeout: Duration,
     /// Connection limit and idle timeout.
     pub connections: connections::Limits,
     /// What one Rollout request may do.
@@ -288,6 +309,7 @@ impl ServerConfig {
             auth_token: args.auth_token.clone().filter(|t| !t.is_empty()),
             tenants,
             connection_share: share,
+            drain_timeout: args.drain_timeout,
             connections: connections::Limits {
                 max_connections: args.max_connections as usize,
                 idle_timeout: args.idle_timeout,
@@ -339,6 +361,10 @@ mod tests {
                 .unwrap_err()
                 .contains("use s, ms, m, h")
         );
+        assert_eq!(parse_drain_timeout("0"), Ok(Duration::ZERO));
+        assert_eq!(parse_drain_timeout("0s"), Ok(Duration::ZERO));
+        assert_eq!(parse_drain_timeout("45"), Ok(Duration::from_secs(45)));
+        assert!(parse_drain_timeout("-1").is_err());
         assert!(parse_bytes("1TiB").unwrap_err().contains("unknown unit"));
         assert!(parse_bytes("x").unwrap_err().contains("number of bytes"));
         assert!(

@@ -27,6 +27,10 @@ use crate::service::{DinerDashService, MAX_MESSAGE_BYTES};
 use crate::session::Store;
 use crate::shutdown;
 
+/// The grpc.health.v1 service name that stays SERVING while the server drains, for liveness
+/// probes (a draining server is alive; it only takes no new sessions).
+pub const LIVENESS_SERVICE: &str = "liveness";
+
 /// Why the server could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
@@ -105,7 +109,7 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     let _ = stdout.flush();
     drop(stdout);
 
-    shutdown::serve_until_signal(|stop| run(listeners, config, stop)).await
+    shutdown::serve_until_signal(config.drain_timeout, |stop| run(listeners, config, stop)).await
 }
 
 /// The sockets a server serves, bound by its caller: [`serve`] binds them from the flags, tests
@@ -126,8 +130,9 @@ impl Listeners {
     }
 }
 
-/// Serves on `listeners` until `shutdown` completes, then stops accepting connections, lets the
-/// RPCs in flight finish, and returns.
+/// Serves on `listeners` until `shutdown` completes, then drains (for `config.drain_timeout` at
+/// most: see [`shutdown`]), stops accepting connections, lets the RPCs in flight finish, and
+/// returns.
 pub async fn run(
     listeners: Listeners,
     config: ServerConfig,
@@ -138,9 +143,15 @@ pub async fn run(
     let (trigger, stopping) = shutdown::channel();
 
     let sweeper = tokio::spawn(store.clone().sweep_until(stopping.clone()));
+    let (sessions, drain_timeout) = (store.clone(), config.drain_timeout);
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<DinerDashServer<DinerDashService>>()
+        .await;
+    // Says whether the process is alive, for liveness probes: SERVING while draining too, when
+    // the whole server ("") and DinerDash already say NOT_SERVING to readiness probes.
+    health
+        .set_service_status(LIVENESS_SERVICE, tonic_health::ServingStatus::Serving)
         .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
@@ -196,15 +207,18 @@ pub async fn run(
         .add_service(InterceptedService::new(dinerdash, gate))
         .serve_with_incoming_shutdown(incoming, async {
             shutdown.await;
-            // First of all: close the port and answer new calls UNAVAILABLE.
-            trigger.fire();
-            tracing::info!("shutting down: finishing the RPCs in flight");
+            // First of all: refuse new sessions, and tell the probes.
+            let until = trigger.drain(drain_timeout);
             health
                 .set_not_serving::<DinerDashServer<DinerDashService>>()
                 .await;
             health
                 .set_service_status("", tonic_health::ServingStatus::NotServing)
                 .await;
+            shutdown::drained(until, || sessions.live()).await;
+            // Then close the port and answer new calls UNAVAILABLE.
+            trigger.fire();
+            tracing::info!("shutting down: finishing the RPCs in flight");
         })
         .await;
 

@@ -158,7 +158,7 @@ class StepRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., actions: _Optional[bytes] = ...) -> None: ...
 
 class Batch(_message.Message):
-    __slots__ = ("num_envs", "observations", "rewards", "terminated", "truncated", "scores", "lost", "ticks", "action_masks", "expert_actions", "reset", "seeds", "final_observations", "final_scores", "final_lost", "final_ticks", "stream_episodes", "final_action_masks", "final_expert_actions")
+    __slots__ = ("num_envs", "observations", "rewards", "terminated", "truncated", "scores", "lost", "ticks", "action_masks", "expert_actions", "reset", "seeds", "final_observations", "final_scores", "final_lost", "final_ticks", "stream_episodes", "final_action_masks", "final_expert_actions", "drain_remaining_ms")
     NUM_ENVS_FIELD_NUMBER: _ClassVar[int]
     OBSERVATIONS_FIELD_NUMBER: _ClassVar[int]
     REWARDS_FIELD_NUMBER: _ClassVar[int]
@@ -178,6 +178,7 @@ class Batch(_message.Message):
     STREAM_EPISODES_FIELD_NUMBER: _ClassVar[int]
     FINAL_ACTION_MASKS_FIELD_NUMBER: _ClassVar[int]
     FINAL_EXPERT_ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    DRAIN_REMAINING_MS_FIELD_NUMBER: _ClassVar[int]
     num_envs: int
     observations: bytes
     rewards: bytes
@@ -197,7 +198,8 @@ class Batch(_message.Message):
     stream_episodes: _containers.RepeatedScalarFieldContainer[int]
     final_action_masks: bytes
     final_expert_actions: bytes
-    def __init__(self, num_envs: _Optional[int] = ..., observations: _Optional[bytes] = ..., rewards: _Optional[bytes] = ..., terminated: _Optional[bytes] = ..., truncated: _Optional[bytes] = ..., scores: _Optional[bytes] = ..., lost: _Optional[bytes] = ..., ticks: _Optional[bytes] = ..., action_masks: _Optional[bytes] = ..., expert_actions: _Optional[bytes] = ..., reset: _Optional[bytes] = ..., seeds: _Optional[_Iterable[int]] = ..., final_observations: _Optional[bytes] = ..., final_scores: _Optional[bytes] = ..., final_lost: _Optional[bytes] = ..., final_ticks: _Optional[bytes] = ..., stream_episodes: _Optional[_Iterable[int]] = ..., final_action_masks: _Optional[bytes] = ..., final_expert_actions: _Optional[bytes] = ...) -> None: ...
+    drain_remaining_ms: int
+    def __init__(self, num_envs: _Optional[int] = ..., observations: _Optional[bytes] = ..., rewards: _Optional[bytes] = ..., terminated: _Optional[bytes] = ..., truncated: _Optional[bytes] = ..., scores: _Optional[bytes] = ..., lost: _Optional[bytes] = ..., ticks: _Optional[bytes] = ..., action_masks: _Optional[bytes] = ..., expert_actions: _Optional[bytes] = ..., reset: _Optional[bytes] = ..., seeds: _Optional[_Iterable[int]] = ..., final_observations: _Optional[bytes] = ..., final_scores: _Optional[bytes] = ..., final_lost: _Optional[bytes] = ..., final_ticks: _Optional[bytes] = ..., stream_episodes: _Optional[_Iterable[int]] = ..., final_action_masks: _Optional[bytes] = ..., final_expert_actions: _Optional[bytes] = ..., drain_remaining_ms: _Optional[int] = ...) -> None: ...
 
 class ForkRequest(_message.Message):
     __slots__ = ("session_id",)

@@ -99,7 +99,7 @@ class DinerDashServicer:
         Errors: INVALID_ARGUMENT (num_envs out of 1..=max_envs_per_session, bad config, bad
         autoreset mode, expert_policy not EXPERT or PLANNER), RESOURCE_EXHAUSTED (the server holds
         max_sessions sessions, the memory budget or the tenant's share of environments would be
-        passed).
+        passed), UNAVAILABLE with reason DRAINING (the server drains: create it on another server).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -152,7 +152,7 @@ class DinerDashServicer:
 
     def Fork(self, request, context):
         """Clones a session (game states, random streams, autoreset state) into a new session.
-        Errors: NOT_FOUND, RESOURCE_EXHAUSTED (as CreateSession).
+        Errors: NOT_FOUND, RESOURCE_EXHAUSTED (as CreateSession), UNAVAILABLE (DRAINING).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -169,7 +169,7 @@ class DinerDashServicer:
     def Restore(self, request, context):
         """Creates a new session from Snapshot bytes. Errors: INVALID_ARGUMENT (corrupt bytes, unknown
         snapshot version, too many environments, a state the game cannot reach), RESOURCE_EXHAUSTED
-        (as CreateSession).
+        (as CreateSession), UNAVAILABLE (DRAINING: restore it on another server).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -190,7 +190,8 @@ class DinerDashServicer:
         Errors: INVALID_ARGUMENT (no seeds, more than max_rollout_episodes seeds, unknown policy,
         bad config, max_steps of 0), RESOURCE_EXHAUSTED (the tenant runs its share of Rollouts, the
         memory budget is spent; or, ending the stream, max_rollout_work_steps were recorded),
-        UNAVAILABLE (ending the stream: the server is shutting down).
+        UNAVAILABLE (DRAINING, refused at the start: the server drains; or, ending the stream, the
+        server is shutting down).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

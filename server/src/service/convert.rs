@@ -187,6 +187,8 @@ pub fn batch_to(b: Batch) -> pb::Batch {
         final_action_masks: b.final_action_masks,
         final_expert_actions: b.final_expert_actions,
         stream_episodes: b.stream_episodes,
+        // The service's to say (it knows whether the server drains).
+        drain_remaining_ms: 0,
     }
 }
 

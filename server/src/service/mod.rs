@@ -20,7 +20,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 pub use rollout_stream::ROLLOUT_UNREAD_TIMEOUT;
-pub use status::{ERROR_DOMAIN, rollout_status, status};
+pub use status::{ERROR_DOMAIN, draining, rollout_status, status};
 pub use step_stream::StepReplies;
 
 use convert::{
@@ -57,7 +57,8 @@ pub struct DinerDashService {
     /// The tenant of requests that came neither with a tenant token nor on a connection this
     /// server accepted (an embedding that serves its own listener).
     unknown: Arc<Tenant>,
-    /// Fires when the server starts draining: Rollout streams then get a short deadline.
+    /// Says when the server drains (new sessions are refused, Batches carry the time left) and
+    /// when it stops (Rollout streams then get a short deadline).
     stopping: Shutdown,
     /// Where the HTTP endpoint (the sessions and watch pages) listens, told by ServerInfo.
     http_addr: Option<std::net::SocketAddr>,
@@ -125,7 +126,25 @@ impl DinerDashService {
         let batch = self
             .heavy_if_planner(&r.session_id, move |session| session.step(&actions))
             .await?;
-        Ok(batch_to(batch))
+        Ok(self.reply(batch))
+    }
+
+    /// A Step's or Reset's reply, telling the client how long a draining server has left.
+    fn reply(&self, batch: Batch) -> pb::Batch {
+        pb::Batch {
+            drain_remaining_ms: self.stopping.drain_remaining_ms(),
+            ..batch_to(batch)
+        }
+    }
+
+    /// `UNAVAILABLE` (reason `DRAINING`), counted, when the server drains: it starts no new
+    /// work then.
+    fn admit(&self) -> Result<(), Status> {
+        self.stopping.admit().map_err(|e| {
+            let status = draining(e);
+            self.metrics.count_error(status.code() as usize);
+            status
+        })
     }
 
     /// Whose share a request counts against: its token's tenant, else its connection.
@@ -152,6 +171,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::CreateSessionRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        self.admit()?;
         let tenant = self.tenant(&request);
         let r = request.into_inner();
         let options = SessionOptions {
@@ -190,7 +210,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         let batch = self
             .heavy_if_planner(&id, move |session| session.reset(&args))
             .await?;
-        Ok(Response::new(batch_to(batch)))
+        Ok(Response::new(self.reply(batch)))
     }
 
     #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
@@ -217,6 +237,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::ForkRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        self.admit()?;
         let (id, spec) = self
             .store
             .fork(&self.tenant(&request), &request.get_ref().session_id)
@@ -242,6 +263,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::RestoreRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
+        self.admit()?;
         let (id, spec) = self
             .store
             .restore(&self.tenant(&request), &request.get_ref().snapshot)
@@ -270,6 +292,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::RolloutRequest>,
     ) -> Result<Response<Self::RolloutStream>, Status> {
+        self.admit()?;
         let tenant = self.tenant(&request);
         let r = request.into_inner();
         let policy = policy_from(r.policy).map_err(|e| self.fail(e))?;

@@ -11,6 +11,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 use crate::budget::BudgetError;
 use crate::rollout::RolloutError;
 use crate::session::SessionError;
+use crate::shutdown::Draining;
 
 /// `ErrorInfo.domain` of every error this server returns.
 pub const ERROR_DOMAIN: &str = "dinerdash.v1";
@@ -150,6 +151,14 @@ fn refusal(
         details.add_bad_request_violation(field, message.clone());
     }
     Status::with_error_details(code, message, details)
+}
+
+/// The refusal of new work (CreateSession, Fork, Restore, Rollout) by a draining server:
+/// `UNAVAILABLE`, reason `DRAINING`, metadata "drain_remaining_ms".
+pub fn draining(e: Draining) -> Status {
+    let metadata = HashMap::from([("drain_remaining_ms".to_string(), e.remaining_ms.to_string())]);
+    let details = ErrorDetails::with_error_info("DRAINING", ERROR_DOMAIN, metadata);
+    Status::with_error_details(Code::Unavailable, e.to_string(), details)
 }
 
 /// The field an INVALID_ARGUMENT message is about: by the convention of every such message in
