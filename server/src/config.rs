@@ -386,6 +386,18 @@ mod tests {
     }
 
     #[test]
+    fn the_drain_timeout_defaults_to_the_documented_one() {
+        assert_eq!(
+            flags(&[]).drain_timeout,
+            crate::shutdown::DEFAULT_DRAIN_TIMEOUT
+        );
+        assert_eq!(
+            flags(&["--drain-timeout", "0"]).drain_timeout,
+            Duration::ZERO
+        );
+    }
+
+    #[test]
     fn metrics_beyond_this_machine_need_a_token() {
         let public = ["--metrics-port", "9000", "--metrics-host", "0.0.0.0"];
         let refused = ServerConfig::from_args(&flags(&public)).unwrap_err();

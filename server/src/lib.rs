@@ -11,8 +11,9 @@
 //! - [`eval`]: runs a policy over many episodes and summarises scores (the `eval` command).
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
 //! - [`metrics`]: the counters and their Prometheus text.
-//! - [`shutdown`]: SIGINT/SIGTERM, the drain deadlines, the shutdown handles, and the
-//!   `UNAVAILABLE` a draining server answers.
+//! - [`shutdown`]: SIGINT/SIGTERM, the drain of a planned restart (its phases, its refusal of
+//!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
+//!   stopping server answers.
 //! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
 //! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
 //! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,

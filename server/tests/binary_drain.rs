@@ -75,8 +75,13 @@ async fn signal_and_wait_for_the_drain(
             .create_session(create_request(1, pb::AutoresetMode::Unspecified, None))
             .await
         {
-            // Until the signal is handled the server still takes sessions (left open).
-            Ok(_) => {
+            // Until the signal is handled the server still takes sessions: closed again, so
+            // that only the test's own sessions hold the drain.
+            Ok(created) => {
+                let session_id = created.into_inner().session_id;
+                c.close_session(pb::CloseSessionRequest { session_id })
+                    .await
+                    .unwrap();
                 assert!(started.elapsed() < PATIENCE, "never started draining");
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
