@@ -202,15 +202,11 @@ def test_a_server_lost_at_a_reset_moves_and_resets_its_environments(dinerdash_cl
             slice(5, 7),
         ]
         assert envs.addresses == [addresses[1], addresses[2]]
-        slices = envs.env_slices
         for t in range(30):
             actions = b[-1]["expert_action"]
             a, b = envs.step(actions), reference.step(actions)
             assert_same_envs(a, b, range(N), f"step {t}")
-            if t == 10:  # the lost server comes back, on its port: it stays unused
-                dinerdash_cluster.restart(0)
-        assert live_sessions(addresses[0]) == 0
-        assert envs.env_slices == slices and envs.lost_addresses == [addresses[0]]
+        # A lost server that comes back is taken back: tests/test_membership.py.
     finally:
         envs.close()
         reference.close()
