@@ -290,7 +290,9 @@ def run(
     context = multiprocessing.get_context("spawn")
     parent, child = context.Pipe()
     flags = (
-        {"drain_timeout": args.drain_timeout} if _supports_drain(args.server) else {}
+        {"drain_timeout": f"{args.drain_timeout:g}"}
+        if _supports_drain(args.server)
+        else {}
     )
     process = context.Process(
         target=keeper, args=(args.server, args.seed, monkey, flags, child), daemon=True

@@ -39,7 +39,7 @@ _HIGH_WATER = 1 << 20
 
 def _rst(transport: asyncio.BaseTransport | None) -> None:
     """Closes ``transport`` with a TCP reset rather than a FIN: ``SO_LINGER`` on, 0 seconds."""
-    if transport is None or transport.is_closing():
+    if transport is None:
         return
     sock = transport.get_extra_info("socket")
     if sock is not None:
@@ -60,6 +60,10 @@ class _Side(asyncio.Protocol):
         #: (due time, bytes) waiting for their delivery to this side (the latency).
         self.pending: collections.deque[tuple[float, bytes]] = collections.deque()
         self.timer: asyncio.TimerHandle | None = None
+        #: Bytes that arrived before :attr:`peer` was known.
+        self.early: list[bytes] = []
+        #: The socket is closed (``connection_lost`` was called).
+        self.gone = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
@@ -72,6 +76,8 @@ class _Side(asyncio.Protocol):
             return
         if self.peer is not None:
             self.peer.deliver(data, proxy._latency)
+        else:  # the server's first bytes, before the link is joined up
+            self.early.append(data)
 
     def deliver(self, data: bytes, latency: float) -> None:
         """Writes ``data`` to this side now, or ``latency`` seconds after it arrived, never before
@@ -133,8 +139,6 @@ class _Side(asyncio.Protocol):
         self.gone = True
         self.link.lost(self, exc)
 
-    gone = False
-
     def drop(self) -> None:
         """Resets this side now, dropping the bytes still delayed."""
         if self.timer is not None:
@@ -185,6 +189,9 @@ class _Link:
             return
         self.server = server
         server.peer, self.client.peer = self.client, server
+        for data in server.early:
+            self.client.deliver(data, self.proxy._latency)
+        server.early.clear()
         if not self.client.transport.is_closing():
             self.client.transport.resume_reading()
 
