@@ -38,7 +38,11 @@ def _connect(args: argparse.Namespace) -> ConnectOptions:
 def _cmd_train(args: argparse.Namespace) -> int:
     from .train_rl import RL_ALGORITHMS
 
-    runs = {"dagger": _cmd_train_dagger, **dict.fromkeys(RL_ALGORITHMS, _cmd_train_rl)}
+    runs = {
+        "dagger": _cmd_train_dagger,
+        "dagger-recurrent": _cmd_train_recurrent,
+        **dict.fromkeys(RL_ALGORITHMS, _cmd_train_rl),
+    }
     return runs.get(args.algorithm, _cmd_train_imitation)(args)
 
 
@@ -123,6 +127,41 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_recurrent(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
+
+    given = {
+        "teacher": args.teacher,
+        "kind": args.kind,
+        "stack": args.stack,
+        "rounds": args.rounds,
+        "episodes_per_round": args.episodes_per_round,
+        "p": args.beta_p,
+        "num_envs": args.num_envs,
+        "hidden": args.hidden,
+        "chunk": args.chunk,
+        "epochs": args.epochs,
+        "seat_weight": args.seat_weight,
+        "memory": True if args.memory else None,
+    }
+    config = dataclasses.replace(
+        RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
+    )
+    _, description = train_recurrent(args.out, config, connect=_connect(args), seed=args.seed)
+    data, training = description["data"], description["training"]
+    print(
+        f"wrote {args.out}: dagger-recurrent ({config.kind}, teacher {config.teacher}), "
+        f"{config.rounds} rounds of {config.episodes_per_round} episodes ({data['steps']:,} "
+        f"labelled states), best round {training['best_round']} "
+        f"({training['best_validation_mean_score']:,.1f} on seeds "
+        f"{training['validation_seeds']}) in {training['seconds']:.1f} s"
+    )
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import time
 
@@ -169,6 +208,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
         demos=args.demos,
         seed=args.seed,
         rl_steps=args.rl_steps,
+        update=args.update,
     )
     return 0
 
@@ -206,7 +246,16 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "algorithm",
-        choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart", "dagger"],
+        choices=[
+            "bc",
+            "dpgm",
+            "ppo",
+            "ppo-masked",
+            "gail",
+            "ppo-kickstart",
+            "dagger",
+            "dagger-recurrent",
+        ],
     )
     p.add_argument(
         "--demos",
@@ -269,9 +318,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--memory",
         action="store_true",
-        help="dagger: the learner also sees, per table and queue place, the steps since its "
-        "group's patience level changed (computed from the episode's observations)",
+        help="dagger, dagger-recurrent: the learner also sees, per table and queue place, the "
+        "steps since its group's patience level changed (computed from the episode's "
+        "observations)",
     )
+    p.add_argument(
+        "--kind",
+        choices=["gru", "stack"],
+        help="dagger-recurrent: a GRU over the episode's observations, or an MLP over the last "
+        "--stack observations",
+    )
+    p.add_argument("--stack", type=int, help="dagger-recurrent --kind stack: observations seen")
+    p.add_argument("--chunk", type=int, help="dagger-recurrent: steps of a truncated-BPTT chunk")
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
@@ -308,6 +366,12 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="environment steps of each RL agent (default: 3e7 for PPO, 1e7 for GAIL); a run "
         "already checkpointed under OUT/checkpoints is continued to it, or only loaded",
+    )
+    p.add_argument(
+        "--update",
+        action="store_true",
+        help="keep the rows of OUT/results.json, train and evaluate only the agents it lacks, "
+        "and write the report (with its confidence intervals) again",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
