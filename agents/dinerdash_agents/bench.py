@@ -51,7 +51,7 @@ def bench_ppo(
     ``env_steps_per_s`` and per iteration ``ms`` by part, CPU seconds (client, server).
     ``connect``: how to reach the server, with ``address`` and the connection keywords put in
     (none named: ``DINERDASH_ADDRESS``, else a local server started here)."""
-    if algorithm not in RL_ALGORITHMS or algorithm == "gail":
+    if algorithm not in ("ppo", "ppo-masked"):
         raise AgentsError(f"bench-ppo runs ppo or ppo-masked, not {algorithm!r}")
     if iterations < 1:
         raise AgentsError(f"--iterations must be at least 1 (got {iterations})")

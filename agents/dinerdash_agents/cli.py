@@ -38,12 +38,15 @@ def _connect(args: argparse.Namespace) -> ConnectOptions:
 def _cmd_train(args: argparse.Namespace) -> int:
     from .train_rl import RL_ALGORITHMS
 
-    if args.algorithm in RL_ALGORITHMS:
-        return _cmd_train_rl(args)
-    if args.algorithm == "dagger":
-        return _cmd_train_dagger(args)
-    if args.algorithm == "dagger-recurrent":
-        return _cmd_train_recurrent(args)
+    runs = {
+        "dagger": _cmd_train_dagger,
+        "dagger-recurrent": _cmd_train_recurrent,
+        **dict.fromkeys(RL_ALGORITHMS, _cmd_train_rl),
+    }
+    return runs.get(args.algorithm, _cmd_train_imitation)(args)
+
+
+def _cmd_train_imitation(args: argparse.Namespace) -> int:
     from .errors import AgentsError
     from .train_imitation import default_config, train_checkpoint
 

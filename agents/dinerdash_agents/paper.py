@@ -23,7 +23,7 @@ from .dagger import DaggerConfig
 from .evaluate import evaluate_policy
 from .train_dagger import train_dagger
 from .train_imitation import default_config, train_checkpoint
-from .train_rl import RL_ALGORITHMS, train_rl
+from .train_rl import RL, RL_ALGORITHMS, train_rl
 
 __all__ = ["AGENTS", "EVAL_EPISODES", "EVAL_SEED", "run_paper"]
 
@@ -58,39 +58,55 @@ class Agent:
 
     @property
     def label(self) -> str:
-        if self.algorithm == "dagger-recurrent":
-            settings = RECURRENT_SETTINGS.get(self.name, {})
-            memory = " and the hand-made memory features" if settings.get("memory") else ""
-            what = (
-                f"an MLP over the last {settings.get('stack', 8)} observations{memory} "
-                "(frame-stacked baseline)"
-                if settings.get("kind") == "stack"
-                else f"a GRU over the episode's observations{memory}"
-            )
-            return f"DAgger, the {self.teacher} labelling the states of {what} (beyond the paper)"
-        if self.algorithm == "dagger":
-            memory = (
-                ", the learner remembering how long each patience level has lasted"
-                if DAGGER_SETTINGS.get(self.name, {}).get("memory")
-                else ""
-            )
-            return (
-                f"DAgger, the {self.teacher} labelling the learner's states{memory} "
-                "(beyond the paper)"
-            )
-        if self.algorithm == "gail":
-            return f"GAIL (masked PPO on a discriminator's reward), {self.episodes} demos"
-        if self.algorithm == "ppo-kickstart":
-            return (
-                f"masked PPO kick-started from `bc-{self.episodes}`, pulled toward the "
-                f"{self.teacher}'s actions (beyond the paper)"
-            )
-        if self.rl:
-            return f"PPO, policy {'over legal actions' if self.loss == 'masked' else 'over all 57'}"
-        loss = "plain cross-entropy" if self.loss == "plain" else "cross-entropy over legal actions"
-        what = "BC" if self.algorithm == "bc" else "DPGM"
-        demos = "demos" if self.teacher == "expert" else "planner demos (beyond the paper)"
-        return f"{what}, {self.episodes} {demos}, {loss}"
+        return _LABELS[self.algorithm](self)
+
+
+def _imitation_label(agent: Agent) -> str:
+    loss = "plain cross-entropy" if agent.loss == "plain" else "cross-entropy over legal actions"
+    what = {"bc": "BC", "dpgm": "DPGM"}[agent.algorithm]
+    demos = "demos" if agent.teacher == "expert" else "planner demos (beyond the paper)"
+    return f"{what}, {agent.episodes} {demos}, {loss}"
+
+
+def _ppo_label(agent: Agent) -> str:
+    return f"PPO, policy {'over legal actions' if agent.loss == 'masked' else 'over all 57'}"
+
+
+def _dagger_label(agent: Agent) -> str:
+    memory = (
+        ", the learner remembering how long each patience level has lasted"
+        if DAGGER_SETTINGS.get(agent.name, {}).get("memory")
+        else ""
+    )
+    return f"DAgger, the {agent.teacher} labelling the learner's states{memory} (beyond the paper)"
+
+
+def _recurrent_label(agent: Agent) -> str:
+    settings = RECURRENT_SETTINGS.get(agent.name, {})
+    memory = " and the hand-made memory features" if settings.get("memory") else ""
+    what = (
+        f"an MLP over the last {settings.get('stack', 8)} observations{memory} "
+        "(frame-stacked baseline)"
+        if settings.get("kind") == "stack"
+        else f"a GRU over the episode's observations{memory}"
+    )
+    return f"DAgger, the {agent.teacher} labelling the states of {what} (beyond the paper)"
+
+
+#: Each algorithm's row label in the table.
+_LABELS = {
+    "bc": _imitation_label,
+    "dpgm": _imitation_label,
+    "ppo": _ppo_label,
+    "ppo-masked": _ppo_label,
+    "gail": lambda a: f"GAIL (masked PPO on a discriminator's reward), {a.episodes} demos",
+    "ppo-kickstart": lambda a: (
+        f"masked PPO kick-started from `bc-{a.episodes}`, pulled toward the "
+        f"{a.teacher}'s actions (beyond the paper)"
+    ),
+    "dagger": _dagger_label,
+    "dagger-recurrent": _recurrent_label,
+}
 
 
 AGENTS = [
@@ -439,13 +455,13 @@ def _train_rl(
     budgets = {"gail": GAIL_STEPS, "ppo-kickstart": KICKSTART_STEPS}
     steps = rl_steps or budgets.get(agent.algorithm, RL_STEPS)
     resume = directory if (directory / checkpoint.DESCRIPTION).is_file() else None
-    kickstart = agent.algorithm == "ppo-kickstart"
+    kickstart = RL[agent.algorithm].start is not None  # from a checkpoint, with a teacher
     train_rl(
         agent.algorithm,
         steps,
         directory,
         connect=connect,
-        demos=demos if agent.algorithm == "gail" else None,
+        demos=demos if RL[agent.algorithm].needs_demos else None,
         seed=seed,
         resume=resume,
         # Kick-started from the BC checkpoint of the same demonstrations, trained above.

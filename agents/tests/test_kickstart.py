@@ -1,7 +1,7 @@
 """Kick-started PPO: the auxiliary loss pulls the policy toward the teacher's action on a
 hand-made batch, the critic warm-up leaves the actor untouched, the schedule falls as configured,
-and a short run from a BC checkpoint trained here beats random play on unseen seeds (then resumes
-and loads as a checkpoint)."""
+and a short run from a BC checkpoint trained here beats that BC policy, its starting point, on
+unseen seeds (then resumes and loads as a checkpoint)."""
 
 from __future__ import annotations
 
@@ -120,7 +120,7 @@ def test_the_kick_coefficient_follows_its_schedule():
         kickstart.KickstartConfig(teacher="oracle")
 
 
-def test_a_short_kickstarted_run_beats_random_play(
+def test_a_short_kickstarted_run_beats_its_bc_starting_point(
     server_address: str, expert_demos: Path, tmp_path: Path
 ):
     from dinerdash.evaluation import evaluate_through_env
@@ -129,9 +129,11 @@ def test_a_short_kickstarted_run_beats_random_play(
     train_checkpoint("bc", expert_demos, init, config=bc.BCConfig(hidden=64, epochs=3))
     out = tmp_path / "kick"
     config = kickstart.KickstartConfig(num_envs=16, num_steps=64, critic_warmup=2)
+    # 12 iterations: measured, 8,964 on the seeds below against BC's 8,478 (after 6: 8,213,
+    # still below BC while the critic and the pull settle).
     trainer = train_rl(
         "ppo-kickstart",
-        6 * 16 * 64,
+        12 * 16 * 64,
         out,
         address=server_address,
         config=config,
@@ -139,7 +141,7 @@ def test_a_short_kickstarted_run_beats_random_play(
         teacher="expert",
         progress=False,
     )
-    assert trainer.iteration == 6
+    assert trainer.iteration == 12
     description = json.loads((out / "checkpoint.json").read_text())
     assert description["config"]["init"] == str(init)
     assert description["config"]["kick_schedule"] == "linear"
@@ -148,14 +150,16 @@ def test_a_short_kickstarted_run_beats_random_play(
     policy = load(out)
     assert policy.algorithm == "ppo-kickstart"
     scores, _ = evaluate_policy(policy.act, 8, max_steps=3000, **seeds)
+    started, _ = evaluate_policy(load(init).act, 8, max_steps=3000, **seeds)
     random, _ = evaluate_through_env("random", 8, max_steps=3000, **seeds)
-    assert scores.mean() > random.mean() + 2000, (scores.mean(), random.mean())
+    assert started.mean() > random.mean() + 5000, (started.mean(), random.mean())
+    assert scores.mean() > started.mean(), (scores.mean(), started.mean())
 
     # Resumed from the CLI: one more iteration, the teacher and the actor kept.
-    argv = ["train", "ppo-kickstart", "--steps", str(7 * 16 * 64), "--resume", str(out)]
+    argv = ["train", "ppo-kickstart", "--steps", str(13 * 16 * 64), "--resume", str(out)]
     assert agents_main([*argv, "--out", str(out), "--address", server_address]) == 0
     again = json.loads((out / "checkpoint.json").read_text())
-    assert again["training"]["iterations"] == 7
+    assert again["training"]["iterations"] == 13
     assert again["config"]["teacher"] == "expert"
 
 
