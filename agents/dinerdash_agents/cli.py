@@ -24,9 +24,15 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from dinerdash import ConnectOptions
 from dinerdash.command_line import add_connection_arguments, connection_keywords, run_command
 
 __all__ = ["main"]
+
+
+def _connect(args: argparse.Namespace) -> ConnectOptions:
+    """The one connection value of a command: ``--address``, ``--timeout``, ``--tls``, ..."""
+    return ConnectOptions(address=args.address, **connection_keywords(args))
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -68,14 +74,13 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         args.steps,
         args.out,
         num_envs=args.num_envs,
-        address=args.address,
+        connect=_connect(args),
         demos=args.demos,
         seed=args.seed,
         resume=args.resume,
         pipeline=args.pipeline,
         init=args.init,
         teacher=args.teacher,
-        **connection_keywords(args),
     )
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
@@ -87,7 +92,8 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
 def _cmd_train_dagger(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .dagger import DaggerConfig, train_dagger
+    from .dagger import DaggerConfig
+    from .train_dagger import train_dagger
 
     given = {
         "teacher": args.teacher,
@@ -105,9 +111,7 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_dagger(
-        args.out, config, address=args.address, seed=args.seed, **connection_keywords(args)
-    )
+    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger (teacher {config.teacher}), {config.rounds} rounds of "
@@ -136,12 +140,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         policy.act,
         args.episodes,
         seed=args.seed,
-        address=args.address,
+        connect=_connect(args),
         num_envs=args.num_envs,
         max_steps=args.max_steps,
         use_mask=not args.no_mask,
         progress=progress,
-        **connection_keywords(args),
     )
     progress.close()
     print_evaluation(
@@ -161,11 +164,11 @@ def _cmd_paper(args: argparse.Namespace) -> int:
 
     run_paper(
         args.out,
-        address=args.address,
+        connect=_connect(args),
         demos=args.demos,
         seed=args.seed,
         rl_steps=args.rl_steps,
-        **connection_keywords(args),
+        update=args.update,
     )
     return 0
 
@@ -180,8 +183,7 @@ def _cmd_bench_ppo(args: argparse.Namespace) -> int:
         num_envs=args.num_envs,
         iterations=args.iterations,
         pipeline=args.pipeline,
-        address=args.address,
-        **connection_keywords(args),
+        connect=_connect(args),
     )
     print_bench(result)
     if args.json:
@@ -306,6 +308,12 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="environment steps of each RL agent (default: 3e7 for PPO, 1e7 for GAIL); a run "
         "already checkpointed under OUT/checkpoints is continued to it, or only loaded",
+    )
+    p.add_argument(
+        "--update",
+        action="store_true",
+        help="keep the rows of OUT/results.json, train and evaluate only the agents it lacks, "
+        "and write the report (with its confidence intervals) again",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)

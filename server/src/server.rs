@@ -75,7 +75,7 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     }
     let mut config = ServerConfig::from_args(args)?;
     // Room for connections: the accept loop caps --max-connections below this limit.
-    crate::fd_limit::raise();
+    connections::fd_limit::raise();
     let listener = bind(&args.host, args.port, "").await?;
     if let Some(port) = args.http_port {
         config.http_listener = Some(bind(&args.http_host, port, " for the web pages").await?);
