@@ -33,7 +33,6 @@ from .errors import (
     ServiceTransportError,
     TLSMismatch,
     error_for_rpc,
-    status_details,
 )
 
 __all__ = [
@@ -563,8 +562,8 @@ class Connection:
         timeout: float | None = None,
     ) -> int:
         retries = self.retries if retries is None else retries
-        if method in NOT_RETRIED or b"DRAINING" in (status_details(error) or b""):
-            retries = 0  # a draining server stays so: the caller goes elsewhere at once
+        if method in NOT_RETRIED:
+            retries = 0
         if error.code() == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
             time.sleep(self.retry_backoff * (2**attempt))
             return attempt + 1
