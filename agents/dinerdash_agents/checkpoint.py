@@ -64,6 +64,7 @@ LEGACY_MODULES = {
     "gail": f"{PACKAGE}.gail",
     "ppo-kickstart": f"{PACKAGE}.kickstart",
     "dagger": f"{PACKAGE}.dagger",
+    "dagger-recurrent": f"{PACKAGE}.recurrent",
 }
 
 
@@ -85,6 +86,10 @@ class Algorithm:
     #: ``view(config)``: a fresh, stateful ``obs -> model input`` for one policy (a learner with
     #: memory sees its episode's history), or ``None``: the observation itself.
     view: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
+    #: ``policy(model, description)``: the policy :func:`load` returns instead of a
+    #: :class:`Policy`, for a model that is not a batch -> logits function (a recurrent learner
+    #: keeps one state per environment).
+    policy: Callable[[Any, dict[str, Any]], Any] | None = None
 
 
 _REGISTRY: dict[str, Algorithm] = {}
@@ -98,9 +103,10 @@ def register(
     init: Callable[[Any, int], Any],
     check: Callable[[Any], str | None] | None = None,
     view: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None,
+    policy: Callable[[Any, dict[str, Any]], Any] | None = None,
 ) -> Algorithm:
     """Adds an algorithm (called by its module when imported, ``module=__name__``)."""
-    entry = Algorithm(name, module, config_from_json, init, check, view)
+    entry = Algorithm(name, module, config_from_json, init, check, view, policy)
     _REGISTRY[name] = entry
     return entry
 
@@ -258,4 +264,6 @@ def load(directory: str | Path, algorithm: str | None = None) -> Policy:
     except Exception as e:  # equinox/numpy raise several types for a truncated or foreign file
         raise CheckpointError(f"{params} does not hold {found} parameters: {e!r}") from e
     jax.block_until_ready(jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array)))
+    if entry.policy is not None:
+        return entry.policy(model, description)
     return Policy(model, description)

@@ -42,6 +42,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         return _cmd_train_rl(args)
     if args.algorithm == "dagger":
         return _cmd_train_dagger(args)
+    if args.algorithm == "dagger-recurrent":
+        return _cmd_train_recurrent(args)
     from .errors import AgentsError
     from .train_imitation import default_config, train_checkpoint
 
@@ -117,6 +119,41 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
         f"wrote {args.out}: dagger (teacher {config.teacher}), {config.rounds} rounds of "
         f"{config.episodes_per_round} episodes ({data['steps']:,} labelled states), best round "
         f"{training['best_round']} ({training['best_validation_mean_score']:,.1f} on seeds "
+        f"{training['validation_seeds']}) in {training['seconds']:.1f} s"
+    )
+    return 0
+
+
+def _cmd_train_recurrent(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
+
+    given = {
+        "teacher": args.teacher,
+        "kind": args.kind,
+        "stack": args.stack,
+        "rounds": args.rounds,
+        "episodes_per_round": args.episodes_per_round,
+        "p": args.beta_p,
+        "num_envs": args.num_envs,
+        "hidden": args.hidden,
+        "chunk": args.chunk,
+        "epochs": args.epochs,
+        "seat_weight": args.seat_weight,
+        "memory": True if args.memory else None,
+    }
+    config = dataclasses.replace(
+        RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
+    )
+    _, description = train_recurrent(args.out, config, connect=_connect(args), seed=args.seed)
+    data, training = description["data"], description["training"]
+    print(
+        f"wrote {args.out}: dagger-recurrent ({config.kind}, teacher {config.teacher}), "
+        f"{config.rounds} rounds of {config.episodes_per_round} episodes ({data['steps']:,} "
+        f"labelled states), best round {training['best_round']} "
+        f"({training['best_validation_mean_score']:,.1f} on seeds "
         f"{training['validation_seeds']}) in {training['seconds']:.1f} s"
     )
     return 0
@@ -206,7 +243,16 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "algorithm",
-        choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart", "dagger"],
+        choices=[
+            "bc",
+            "dpgm",
+            "ppo",
+            "ppo-masked",
+            "gail",
+            "ppo-kickstart",
+            "dagger",
+            "dagger-recurrent",
+        ],
     )
     p.add_argument(
         "--demos",
@@ -269,9 +315,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--memory",
         action="store_true",
-        help="dagger: the learner also sees, per table and queue place, the steps since its "
-        "group's patience level changed (computed from the episode's observations)",
+        help="dagger, dagger-recurrent: the learner also sees, per table and queue place, the "
+        "steps since its group's patience level changed (computed from the episode's "
+        "observations)",
     )
+    p.add_argument(
+        "--kind",
+        choices=["gru", "stack"],
+        help="dagger-recurrent: a GRU over the episode's observations, or an MLP over the last "
+        "--stack observations",
+    )
+    p.add_argument("--stack", type=int, help="dagger-recurrent --kind stack: observations seen")
+    p.add_argument("--chunk", type=int, help="dagger-recurrent: steps of a truncated-BPTT chunk")
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 

@@ -58,6 +58,16 @@ class Agent:
 
     @property
     def label(self) -> str:
+        if self.algorithm == "dagger-recurrent":
+            settings = RECURRENT_SETTINGS.get(self.name, {})
+            memory = " and the hand-made memory features" if settings.get("memory") else ""
+            what = (
+                f"an MLP over the last {settings.get('stack', 8)} observations{memory} "
+                "(frame-stacked baseline)"
+                if settings.get("kind") == "stack"
+                else f"a GRU over the episode's observations{memory}"
+            )
+            return f"DAgger, the {self.teacher} labelling the states of {what} (beyond the paper)"
         if self.algorithm == "dagger":
             memory = (
                 ", the learner remembering how long each patience level has lasted"
@@ -99,6 +109,8 @@ AGENTS = [
     Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
     Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, teacher="planner"),
+    Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, teacher="planner", training_seeds=3),
+    Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, teacher="planner"),
 ]
 #: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
 #: (docs/agents.md says why the planner's seat states weigh 10).
@@ -109,7 +121,10 @@ DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
 }
 #: The recurrent and frame-stacked DAgger rows' settings beyond
 #: :class:`~dinerdash_agents.recurrent.RecurrentConfig`'s defaults.
-RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {}
+RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {
+    "dagger-gru": {"kind": "gru", "hidden": 256, "rounds": 4},
+    "dagger-stack": {"kind": "stack", "stack": 8, "hidden": 256, "rounds": 4},
+}
 #: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000
 GAIL_STEPS = 10_000_000
@@ -373,7 +388,9 @@ def _sequence_rows(agent, out, connect, seed, evaluate, common) -> list[dict]:
 def _train_sequence(agent, out, connect, seed, k):
     """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
     :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
-    from .recurrent import RecurrentConfig, train_recurrent
+    from . import checkpoint
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
 
     directory = agent.directory(out, k)
     if not (directory / checkpoint.DESCRIPTION).is_file():
