@@ -7,6 +7,7 @@ episode ends until the loads are even; and the single-server env keeps its typed
 
 from __future__ import annotations
 
+import subprocess
 import time
 from collections import Counter
 
@@ -95,17 +96,18 @@ def test_a_black_holed_server_is_given_up(dinerdash_cluster) -> None:
 
 
 def test_a_slow_server_is_kept(dinerdash_cluster) -> None:
-    """Every chunk to and from the middle server waits 0.35 s: a Step takes about 0.7 s, past
-    the point where health checks go out, and under ``failover_after``: it is kept."""
+    """Every chunk to and from the middle server waits 0.6 s: a Step takes about 1.2 s, past
+    the point where health checks go out (1 s), and well under ``failover_after`` (4 s, so that a
+    loaded machine cannot make it look silent): it is kept."""
     s0, s1, s2 = dinerdash_cluster.addresses
     proxy = FaultProxy(s1)
-    proxy.latency(0.35)
-    envs = make([s0, proxy.address, s2], failover_after=1.0)
+    proxy.latency(0.6)
+    envs = make([s0, proxy.address, s2], failover_after=4.0)
     reference = DinerDashVectorEnv(N, s0, expert=True, config=CONFIG)
     try:
         rng = np.random.default_rng(1)
         a, b = envs.reset(seed=3), reference.reset(seed=3)
-        for t in range(6):
+        for t in range(5):
             actions = actions_for(b[-1], rng)
             a, b = envs.step(actions), reference.step(actions)
             assert_same_envs(a, b, range(N), f"step {t}")
@@ -249,4 +251,60 @@ def test_one_server_keeps_its_typed_errors(dinerdash_cluster) -> None:
         assert hung in str(e.value)
     finally:
         dinerdash_cluster.resume(1)
+        envs.close()
+
+
+def _drains() -> bool:
+    """The server binary drains on SIGTERM (``--drain-timeout``, issue 26 part 3)."""
+    from dinerdash.server import find_server_binary
+
+    out = subprocess.run(
+        [str(find_server_binary(None)), "--help"], capture_output=True, text=True, timeout=30
+    )
+    return "--drain-timeout" in out.stdout
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_a_rolling_restart_cuts_no_episode(dinerdash_cluster_factory, mode) -> None:
+    """Each server in turn drains (SIGTERM), exits once the env has moved every environment off
+    it (each at its episode end), and is started again on its port; the env takes it back and
+    moves environments onto it at their episode ends. No episode is cut, none is lost."""
+    if not _drains():
+        pytest.skip("this dinerdash-server does not drain on SIGTERM (no --drain-timeout)")
+    cluster = dinerdash_cluster_factory(3, drain_timeout=20)
+    addresses = cluster.addresses
+    envs = make(addresses, autoreset_mode=mode, failover_after=2.0)
+    rng = np.random.default_rng(4)
+    steps = 0
+
+    def step_until(done, what: str) -> None:
+        nonlocal before, steps
+        deadline = time.monotonic() + 60
+        while not done():
+            assert time.monotonic() < deadline, f"{what}: not within 60 s ({envs.env_slices})"
+            after = envs.step(actions_for(before[-1], rng))
+            assert "reconnected" not in after[-1], f"step {steps}: an episode was cut"
+            check_uncut(before, after, mode, f"step {steps}")
+            before, steps = after, steps + 1
+
+    try:
+        before = envs.reset(seed=0)
+        for i, address in enumerate(addresses):
+            cluster.drain(i)
+            step_until(lambda: not cluster.is_running(i), f"server {i} drained")  # noqa: B023
+            assert address not in envs.addresses and address in envs.lost_addresses
+            cluster.restart(i)
+
+            def even() -> bool:
+                counts = loads(envs)
+                return len(counts) == 3 and max(counts.values()) - min(counts.values()) <= 1
+
+            step_until(even, f"server {i} taken back")
+        print(
+            f"\n[rolling restart {mode.value}] {steps} steps, {envs.moves} moves, "
+            f"{envs.rejoins} rejoins, {envs.failovers} failovers, no episode cut"
+        )
+        assert envs.failovers == 0 and envs.rejoins == 3 and envs.lost_addresses == []
+        assert envs.moves >= 2 * N
+    finally:
         envs.close()

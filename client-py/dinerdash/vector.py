@@ -616,6 +616,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         for new in [c for c in self._cores if c.entering]:
             self._enter(new, sorted(new.entering))
             new.entering = set()
+        for new in self._cores:
+            if new.source is not None and new.index in endpoint.draining:
+                new.source, new.entering = None, set()  # no more environments go to it
         targets = self._targets()
         # Planning is asked again only when the servers or the sessions changed.
         key = (len(self._cores), tuple(targets), tuple(endpoint.draining), tuple(endpoint.given_up))
