@@ -127,10 +127,11 @@ def loads(envs) -> Counter:
 
 
 def check_uncut(before: tuple, after: tuple, mode: AutoresetMode, where: str, ignore=()) -> None:
-    """No episode was cut between two steps: each environment's tick went on by one, or its
-    episode ended (terminated, or truncated at the time limit) and the next one began."""
+    """No episode was cut between two steps (``before`` may be a reset's result): each
+    environment's tick went on by one, or its episode ended (terminated, or truncated at the time
+    limit) and the next one began."""
     info0, info1 = before[-1], after[-1]
-    done0 = before[2] | before[3]
+    done0 = before[2] | before[3] if len(before) == 5 else np.zeros(N, np.bool_)  # a reset
     for i in range(N):
         if i in ignore:
             continue
@@ -305,6 +306,36 @@ def test_a_rolling_restart_cuts_no_episode(dinerdash_cluster_factory, mode) -> N
             f"{envs.rejoins} rejoins, {envs.failovers} failovers, no episode cut"
         )
         assert envs.failovers == 0 and envs.rejoins == 3 and envs.lost_addresses == []
-        assert envs.moves >= 2 * N
+        assert envs.moves >= N  # every environment left its first server when it drained
+    finally:
+        envs.close()
+
+
+def test_a_drain_deadline_cuts_what_is_left(dinerdash_cluster_factory) -> None:
+    """Episodes longer than the drain: the environments still on the draining server when its
+    deadline (3 s) is about to pass move at once, their episodes cut as a failover's
+    (truncated, ``info["reconnected"]``), and the server exits with no session left."""
+    if not _drains():
+        pytest.skip("this dinerdash-server does not drain on SIGTERM (no --drain-timeout)")
+    cluster = dinerdash_cluster_factory(2, drain_timeout=3)
+    envs = DinerDashVectorEnv(
+        4, cluster.addresses, config={"time_limit": 5000}, reconnect=True, failover_after=2.0
+    )
+    try:
+        envs.reset(seed=0)
+        cluster.drain(0)
+        cut = np.zeros(4, dtype=np.bool_)
+        deadline = time.monotonic() + 30
+        while cluster.is_running(0):
+            assert time.monotonic() < deadline, f"server 0 still runs: {envs.env_slices}"
+            _, _, terminated, truncated, info = envs.step(np.zeros(4, dtype=np.int64))
+            if "reconnected" in info:
+                assert truncated[info["reconnected"]].all()
+                assert not terminated[info["reconnected"]].any()
+                cut |= info["reconnected"]
+            time.sleep(0.01)  # 100 steps a second: an episode outlasts the drain
+        assert cut[:2].all() and not cut[2:].any()  # server 0 held environments 0 and 1
+        assert envs.failovers == 0 and envs.moves == 2
+        assert envs.addresses == [cluster.address(1)]
     finally:
         envs.close()

@@ -433,6 +433,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         info["seed"] = seeds(batches).astype(np.int64)  # as SyncVectorEnv; torch has no uint64
         info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
         self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
+        self._last_finish = time.monotonic()  # the time between steps, for a drain's margin
         return obs, info
 
     def _reset_mask(self, reset_mask: Any, config: Any) -> np.ndarray | None:
@@ -805,6 +806,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             if core.load == 0 and core.source is None:
                 core.close()
                 self._cores.remove(core)
+        self._cores.sort(key=lambda c: c.start)  # what _batches' common case relies on
 
     def _complete_transfers(self) -> None:
         """A full reset starts every episode: the transfers in progress are done at once."""
@@ -839,6 +841,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         new.reconnected = cut
         core.disown(i, i + 1)
         self._cores.append(new)
+        self._cores.sort(key=lambda c: c.start)
         self._moves += 1
         return True
 
