@@ -31,7 +31,7 @@ from ._proto import pb
 from .connection import Connection, ConnectOptions, _split_host_port
 from .errors import ServiceError
 
-__all__ = ["Membership", "await_replies", "boundary", "handover", "splice"]
+__all__ = ["Membership", "await_replies", "boundary", "handover", "has_name", "splice"]
 
 log = logging.getLogger("dinerdash")
 
@@ -97,7 +97,7 @@ def await_replies(
         pending = [(i, r) for i, r in pending if not r(time.monotonic() + 0.05)]
 
 
-def _has_name(address: str | Sequence[str] | None) -> bool:
+def has_name(address: str | Sequence[str] | None) -> bool:
     """``address`` names a host by DNS name (which may resolve to other replicas later)."""
     if address is None:
         return False
@@ -132,7 +132,7 @@ class Membership:
         #: The replicas the address resolved to last (the resolver thread's answer).
         self._replicas: list[str] = []
         self._stop = threading.Event()
-        every = options.resolve_every if _has_name(options.address) else None
+        every = options.resolve_every if has_name(options.address) else None
         if every is not None:
             threading.Thread(
                 target=self._resolve, args=(every,), name="dinerdash-resolve", daemon=True

@@ -61,6 +61,7 @@ from ._membership import (
     await_replies,
     boundary,
     handover,
+    has_name,
     splice,
 )
 from ._proto import pb
@@ -236,8 +237,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._close_sessions()
             self._endpoint.close()
             raise
+        # Membership for several servers, or a DNS name that may come to name several.
         if self._failover_on() and self._endpoint.server is None:
-            self._membership = Membership(self._endpoint, self._options)
+            if len(self._endpoint.connections) > 1 or has_name(self._options.address):
+                self._membership = Membership(self._endpoint, self._options)
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
         self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
