@@ -7,17 +7,14 @@ episode ends until the loads are even; and the single-server env keeps its typed
 
 from __future__ import annotations
 
-import os
-import queue
-import signal
-import socket
-import threading
+import subprocess
 import time
 from collections import Counter
 
 import numpy as np
 import pytest
 from dinerdash import DinerDashVectorEnv, ServiceTimeout, ServiceTransportError
+from dinerdash.testing import FaultProxy
 from gymnasium.vector import AutoresetMode
 
 from .test_failover import assert_same_envs, live_sessions
@@ -32,104 +29,8 @@ KEPT = np.flatnonzero(~MOVED)
 CONFIG = {"lives": 2, "time_limit": 40}
 
 
-class Proxy:
-    """A TCP proxy on 127.0.0.1 in front of ``target``: ``latency`` seconds added to every chunk
-    each way, or ``blackhole()``: the connections stay open and every byte is dropped (a
-    network that loses packets without a reset)."""
-
-    def __init__(self, target: str, latency: float = 0.0) -> None:
-        host, port = target.rsplit(":", 1)
-        self.target = (host, int(port))
-        self.latency = latency
-        self.holed = threading.Event()
-        self.closed = threading.Event()
-        self.listener = socket.create_server(("127.0.0.1", 0))
-        self.address = f"127.0.0.1:{self.listener.getsockname()[1]}"
-        self.sockets: list[socket.socket] = []
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def blackhole(self) -> None:
-        self.holed.set()
-
-    def _accept(self) -> None:
-        while not self.closed.is_set():
-            try:
-                client, _ = self.listener.accept()
-            except OSError:
-                return
-            try:
-                server = socket.create_connection(self.target)
-            except OSError:
-                client.close()
-                continue
-            self.sockets += [client, server]
-            for a, b in ((client, server), (server, client)):
-                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
-
-    def _pump(self, src: socket.socket, dst: socket.socket) -> None:
-        due: queue.SimpleQueue = queue.SimpleQueue()
-        threading.Thread(target=self._deliver, args=(due, dst), daemon=True).start()
-        while True:
-            try:
-                data = src.recv(65536)
-            except OSError:
-                data = b""
-            if not data:
-                due.put(None)
-                return
-            if not self.holed.is_set():
-                due.put((time.monotonic() + self.latency, data))
-
-    @staticmethod
-    def _deliver(due: queue.SimpleQueue, dst: socket.socket) -> None:
-        """Each chunk leaves ``latency`` after it arrived, in order."""
-        while (item := due.get()) is not None:
-            at, data = item
-            time.sleep(max(0.0, at - time.monotonic()))
-            try:
-                dst.sendall(data)
-            except OSError:
-                return
-
-    def close(self) -> None:
-        self.closed.set()
-        self.listener.close()
-        for s in self.sockets:
-            try:
-                s.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-            s.close()
-
-
-def hang(pid: int) -> None:
-    """SIGSTOP, returning once every thread of the process has stopped (the signal is
-    delivered asynchronously: a thread still running could answer one more call)."""
-    os.kill(pid, signal.SIGSTOP)
-    deadline = time.monotonic() + 10
-    while True:
-        with open(f"/proc/{pid}/stat") as f:
-            process = f.read().rsplit(")", 1)[1].split()[0]
-        threads = []
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            try:
-                with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                    threads.append(f.read().rsplit(")", 1)[1].split()[0])
-            except FileNotFoundError:
-                pass
-        if process == "T" and all(t == "T" for t in threads):
-            return
-        assert time.monotonic() < deadline, f"process {pid} did not stop"
-        time.sleep(0.01)
-
-
-@pytest.fixture
-def three(start_server):
-    servers = [start_server() for _ in range(3)]
-    yield servers
-    for s in servers:  # a stopped server must run again to hear its SIGTERM
-        if s.proc.poll() is None:
-            os.kill(s.pid, signal.SIGCONT)
+#: dinerdash_cluster: three servers (dinerdash.testing's pytest plugin).
+pytestmark = pytest.mark.dinerdash_cluster(3)
 
 
 def make(addresses, **kwargs):
@@ -163,12 +64,12 @@ def run_loss(envs, reference, lose, step, steps: int = 40, lose_at: int = 10) ->
 
 
 @pytest.mark.parametrize("step", [plain_step, async_step], ids=["step", "step_async"])
-def test_a_hung_server_is_given_up(three, step) -> None:
-    s0, s1, s2 = (s.address for s in three)
+def test_a_hung_server_is_given_up(dinerdash_cluster, step) -> None:
+    s0, s1, s2 = dinerdash_cluster.addresses
     reference = DinerDashVectorEnv(N, s0, expert=True, config=CONFIG)
     envs = make([s0, s1, s2], timeout=60)
     try:
-        took = run_loss(envs, reference, lambda: hang(three[1].pid), step)
+        took = run_loss(envs, reference, lambda: dinerdash_cluster.hang(1), step)
         print(f"\n[hung server] failover_after={FAILOVER_AFTER:g} s: given up in {took:.3f} s")
         assert FAILOVER_AFTER <= took < FAILOVER_AFTER + SLACK
         assert envs.lost_addresses == [s1] and envs.addresses == [s0, s2]
@@ -178,9 +79,9 @@ def test_a_hung_server_is_given_up(three, step) -> None:
         reference.close()
 
 
-def test_a_black_holed_server_is_given_up(three) -> None:
-    s0, s2 = three[0].address, three[2].address
-    proxy = Proxy(three[1].address)
+def test_a_black_holed_server_is_given_up(dinerdash_cluster) -> None:
+    s0, s1, s2 = dinerdash_cluster.addresses
+    proxy = FaultProxy(s1)
     reference = DinerDashVectorEnv(N, s0, expert=True, config=CONFIG)
     envs = make([s0, proxy.address, s2], timeout=60)
     try:
@@ -194,17 +95,19 @@ def test_a_black_holed_server_is_given_up(three) -> None:
         proxy.close()
 
 
-def test_a_slow_server_is_kept(three) -> None:
-    """Every chunk to and from the middle server waits 0.35 s: a Step takes about 0.7 s, past
-    the point where health checks go out, and under ``failover_after``: it is kept."""
-    s0, s2 = three[0].address, three[2].address
-    proxy = Proxy(three[1].address, latency=0.35)
-    envs = make([s0, proxy.address, s2], failover_after=1.0)
+def test_a_slow_server_is_kept(dinerdash_cluster) -> None:
+    """Every chunk to and from the middle server waits 0.6 s: a Step takes about 1.2 s, past
+    the point where health checks go out (1 s), and well under ``failover_after`` (4 s, so that a
+    loaded machine cannot make it look silent): it is kept."""
+    s0, s1, s2 = dinerdash_cluster.addresses
+    proxy = FaultProxy(s1)
+    proxy.latency(0.6)
+    envs = make([s0, proxy.address, s2], failover_after=4.0)
     reference = DinerDashVectorEnv(N, s0, expert=True, config=CONFIG)
     try:
         rng = np.random.default_rng(1)
         a, b = envs.reset(seed=3), reference.reset(seed=3)
-        for t in range(6):
+        for t in range(5):
             actions = actions_for(b[-1], rng)
             a, b = envs.step(actions), reference.step(actions)
             assert_same_envs(a, b, range(N), f"step {t}")
@@ -224,10 +127,11 @@ def loads(envs) -> Counter:
 
 
 def check_uncut(before: tuple, after: tuple, mode: AutoresetMode, where: str, ignore=()) -> None:
-    """No episode was cut between two steps: each environment's tick went on by one, or its
-    episode ended (terminated, or truncated at the time limit) and the next one began."""
+    """No episode was cut between two steps (``before`` may be a reset's result): each
+    environment's tick went on by one, or its episode ended (terminated, or truncated at the time
+    limit) and the next one began."""
     info0, info1 = before[-1], after[-1]
-    done0 = before[2] | before[3]
+    done0 = before[2] | before[3] if len(before) == 5 else np.zeros(N, np.bool_)  # a reset
     for i in range(N):
         if i in ignore:
             continue
@@ -253,14 +157,13 @@ def check_uncut(before: tuple, after: tuple, mode: AutoresetMode, where: str, ig
 
 
 @pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
-def test_a_lost_server_that_returns_is_taken_back(three, start_server, mode) -> None:
-    addresses = [s.address for s in three]
+def test_a_lost_server_that_returns_is_taken_back(dinerdash_cluster, mode) -> None:
+    addresses = dinerdash_cluster.addresses
     envs = make(addresses, autoreset_mode=mode, failover_after=1.0)
     try:
         rng = np.random.default_rng(9)
         before = envs.reset(seed=0)
-        three[1].kill()
-        back = None
+        dinerdash_cluster.kill(1)
         rejoined = balanced = None
         deadline = time.monotonic() + 60
         for t in range(10_000):
@@ -268,8 +171,7 @@ def test_a_lost_server_that_returns_is_taken_back(three, start_server, mode) -> 
             after = envs.step(actions_for(before[-1], rng))
             if t == 0:
                 assert after[-1]["reconnected"][MOVED].all() and envs.failovers == 1
-                back = three[1].restart()
-                start_server.started.append(back)
+                dinerdash_cluster.restart(1)
             else:
                 assert "reconnected" not in after[-1], f"step {t}: an episode was cut"
                 check_uncut(before, after, mode, f"step {t}")
@@ -296,11 +198,12 @@ def test_a_lost_server_that_returns_is_taken_back(three, start_server, mode) -> 
         envs.close()
 
 
-def test_a_dns_name_that_grows_is_followed(three, monkeypatch) -> None:
+def test_a_dns_name_that_grows_is_followed(dinerdash_cluster, monkeypatch) -> None:
     """``replicas.test`` first answers two servers, then three: the third is taken in."""
     from dinerdash import connection
 
-    answer = [three[0].address, three[1].address]
+    s0, s1, s2 = dinerdash_cluster.addresses
+    answer = [s0, s1]
     resolve = connection.resolve_replicas
 
     def resolver(address):
@@ -315,7 +218,7 @@ def test_a_dns_name_that_grows_is_followed(three, monkeypatch) -> None:
     try:
         assert envs.addresses == answer
         envs.reset(seed=0)
-        answer.append(three[2].address)
+        answer.append(s2)
         deadline = time.monotonic() + 60
         while sorted(loads(envs).values()) != [2, 2, 2]:
             assert time.monotonic() < deadline, f"not even: {loads(envs)}"
@@ -326,27 +229,113 @@ def test_a_dns_name_that_grows_is_followed(three, monkeypatch) -> None:
         envs.close()
 
 
-def test_one_server_keeps_its_typed_errors(start_server) -> None:
+@pytest.mark.dinerdash_cluster(2)
+def test_one_server_keeps_its_typed_errors(dinerdash_cluster) -> None:
     """A single server lost: waited for ``reconnect_timeout``, then an error naming it and the
     time waited; a single hung server: the call's deadline, naming it."""
-    server = start_server()
-    envs = DinerDashVectorEnv(3, server.address, reconnect=True, reconnect_timeout=1.0)
+    lost, hung = dinerdash_cluster.addresses
+    envs = DinerDashVectorEnv(3, lost, reconnect=True, reconnect_timeout=1.0)
     try:
         envs.reset(seed=0)
-        server.kill()
+        dinerdash_cluster.kill(0)
         with pytest.raises(ServiceTransportError, match="within 1 s") as e:
             envs.step(np.zeros(3, dtype=np.int64))
-        assert server.address in str(e.value)
+        assert lost in str(e.value)
     finally:
         envs.close()
-    hung = start_server()
-    envs = DinerDashVectorEnv(3, hung.address, reconnect=True, timeout=1.0)
+    envs = DinerDashVectorEnv(3, hung, reconnect=True, timeout=1.0)
     try:
         envs.reset(seed=0)
-        hang(hung.pid)
+        dinerdash_cluster.hang(1)
         with pytest.raises(ServiceTimeout, match="within 1 s") as e:
             envs.step(np.zeros(3, dtype=np.int64))
-        assert hung.address in str(e.value)
+        assert hung in str(e.value)
     finally:
-        os.kill(hung.pid, signal.SIGCONT)
+        dinerdash_cluster.resume(1)
+        envs.close()
+
+
+def _drains() -> bool:
+    """The server binary drains on SIGTERM (``--drain-timeout``, issue 26 part 3)."""
+    from dinerdash.server import find_server_binary
+
+    out = subprocess.run(
+        [str(find_server_binary(None)), "--help"], capture_output=True, text=True, timeout=30
+    )
+    return "--drain-timeout" in out.stdout
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_a_rolling_restart_cuts_no_episode(dinerdash_cluster_factory, mode) -> None:
+    """Each server in turn drains (SIGTERM), exits once the env has moved every environment off
+    it (each at its episode end), and is started again on its port; the env takes it back and
+    moves environments onto it at their episode ends. No episode is cut, none is lost."""
+    if not _drains():
+        pytest.skip("this dinerdash-server does not drain on SIGTERM (no --drain-timeout)")
+    cluster = dinerdash_cluster_factory(3, drain_timeout=20)
+    addresses = cluster.addresses
+    envs = make(addresses, autoreset_mode=mode, failover_after=2.0)
+    rng = np.random.default_rng(4)
+    steps = 0
+
+    def step_until(done, what: str) -> None:
+        nonlocal before, steps
+        deadline = time.monotonic() + 60
+        while not done():
+            assert time.monotonic() < deadline, f"{what}: not within 60 s ({envs.env_slices})"
+            after = envs.step(actions_for(before[-1], rng))
+            assert "reconnected" not in after[-1], f"step {steps}: an episode was cut"
+            check_uncut(before, after, mode, f"step {steps}")
+            before, steps = after, steps + 1
+
+    try:
+        before = envs.reset(seed=0)
+        for i, address in enumerate(addresses):
+            cluster.drain(i)
+            step_until(lambda: not cluster.is_running(i), f"server {i} drained")  # noqa: B023
+            assert address not in envs.addresses and address in envs.lost_addresses
+            cluster.restart(i)
+
+            def even() -> bool:
+                counts = loads(envs)
+                return len(counts) == 3 and max(counts.values()) - min(counts.values()) <= 1
+
+            step_until(even, f"server {i} taken back")
+        print(
+            f"\n[rolling restart {mode.value}] {steps} steps, {envs.moves} moves, "
+            f"{envs.rejoins} rejoins, {envs.failovers} failovers, no episode cut"
+        )
+        assert envs.failovers == 0 and envs.rejoins == 3 and envs.lost_addresses == []
+        assert envs.moves >= N  # every environment left its first server when it drained
+    finally:
+        envs.close()
+
+
+def test_a_drain_deadline_cuts_what_is_left(dinerdash_cluster_factory) -> None:
+    """Episodes longer than the drain: the environments still on the draining server when its
+    deadline (3 s) is about to pass move at once, their episodes cut as a failover's
+    (truncated, ``info["reconnected"]``), and the server exits with no session left."""
+    if not _drains():
+        pytest.skip("this dinerdash-server does not drain on SIGTERM (no --drain-timeout)")
+    cluster = dinerdash_cluster_factory(2, drain_timeout=3)
+    envs = DinerDashVectorEnv(
+        4, cluster.addresses, config={"time_limit": 5000}, reconnect=True, failover_after=2.0
+    )
+    try:
+        envs.reset(seed=0)
+        cluster.drain(0)
+        cut = np.zeros(4, dtype=np.bool_)
+        deadline = time.monotonic() + 30
+        while cluster.is_running(0):
+            assert time.monotonic() < deadline, f"server 0 still runs: {envs.env_slices}"
+            _, _, terminated, truncated, info = envs.step(np.zeros(4, dtype=np.int64))
+            if "reconnected" in info:
+                assert truncated[info["reconnected"]].all()
+                assert not terminated[info["reconnected"]].any()
+                cut |= info["reconnected"]
+            time.sleep(0.01)  # 100 steps a second: an episode outlasts the drain
+        assert cut[:2].all() and not cut[2:].any()  # server 0 held environments 0 and 1
+        assert envs.failovers == 0 and envs.moves == 2
+        assert envs.addresses == [cluster.address(1)]
+    finally:
         envs.close()

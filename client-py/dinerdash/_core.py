@@ -235,8 +235,9 @@ class SessionCore:
 
     # -- the session ----------------------------------------------------------------------------
 
-    def create(self) -> pb.Spec:
-        """Opens the session (not reset yet) and returns the server's Spec."""
+    def create(self, timeout: float | None = None) -> pb.Spec:
+        """Opens the session (not reset yet) and returns the server's Spec; ``timeout``: the
+        call's deadline, else the connection's."""
         s = self.settings
         request = pb.CreateSessionRequest(
             num_envs=self.size,
@@ -247,7 +248,7 @@ class SessionCore:
             expert_policy=s.expert_policy,
         )
         try:
-            reply = self.conn.call("CreateSession", request)
+            reply = self.conn.call("CreateSession", request, timeout=timeout)
         except ServiceError as e:
             raise self.fail(e) from None
         self.adopt(reply.session_id, reply.spec)

@@ -5,9 +5,9 @@ appear and drain (``reconnect=True`` with ``failover_after``).
   server that has answered nothing (neither the call nor a health check sent beside it) for
   ``failover_after`` seconds is given up, which cancels its calls, and its environments move
   as a killed server's do (:mod:`dinerdash._failover`). A server that answers late is kept.
-- :class:`Membership` is a thread that checks the given-up servers' health and resolves a
-  DNS-name address again every ``resolve_every`` seconds; the env takes the servers it found
-  (:meth:`Membership.found`) at its next step boundary.
+- :class:`Membership` checks the given-up servers' health and a DNS-name address's new
+  replicas (resolved again every ``resolve_every`` seconds) at the env's step boundaries,
+  without blocking; the env takes the servers it found (:meth:`Membership.found`).
 - :func:`handover` builds the Batch of environments that move to another server at their
   episode end (rebalancing onto a server taken in, or leaving a draining server), so that no
   episode is cut; or, when a draining server's deadline is about to pass, cut as a failover's.
@@ -15,7 +15,6 @@ appear and drain (``reconnect=True`` with ``failover_after``).
 
 from __future__ import annotations
 
-import dataclasses
 import ipaddress
 import logging
 import threading
@@ -32,7 +31,7 @@ from ._proto import pb
 from .connection import Connection, ConnectOptions, _split_host_port
 from .errors import ServiceError
 
-__all__ = ["Membership", "await_replies", "boundary", "handover", "splice"]
+__all__ = ["Membership", "await_replies", "boundary", "handover", "has_name", "splice"]
 
 log = logging.getLogger("dinerdash")
 
@@ -41,8 +40,6 @@ log = logging.getLogger("dinerdash")
 PROBE_AFTER = 1.0
 #: Seconds between two health checks of the given-up servers.
 PROBE_EVERY = 1.0
-#: Seconds a probe of a given-up server may take to connect.
-PROBE_CONNECT = 2.0
 
 
 def await_replies(
@@ -100,7 +97,7 @@ def await_replies(
         pending = [(i, r) for i, r in pending if not r(time.monotonic() + 0.05)]
 
 
-def _has_name(address: str | Sequence[str] | None) -> bool:
+def has_name(address: str | Sequence[str] | None) -> bool:
     """``address`` names a host by DNS name (which may resolve to other replicas later)."""
     if address is None:
         return False
@@ -117,82 +114,82 @@ def _has_name(address: str | Sequence[str] | None) -> bool:
 
 
 class Membership:
-    """A daemon thread that looks for servers to take in: every :data:`PROBE_EVERY` seconds it
-    checks the health of the endpoint's given-up servers, and every ``resolve_every`` seconds
-    (a DNS-name address only) it resolves the address again. A server that answers SERVING is
-    offered, with its new :class:`~dinerdash.connection.Connection`, through :meth:`found`; the
-    env takes it at a step boundary. The thread holds the endpoint, never the env, and ends at
-    :meth:`close`."""
+    """Looks for servers to take in, at the env's step boundaries (:meth:`found`), without
+    blocking: every :data:`PROBE_EVERY` seconds a ``grpc.health.v1`` check goes to each given-up
+    server (on a channel kept for it) and to each new replica of a DNS-name address, and the
+    checks answered SERVING by the next boundary are handed over with their connection. The
+    address is resolved again every ``resolve_every`` seconds by a thread that only resolves
+    names: no gRPC call is made off the env's own calls, so that a process that forks (a
+    subprocess, a multiprocessing worker) never does so in the middle of one."""
 
     def __init__(self, endpoint: Endpoint, options: ConnectOptions) -> None:
         self._endpoint = endpoint
-        self._options = dataclasses.replace(
-            endpoint.options, connect_timeout=min(PROBE_CONNECT, options.connect_timeout)
-        )
+        self._options = endpoint.options
         self._address = options.address
-        self._resolve_every = options.resolve_every if _has_name(options.address) else None
-        self._lock = threading.Lock()
-        #: Servers found and not taken yet: (index or None for a new one, connection).
-        self._found: list[tuple[int | None, Connection]] = []
-        self._offered: set[str] = set()
+        #: address -> (index or None for a new replica, connection, health check in flight).
+        self._probes: dict[str, tuple[int | None, Connection, grpc.Future | None]] = {}
+        self._next = time.monotonic() + PROBE_EVERY
+        #: The replicas the address resolved to last (the resolver thread's answer).
+        self._replicas: list[str] = []
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="dinerdash-membership", daemon=True)
-        self._thread.start()
+        every = options.resolve_every if has_name(options.address) else None
+        if every is not None:
+            threading.Thread(
+                target=self._resolve, args=(every,), name="dinerdash-resolve", daemon=True
+            ).start()
 
     def found(self) -> list[tuple[int | None, Connection]]:
         """The servers found since the last call: ``(index, conn)`` for a given-up server that
-        answers again, ``(None, conn)`` for a new replica. The caller takes or closes each."""
-        if not self._found:
-            return []
-        with self._lock:
-            out, self._found = self._found, []
-            self._offered -= {c.address for _, c in out}
+        answers SERVING again, ``(None, conn)`` for a new replica. The caller takes or closes
+        each. Sends the next round of checks when it is time."""
+        out = []
+        for address, (index, conn, check) in list(self._probes.items()):
+            if check is None or not check.done():
+                continue
+            serving = not check.cancelled() and check.exception() is None and check.result()
+            if serving:
+                del self._probes[address]
+                out.append((index, conn))
+            else:
+                self._probes[address] = (index, conn, None)
+        now = time.monotonic()
+        if now >= self._next:
+            self._next = now + PROBE_EVERY
+            endpoint = self._endpoint
+            wanted = {endpoint.addresses[i]: i for i in endpoint.given_up}
+            known = set(endpoint.addresses)
+            wanted.update({a: None for a in self._replicas if a not in known})
+            for address in [a for a in self._probes if a not in wanted]:
+                self._probes.pop(address)[1].close()
+            for address, index in wanted.items():
+                self._check(address, index)
         return out
+
+    def _check(self, address: str, index: int | None) -> None:
+        _, conn, check = self._probes.get(address, (index, None, None))
+        if check is not None:
+            return  # the last one is still out
+        try:
+            if conn is None:
+                conn = self._options.connect(address, wait=False)
+            self._probes[address] = (index, conn, conn.health(PROBE_EVERY))
+        except (ServiceError, OSError, ValueError):
+            if conn is not None:
+                conn.close()
+            self._probes.pop(address, None)
+
+    def _resolve(self, every: float) -> None:
+        while not self._stop.wait(every):
+            try:
+                self._replicas = connection.resolve_replicas(self._address)
+            except (OSError, ValueError):
+                pass
 
     def close(self) -> None:
         self._stop.set()
-        for _, conn in self.found():
+        for _, conn, _ in self._probes.values():
             conn.close()
-
-    def _run(self) -> None:
-        next_resolve = (
-            time.monotonic() + self._resolve_every if self._resolve_every is not None else None
-        )
-        while not self._stop.wait(PROBE_EVERY):
-            endpoint = self._endpoint
-            for i in list(endpoint.given_up):
-                self._probe(i, endpoint.addresses[i])
-            if next_resolve is not None and time.monotonic() >= next_resolve:
-                next_resolve = time.monotonic() + self._resolve_every
-                try:
-                    replicas = connection.resolve_replicas(self._address)
-                except (OSError, ValueError):
-                    continue
-                known = set(endpoint.addresses)
-                for address in replicas:
-                    if address not in known:
-                        self._probe(None, address)
-
-    def _probe(self, index: int | None, address: str) -> None:
-        with self._lock:
-            if address in self._offered:
-                return
-        if self._stop.is_set():
-            return
-        try:
-            conn = self._options.connect(address)
-        except (ServiceError, OSError, ValueError):
-            return
-        try:
-            serving = conn.health(PROBE_CONNECT).result()
-        except (grpc.RpcError, ServiceError):
-            serving = False
-        if not serving or self._stop.is_set():
-            conn.close()
-            return
-        with self._lock:
-            self._offered.add(address)
-            self._found.append((index, conn))
+        self._probes = {}
 
 
 def boundary(batch: pb.Batch, mode: AutoresetMode) -> np.ndarray:

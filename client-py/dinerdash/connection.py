@@ -336,8 +336,9 @@ class ConnectOptions:
             raise TypeError(f"connect: expected a ConnectOptions, got {type(connect).__name__}")
         return dataclasses.replace(connect, **keywords) if keywords else connect
 
-    def connect(self, address: str) -> Connection:
-        """A :class:`Connection` to one server, with these options."""
+    def connect(self, address: str, wait: bool = True) -> Connection:
+        """A :class:`Connection` to one server, with these options (``wait=False``: returned at
+        once, without waiting for the server to answer)."""
         return Connection(
             address,
             token=self.token,
@@ -345,6 +346,7 @@ class ConnectOptions:
             timeout=self.timeout,
             tls=self.tls,
             tls_ca=self.tls_ca,
+            wait=wait,
         )
 
 
@@ -375,6 +377,8 @@ class Connection:
         tls: connect with TLS, trusting the system's root certificates.
         tls_ca: connect with TLS, trusting this PEM CA certificate (default:
             ``DINERDASH_TLS_CA``); e.g. a self-signed server certificate.
+        wait: wait (``connect_timeout``) for the server to answer before returning; ``False``
+            returns at once (the channel connects at its first call).
     """
 
     def __init__(
@@ -388,6 +392,7 @@ class Connection:
         timeout: float | None = None,
         tls: bool = False,
         tls_ca: str | os.PathLike | bool | None = None,
+        wait: bool = True,
     ) -> None:
         self.address = parse_addresses(address)[0]
         self.retries = retries
@@ -404,6 +409,8 @@ class Connection:
         self.stub = pb_grpc.DinerDashStub(self.channel)
         self._health: grpc.UnaryUnaryMultiCallable | None = None
         self._closed = False
+        if not wait:
+            return
         # A first short wait, then the TLS probe, then the rest: a TLS mismatch never gets an
         # answer, and should say so at once rather than after the whole connect timeout.
         first = min(connect_timeout, 1.0)

@@ -53,7 +53,7 @@ from ._core import (
 )
 from ._decode import decode, join, seeds, slice_batch
 from ._endpoint import Endpoint
-from ._failover import PASSED_OVER, fail_over, pieces
+from ._failover import fail_over, pieces
 from ._membership import (
     FINAL,
     OUTCOME,
@@ -61,14 +61,24 @@ from ._membership import (
     await_replies,
     boundary,
     handover,
+    has_name,
     splice,
 )
 from ._proto import pb
 from .connection import ConnectOptions
-from .errors import EnvClosed, InvalidArgument, ServiceError
+from .errors import (
+    EnvClosed,
+    InvalidArgument,
+    ServiceError,
+    ServiceTimeout,
+    ServiceTransportError,
+)
 from .game import observation_space
 
 __all__ = ["DinerDashVectorEnv"]
+
+#: Seconds a server that refused a session for moving environments (full) is not asked again.
+REST = 10.0
 
 
 class DinerDashVectorEnv(SessionOwner, VectorEnv):
@@ -170,6 +180,12 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._membership: Membership | None = None
         #: Environments moved to another server at their episode end (before a close()).
         self._moves = 0
+        #: Servers that refused a session of moving environments (full): until when they rest.
+        self._resting: dict[int, float] = {}
+        #: What the last planning saw, and the servers and sessions of the last step after
+        #: which nothing was under way (:meth:`_settle`).
+        self._planned: tuple = ()
+        self._quiet: tuple | None = None
         self.reconnect = self._options.reconnect
         self.reconnect_timeout = self._options.reconnect_timeout
         self.failover_after = self._options.failover_after
@@ -221,8 +237,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._close_sessions()
             self._endpoint.close()
             raise
+        # Membership for several servers, or a DNS name that may come to name several.
         if self._failover_on() and self._endpoint.server is None:
-            self._membership = Membership(self._endpoint, self._options)
+            if len(self._endpoint.connections) > 1 or has_name(self._options.address):
+                self._membership = Membership(self._endpoint, self._options)
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
         self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
@@ -280,6 +298,31 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             c.last if c.owned is None else slice_batch(c.last, lo - c.start, hi - c.start)
             for lo, hi, c in self._pieces()
         ]
+
+    def _refused(self, dest: int, error: ServiceError) -> None:
+        """Server ``dest`` could not take environments moving to it: one that drains is marked
+        so, one that does not answer is given up (no step of the env would notice: it holds
+        none of its environments), one that refuses otherwise (full) is not asked for a while."""
+        if error.reason == "DRAINING":
+            self._endpoint.drain(dest, None)
+        elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
+            self._endpoint.give_up(dest, f"could not open a session there: {error}")
+        else:
+            self._resting[dest] = time.monotonic() + REST
+
+    def _targets(self) -> list[int]:
+        """The servers environments may move to now: open to new sessions, and not resting
+        after refusing one."""
+        now = time.monotonic()
+        for j in [j for j, until in self._resting.items() if until <= now]:
+            del self._resting[j]
+        return [j for j in self._endpoint.open_to_new() if j not in self._resting]
+
+    def _quick(self) -> float:
+        """The deadline of the calls that move environments between servers: a server that
+        does not answer within ``failover_after`` is passed over (the env's watch gives it up
+        at the next step), not waited for the whole ``timeout``."""
+        return min(self._options.timeout, self.failover_after)
 
     def _failover_on(self) -> bool:
         return self.reconnect and self.failover_after is not None
@@ -393,6 +436,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         info["seed"] = seeds(batches).astype(np.int64)  # as SyncVectorEnv; torch has no uint64
         info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
         self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
+        self._last_finish = time.monotonic()  # the time between steps, for a drain's margin
         return obs, info
 
     def _reset_mask(self, reset_mask: Any, config: Any) -> np.ndarray | None:
@@ -562,6 +606,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         endpoint = self._endpoint
         now = time.monotonic()
         interval, self._last_finish = now - self._last_finish, now
+        quiet = (len(self._cores), len(endpoint.connections), tuple(endpoint.given_up))
+        if quiet == self._quiet and not any(
+            c.drain_ms or c.source is not None for c in self._cores
+        ):
+            return  # nothing changed and nothing under way: the common step
         for core in self._cores:
             if core.drain_ms > 0:
                 endpoint.drain(core.index, core.drain_ms / 1000)
@@ -571,9 +620,15 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         for new in [c for c in self._cores if c.entering]:
             self._enter(new, sorted(new.entering))
             new.entering = set()
-        targets = endpoint.open_to_new()
-        if targets:
+        for new in self._cores:
+            if new.source is not None and new.index in endpoint.draining:
+                new.source, new.entering = None, set()  # no more environments go to it
+        targets = self._targets()
+        # Planning is asked again only when the servers or the sessions changed.
+        key = (len(self._cores), tuple(targets), tuple(endpoint.draining), tuple(endpoint.given_up))
+        if targets and key != self._planned:
             self._plan(targets)
+            self._planned = key
         # A drain deadline closer than a few steps (and two seconds): move now, cut.
         margin = max(2.0, 3 * interval)
         late = {i for i, t in endpoint.draining.items() if t - now < margin}
@@ -590,7 +645,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             elif due:
                 self._enter(new, due)
         for core in [c for c in self._cores if c.index in late and c.load]:
-            targets = [j for j in endpoint.open_to_new() if j != core.index]
+            targets = [j for j in self._targets() if j != core.index]
             for lo, hi in core.runs():
                 for i in range(lo, hi):
                     if targets and i not in self._entering():
@@ -600,6 +655,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self._cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
+        settled = not (endpoint.draining or self._resting) and all(
+            c.source is None for c in self._cores
+        )
+        quiet = (len(self._cores), len(endpoint.connections), tuple(endpoint.given_up))
+        self._quiet = quiet if settled else None
 
     def _entering(self) -> set[int]:
         return {i for c in self._cores for i in c.entering}
@@ -681,12 +741,15 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
         new = SessionCore(self._endpoint, dest, lo, hi, self._settings)
         try:
-            new.create()
-            new.last = new.note(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
-        except PASSED_OVER as e:
+            new.create(self._quick())
+            new.last = new.note(
+                new.conn.call(
+                    "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
+                )
+            )
+        except ServiceError as e:
             new.close()
-            if getattr(e, "reason", None) == "DRAINING":
-                self._endpoint.drain(dest, None)
+            self._refused(dest, e)
             return False
         except BaseException:
             new.close()
@@ -709,7 +772,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         mask[[i - new.start for i in envs]] = True
         request = pb.ResetRequest(session_id=new.session_id, reset_mask=mask.tobytes())
         try:
-            first = new.note(new.conn.call("Reset", request))
+            first = new.note(new.conn.call("Reset", request, timeout=self._quick()))
         except ServiceError:
             return  # its server is going: the transfer is dropped at the next failover
         batch = splice(new.last, first, mask)
@@ -746,6 +809,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             if core.load == 0 and core.source is None:
                 core.close()
                 self._cores.remove(core)
+        self._cores.sort(key=lambda c: c.start)  # what _batches' common case relies on
 
     def _complete_transfers(self) -> None:
         """A full reset starts every episode: the transfers in progress are done at once."""
@@ -764,12 +828,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         ``dest`` cannot take it now (it drains, is full or unreachable): it stays, for now."""
         new = SessionCore(self._endpoint, dest, i, i + 1, self._settings)
         try:
-            new.create()
-            first = new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id))
-        except PASSED_OVER as e:
+            new.create(self._quick())
+            first = new.conn.call(
+                "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
+            )
+        except ServiceError as e:
             new.close()
-            if getattr(e, "reason", None) == "DRAINING":
-                self._endpoint.drain(dest, None)
+            self._refused(dest, e)
             return False
         except BaseException:
             new.close()
@@ -779,6 +844,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         new.reconnected = cut
         core.disown(i, i + 1)
         self._cores.append(new)
+        self._cores.sort(key=lambda c: c.start)
         self._moves += 1
         return True
 
