@@ -28,8 +28,8 @@
 //! - [`auth`]: bearer tokens and the tenants they stand for (the tenants file), the
 //!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
 //!   over the connection limit, token.
-//! - [`http`]: the HTTP endpoint: the sessions page and the watch page, their JSON and event
-//!   feeds, and the metrics.
+//! - [`http`]: the HTTP endpoint on hyper and axum: the sessions page and the watch page, their
+//!   JSON and event feeds, and the metrics.
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status` ([`service::status`](mod@service::status));
 //!   StepStream and Rollout streams.

@@ -2,10 +2,23 @@
 //! [`crate::http`] serves them at `/metrics`.
 //!
 //! Counters are plain atomics bumped on the hot path (relaxed: they are statistics, not
-//! synchronisation); nothing here allocates per step.
+//! synchronisation); nothing here allocates per step. Some double as the memory budget's
+//! accounting, which takes from them with compare-and-swap ([`crate::budget`]), so they stay
+//! atomics of our own: at a scrape, one reading of them is handed to a `prometheus-client`
+//! registry as a collector, and the crate writes the exposition format.
 
-use std::fmt::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering};
+
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::prometheus_text;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
+use prometheus_client::metrics::MetricType;
+use prometheus_client::metrics::counter::ConstCounter;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::registry::Registry;
+
+/// The `Content-Type` of [`Metrics::render`]'s text: Prometheus' text format, version 0.0.4.
+pub const CONTENT_TYPE: &str = prometheus_text::CONTENT_TYPE;
 
 /// gRPC status code names, indexed by code number, for the error counter's label.
 const CODE_NAMES: [&str; 17] = [
@@ -75,67 +88,76 @@ impl Metrics {
         self.rpc_errors[code].fetch_add(1, Ordering::Relaxed);
     }
 
-    /// The counters in Prometheus' text exposition format.
+    /// The counters in Prometheus' text exposition format (version 0.0.4, [`CONTENT_TYPE`]),
+    /// encoded by `prometheus-client` from one reading of every counter.
     pub fn render(&self) -> String {
-        let mut out = String::with_capacity(2048);
-        let counters: [(&str, &str, &AtomicU64); 10] = [
+        let mut registry = Registry::default();
+        registry.register_collector(Box::new(self.reading()));
+        let mut out = String::with_capacity(4096);
+        // Writing to a String cannot fail.
+        let _ = prometheus_text::encode(&mut out, &registry);
+        out
+    }
+
+    /// Every counter's value now.
+    fn reading(&self) -> Reading {
+        let read = |(name, help, value): (&'static str, &'static str, &AtomicU64)| {
+            (name, help, value.load(Ordering::Relaxed))
+        };
+        let counters = [
             (
-                "dinerdash_sessions_created_total",
+                "dinerdash_sessions_created",
                 "Sessions created by CreateSession, Fork and Restore.",
                 &self.sessions_created,
             ),
             (
-                "dinerdash_sessions_closed_total",
+                "dinerdash_sessions_closed",
                 "Sessions closed by CloseSession.",
                 &self.sessions_closed,
             ),
             (
-                "dinerdash_sessions_expired_total",
+                "dinerdash_sessions_expired",
                 "Sessions evicted after being idle longer than the TTL.",
                 &self.sessions_expired,
             ),
             (
-                "dinerdash_step_calls_total",
+                "dinerdash_step_calls",
                 "Step RPCs that succeeded.",
                 &self.step_calls,
             ),
             (
-                "dinerdash_env_steps_total",
+                "dinerdash_env_steps",
                 "Environment steps (a Step of N environments counts N).",
                 &self.env_steps,
             ),
             (
-                "dinerdash_env_resets_total",
+                "dinerdash_env_resets",
                 "Environment resets, by Reset and by autoreset.",
                 &self.env_resets,
             ),
             (
-                "dinerdash_rollout_episodes_total",
+                "dinerdash_rollout_episodes",
                 "Episodes recorded by Rollout.",
                 &self.rollout_episodes,
             ),
             (
-                "dinerdash_connections_shed_total",
+                "dinerdash_connections_shed",
                 "Connections closed at the connection limit to admit a new one.",
                 &self.connections_shed,
             ),
             (
-                "dinerdash_connections_without_preface_total",
+                "dinerdash_connections_without_preface",
                 "Connections closed for not sending the HTTP/2 preface in time.",
                 &self.connections_without_preface,
             ),
             (
-                "dinerdash_connections_idle_closed_total",
+                "dinerdash_connections_idle_closed",
                 "Connections closed for being silent longer than --idle-timeout.",
                 &self.connections_idle_closed,
             ),
-        ];
-        for (name, help, value) in counters {
-            let _ = writeln!(out, "# HELP {name} {help}");
-            let _ = writeln!(out, "# TYPE {name} counter");
-            let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
-        }
-        let gauges: [(&str, &str, &AtomicU64); 6] = [
+        ]
+        .map(read);
+        let gauges = [
             (
                 "dinerdash_live_sessions",
                 "Sessions alive now.",
@@ -166,23 +188,82 @@ impl Metrics {
                 "Connections over the connection limit open now, answered RESOURCE_EXHAUSTED.",
                 &self.over_limit_connections,
             ),
-        ];
-        for (name, help, value) in gauges {
-            let _ = writeln!(out, "# HELP {name} {help}");
-            let _ = writeln!(out, "# TYPE {name} gauge");
-            let _ = writeln!(out, "{name} {}", value.load(Ordering::Relaxed));
+        ]
+        .map(read);
+        Reading {
+            counters,
+            gauges,
+            rpc_errors: std::array::from_fn(|code| self.rpc_errors[code].load(Ordering::Relaxed)),
         }
-        let _ = writeln!(
-            out,
-            "# HELP dinerdash_rpc_errors_total RPCs that failed, by gRPC status code."
-        );
-        let _ = writeln!(out, "# TYPE dinerdash_rpc_errors_total counter");
-        for (name, value) in CODE_NAMES.iter().zip(&self.rpc_errors) {
-            let value = value.load(Ordering::Relaxed);
+    }
+}
+
+/// One reading of every counter: name (counters without their `_total`, which the encoder
+/// adds), help, value. What the registry encodes at a scrape.
+#[derive(Debug)]
+struct Reading {
+    /// The counters.
+    counters: [(&'static str, &'static str, u64); 10],
+    /// The gauges.
+    gauges: [(&'static str, &'static str, u64); 6],
+    /// Failed RPCs by status code.
+    rpc_errors: [u64; 17],
+}
+
+impl Collector for Reading {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        for &(name, help, value) in &self.counters {
+            let metric = encoder.encode_descriptor(name, help, None, MetricType::Counter)?;
+            ConstCounter::new(value).encode(metric)?;
+        }
+        for &(name, help, value) in &self.gauges {
+            let metric = encoder.encode_descriptor(name, help, None, MetricType::Gauge)?;
+            ConstGauge::new(value).encode(metric)?;
+        }
+        let mut family = encoder.encode_descriptor(
+            "dinerdash_rpc_errors",
+            "RPCs that failed, by gRPC status code.",
+            None,
+            MetricType::Counter,
+        )?;
+        // Codes that never failed are left out, as a labelled counter that was never touched.
+        for (name, &value) in CODE_NAMES.iter().zip(&self.rpc_errors) {
             if value > 0 {
-                let _ = writeln!(out, "dinerdash_rpc_errors_total{{code=\"{name}\"}} {value}");
+                let labels = [("code", *name)];
+                ConstCounter::new(value).encode(family.encode_family(&labels)?)?;
             }
         }
-        out
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_scrape_keeps_the_names_types_and_labels() {
+        let metrics = Metrics::default();
+        metrics.env_steps.fetch_add(7, Ordering::Relaxed);
+        metrics.live_sessions.fetch_add(2, Ordering::Relaxed);
+        metrics.count_error(5);
+        metrics.count_error(5);
+        metrics.count_error(99);
+        let text = metrics.render();
+        for line in [
+            "# HELP dinerdash_env_steps_total Environment steps (a Step of N environments counts N).",
+            "# TYPE dinerdash_env_steps_total counter",
+            "dinerdash_env_steps_total 7",
+            "# TYPE dinerdash_live_sessions gauge",
+            "dinerdash_live_sessions 2",
+            "# HELP dinerdash_rpc_errors_total RPCs that failed, by gRPC status code.",
+            "# TYPE dinerdash_rpc_errors_total counter",
+            "dinerdash_rpc_errors_total{code=\"NOT_FOUND\"} 2",
+            "dinerdash_rpc_errors_total{code=\"UNKNOWN\"} 1",
+        ] {
+            assert!(text.lines().any(|l| l == line), "no {line:?} in\n{text}");
+        }
+        assert!(!text.contains("code=\"OK\""), "{text}");
+        assert_eq!(text.matches("# TYPE ").count(), 17);
     }
 }

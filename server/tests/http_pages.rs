@@ -35,9 +35,17 @@ async fn get(addr: SocketAddr, path: &str, token: Option<&str>) -> Reply {
 }
 
 async fn request(addr: SocketAddr, method: &str, path: &str, token: Option<&str>) -> Reply {
-    let mut stream = TcpStream::connect(addr).await.unwrap();
     let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
-    let head = format!("{method} {path} HTTP/1.1\r\nHost: localhost\r\n{auth}\r\n");
+    raw(
+        addr,
+        &format!("{method} {path} HTTP/1.1\r\nHost: localhost\r\n{auth}\r\n"),
+    )
+    .await
+}
+
+/// Sends `head` as it is and reads the whole reply.
+async fn raw(addr: SocketAddr, head: &str) -> Reply {
+    let mut stream = TcpStream::connect(addr).await.unwrap();
     stream.write_all(head.as_bytes()).await.unwrap();
     let mut text = String::new();
     tokio::time::timeout(PATIENCE, stream.read_to_string(&mut text))
@@ -53,9 +61,12 @@ async fn request(addr: SocketAddr, method: &str, path: &str, token: Option<&str>
     }
 }
 
-/// An open event stream.
+/// An open event stream: its body arrives in HTTP/1.1 chunks, decoded here.
 struct Events {
     stream: TcpStream,
+    /// Bytes read and not yet decoded (chunk sizes and data).
+    raw: String,
+    /// The decoded body not yet returned as blocks.
     buffer: String,
 }
 
@@ -66,32 +77,55 @@ impl Events {
         stream.write_all(head.as_bytes()).await.unwrap();
         let mut events = Events {
             stream,
+            raw: String::new(),
             buffer: String::new(),
         };
-        let head = events.block().await;
+        while !events.raw.contains("\r\n\r\n") {
+            events.read().await;
+        }
+        let end = events.raw.find("\r\n\r\n").unwrap();
+        let head: String = events.raw.drain(..end + 4).collect();
         assert!(head.starts_with("HTTP/1.1 200 OK"), "{head}");
         assert!(head.contains("text/event-stream"), "{head}");
+        let lower = head.to_ascii_lowercase();
+        assert!(lower.contains("transfer-encoding: chunked"), "{head}");
         events
     }
 
-    /// The next block up to a blank line (`\r\n\r\n` for the head, `\n\n` for events).
-    async fn block(&mut self) -> String {
+    /// Reads what has arrived into `raw`.
+    async fn read(&mut self) {
         let mut buf = [0u8; 4096];
-        loop {
-            for sep in ["\r\n\r\n", "\n\n"] {
-                if let Some(end) = self.buffer.find(sep) {
-                    let block = self.buffer[..end].to_owned();
-                    self.buffer.drain(..end + sep.len());
-                    return block;
-                }
+        let n = tokio::time::timeout(PATIENCE, self.stream.read(&mut buf))
+            .await
+            .expect("no event in time")
+            .unwrap();
+        assert!(n > 0, "the stream ended");
+        self.raw.push_str(std::str::from_utf8(&buf[..n]).unwrap());
+    }
+
+    /// Moves the whole chunks of `raw` into `buffer`.
+    fn dechunk(&mut self) {
+        while let Some(line) = self.raw.find("\r\n") {
+            let size = usize::from_str_radix(self.raw[..line].trim(), 16).unwrap();
+            let end = line + 2 + size + 2;
+            if self.raw.len() < end {
+                return;
             }
-            let n = tokio::time::timeout(PATIENCE, self.stream.read(&mut buf))
-                .await
-                .expect("no event in time")
-                .unwrap();
-            assert!(n > 0, "the stream ended");
-            self.buffer
-                .push_str(std::str::from_utf8(&buf[..n]).unwrap());
+            self.buffer.push_str(&self.raw[line + 2..line + 2 + size]);
+            self.raw.drain(..end);
+        }
+    }
+
+    /// The next event block, up to its blank line.
+    async fn block(&mut self) -> String {
+        loop {
+            self.dechunk();
+            if let Some(end) = self.buffer.find("\n\n") {
+                let block = self.buffer[..end].to_owned();
+                self.buffer.drain(..end + 2);
+                return block;
+            }
+            self.read().await;
         }
     }
 
@@ -150,6 +184,27 @@ async fn pages_feeds_and_status_codes() {
     assert_eq!((head.status, head.body.as_str()), (200, ""));
     let metrics = get(addr, "/metrics", None).await;
     assert!(metrics.body.contains("dinerdash_live_sessions 0"));
+    assert!(
+        metrics.head.contains("text/plain; version=0.0.4"),
+        "{}",
+        metrics.head
+    );
+    // Every response: one request a connection, never cached, no sniffing, nothing from
+    // elsewhere (header names compared in lower case, as HTTP does).
+    let head = page.head.to_ascii_lowercase();
+    for header in [
+        "connection: close",
+        "cache-control: no-store",
+        "x-content-type-options: nosniff",
+        "referrer-policy: no-referrer",
+        "content-security-policy: default-src 'self'",
+    ] {
+        assert!(head.contains(header), "{header} missing in {head}");
+    }
+    // hyper refuses what is not a request, and request heads past 8 KiB.
+    assert_eq!(raw(addr, "hello\r\n\r\n").await.status, 400);
+    let huge = format!("GET / HTTP/1.1\r\nX-Big: {}\r\n\r\n", "x".repeat(16 << 10));
+    assert_eq!(raw(addr, &huge).await.status, 431);
 
     let id = create(
         &mut c,
@@ -284,7 +339,9 @@ async fn tokens_show_each_tenant_its_own_sessions() {
     for path in ["/api/sessions", "/api/sessions/events", "/metrics"] {
         let refused = get(addr, path, None).await;
         assert_eq!(refused.status, 401, "{path}");
-        assert!(refused.head.contains("WWW-Authenticate: Bearer"));
+        // Header names are case-insensitive (hyper writes them in lower case).
+        let head = refused.head.to_ascii_lowercase();
+        assert!(head.contains("www-authenticate: bearer"), "{head}");
         assert_eq!(get(addr, path, Some("nope")).await.status, 401, "{path}");
     }
     assert_eq!(get(addr, "/metrics", Some("bbb")).await.status, 200);
@@ -329,7 +386,7 @@ async fn tokens_show_each_tenant_its_own_sessions() {
 
 #[tokio::test]
 async fn a_client_that_does_not_read_is_dropped_not_waited_for() {
-    use dinerdash_server::http::{WRITE_TIMEOUT, send};
+    use dinerdash_server::http::{WRITE_TIMEOUT, WriteDeadline};
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     socket.set_recv_buffer_size(4096).unwrap();
@@ -337,11 +394,13 @@ async fn a_client_that_does_not_read_is_dropped_not_waited_for() {
         .connect(listener.local_addr().unwrap())
         .await
         .unwrap();
-    let (mut to_viewer, _) = listener.accept().await.unwrap();
+    let (to_viewer, _) = listener.accept().await.unwrap();
+    // The endpoint serves every connection through this wrapper.
+    let mut to_viewer = WriteDeadline::new(to_viewer, WRITE_TIMEOUT);
     // More than any socket buffers hold: the write blocks once they are full.
     let frames = vec![b'x'; 64 << 20];
     let start = std::time::Instant::now();
-    let error = send(&mut to_viewer, &frames).await.unwrap_err();
+    let error = to_viewer.write_all(&frames).await.unwrap_err();
     assert_eq!(error.kind(), std::io::ErrorKind::TimedOut);
     let waited = start.elapsed();
     assert!(waited >= WRITE_TIMEOUT, "{waited:?}");

@@ -2,7 +2,8 @@
 //! `server/static/` (no build step, nothing fetched from elsewhere: they work offline), and the
 //! readable 404 page.
 
-use super::Response;
+use axum::http::{StatusCode, header};
+use axum::response::{Html, IntoResponse, Response};
 
 /// The sessions page (`/`).
 pub const SESSIONS_PAGE: &str = include_str!("../../static/index.html");
@@ -40,18 +41,23 @@ const FILES: [(&str, &str, &str); 5] = [
 
 /// An HTML page.
 pub fn page(html: &'static str) -> Response {
-    Response::new(200, "text/html; charset=utf-8", html)
+    Html(html).into_response()
 }
 
 /// The file `/static/{name}`, or 404.
 pub fn file(name: &str) -> Response {
     match FILES.iter().find(|(n, _, _)| *n == name) {
-        Some((_, content_type, text)) => Response::new(200, content_type, *text),
-        None => Response::new(
-            404,
-            "text/html; charset=utf-8",
-            not_found_page("Nothing here", "This server has no such file."),
-        ),
+        Some((_, content_type, text)) => {
+            ([(header::CONTENT_TYPE, *content_type)], *text).into_response()
+        }
+        None => (
+            StatusCode::NOT_FOUND,
+            Html(not_found_page(
+                "Nothing here",
+                "This server has no such file.",
+            )),
+        )
+            .into_response(),
     }
 }
 
@@ -63,11 +69,23 @@ pub fn not_found(id: &str) -> Response {
          being idle, or the address is mistyped (a watch address needs the full 32-digit ID).",
         escape(&shown)
     );
-    Response::new(
-        404,
-        "text/html; charset=utf-8",
-        not_found_page("Session not found", &message),
+    (
+        StatusCode::NOT_FOUND,
+        Html(not_found_page("Session not found", &message)),
     )
+        .into_response()
+}
+
+/// The 404 page of an address that is no page of this server.
+pub fn no_such_page() -> Response {
+    (
+        StatusCode::NOT_FOUND,
+        Html(not_found_page(
+            "Nothing here",
+            "This address is not a page of this server.",
+        )),
+    )
+        .into_response()
 }
 
 /// A small HTML page saying what was not found (`message` is HTML, already escaped).
@@ -103,14 +121,15 @@ pub fn escape(text: &str) -> String {
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_404_page_escapes_what_it_echoes() {
+    #[tokio::test]
+    async fn the_404_page_escapes_what_it_echoes() {
         let r = not_found("<script>alert(1)</script>");
-        assert_eq!(r.status, 404);
-        let body = String::from_utf8(r.body).unwrap();
+        assert_eq!(r.status(), StatusCode::NOT_FOUND);
+        let body = axum::body::to_bytes(r.into_body(), 1 << 20).await.unwrap();
+        let body = String::from_utf8(body.to_vec()).unwrap();
         assert!(body.contains("&lt;script&gt;"), "{body}");
         assert!(!body.contains("<script>"));
-        assert_eq!(file("board.js").status, 200);
-        assert_eq!(file("../Cargo.toml").status, 404);
+        assert_eq!(file("board.js").status(), StatusCode::OK);
+        assert_eq!(file("../Cargo.toml").status(), StatusCode::NOT_FOUND);
     }
 }

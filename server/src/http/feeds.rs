@@ -4,17 +4,22 @@
 //!
 //! A watch stream looks at its environment's slot at most [`FRAME_INTERVAL`] apart and sends
 //! only the latest frame, so a trainer stepping thousands of times a second costs a viewer ~30
-//! frames a second; frames in between are dropped. Each stream has one frame in flight at most:
-//! a viewer that stops reading is dropped after [`super::WRITE_TIMEOUT`], never waited for.
+//! frames a second; frames in between are dropped. A frame is made only when hyper asks the
+//! stream for one, that is once the previous one is written: a viewer that stops reading is
+//! dropped after [`super::WRITE_TIMEOUT`], never waited for. The event framing is axum's
+//! ([`Sse`]).
 
 use std::collections::HashMap;
+use std::convert::Infallible;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
 use serde::Serialize;
-use tokio::net::TcpStream;
 
-use super::{Response, Site, Viewer, send};
+use super::{Site, Viewer};
 use crate::policy::expert::expert_action;
 use crate::session::watch::{Frame, Summary};
 use crate::session::{Autoreset, ExpertActions, SessionError, SessionId};
@@ -40,47 +45,46 @@ pub enum Feed {
 }
 
 impl Feed {
-    /// Writes events to `stream` until the client goes, does not read, or `shutdown` fires.
-    pub async fn run(
-        self,
-        stream: &mut TcpStream,
-        site: &Site,
-        mut shutdown: Shutdown,
-    ) -> std::io::Result<()> {
+    /// The feed as a server-sent event stream: events until the environment goes (a `gone`
+    /// event) or `shutdown` fires, a comment after [`KEEPALIVE`] of silence. A client that does
+    /// not read is dropped by the socket's write deadline ([`super::deadline`]).
+    pub fn into_sse(self, site: Arc<Site>, shutdown: Shutdown) -> Response {
         let period = match &self {
             Feed::Sessions(_) => SESSIONS_INTERVAL,
             Feed::Watch(_) => FRAME_INTERVAL,
         };
         let mut ticker = tokio::time::interval(period);
         ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        let mut last_write = Instant::now();
-        let mut feed = self;
-        loop {
-            tokio::select! {
-                () = shutdown.wait() => return Ok(()),
-                _ = ticker.tick() => {}
-            }
-            let event = match &mut feed {
-                Feed::Sessions(sessions) => Some(format!("data: {}\n\n", sessions.snapshot(site))),
-                Feed::Watch(watching) => match watching.viewer.frame() {
-                    None => {
-                        send(stream, b"event: gone\ndata: {}\n\n").await?;
-                        return Ok(());
+        let events = futures_util::stream::unfold(
+            Some((self, ticker, shutdown, site)),
+            |state| async move {
+                let (mut feed, mut ticker, mut shutdown, site) = state?;
+                loop {
+                    tokio::select! {
+                        () = shutdown.wait() => return None,
+                        _ = ticker.tick() => {}
                     }
-                    Some(frame) if frame.seq == watching.sent => None,
-                    Some(frame) => {
-                        watching.sent = frame.seq;
-                        Some(format!("data: {}\n\n", watching.encode(&frame)))
-                    }
-                },
-            };
-            match event {
-                Some(event) => send(stream, event.as_bytes()).await?,
-                None if last_write.elapsed() >= KEEPALIVE => send(stream, b": alive\n\n").await?,
-                None => continue,
-            }
-            last_write = Instant::now();
-        }
+                    let (event, more) = match &mut feed {
+                        Feed::Sessions(sessions) => {
+                            (Event::default().data(sessions.snapshot(&site)), true)
+                        }
+                        Feed::Watch(watching) => match watching.viewer.frame() {
+                            None => (Event::default().event("gone").data("{}"), false),
+                            Some(frame) if frame.seq == watching.sent => continue,
+                            Some(frame) => {
+                                watching.sent = frame.seq;
+                                (Event::default().data(watching.encode(&frame)), true)
+                            }
+                        },
+                    };
+                    let next = more.then_some((feed, ticker, shutdown, site));
+                    return Some((Ok::<_, Infallible>(event), next));
+                }
+            },
+        );
+        Sse::new(events)
+            .keep_alive(KeepAlive::new().interval(KEEPALIVE).text("alive"))
+            .into_response()
     }
 }
 
@@ -214,6 +218,20 @@ impl Sessions {
     }
 }
 
+/// Why a watch route attached to no environment.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NotWatched {
+    /// `env` is not a number.
+    #[error("env must be a whole number, got {0:?}")]
+    Env(String),
+    /// No session of this ID that the viewer may see.
+    #[error("no such session here: it was closed, it expired, or the ID is wrong")]
+    NotFound,
+    /// The session has no such environment.
+    #[error("{0}")]
+    Invalid(String),
+}
+
 /// A viewer of one environment.
 #[derive(Debug)]
 pub struct Watching {
@@ -265,29 +283,26 @@ struct FrameJson<'a> {
 }
 
 impl Watching {
-    /// Attaches to environment `env` (default 0) of session `id`, if `viewer` may see it; else
-    /// the error response (404 for a session it may not see, as for one that does not exist).
+    /// Attaches to environment `env` (default 0) of session `id`, if `viewer` may see it; a
+    /// session it may not see is not found, as one that does not exist.
     pub fn attach(
         site: &Site,
         viewer: &Viewer,
         id: &str,
         env: Option<&str>,
-    ) -> Result<Watching, Response> {
+    ) -> Result<Watching, NotWatched> {
         let env = match env {
             None | Some("") => 0,
-            Some(text) => text.parse::<usize>().map_err(|_| {
-                Response::error(400, &format!("env must be a whole number, got {text:?}"))
-            })?,
+            Some(text) => text
+                .parse::<usize>()
+                .map_err(|_| NotWatched::Env(text.to_owned()))?,
         };
         let attached = site
             .store
             .watch(id, env, |t| site.access.sees(viewer, t))
             .map_err(|e| match e {
-                SessionError::NotFound(_) => Response::error(
-                    404,
-                    "no such session here: it was closed, it expired, or the ID is wrong",
-                ),
-                other => Response::error(400, &other.to_string()),
+                SessionError::NotFound(_) => NotWatched::NotFound,
+                other => NotWatched::Invalid(other.to_string()),
             })?;
         Ok(Watching {
             viewer: attached,

@@ -1,0 +1,196 @@
+//! The endpoint's URLs as an axum [`Router`]: which handler answers each path, the GET/HEAD-only
+//! rule, the headers every response carries, and the token each data route asks for.
+
+use std::sync::Arc;
+
+use axum::Router;
+use axum::extract::{Path, Query, Request, State};
+use axum::http::header::{self, HeaderMap, HeaderValue};
+use axum::http::{Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use serde::Deserialize;
+
+use super::access::{Refused, Viewer};
+use super::feeds::{Feed, NotWatched, Sessions, Watching};
+use super::{MAX_CONNECTIONS, Site, assets, error, json};
+use crate::shutdown::Shutdown;
+
+/// What the handlers serve from.
+#[derive(Debug, Clone)]
+struct Served {
+    /// The sessions, counters and tokens.
+    site: Arc<Site>,
+    /// Ends the event streams.
+    stopping: Shutdown,
+}
+
+/// The query of the watch routes.
+#[derive(Debug, Deserialize)]
+struct EnvParam {
+    /// Which environment of the session (default 0).
+    env: Option<String>,
+}
+
+/// The endpoint's routes over `site`; their event streams end when `stopping` fires.
+pub fn router(site: Arc<Site>, stopping: Shutdown) -> Router {
+    Router::new()
+        .route("/", get(sessions_page))
+        .route("/index.html", get(sessions_page))
+        .route("/watch/{id}", get(watch_page))
+        .route("/static/{name}", get(static_file))
+        .route("/metrics", get(metrics))
+        .route("/api/sessions", get(sessions_json))
+        .route("/api/sessions/events", get(sessions_events))
+        .route("/api/watch/{id}", get(watch_json))
+        .route("/api/watch/{id}/events", get(watch_events))
+        .fallback(|| async { assets::no_such_page() })
+        .with_state(Served { site, stopping })
+        .layer(middleware::from_fn(get_or_head))
+        .layer(middleware::map_response(guarded))
+}
+
+/// What a connection over [`MAX_CONNECTIONS`] gets, whatever it asks: 503.
+pub fn busy() -> Router {
+    Router::new()
+        .fallback(|| async {
+            error(
+                StatusCode::SERVICE_UNAVAILABLE,
+                &format!("this endpoint serves its maximum of {MAX_CONNECTIONS} connections"),
+            )
+        })
+        .layer(middleware::map_response(guarded))
+}
+
+/// Only GET and HEAD are served (axum answers HEAD from the GET handler, without the body).
+async fn get_or_head(request: Request, next: Next) -> Response {
+    if matches!(*request.method(), Method::GET | Method::HEAD) {
+        return next.run(request).await;
+    }
+    let mut refused = error(
+        StatusCode::METHOD_NOT_ALLOWED,
+        "only GET and HEAD are served",
+    );
+    refused
+        .headers_mut()
+        .insert(header::ALLOW, HeaderValue::from_static("GET, HEAD"));
+    refused
+}
+
+/// Every response: never cached (the data is live and the URLs hold capabilities), never sent as
+/// a referrer, no content sniffing, nothing loaded from elsewhere.
+async fn guarded(mut response: Response) -> Response {
+    let headers = response.headers_mut();
+    let set = [
+        (header::CACHE_CONTROL, "no-store"),
+        (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
+        (header::REFERRER_POLICY, "no-referrer"),
+        (
+            header::CONTENT_SECURITY_POLICY,
+            "default-src 'self'; img-src 'self' data:",
+        ),
+    ];
+    for (name, value) in set {
+        headers.insert(name, HeaderValue::from_static(value));
+    }
+    response
+}
+
+/// Why a data route answers with an error: each mapped to its response once, here.
+#[derive(Debug, thiserror::Error)]
+enum Refusal {
+    /// No valid token: 401, asking for a bearer token.
+    #[error(transparent)]
+    Token(#[from] Refused),
+    /// A watch route that names no environment the viewer may see: 404 or 400.
+    #[error(transparent)]
+    Watch(#[from] NotWatched),
+}
+
+impl IntoResponse for Refusal {
+    fn into_response(self) -> Response {
+        let message = self.to_string();
+        match self {
+            Refusal::Token(_) => {
+                let mut response = error(StatusCode::UNAUTHORIZED, &message);
+                response
+                    .headers_mut()
+                    .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+                response
+            }
+            Refusal::Watch(NotWatched::NotFound) => error(StatusCode::NOT_FOUND, &message),
+            Refusal::Watch(_) => error(StatusCode::BAD_REQUEST, &message),
+        }
+    }
+}
+
+/// The viewer whose token `headers` carry.
+fn viewer(site: &Site, headers: &HeaderMap) -> Result<Viewer, Refused> {
+    let authorization = headers
+        .get(header::AUTHORIZATION)
+        .map(HeaderValue::as_bytes);
+    site.access.viewer(authorization)
+}
+
+async fn sessions_page() -> Response {
+    assets::page(assets::SESSIONS_PAGE)
+}
+
+async fn watch_page(State(s): State<Served>, Path(id): Path<String>) -> Response {
+    if s.site.store.exists(&id) {
+        assets::page(assets::WATCH_PAGE)
+    } else {
+        assets::not_found(&id)
+    }
+}
+
+async fn static_file(Path(name): Path<String>) -> Response {
+    assets::file(&name)
+}
+
+async fn metrics(State(s): State<Served>, headers: HeaderMap) -> Result<Response, Refusal> {
+    viewer(&s.site, &headers)?;
+    let text = s.site.metrics.render();
+    Ok(([(header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE)], text).into_response())
+}
+
+async fn sessions_json(State(s): State<Served>, headers: HeaderMap) -> Result<Response, Refusal> {
+    let viewer = viewer(&s.site, &headers)?;
+    Ok(json(Sessions::new(viewer).snapshot(&s.site)))
+}
+
+async fn sessions_events(State(s): State<Served>, headers: HeaderMap) -> Result<Response, Refusal> {
+    let viewer = viewer(&s.site, &headers)?;
+    Ok(Feed::Sessions(Sessions::new(viewer)).into_sse(s.site, s.stopping))
+}
+
+/// The environment a watch route names, attached for the viewer the request's token names.
+fn watching(
+    s: &Served,
+    headers: &HeaderMap,
+    id: &str,
+    env: &EnvParam,
+) -> Result<Watching, Refusal> {
+    let viewer = viewer(&s.site, headers)?;
+    Ok(Watching::attach(&s.site, &viewer, id, env.env.as_deref())?)
+}
+
+async fn watch_json(
+    State(s): State<Served>,
+    Path(id): Path<String>,
+    Query(env): Query<EnvParam>,
+    headers: HeaderMap,
+) -> Result<Response, Refusal> {
+    Ok(json(watching(&s, &headers, &id, &env)?.snapshot()))
+}
+
+async fn watch_events(
+    State(s): State<Served>,
+    Path(id): Path<String>,
+    Query(env): Query<EnvParam>,
+    headers: HeaderMap,
+) -> Result<Response, Refusal> {
+    let watching = watching(&s, &headers, &id, &env)?;
+    Ok(Feed::Watch(Box::new(watching)).into_sse(s.site, s.stopping))
+}
