@@ -16,6 +16,9 @@ use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use crate::rollout::MAX_ROLLOUT_WORK_STEPS;
 use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 
+/// Default `--max-shm-sessions`: each holds a thread and a region (~240 bytes an environment).
+pub const DEFAULT_MAX_SHM_SESSIONS: u32 = 64;
+
 /// How log lines are written (to stderr).
 // The variants' doc comments would show in `--help`; the flag's own help says enough.
 #[allow(missing_docs)]
@@ -91,6 +94,11 @@ pub struct ServeArgs {
     /// PEM private key of --tls-cert.
     #[arg(long, requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// Most sessions stepped through shared memory at once (clients on this host, running as
+    /// this user; Linux): each holds a thread and a region counted in --max-memory. 0 offers
+    /// none: every client steps over gRPC.
+    #[arg(long, default_value_t = DEFAULT_MAX_SHM_SESSIONS)]
+    pub max_shm_sessions: u32,
 }
 
 /// Why the flags describe no server that may start.
@@ -243,6 +251,9 @@ pub struct ServerConfig {
     /// Serve the HTTP endpoint (the sessions and watch pages, their feeds, and Prometheus
     /// metrics; asking for the same tokens as the RPCs) on this listener; `None` serves none.
     pub http_listener: Option<TcpListener>,
+    /// Most sessions stepped through shared memory at once; 0 (the default of a library
+    /// embedding; the binary's is [`DEFAULT_MAX_SHM_SESSIONS`]) offers none.
+    pub max_shm_sessions: usize,
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
@@ -295,6 +306,7 @@ impl ServerConfig {
             },
             tls,
             http_listener: None,
+            max_shm_sessions: args.max_shm_sessions as usize,
         })
     }
 

@@ -102,6 +102,21 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     shutdown::serve_until_signal(|stop| run(listener, config, stop)).await
 }
 
+/// Starts the shared-memory doorbell ([`crate::shm`]) for up to `max` sessions and returns its
+/// name; empty when there is none (`max` is 0, not Linux, or the socket could not be made: the
+/// clients then step over gRPC).
+fn start_doorbell(store: &Store, max: usize, stopping: &shutdown::Shutdown) -> String {
+    #[cfg(target_os = "linux")]
+    if max > 0 {
+        match crate::shm::Doorbell::start(store.clone(), max, stopping.clone()) {
+            Ok(doorbell) => return doorbell.name().to_owned(),
+            Err(e) => tracing::warn!(error = %e, "no shared-memory data plane"),
+        }
+    }
+    let _ = (store, max, stopping);
+    String::new()
+}
+
 /// Serves on `listener` until `shutdown` completes, then stops accepting connections, lets the
 /// RPCs in flight finish, and returns.
 pub async fn run(
@@ -114,6 +129,7 @@ pub async fn run(
     let (trigger, stopping) = shutdown::channel();
 
     let sweeper = tokio::spawn(store.clone().sweep_until(stopping.clone()));
+    let doorbell = start_doorbell(&store, config.max_shm_sessions, &stopping);
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<DinerDashServer<DinerDashService>>()
@@ -143,7 +159,8 @@ pub async fn run(
         config.connection_share,
         stopping.clone(),
     )
-    .with_http_addr(http_addr);
+    .with_http_addr(http_addr)
+    .with_shm_doorbell(&doorbell);
     let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);

@@ -61,6 +61,9 @@ pub struct DinerDashService {
     stopping: Shutdown,
     /// Where the HTTP endpoint (the sessions and watch pages) listens, told by ServerInfo.
     http_addr: Option<std::net::SocketAddr>,
+    /// The shared-memory doorbell told in CreateSession, Fork and Restore replies ([`crate::shm`],
+    /// which comes after this module); empty when the server offers none.
+    shm_doorbell: Arc<str>,
 }
 
 impl DinerDashService {
@@ -78,6 +81,15 @@ impl DinerDashService {
             unknown: Arc::new(Tenant::new("an unknown connection".into(), share)),
             stopping,
             http_addr: None,
+            shm_doorbell: Arc::from(""),
+        }
+    }
+
+    /// The same service, naming `doorbell` in the replies that create a session.
+    pub fn with_shm_doorbell(self, doorbell: &str) -> DinerDashService {
+        DinerDashService {
+            shm_doorbell: Arc::from(doorbell),
+            ..self
         }
     }
 
@@ -155,7 +167,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .create(&tenant, r.num_envs, config, options, r.seed)
             .map_err(|e| self.fail(e))?;
         tracing::info!(session = %id, "session created");
-        Ok(Response::new(created(id, &spec)))
+        Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
     #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
@@ -211,7 +223,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .fork(&self.tenant(&request), &request.get_ref().session_id)
             .map_err(|e| self.fail(e))?;
         tracing::info!(fork = %id, "session forked");
-        Ok(Response::new(created(id, &spec)))
+        Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
     #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
@@ -236,7 +248,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .restore(&self.tenant(&request), &request.get_ref().snapshot)
             .map_err(|e| self.fail(e))?;
         tracing::info!(session = %id, "session restored");
-        Ok(Response::new(created(id, &spec)))
+        Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
     #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
