@@ -47,6 +47,9 @@ __all__ = [
     "resolve_replicas",
 ]
 
+#: The ways Steps may travel (:attr:`ConnectOptions.transport`).
+TRANSPORTS = ("auto", "shm", "grpc")
+
 #: The port a server listens on when none is given (and the one the docker image exposes).
 DEFAULT_PORT = 50051
 
@@ -272,6 +275,9 @@ class ConnectOptions:
         failover_after: a vector env over several servers with ``reconnect=True``: seconds a lost
             server is waited for before its environments move to the others; ``None``: no
             failover. The single env has one server and ignores it.
+        transport: how Steps travel: ``"auto"`` through shared memory when the server is on this
+            machine and runs as this user (Linux), else gRPC; ``"shm"`` shared memory or an
+            error saying why not; ``"grpc"`` always gRPC (:mod:`dinerdash._shm`).
     """
 
     address: str | tuple[str, ...] | None = None
@@ -284,8 +290,14 @@ class ConnectOptions:
     reconnect: bool = False
     reconnect_timeout: float = 60.0
     failover_after: float | None = 10.0
+    transport: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.transport not in TRANSPORTS:
+            raise ValueError(
+                f"transport: expected one of {', '.join(map(repr, TRANSPORTS))}, got "
+                f"{self.transport!r}"
+            )
         if self.address is not None and not isinstance(self.address, str):
             object.__setattr__(self, "address", tuple(self.address))
         object.__setattr__(self, "timeout", call_timeout(self.timeout))
