@@ -118,6 +118,7 @@ class Channel:
     """One session's doorbell socket and mapped region."""
 
     __slots__ = (
+        "_known",
         "_lengths",
         "_offsets",
         "address",
@@ -172,6 +173,9 @@ class Channel:
             struct.unpack_from("<I", self.mm, _TABLE + 8 * i)[0] for i in range(len(FIELDS))
         ]
         self._lengths = np.frombuffer(self.mm, dtype="<u4", count=len(FIELDS), offset=_LENGTHS)
+        #: The lengths of the last reply, and the spans and end they gave (a session's replies
+        #: mostly repeat them).
+        self._known: tuple[bytes, dict[str, tuple[int, int]], int] = (b"", {}, _ARRAYS)
 
     def _refusal(self, method: str, reply: bytes) -> ServiceError:
         """The typed exception of an ``E`` reply (code, message, ``google.rpc.Status``)."""
@@ -212,13 +216,15 @@ class Channel:
             if not reply:
                 return None
             raise self._refusal("Step", reply)
-        spans = {}
-        end = _ARRAYS
-        for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
-            if size:
-                spans[name] = (lo - _ARRAYS, lo - _ARRAYS + size)
-                end = max(end, lo + size)
-        spans.pop("actions", None)
+        lengths = self._lengths.tobytes()
+        known, spans, end = self._known
+        if lengths != known:
+            spans, end = {}, _ARRAYS
+            for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
+                if size and name != "actions":
+                    spans[name] = (lo - _ARRAYS, lo - _ARRAYS + size)
+                    end = max(end, lo + size)
+            self._known = (lengths, spans, end)
         return RegionBatch(self.mm[_ARRAYS:end], spans, self.num_envs)
 
     def close(self) -> None:

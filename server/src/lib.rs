@@ -38,9 +38,12 @@
 //! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and HTTP together
 //!   on a listener until a shutdown future completes; [`server::serve`] is the binary's.
 //! - [`health`]: the `health` command's grpc.health.v1 client.
+//! - [`ceiling`]: the `ceiling` command: the server's own batch rate, in process and through a
+//!   Rust gRPC client, that `python -m dinerdash bench` prints beside the Python client's.
 
 pub mod auth;
 pub mod budget;
+pub mod ceiling;
 pub mod codec;
 pub mod config;
 pub mod connections;
