@@ -21,6 +21,7 @@ from dinerdash import (
     ServiceTransportError,
     _shm,
 )
+from gymnasium.vector import AutoresetMode
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="shared memory needs Linux")
 
@@ -189,3 +190,24 @@ def test_a_client_that_stops_reading_stalls_nobody(start_server) -> None:
     finally:
         stuck.close()
         other.close()
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_reconnect_after_a_restart_attaches_again(start_server, mode: AutoresetMode) -> None:
+    server = start_server()
+    env = DinerDashVectorEnv(
+        4, server.address, transport="shm", reconnect=True, autoreset_mode=mode
+    )
+    try:
+        env.reset(seed=0)
+        env.step(np.zeros(4, dtype=np.int64))
+        server.kill()
+        again = server.restart()
+        start_server.started.append(again)
+        _, reward, terminated, truncated, _ = env.step(np.zeros(4, dtype=np.int64))
+        assert truncated.all() and not terminated.any() and not reward.any()
+        for _ in range(5):
+            env.step(np.zeros(4, dtype=np.int64))
+        assert regions(again.pid) == 1  # the new session steps through shared memory again
+    finally:
+        env.close()

@@ -363,7 +363,7 @@ class SessionCore:
         session for them (``reconnect=True``); raises ``error`` otherwise."""
         if not self.settings.reconnect or self.last is None:
             raise self.fail(error) from None
-        last = self.last
+        last = _shm.as_pb(self.last)
         self.reopen(error)
         first = self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id))
         return self.interrupt(last, first)

@@ -38,7 +38,7 @@ from ._proto import pb
 from .connection import Connection
 from .errors import ServiceError, ServiceTimeout, ServiceTransportError, error_for_status
 
-__all__ = ["Channel", "RegionBatch", "attach", "detach", "step"]
+__all__ = ["Channel", "RegionBatch", "as_pb", "attach", "detach", "step"]
 
 #: "DDsh" and the layout version this client reads.
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 1
@@ -235,6 +235,11 @@ class Channel:
             pass
 
 
+def as_pb(batch: Any) -> Any:
+    """``batch`` as a ``pb.Batch`` (a :class:`RegionBatch` converted, anything else as is)."""
+    return batch.to_pb() if isinstance(batch, RegionBatch) else batch
+
+
 def attach(core: Any, doorbell: str | None = None) -> None:
     """Opens the shared-memory channel of ``core``'s session when its transport allows it;
     ``doorbell`` is what CreateSession named (``None``: what this server named before, for a
@@ -304,7 +309,6 @@ def step(core: Any, actions: bytes) -> Any:
     try:
         return core.conn.call("Step", pb.StepRequest(session_id=core.session_id, actions=actions))
     except ServiceError:
-        # A lost server's recovery copies the last Batch as a pb.Batch.
-        if isinstance(core.last, RegionBatch):
-            core.last = core.last.to_pb()
+        # A lost server's recovery (and a failover's slice of it) copies the last Batch.
+        core.last = as_pb(core.last)
         raise
