@@ -211,3 +211,18 @@ def test_reconnect_after_a_restart_attaches_again(start_server, mode: AutoresetM
         assert regions(again.pid) == 1  # the new session steps through shared memory again
     finally:
         env.close()
+
+
+def test_closing_envs_unmaps_their_regions(server) -> None:
+    def mapped() -> int:
+        with open("/proc/self/maps") as f:
+            return sum("dinerdash-session" in line for line in f)
+
+    before = (open_fds(os.getpid()), mapped())
+    for _ in range(3):
+        env = DinerDashVectorEnv(8, server.address, transport="shm")
+        env.reset(seed=0)
+        env.step(np.zeros(8, dtype=np.int64))
+        assert mapped() == before[1] + 1
+        env.close()
+    assert (open_fds(os.getpid()), mapped()) == before

@@ -229,9 +229,10 @@ class Channel:
 
     def close(self) -> None:
         self.sock.close()
+        self._lengths = None  # the one view of the mapping this side keeps
         try:
             self.mm.close()
-        except BufferError:  # a numpy view still exported: the mapping goes with it
+        except BufferError:  # a view still exported: the mapping goes with it
             pass
 
 
