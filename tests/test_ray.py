@@ -227,3 +227,36 @@ def test_a_dead_server_comes_back_on_its_port(pool) -> None:
             time.sleep(0.2)
         assert pool.addresses[i] == address
         assert _live_sessions(address) == 0
+
+
+def test_a_server_ray_restarts_is_taken_back(pool) -> None:
+    """An EnvRunner's env over both servers (what ``make_env`` builds for a runner whose share
+    is both): the first server's process dies, its environments move to the second after
+    ``failover_after``; Ray restarts the server on its port, and the env takes it back and
+    moves environments onto it at their episode ends until each server holds two."""
+    from dinerdash.ray.rllib import make_env
+
+    envs = make_env(
+        {
+            "address": pool.addresses,
+            "num_envs": 4,
+            "reconnect": True,
+            "failover_after": 1.0,
+            "mask_observation": False,
+        }
+    )
+    try:
+        envs.reset(seed=0)
+        pid = pool.pids()[0]
+        os.kill(pid, signal.SIGKILL)
+        _, _, _, _, info = envs.step(np.zeros(4, dtype=np.int64))
+        assert info["reconnected"][:2].all() and envs.lost_addresses == [pool.addresses[0]]
+        deadline = time.monotonic() + 60
+        while envs.rejoins == 0 or len(envs.addresses) < 2:
+            assert time.monotonic() < deadline, f"not taken back: {envs.env_slices}"
+            _, _, _, _, info = envs.step(np.zeros(4, dtype=np.int64))
+            assert "reconnected" not in info
+        assert envs.lost_addresses == [] and envs.failovers == 1
+        assert sorted(envs.addresses) == sorted(pool.addresses)
+    finally:
+        envs.close()

@@ -9,12 +9,13 @@ on "wait", the only legal action in a large share of expert steps.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import equinox as eqx
 import jax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
+from . import checkpoint
 from .demos import Demos
 from .supervised import cross_entropy, fit
 
@@ -32,6 +33,14 @@ class BCConfig:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+    @property
+    def total_epochs(self) -> int:
+        return self.epochs
+
+    def with_epochs(self, epochs: int) -> BCConfig:
+        """This config with ``epochs`` epochs."""
+        return replace(self, epochs=epochs)
 
 
 class BehaviourCloning(eqx.Module):
@@ -96,3 +105,6 @@ def train(
 
 def config_from_json(values: dict) -> BCConfig:
     return BCConfig(**values)
+
+
+checkpoint.register("bc", module=__name__, config_from_json=config_from_json, init=init)

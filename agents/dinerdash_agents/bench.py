@@ -17,9 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dinerdash.server import local_server_unless_addressed
-
 from . import ppo
+from .connect import ConnectOptions, options, served
 from .errors import AgentsError
 from .train_rl import PIPELINE, RL_ALGORITHMS, make_envs
 
@@ -44,23 +43,27 @@ def bench_ppo(
     iterations: int = 10,
     pipeline: int = PIPELINE,
     address: Any = None,
+    connect: ConnectOptions | None = None,
     seed: int = 0,
     **connection: Any,
 ) -> dict[str, Any]:
     """Runs ``iterations`` timed PPO iterations (after one untimed) and returns the figures:
-    ``env_steps_per_s`` and per iteration ``ms`` by part, CPU seconds (client, server)."""
+    ``env_steps_per_s`` and per iteration ``ms`` by part, CPU seconds (client, server).
+    ``connect``: how to reach the server, with ``address`` and the connection keywords put in
+    (none named: ``DINERDASH_ADDRESS``, else a local server started here)."""
     if algorithm not in RL_ALGORITHMS or algorithm == "gail":
         raise AgentsError(f"bench-ppo runs ppo or ppo-masked, not {algorithm!r}")
     if iterations < 1:
         raise AgentsError(f"--iterations must be at least 1 (got {iterations})")
     if pipeline < 1:
         raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
+    connect = options(connect, "bench_ppo", address, **connection)
     # A local server, if any, starts before any JAX work.
-    with local_server_unless_addressed(address) as (address, server):
+    with served(connect) as (connect, server):
         config = ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
         if num_envs is not None:
             config = dataclasses.replace(config, num_envs=num_envs)
-        envs = make_envs(config, address, pipeline, **connection)
+        envs = make_envs(config, connect, pipeline)
         try:
             high = envs[0].single_observation_space.high
             config = dataclasses.replace(config, observation_high=tuple(high.tolist()))

@@ -24,9 +24,15 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from dinerdash import ConnectOptions
 from dinerdash.command_line import add_connection_arguments, connection_keywords, run_command
 
 __all__ = ["main"]
+
+
+def _connect(args: argparse.Namespace) -> ConnectOptions:
+    """The one connection value of a command: ``--address``, ``--timeout``, ``--tls``, ..."""
+    return ConnectOptions(address=args.address, **connection_keywords(args))
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -36,6 +42,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         return _cmd_train_rl(args)
     if args.algorithm == "dagger":
         return _cmd_train_dagger(args)
+    if args.algorithm == "dagger-recurrent":
+        return _cmd_train_recurrent(args)
     from .errors import AgentsError
     from .train_imitation import default_config, train_checkpoint
 
@@ -68,14 +76,13 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         args.steps,
         args.out,
         num_envs=args.num_envs,
-        address=args.address,
+        connect=_connect(args),
         demos=args.demos,
         seed=args.seed,
         resume=args.resume,
         pipeline=args.pipeline,
         init=args.init,
         teacher=args.teacher,
-        **connection_keywords(args),
     )
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
@@ -87,7 +94,8 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
 def _cmd_train_dagger(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .dagger import DaggerConfig, train_dagger
+    from .dagger import DaggerConfig
+    from .train_dagger import train_dagger
 
     given = {
         "teacher": args.teacher,
@@ -105,14 +113,47 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_dagger(
-        args.out, config, address=args.address, seed=args.seed, **connection_keywords(args)
-    )
+    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger (teacher {config.teacher}), {config.rounds} rounds of "
         f"{config.episodes_per_round} episodes ({data['steps']:,} labelled states), best round "
         f"{training['best_round']} ({training['best_validation_mean_score']:,.1f} on seeds "
+        f"{training['validation_seeds']}) in {training['seconds']:.1f} s"
+    )
+    return 0
+
+
+def _cmd_train_recurrent(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
+
+    given = {
+        "teacher": args.teacher,
+        "kind": args.kind,
+        "stack": args.stack,
+        "rounds": args.rounds,
+        "episodes_per_round": args.episodes_per_round,
+        "p": args.beta_p,
+        "num_envs": args.num_envs,
+        "hidden": args.hidden,
+        "chunk": args.chunk,
+        "epochs": args.epochs,
+        "seat_weight": args.seat_weight,
+        "memory": True if args.memory else None,
+    }
+    config = dataclasses.replace(
+        RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
+    )
+    _, description = train_recurrent(args.out, config, connect=_connect(args), seed=args.seed)
+    data, training = description["data"], description["training"]
+    print(
+        f"wrote {args.out}: dagger-recurrent ({config.kind}, teacher {config.teacher}), "
+        f"{config.rounds} rounds of {config.episodes_per_round} episodes ({data['steps']:,} "
+        f"labelled states), best round {training['best_round']} "
+        f"({training['best_validation_mean_score']:,.1f} on seeds "
         f"{training['validation_seeds']}) in {training['seconds']:.1f} s"
     )
     return 0
@@ -136,12 +177,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         policy.act,
         args.episodes,
         seed=args.seed,
-        address=args.address,
+        connect=_connect(args),
         num_envs=args.num_envs,
         max_steps=args.max_steps,
         use_mask=not args.no_mask,
         progress=progress,
-        **connection_keywords(args),
     )
     progress.close()
     print_evaluation(
@@ -161,11 +201,11 @@ def _cmd_paper(args: argparse.Namespace) -> int:
 
     run_paper(
         args.out,
-        address=args.address,
+        connect=_connect(args),
         demos=args.demos,
         seed=args.seed,
         rl_steps=args.rl_steps,
-        **connection_keywords(args),
+        update=args.update,
     )
     return 0
 
@@ -180,8 +220,7 @@ def _cmd_bench_ppo(args: argparse.Namespace) -> int:
         num_envs=args.num_envs,
         iterations=args.iterations,
         pipeline=args.pipeline,
-        address=args.address,
-        **connection_keywords(args),
+        connect=_connect(args),
     )
     print_bench(result)
     if args.json:
@@ -204,7 +243,16 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "algorithm",
-        choices=["bc", "dpgm", "ppo", "ppo-masked", "gail", "ppo-kickstart", "dagger"],
+        choices=[
+            "bc",
+            "dpgm",
+            "ppo",
+            "ppo-masked",
+            "gail",
+            "ppo-kickstart",
+            "dagger",
+            "dagger-recurrent",
+        ],
     )
     p.add_argument(
         "--demos",
@@ -267,9 +315,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--memory",
         action="store_true",
-        help="dagger: the learner also sees, per table and queue place, the steps since its "
-        "group's patience level changed (computed from the episode's observations)",
+        help="dagger, dagger-recurrent: the learner also sees, per table and queue place, the "
+        "steps since its group's patience level changed (computed from the episode's "
+        "observations)",
     )
+    p.add_argument(
+        "--kind",
+        choices=["gru", "stack"],
+        help="dagger-recurrent: a GRU over the episode's observations, or an MLP over the last "
+        "--stack observations",
+    )
+    p.add_argument("--stack", type=int, help="dagger-recurrent --kind stack: observations seen")
+    p.add_argument("--chunk", type=int, help="dagger-recurrent: steps of a truncated-BPTT chunk")
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
@@ -306,6 +363,12 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="environment steps of each RL agent (default: 3e7 for PPO, 1e7 for GAIL); a run "
         "already checkpointed under OUT/checkpoints is continued to it, or only loaded",
+    )
+    p.add_argument(
+        "--update",
+        action="store_true",
+        help="keep the rows of OUT/results.json, train and evaluate only the agents it lacks, "
+        "and write the report (with its confidence intervals) again",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)

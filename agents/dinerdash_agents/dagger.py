@@ -1,6 +1,8 @@
 """DAgger (Ross, Gordon & Bagnell 2011, "A reduction of imitation learning and structured
-prediction to no-regret online learning") with the server's teachers: ``train dagger --teacher
-planner|expert``.
+prediction to no-regret online learning") with the server's teachers, the algorithm: the
+learner, its memory, the mixture policy, one round's play and fit. The run (``train dagger
+--teacher planner|expert``: the server, rounds, validation, curve, checkpoint) is
+:mod:`~dinerdash_agents.train_dagger`.
 
 Round ``i`` (1..R) plays ``E`` training episodes with the mixture policy
 ``π_i = β_i·teacher + (1 − β_i)·learner``: per step and per environment, with probability
@@ -33,11 +35,8 @@ hidden layers of ``hidden`` units, ReLU, dropout after each), 57 action logits.
 
 from __future__ import annotations
 
-import csv
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -52,8 +51,8 @@ from dinerdash.game import (
     OBSERVATION_SIZE,
     QUEUE_CAPACITY,
 )
-from dinerdash.server import local_server_unless_addressed
 
+from . import checkpoint
 from .errors import AgentsError
 from .supervised import fit, masked_logits
 
@@ -64,11 +63,11 @@ __all__ = [
     "MemoryFeatures",
     "betas",
     "config_from_json",
+    "fit_round",
     "init",
     "mix_actions",
     "play_round",
     "seat_weights",
-    "train_dagger",
     "training_seeds",
     "weighted_cross_entropy",
 ]
@@ -78,8 +77,6 @@ TEACHERS = {"planner": "planner", "expert": True}
 #: Seeds no training episode uses: the evaluation's (1000..1099) and the validation's.
 RESERVED_SEEDS = (range(1000, 1100), range(2000, 2100))
 VALIDATION_SEED = 2000
-CURVE_CSV = "curve.csv"
-CURVE_PNG = "curve.png"
 
 
 @dataclass(frozen=True)
@@ -482,7 +479,7 @@ def weighted_cross_entropy(
     return -jnp.mean(weight * jnp.take_along_axis(logp, actions[:, None], axis=-1)[:, 0])
 
 
-def _fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed: int):
+def fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed: int):
     """Continues training ``model`` on the aggregate's states with more than one legal action."""
     data = aggregate.arrays()
     choice = data["mask"].sum(axis=1) > 1
@@ -506,166 +503,11 @@ def _fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, see
     )
 
 
-def _write_curve(directory: Path, rows: list[dict[str, Any]], title: str) -> None:
-    with open(directory / CURVE_CSV, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
-    r = [row["round"] for row in rows]
-    ax.plot(
-        r, [row["validation_mean_score"] for row in rows], marker="o", label="learner, seeds 2000.."
-    )
-    ax.plot(r, [row["rollout_mean_score"] for row in rows], marker=".", label="mixture policy π_i")
-    ax.set_xlabel("DAgger round")
-    ax.set_ylabel("mean final score")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(directory / CURVE_PNG)
-    plt.close(fig)
+def _view(config: DaggerConfig) -> Callable[[np.ndarray], np.ndarray] | None:
+    """A policy's view of its observations: with ``memory``, a fresh :class:`MemoryFeatures`."""
+    return MemoryFeatures().augment if config.memory else None
 
 
-def train_dagger(
-    out: str | Path,
-    config: DaggerConfig,
-    *,
-    address: str | list[str] | None = None,
-    seed: int = 0,
-    name: str | None = None,
-    progress: bool = True,
-    **connection: Any,
-) -> tuple[Any, dict]:
-    """Runs ``config.rounds`` DAgger rounds against ``address`` (default: ``DINERDASH_ADDRESS``,
-    else a local server started here) and writes the best round's learner to ``out``; returns
-    its :class:`~dinerdash_agents.checkpoint.Policy` and description."""
-    import dinerdash  # noqa: F401  (registers DinerDash-v0)
-
-    # A local server, if any, starts before any JAX work.
-    with local_server_unless_addressed(address) as (address, _):
-        return _train(Path(out), config, address, seed, name, progress, connection)
-
-
-def _train(out, config, address, seed, name, progress, connection):
-    import gymnasium
-
-    from . import __version__, checkpoint
-    from .evaluate import evaluate_policy
-
-    start, cpu_start = time.monotonic(), time.process_time()
-    rng = np.random.default_rng(seed)
-    model = init(config, seed)
-    aggregate = Aggregate(input_size(config))
-    seeds = training_seeds(config.seed_start, config.rounds * config.episodes_per_round)
-    schedule = betas(config)
-    rows: list[dict[str, Any]] = []
-    best: tuple[float, int, DaggerNet] | None = None
-    environment_steps = 0
-    losses: list[float] = []
-    n = max(1, min(config.num_envs, config.episodes_per_round))
-    envs = gymnasium.make_vec(
-        "dinerdash:DinerDash-v0",
-        num_envs=n,
-        address=address,
-        expert=TEACHERS[config.teacher],
-        max_episode_steps=config.max_episode_steps,
-        **connection,
-    )
-    try:
-        for r, beta in enumerate(schedule, start=1):
-            began = time.monotonic()
-            round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
-            played = play_round(
-                envs,
-                lambda obs, mask, m=model: greedy_actions(m, obs, mask),
-                beta,
-                round_seeds,
-                aggregate,
-                r,
-                rng,
-                MemoryFeatures() if config.memory else None,
-            )
-            environment_steps += played.states
-            model, losses = _fit_round(model, aggregate, config, seed + r)
-            view = MemoryFeatures().augment if config.memory else (lambda obs: obs)
-            val_scores, _ = evaluate_policy(
-                lambda obs, mask, m=model, view=view: greedy_actions(m, view(obs), mask),
-                config.validation_episodes,
-                seed=VALIDATION_SEED,
-                address=address,
-                num_envs=config.validation_episodes,
-                max_steps=config.max_episode_steps,
-                **connection,
-            )
-            val = float(np.mean(val_scores))
-            if best is None or val > best[0]:
-                best = (val, r, model)
-            rows.append(
-                {
-                    "round": r,
-                    "beta": round(beta, 6),
-                    "episodes": len(round_seeds),
-                    "seeds": f"{round_seeds[0]}..{round_seeds[-1]}",
-                    "dataset_steps": aggregate.steps,
-                    "teacher_share": round(played.teacher_steps / max(played.states, 1), 4),
-                    "rollout_mean_score": round(float(np.mean(played.scores)), 1),
-                    "rollout_mean_length": round(float(np.mean(played.lengths)), 1),
-                    "validation_mean_score": round(val, 1),
-                    "validation_sd": round(float(np.std(val_scores)), 1),
-                    "final_loss": round(losses[-1], 5),
-                    "round_seconds": round(time.monotonic() - began, 1),
-                }
-            )
-            if progress:
-                row = rows[-1]
-                print(
-                    f"dagger {config.teacher} round {r}/{config.rounds} β={beta:.3g}: "
-                    f"mixture {row['rollout_mean_score']:,.0f}, learner on seeds "
-                    f"{VALIDATION_SEED}.. {val:,.0f}, {aggregate.steps:,} states, "
-                    f"{row['round_seconds']:.0f} s",
-                    flush=True,
-                )
-    finally:
-        envs.close()
-    assert best is not None
-    seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
-    last_validation_seed = VALIDATION_SEED + config.validation_episodes - 1
-    out = Path(out)
-    description = {
-        "name": name or out.name,
-        "algorithm": "dagger",
-        "package_version": __version__,
-        "config": config.to_json(),
-        "data": {
-            "teacher": config.teacher,
-            "episodes": len(seeds),
-            "seeds": [seeds[0], seeds[-1]],
-            "steps": aggregate.steps,
-            "environment_steps": environment_steps,
-        },
-        "training": {
-            "seed": seed,
-            "rounds": config.rounds,
-            "best_round": best[1],
-            "best_validation_mean_score": round(best[0], 1),
-            "validation_seeds": f"{VALIDATION_SEED}..{last_validation_seed}",
-            "seconds": round(seconds, 3),
-            "cpu_seconds": round(cpu_seconds, 3),
-            "final_losses": {"cross_entropy": round(losses[-1], 6)},
-        },
-    }
-    title = f"DAgger, teacher {config.teacher}: {out.name}"
-    checkpoint.save(out, best[2], description, extra=lambda tmp: _write_curve(tmp, rows, title))
-    return checkpoint.Policy(best[2], checkpoint.read_description(out)), description
-
-
-def iter_rows(directory: str | Path) -> Iterator[dict[str, str]]:
-    """The rows of a DAgger checkpoint's ``curve.csv``."""
-    with open(Path(directory) / CURVE_CSV, newline="") as f:
-        yield from csv.DictReader(f)
+checkpoint.register(
+    "dagger", module=__name__, config_from_json=config_from_json, init=init, view=_view
+)

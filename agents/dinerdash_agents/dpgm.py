@@ -24,7 +24,7 @@ Training (Algorithm 1 of the paper, then its end-to-end step):
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import NamedTuple
 
 import equinox as eqx
@@ -43,6 +43,7 @@ from dinerdash.game import (
     seat_action,
 )
 
+from . import checkpoint
 from .demos import Demos
 from .supervised import cross_entropy, fit
 
@@ -230,6 +231,14 @@ class DPGMConfig:
     def to_json(self) -> dict:
         return asdict(self)
 
+    @property
+    def total_epochs(self) -> int:
+        return self.graph_epochs + self.reweight_epochs + self.finetune_epochs
+
+    def with_epochs(self, epochs: int) -> DPGMConfig:
+        """This config with ``epochs`` epochs in each of the three stages."""
+        return replace(self, graph_epochs=epochs, reweight_epochs=epochs, finetune_epochs=epochs)
+
 
 class DPGM(eqx.Module):
     """The 57 factor graphs (one table array) and the re-weighting layers."""
@@ -340,3 +349,18 @@ def train(
 
 def config_from_json(values: dict) -> DPGMConfig:
     return DPGMConfig(**values)
+
+
+def check(config: DPGMConfig) -> str | None:
+    """Why a checkpoint of ``config`` cannot be loaded here: a factor layout of another version."""
+    if (config.factors, config.cells) == (len(FACTORS), CELLS):
+        return None
+    return (
+        f"has {config.factors} factors and {config.cells} cells; this version's factor layout "
+        f"has {len(FACTORS)} and {CELLS}"
+    )
+
+
+checkpoint.register(
+    "dpgm", module=__name__, config_from_json=config_from_json, init=init, check=check
+)

@@ -9,6 +9,7 @@ from typing import Any
 
 import gymnasium
 import numpy as np
+from dinerdash import ConnectOptions
 from dinerdash.evaluation import Progress, play_seeded
 
 __all__ = ["evaluate_policy"]
@@ -22,6 +23,7 @@ def evaluate_policy(
     *,
     seed: int = 0,
     address: str | list[str] | None = None,
+    connect: ConnectOptions | None = None,
     num_envs: int = 64,
     max_steps: int = 100_000,
     use_mask: bool = True,
@@ -30,12 +32,15 @@ def evaluate_policy(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Final scores and lengths of ``episodes`` episodes of ``act(obs, mask)`` (``mask`` is
     ``info["action_mask"]``, or ``None`` with ``use_mask=False``), in batches of ``num_envs``
-    environments, as ``python -m dinerdash evaluate`` plays them. ``connection``: the vector
-    env's connection keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
+    environments, as ``python -m dinerdash evaluate`` plays them. ``connect``: how to reach the
+    server (:class:`dinerdash.ConnectOptions`), with ``address`` and the connection keywords
+    (``timeout``, ``tls``, ``tls_ca``, ...) put in."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
     n = max(1, min(num_envs, episodes))
-    envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=n, address=address, **connection)
+    envs = gymnasium.make_vec(
+        "dinerdash:DinerDash-v0", num_envs=n, address=address, connect=connect, **connection
+    )
     try:
         return play_seeded(
             envs,

@@ -18,6 +18,7 @@ import numpy as np
 import optax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
+from . import checkpoint, ppo
 from .demos import Demos
 from .ppo import PPOConfig, Rollout, Trainer, observation_scale
 
@@ -157,3 +158,7 @@ class GAILTrainer(Trainer):
     def restore(self, model: Any, state: dict[str, Any], description: dict) -> None:
         super().restore(model, state, description)
         self.discriminator, self.d_opt_state = state["discriminator"], state["d_opt_state"]
+
+
+# GAIL's policy is PPO's model (the discriminator stays in the trainer's state).
+checkpoint.register("gail", module=__name__, config_from_json=ppo.config_from_json, init=ppo.init)

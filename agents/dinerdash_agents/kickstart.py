@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from dinerdash.game import OBSERVATION_SIZE
 
-from . import bc
+from . import bc, checkpoint
 from .errors import AgentsError
 from .ppo import PPOConfig, Rollout, Trainer, _forward, _mlp, make_update, observation_scale
 
@@ -122,8 +122,6 @@ def init(config: KickstartConfig, seed: int = 0) -> KickstartModel:
 
 def _bc_description(directory: str | Path) -> dict:
     """The description of the checkpoint ``directory``, which must be a ``bc`` one."""
-    from . import checkpoint
-
     description = checkpoint.read_description(directory)
     found = description.get("algorithm")
     if found != "bc":
@@ -135,8 +133,6 @@ def _bc_description(directory: str | Path) -> dict:
 
 
 def _load_bc(directory: str | Path) -> bc.BehaviourCloning:
-    from . import checkpoint
-
     _bc_description(directory)
     return checkpoint.load(directory, "bc").model
 
@@ -221,3 +217,6 @@ def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> di
         "kick": np.array(kick_coefficient(config, iteration, iterations), np.float32),
         "policy_on": np.array(iteration >= config.critic_warmup, np.float32),
     }
+
+
+checkpoint.register("ppo-kickstart", module=__name__, config_from_json=config_from_json, init=init)

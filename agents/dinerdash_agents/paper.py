@@ -16,9 +16,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from dinerdash.server import local_server_unless_addressed
 
-from .train_rl import RL_ALGORITHMS
+from . import checkpoint
+from .connect import ConnectOptions, options, served
+from .dagger import DaggerConfig
+from .evaluate import evaluate_policy
+from .train_dagger import train_dagger
+from .train_imitation import default_config, train_checkpoint
+from .train_rl import RL_ALGORITHMS, train_rl
 
 __all__ = ["AGENTS", "EVAL_EPISODES", "EVAL_SEED", "run_paper"]
 
@@ -40,6 +45,12 @@ class Agent:
     #: Whose demonstrations: the reference "expert" (the paper's), or the look-ahead "planner"
     #: (beyond the paper).
     teacher: str = "expert"
+    #: Training seeds (runs): seed k > 0's checkpoint is ``checkpoints/<name>-seed<k>``.
+    training_seeds: int = 1
+
+    def directory(self, out: Path, k: int) -> Path:
+        """The checkpoint of training seed ``k`` (``seed + k``) under the results ``out``."""
+        return out / "checkpoints" / (self.name if k == 0 else f"{self.name}-seed{k}")
 
     @property
     def rl(self) -> bool:
@@ -47,6 +58,16 @@ class Agent:
 
     @property
     def label(self) -> str:
+        if self.algorithm == "dagger-recurrent":
+            settings = RECURRENT_SETTINGS.get(self.name, {})
+            memory = " and the hand-made memory features" if settings.get("memory") else ""
+            what = (
+                f"an MLP over the last {settings.get('stack', 8)} observations{memory} "
+                "(frame-stacked baseline)"
+                if settings.get("kind") == "stack"
+                else f"a GRU over the episode's observations{memory}"
+            )
+            return f"DAgger, the {self.teacher} labelling the states of {what} (beyond the paper)"
         if self.algorithm == "dagger":
             memory = (
                 ", the learner remembering how long each patience level has lasted"
@@ -88,6 +109,8 @@ AGENTS = [
     Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
     Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, teacher="planner"),
+    Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, teacher="planner", training_seeds=3),
+    Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, teacher="planner"),
 ]
 #: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
 #: (docs/agents.md says why the planner's seat states weigh 10).
@@ -95,6 +118,12 @@ DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
     "dagger-planner": {"rounds": 12, "seat_weight": 10.0},
     "dagger-expert": {"rounds": 8, "seat_weight": 1.0},
     "dagger-planner-memory": {"rounds": 12, "seat_weight": 4.0, "memory": True},
+}
+#: The recurrent and frame-stacked DAgger rows' settings beyond
+#: :class:`~dinerdash_agents.recurrent.RecurrentConfig`'s defaults.
+RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {
+    "dagger-gru": {"kind": "gru", "hidden": 256, "rounds": 4},
+    "dagger-stack": {"kind": "stack", "stack": 8, "hidden": 256, "rounds": 4},
 }
 #: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
 RL_STEPS = 30_000_000
@@ -106,30 +135,60 @@ def run_paper(
     out: str | Path,
     *,
     address: str | list[str] | None = None,
+    connect: ConnectOptions | None = None,
     demos: str | Path | None = None,
     seed: int = 0,
     rl_steps: int | None = None,
+    update: bool = False,
     **connection: Any,
 ) -> dict[str, Any]:
-    """Runs the experiment against ``address`` (default: ``DINERDASH_ADDRESS``, else a local
-    server started here) and writes its results under ``out``; returns them. ``demos``: the
+    """Runs the experiment against the server(s) of ``connect`` (with ``address`` and the
+    connection keywords put in; none named: ``DINERDASH_ADDRESS``, else a local server started
+    here) and writes its results under ``out``; returns them. ``demos``: the
     expert's demonstrations to use instead of collecting them; ``rl_steps``: every RL agent's
-    budget instead of the paper's; ``connection``: the connection keywords of every env
-    (``timeout``, ``tls``, ``tls_ca``, ...)."""
+    budget instead of the paper's; ``update``: keep the rows (and the expert's, planner's and
+    random play's) of ``out/results.json`` and only train and evaluate the agents it lacks, then
+    write the report again; ``connection``: the connection keywords of every env (``timeout``,
+    ``tls``, ``tls_ca``, ...)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    previous = None
+    if update and (out / "results.json").is_file():
+        previous = json.loads((out / "results.json").read_text())
+    if previous is not None and all(
+        row_name in {row["name"] for row in previous["agents"]} for row_name in _row_names()
+    ):
+        return _write(out, previous)
     # A local server, if any, starts before any JAX work.
-    with local_server_unless_addressed(address) as (address, _):
+    connect = options(connect, "run_paper", address, **connection)
+    with served(connect) as (connect, _):
         with tempfile.TemporaryDirectory(prefix="dinerdash-demos-") as tmp:
-            if demos is None:
-                demos = _collect(Path(tmp), address, "expert", connection)
-            planner_demos = _collect(Path(tmp), address, "planner", connection)
-            return _experiment(out, Path(demos), planner_demos, address, seed, rl_steps, connection)
+            if previous is not None:
+                # Only agents missing from the previous results are trained: the demonstrations
+                # are collected only if one of them needs them.
+                done = {row["name"] for row in previous["agents"]}
+                needs = {a.teacher for a in AGENTS if a.name not in done and a.episodes > 0}
+            else:
+                needs = {"expert", "planner"}
+            if demos is None and "expert" in needs:
+                demos = _collect(Path(tmp), connect, "expert")
+            planner_demos = (
+                _collect(Path(tmp), connect, "planner")
+                if "planner" in needs
+                else Path("dinerdash_planner.npz")
+            )
+            return _experiment(
+                out,
+                Path(demos or "dinerdash_expert.npz"),
+                planner_demos,
+                connect,
+                seed,
+                rl_steps,
+                previous,
+            )
 
 
-def _collect(
-    directory: Path, address: str | list[str], policy: str, connection: dict[str, Any]
-) -> Path:
+def _collect(directory: Path, connect: ConnectOptions, policy: str) -> Path:
     """The ``policy``'s demonstrations of seeds 0..273, as ``python -m dinerdash collect``
     writes them."""
     from dinerdash.evaluation import Progress, collect
@@ -140,9 +199,8 @@ def _collect(
         policy=policy,
         episodes=DEMO_EPISODES,
         seed=0,
-        address=address,
+        connect=connect,
         progress=progress,
-        **connection,
     )
     progress.close()
     print(f"wrote {collected.path}: {DEMO_EPISODES} episodes, {collected.steps} steps")
@@ -153,15 +211,12 @@ def _experiment(
     out: Path,
     demos: Path,
     planner_demos: Path,
-    address,
+    connect: ConnectOptions,
     seed: int,
     rl_steps: int | None,
-    connection: dict[str, Any],
+    previous: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     from dinerdash.evaluation import Progress, evaluate_through_env
-
-    from .evaluate import evaluate_policy
-    from .train_imitation import default_config, train_checkpoint
 
     rows: list[dict[str, Any]] = []
 
@@ -177,32 +232,37 @@ def _experiment(
             "mean_length": float(np.mean(lengths)),
         }
 
-    common = {"seed": EVAL_SEED, "address": address, "num_envs": EVAL_EPISODES, **connection}
-    expert = evaluate(
-        "expert", lambda p: evaluate_through_env("expert", EVAL_EPISODES, progress=p, **common)
-    )
-    random = evaluate(
-        "random", lambda p: evaluate_through_env("random", EVAL_EPISODES, progress=p, **common)
-    )
-    planner = evaluate(
-        "planner", lambda p: evaluate_through_env("planner", EVAL_EPISODES, progress=p, **common)
-    )
+    common = {"seed": EVAL_SEED, "connect": connect, "num_envs": EVAL_EPISODES}
+    if previous is not None:
+        expert, random, planner = previous["expert"], previous["random"], previous["planner"]
+    else:
+        expert = evaluate(
+            "expert", lambda p: evaluate_through_env("expert", EVAL_EPISODES, progress=p, **common)
+        )
+        random = evaluate(
+            "random", lambda p: evaluate_through_env("random", EVAL_EPISODES, progress=p, **common)
+        )
+        planner = evaluate(
+            "planner",
+            lambda p: evaluate_through_env("planner", EVAL_EPISODES, progress=p, **common),
+        )
+    kept = {row["name"]: row for row in (previous or {}).get("agents", [])}
     for agent in AGENTS:
-        if agent.rl:
-            policy, description = _train_rl(agent, out, demos, address, seed, rl_steps, connection)
-        elif agent.algorithm == "dagger":
-            policy, description = _train_dagger(agent, out, address, seed, connection)
-        else:
-            config = default_config(agent.algorithm, loss=agent.loss)
-            policy, description = train_checkpoint(
-                agent.algorithm,
-                demos if agent.teacher == "expert" else planner_demos,
-                out / "checkpoints" / agent.name,
-                episodes=agent.episodes,
-                seed=seed,
-                config=config,
-                name=agent.name,
-            )
+        if agent.name in kept:
+            rows.extend(row for name, row in kept.items() if name.split(" (")[0] == agent.name)
+            continue
+        if agent.training_seeds > 1 or agent.algorithm in SEQUENCE_ALGORITHMS:
+            rows.extend(_sequence_rows(agent, out, connect, seed, evaluate, common))
+            continue
+        run = _RUNS.get(agent.algorithm, _train_rl)
+        policy, description = run(
+            agent,
+            out,
+            demos if agent.teacher == "expert" else planner_demos,
+            connect,
+            seed,
+            rl_steps,
+        )
         masks = [True, False] if agent.loss in ("plain", "unmasked") else [True]
         for use_mask in masks:
             name = agent.name + ("" if use_mask else " (no mask)")
@@ -250,6 +310,31 @@ def _experiment(
         "planner": {**planner, "fraction": planner["mean"] / expert["mean"]},
         "agents": rows,
     }
+    if previous is not None:
+        results["date_utc"] = previous["date_utc"]
+        results["machine"] = previous["machine"]
+        results["updated_utc"] = time.strftime("%Y-%m-%d %H:%M", time.gmtime())
+    return _write(out, results)
+
+
+def _row_names() -> list[str]:
+    return [agent.name for agent in AGENTS]
+
+
+def _add_stats(results: dict[str, Any]) -> None:
+    """Every row's (and the planner's and random play's) :mod:`~dinerdash_agents.stats`
+    against the expert's scores on the same seeds: pooled over the row's training seeds
+    (``runs``, else its one run's ``scores``)."""
+    from .stats import agent_stats
+
+    expert = results["expert"]["scores"]
+    for row in [results["planner"], results["random"], *results["agents"]]:
+        row["stats"] = agent_stats(row.get("runs") or [row["scores"]], expert).to_json()
+        row["fraction"] = row["stats"]["fraction"]
+
+
+def _write(out: Path, results: dict[str, Any]) -> dict[str, Any]:
+    _add_stats(results)
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     (out / "results.md").write_text(_markdown(results))
     _figure(results, out / "results.png")
@@ -258,19 +343,97 @@ def _experiment(
     return results
 
 
+#: Agents whose policy remembers the episode (:mod:`~dinerdash_agents.recurrent`): trained (or
+#: loaded) per training seed by :func:`_sequence_rows`.
+SEQUENCE_ALGORITHMS = ("dagger-recurrent",)
+
+
+def _sequence_rows(agent, out, connect, seed, evaluate, common) -> list[dict]:
+    """One row for an agent of several training seeds: each seed's checkpoint trained (unless it
+    stands) and evaluated; ``runs`` holds every seed's scores, ``scores`` seed 0's."""
+    runs, descriptions = [], []
+    for k in range(agent.training_seeds):
+        policy, description = _train_sequence(agent, out, connect, seed + k, k)
+        result = evaluate(
+            f"{agent.name} seed {k}",
+            lambda p, act=policy.act: evaluate_policy(act, EVAL_EPISODES, progress=p, **common),
+        )
+        runs.append(result)
+        descriptions.append(description)
+    first, d0 = runs[0], descriptions[0]
+    return [
+        {
+            "name": agent.name,
+            "label": agent.label,
+            "algorithm": agent.algorithm,
+            "episodes": agent.episodes,
+            "loss": agent.loss,
+            "greedy_over": "legal actions",
+            "paper": None,
+            "paper_fraction": None,
+            "fraction": None,  # the mean over the runs' over the expert's: see _add_stats
+            "training_seconds": float(np.mean([d["training"]["seconds"] for d in descriptions])),
+            "training_cpu_seconds": float(
+                np.mean([d["training"]["cpu_seconds"] for d in descriptions])
+            ),
+            "training_steps": d0["data"].get("steps"),
+            "environment_steps": d0["data"].get("environment_steps"),
+            **first,
+            "runs": [r["scores"] for r in runs],
+            "run_means": [r["mean"] for r in runs],
+        }
+    ]
+
+
+def _train_sequence(agent, out, connect, seed, k):
+    """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
+    :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
+    from . import checkpoint
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
+
+    directory = agent.directory(out, k)
+    if not (directory / checkpoint.DESCRIPTION).is_file():
+        train_recurrent(
+            directory,
+            RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
+            connect=connect,
+            seed=seed,
+            name=directory.name,
+        )
+    return checkpoint.load(directory), checkpoint.read_description(directory)
+
+
+def _train_imitation(
+    agent: Agent,
+    out: Path,
+    demos: Path,
+    connect: ConnectOptions,
+    seed: int,
+    rl_steps: int | None,
+) -> tuple[Any, dict[str, Any]]:
+    """Trains an imitation agent on the first ``agent.episodes`` of ``demos`` (seconds)."""
+    return train_checkpoint(
+        agent.algorithm,
+        demos,
+        out / "checkpoints" / agent.name,
+        episodes=agent.episodes,
+        seed=seed,
+        config=default_config(agent.algorithm, loss=agent.loss),
+        name=agent.name,
+    )
+
+
 def _train_rl(
     agent: Agent,
     out: Path,
     demos: Path,
-    address,
+    connect: ConnectOptions,
     seed: int,
     rl_steps: int | None,
-    connection: dict[str, Any],
 ) -> tuple[Any, dict[str, Any]]:
     """Trains an RL agent, or continues its run where a checkpoint of it already stands (a
     finished run is only loaded: the full budgets take tens of minutes)."""
-    from . import checkpoint
-    from .train_rl import train_rl
 
     directory = out / "checkpoints" / agent.name
     budgets = {"gail": GAIL_STEPS, "ppo-kickstart": KICKSTART_STEPS}
@@ -281,49 +444,69 @@ def _train_rl(
         agent.algorithm,
         steps,
         directory,
-        address=address,
+        connect=connect,
         demos=demos if agent.algorithm == "gail" else None,
         seed=seed,
         resume=resume,
         # Kick-started from the BC checkpoint of the same demonstrations, trained above.
         init=out / "checkpoints" / f"bc-{agent.episodes}" if kickstart and not resume else None,
         teacher=agent.teacher if kickstart and not resume else None,
-        **connection,
     )
     return checkpoint.load(directory), checkpoint.read_description(directory)
 
 
 def _train_dagger(
-    agent: Agent, out: Path, address, seed: int, connection: dict[str, Any]
+    agent: Agent,
+    out: Path,
+    demos: Path,
+    connect: ConnectOptions,
+    seed: int,
+    rl_steps: int | None,
 ) -> tuple[Any, dict[str, Any]]:
     """Runs DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`, or only loads a
     checkpoint of it that already stands (the planner's rounds take minutes)."""
-    from . import checkpoint
-    from .dagger import DaggerConfig, train_dagger
 
     directory = out / "checkpoints" / agent.name
     if not (directory / checkpoint.DESCRIPTION).is_file():
         train_dagger(
             directory,
             DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]),
-            address=address,
+            connect=connect,
             seed=seed,
             name=agent.name,
-            **connection,
         )
     return checkpoint.load(directory), checkpoint.read_description(directory)
+
+
+#: How each agent's policy is had, by algorithm (the RL ones: :func:`_train_rl`).
+_RUNS = {"bc": _train_imitation, "dpgm": _train_imitation, "dagger": _train_dagger}
 
 
 def _pct(x: float | None) -> str:
     return "" if x is None else f"{100 * x:.1f} %"
 
 
+def _ours(row: dict[str, Any]) -> str:
+    """The columns "ours (mean ± sd)", "ours / expert [95 % interval]", "IQM" and "runs"."""
+    st = row["stats"]
+    mean = f"{st['mean']:,.1f} ± {row['sd']:,.1f}"
+    interval = f"{_pct(st['fraction'])} [{_pct(st['fraction_low'])}, {_pct(st['fraction_high'])}]"
+    runs = str(st["runs"])
+    if st["runs"] > 1:
+        runs += " (" + ", ".join(_pct(f) for f in st["run_fractions"]) + ")"
+    return f"{mean} | {interval} | {st['iqm']:,.1f} | {runs}"
+
+
 def _markdown(r: dict[str, Any]) -> str:
+    from .stats import iqm
+
     e = r["expert"]
+    updated = f" (rows added on {r['updated_utc']} UTC)" if r.get("updated_utc") else ""
     lines = [
         "# The paper's Fig. 5, reproduced",
         "",
-        f"Written by `{r['command']}` on {r['date_utc']} UTC ({r['machine']['cores']} cores). "
+        f"Written by `{r['command']}` on {r['date_utc']} UTC{updated} "
+        f"({r['machine']['cores']} cores). "
         f"Demonstrations: expert episodes of seeds {r['demonstrations']['seeds']} (the first 274 "
         "or the first 70 of them; the planner's rows: the look-ahead planner's episodes of the "
         "same seeds). RL agents: PPO on the game's reward, GAIL on a discriminator's, "
@@ -333,16 +516,21 @@ def _markdown(r: dict[str, Any]) -> str:
         "expert (its states in that column). "
         f"Evaluation: {EVAL_EPISODES} unseen seeds "
         f"{r['evaluation']['seeds']}, greedy actions, final score per episode. Fractions are of "
-        "the expert's mean on the same seeds (the paper's of its expert's 9,921). Training: wall "
-        "clock, and CPU seconds of all threads in brackets; the 1-minute load average was "
+        "the expert's mean on the same seeds (the paper's of its expert's 9,921), with a 95 % "
+        "BCa bootstrap interval paired on the evaluation seeds (agent and expert resampled seed "
+        "by seed, `scipy.stats.bootstrap`, 10,000 resamples; the training seeds are averaged, "
+        "not resampled). IQM: the interquartile mean of all the agent's evaluation episodes. "
+        "Runs: training seeds, each one's fraction in brackets when there are several; mean and "
+        "fraction are over all of them (the sd is the first run's). Training: wall clock (the "
+        "runs' mean), and CPU seconds of all threads in brackets; the 1-minute load average was "
         f"{r['machine']['load_average_at_end'][0]} at the end of the run.",
         "",
-        "| agent | paper | paper / expert | ours (mean ± sd) | ours / expert | training |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| agent | paper | paper / expert | ours (mean ± sd) | ours / expert [95 % interval] "
+        "| IQM | runs | training |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
         f"| reference expert | {PAPER_EXPERT:,.1f} | 100.0 % | {e['mean']:,.1f} ± {e['sd']:,.1f} "
-        "| 100.0 % | |",
-        f"| look-ahead planner (beyond the paper) | | | {r['planner']['mean']:,.1f} ± "
-        f"{r['planner']['sd']:,.1f} | {_pct(r['planner']['fraction'])} | |",
+        f"| 100.0 % | {iqm(e['scores']):,.1f} | 1 | |",
+        f"| look-ahead planner (beyond the paper) | | | {_ours(r['planner'])} | |",
     ]
     for row in r["agents"]:
         paper = "" if row["paper"] is None else f"{row['paper']:,.1f}"
@@ -350,13 +538,12 @@ def _markdown(r: dict[str, Any]) -> str:
         steps = f", {env_steps:,} env steps" if env_steps else ""
         lines.append(
             f"| `{row['name']}`: {row['label']} | {paper} | {_pct(row['paper_fraction'])} "
-            f"| {row['mean']:,.1f} ± {row['sd']:,.1f} | {_pct(row['fraction'])} "
+            f"| {_ours(row)} "
             f"| {row['training_seconds']:.1f} s ({row['training_cpu_seconds']:.1f} s){steps} |"
         )
-    rnd = r["random"]
     lines.append(
         f"| random | {PAPER_RANDOM:,.1f} | {_pct(PAPER_RANDOM / PAPER_EXPERT)} "
-        f"| {rnd['mean']:,.1f} ± {rnd['sd']:,.1f} | {_pct(rnd['fraction'])} | |"
+        f"| {_ours(r['random'])} | |"
     )
     by = {row["name"]: row for row in r["agents"]}
     lines += ["", "Paper's ordering, DPGM above BC (both with the loss over legal actions):"]
@@ -376,12 +563,25 @@ def _figure(r: dict[str, Any], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     names = ["expert", "planner"] + [row["name"] for row in r["agents"]] + ["random"]
-    ours = [r["expert"]["mean"], r["planner"]["mean"]]
-    ours += [row["mean"] for row in r["agents"]] + [r["random"]["mean"]]
+    others = [r["planner"], *r["agents"], r["random"]]
+    expert_mean = r["expert"]["mean"]
+    ours = [expert_mean] + [row["stats"]["mean"] for row in others]
+    # The paired 95 % intervals of the fraction of the expert, in points (the expert's own: none).
+    low = [expert_mean] + [row["stats"]["fraction_low"] * expert_mean for row in others]
+    high = [expert_mean] + [row["stats"]["fraction_high"] * expert_mean for row in others]
+    xerr = np.array([np.subtract(ours, low), np.subtract(high, ours)]).clip(min=0)
     paper = [PAPER_EXPERT, None] + [row["paper"] for row in r["agents"]] + [PAPER_RANDOM]
     y = np.arange(len(names))[::-1]
     fig, ax = plt.subplots(figsize=(8, 0.55 * len(names) + 1.2), dpi=110)
-    ax.barh(y + 0.2, ours, height=0.4, color="#3b7dd8", label="ours (seeds 1000..1099)")
+    ax.barh(
+        y + 0.2,
+        ours,
+        height=0.4,
+        color="#3b7dd8",
+        xerr=xerr,
+        error_kw={"elinewidth": 1, "capsize": 2, "ecolor": "#1a3d6e"},
+        label="ours (seeds 1000..1099), paired 95 % interval",
+    )
     ax.barh(
         y - 0.2,
         [0 if p is None else p for p in paper],
@@ -389,8 +589,8 @@ def _figure(r: dict[str, Any], path: Path) -> None:
         color="#bbbbbb",
         label="paper, Fig. 5",
     )
-    for yi, v in zip(y, ours, strict=True):
-        ax.text(max(v, 0) + 80, yi + 0.2, f"{v:,.0f}", va="center", fontsize=8)
+    for yi, v, h in zip(y, ours, high, strict=True):
+        ax.text(max(v, h, 0) + 80, yi + 0.2, f"{v:,.0f}", va="center", fontsize=8)
     for yi, v in zip(y, paper, strict=True):
         if v is not None:
             ax.text(max(v, 0) + 80, yi - 0.2, f"{v:,.1f}", va="center", fontsize=8, color="#555")
@@ -398,7 +598,7 @@ def _figure(r: dict[str, Any], path: Path) -> None:
     ax.axvline(0, color="black", linewidth=0.8)
     ax.set_xlabel("average score over 100 episodes")
     ax.set_title("DinerDash: final performance (Fig. 5 style)")
-    ax.set_xlim(min(min(ours), PAPER_RANDOM) - 500, max(max(ours), PAPER_EXPERT) * 1.15)
+    ax.set_xlim(min(min(ours), PAPER_RANDOM) - 500, max(max(high), PAPER_EXPERT) * 1.15)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path)

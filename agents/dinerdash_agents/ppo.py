@@ -44,6 +44,7 @@ import numpy as np
 import optax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
+from . import checkpoint
 from .supervised import masked_logits
 
 __all__ = ["ActorCritic", "PPOConfig", "gae", "init", "observation_scale", "sample_actions"]
@@ -628,3 +629,8 @@ class Trainer:
     @property
     def mean_recent_score(self) -> float:
         return float(np.mean(self.recent_scores)) if self.recent_scores else float("nan")
+
+
+# The masked and the unmasked policy are the same model; the name says which was trained.
+for _name in ("ppo", "ppo-masked"):
+    checkpoint.register(_name, module=__name__, config_from_json=config_from_json, init=init)

@@ -3,49 +3,33 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 from typing import Any
 
 from dinerdash.evaluation import Progress
 
-from . import checkpoint
+from . import bc, checkpoint, dpgm
+from ._version import __version__
 from .demos import load_demos
 from .errors import AgentsError
 
-__all__ = ["default_config", "train_checkpoint"]
+__all__ = ["IMITATION", "default_config", "train_checkpoint"]
+
+#: The imitation algorithms of ``train``: each module's ``train(demos, config, ...)`` and config.
+IMITATION = {"bc": (bc, bc.BCConfig), "dpgm": (dpgm, dpgm.DPGMConfig)}
 
 
 def default_config(algorithm: str, *, epochs: int | None = None, loss: str = "masked") -> Any:
     """The algorithm's default config; ``epochs`` replaces the epochs of every stage."""
-    if algorithm not in ("bc", "dpgm"):
-        raise AgentsError(f"unknown algorithm {algorithm!r} (known: bc, dpgm)")
+    if algorithm not in IMITATION:
+        raise AgentsError(f"unknown algorithm {algorithm!r} (known: {', '.join(IMITATION)})")
     if loss not in ("masked", "plain"):
         raise AgentsError(f"--loss must be masked or plain, got {loss!r}")
     if epochs is not None and epochs < 1:
         raise AgentsError(f"--epochs must be at least 1 (got {epochs})")
-    if algorithm == "bc":
-        from .bc import BCConfig
-
-        config = BCConfig(loss=loss)
-        if epochs is not None:
-            config = dataclasses.replace(config, epochs=epochs)
-    else:
-        from .dpgm import DPGMConfig
-
-        config = DPGMConfig(loss=loss)
-        if epochs is not None:
-            config = dataclasses.replace(
-                config, graph_epochs=epochs, reweight_epochs=epochs, finetune_epochs=epochs
-            )
-    return config
-
-
-def _epochs(config: Any) -> int:
-    if hasattr(config, "epochs"):
-        return config.epochs
-    return config.graph_epochs + config.reweight_epochs + config.finetune_epochs
+    config = IMITATION[algorithm][1](loss=loss)
+    return config if epochs is None else config.with_epochs(epochs)
 
 
 def train_checkpoint(
@@ -64,8 +48,8 @@ def train_checkpoint(
     if config is None:
         config = default_config(algorithm)
     demos = load_demos(demos_path, episodes)
-    module = checkpoint.ALGORITHMS[algorithm]
-    bar = Progress(_epochs(config), f"train {name or algorithm}") if progress else None
+    module = IMITATION[algorithm][0]
+    bar = Progress(config.total_epochs, f"train {name or algorithm}") if progress else None
     losses_seen: list[float] = []
 
     def on_epoch(stage: str, epoch: int, loss: float) -> None:
@@ -79,7 +63,6 @@ def train_checkpoint(
     seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
     if bar is not None:
         bar.close()
-    from . import __version__
 
     description = {
         "name": name or Path(out).name,

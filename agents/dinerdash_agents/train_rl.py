@@ -11,28 +11,95 @@ clear error after writing such a checkpoint, so no finished iteration is lost.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import equinox as eqx
 import gymnasium
 from dinerdash.evaluation import Progress
-from dinerdash.server import local_server_unless_addressed
 from gymnasium.vector import AutoresetMode
 
-from . import checkpoint, ppo
+from . import checkpoint, gail, kickstart, ppo
+from ._version import __version__
+from .connect import ConnectOptions, options, served
+from .curves import read_curve, write_curve
+from .demos import load_demos
 from .errors import AgentsError
 
-__all__ = ["PIPELINE", "RL_ALGORITHMS", "make_envs", "train_rl"]
+__all__ = ["PIPELINE", "RL", "RL_ALGORITHMS", "RLAlgorithm", "make_envs", "train_rl"]
 
+
+@dataclass(frozen=True)
+class RLAlgorithm:
+    """What a run of one RL algorithm needs beyond masked PPO's."""
+
+    #: Whether its policy is restricted to the legal actions.
+    masked: bool
+    #: ``trainer(config, total_steps, seed, demos, resumed)``; a resumed run's model comes from
+    #: its checkpoint.
+    trainer: Callable[..., ppo.Trainer]
+    #: Its default config, given ``masked``.
+    config: Callable[..., ppo.PPOConfig] = ppo.PPOConfig
+    #: It learns from demonstrations (``--demos``).
+    needs_demos: bool = False
+    #: ``start(config, init, teacher, resumed)``: the config of a run that starts from a
+    #: checkpoint (``--init``) with a teacher (``--teacher``); ``None``: it takes neither.
+    start: Callable[..., ppo.PPOConfig] | None = None
+    #: ``game(config)``: the game keywords its environments need (e.g. ``expert=``).
+    game: Callable[[ppo.PPOConfig], dict[str, Any]] = lambda config: {}
+
+
+def _ppo(config, steps, seed, demos, resumed) -> ppo.Trainer:
+    return ppo.Trainer(config, steps, seed=seed)
+
+
+def _gail(config, steps, seed, demos, resumed) -> ppo.Trainer:
+    return gail.GAILTrainer(config, steps, seed=seed, demos=demos)
+
+
+def _kickstart(config, steps, seed, demos, resumed) -> ppo.Trainer:
+    # A resumed run's actor comes from its checkpoint, not from --init.
+    return kickstart.KickstartTrainer(config, steps, seed=seed, load_init=not resumed)
+
+
+def _kickstart_config(
+    config: ppo.PPOConfig, init: str | Path | None, teacher: str | None, resumed: bool
+) -> ppo.PPOConfig:
+    """A new ppo-kickstart run's config: its initialisation and teacher; a resumed run's as it
+    was (``--teacher`` must agree with it)."""
+    if resumed:
+        if teacher is not None and teacher != config.teacher:
+            raise AgentsError(
+                f"--teacher {teacher}: the run being resumed has teacher {config.teacher!r}"
+            )
+        return config
+    if not isinstance(config, kickstart.KickstartConfig):
+        config = kickstart.KickstartConfig(**config.to_json())
+    config = dataclasses.replace(config, teacher=teacher or config.teacher)
+    return kickstart.config_for_init(config, init)
+
+
+#: The RL algorithms of ``train``.
+RL: dict[str, RLAlgorithm] = {
+    "ppo": RLAlgorithm(masked=False, trainer=_ppo),
+    "ppo-masked": RLAlgorithm(masked=True, trainer=_ppo),
+    "gail": RLAlgorithm(masked=True, trainer=_gail, needs_demos=True),
+    "ppo-kickstart": RLAlgorithm(
+        masked=True,
+        trainer=_kickstart,
+        config=kickstart.KickstartConfig,
+        start=_kickstart_config,
+        game=lambda config: {"expert": kickstart.TEACHERS[config.teacher]},
+    ),
+}
 #: RL algorithm name -> whether its policy is masked.
-RL_ALGORITHMS = {"ppo": False, "ppo-masked": True, "gail": True, "ppo-kickstart": True}
+RL_ALGORITHMS = {name: entry.masked for name, entry in RL.items()}
 TRAINER_STATE = "trainer.eqx"
-CURVE_CSV = "curve.csv"
-CURVE_PNG = "curve.png"
+CURVE_COLUMNS = ("env_steps", "mean_score_last_100_episodes", "env_steps_per_s")
 #: Seconds between two periodic checkpoints.
 CHECKPOINT_EVERY = 120.0
 #: Vector envs the environments are split into by default. With 2 the server steps one while the
@@ -43,11 +110,18 @@ PIPELINE = 1
 
 
 def make_envs(
-    config: ppo.PPOConfig, address: Any, pipeline: int = PIPELINE, **connection: Any
+    config: ppo.PPOConfig,
+    connect: ConnectOptions | str | list[str] | None,
+    pipeline: int = PIPELINE,
+    **game: Any,
 ) -> list[Any]:
     """The ``config.num_envs`` training environments as ``pipeline`` SAME_STEP vector envs of as
-    equal sizes as can be (fewer if there are fewer environments), in order."""
+    equal sizes as can be (fewer if there are fewer environments), in order, connected as
+    ``connect`` says (an address alone will do); ``game``: the game keywords (``expert=``)."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
+
+    if not isinstance(connect, ConnectOptions):
+        connect = ConnectOptions(address=connect)
 
     n = config.num_envs
     k = max(1, min(pipeline, n))
@@ -58,10 +132,10 @@ def make_envs(
                 gymnasium.make_vec(
                     "dinerdash:DinerDash-v0",
                     num_envs=n // k + (j < n % k),
-                    address=address,
+                    connect=connect,
                     autoreset_mode=AutoresetMode.SAME_STEP,
                     max_episode_steps=config.max_episode_steps,
-                    **connection,
+                    **game,
                 )
             )
     except BaseException:
@@ -69,26 +143,6 @@ def make_envs(
             e.close()
         raise
     return envs
-
-
-def _trainer_for(
-    algorithm: str,
-    config: ppo.PPOConfig,
-    steps: int,
-    seed: int,
-    demos: Any,
-    resumed: bool = False,
-):
-    if algorithm == "gail":
-        from . import gail
-
-        return gail.GAILTrainer(config, steps, seed=seed, demos=demos)
-    if algorithm == "ppo-kickstart":
-        from . import kickstart
-
-        # A resumed run's actor comes from its checkpoint, not from --init.
-        return kickstart.KickstartTrainer(config, steps, seed=seed, load_init=not resumed)
-    return ppo.Trainer(config, steps, seed=seed)
 
 
 class _Spent:
@@ -105,8 +159,6 @@ class _Spent:
 
 
 def _description(trainer: ppo.Trainer, algorithm: str, name: str, spent: _Spent) -> dict:
-    from . import __version__
-
     return {
         "name": name,
         "algorithm": algorithm,
@@ -124,37 +176,21 @@ def _description(trainer: ppo.Trainer, algorithm: str, name: str, spent: _Spent)
     }
 
 
-def _write_curve(directory: Path, curve: list[tuple[int, float, float]], title: str) -> None:
-    with open(directory / CURVE_CSV, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["env_steps", "mean_score_last_100_episodes", "env_steps_per_s"])
-        w.writerows(curve)
-    if not curve:
-        return
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    steps, scores, _ = zip(*curve, strict=True)
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
-    ax.plot(steps, scores)
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("mean score, last 100 training episodes")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(directory / CURVE_PNG)
-    plt.close(fig)
-
-
 def _save(trainer: ppo.Trainer, out: Path, algorithm: str, spent: _Spent) -> None:
     description = _description(trainer, algorithm, out.name, spent)
 
     def extra(tmp: Path) -> None:
         eqx.tree_serialise_leaves(tmp / TRAINER_STATE, trainer.state())
         title = algorithm if out.name == algorithm else f"{algorithm}: {out.name}"
-        _write_curve(tmp, trainer.curve, title)
+        write_curve(
+            tmp,
+            CURVE_COLUMNS,
+            trainer.curve,
+            lines={"mean_score_last_100_episodes": "mean score"},
+            xlabel="environment steps",
+            ylabel="mean score, last 100 training episodes",
+            title=title,
+        )
 
     checkpoint.save(out, trainer.model, description, extra=extra)
 
@@ -167,19 +203,20 @@ def _resume(directory: Path, algorithm: str, steps: int | None, demos: Any) -> t
             f"{directory / checkpoint.DESCRIPTION}: field 'algorithm' is {found!r}; "
             f"cannot resume it as {algorithm}"
         )
-    config = checkpoint.ALGORITHMS[algorithm].config_from_json(description["config"])
+    config = checkpoint.lookup(algorithm).config_from_json(description["config"])
     training = description["training"]
     total = steps if steps is not None else training["total_steps"]
-    trainer = _trainer_for(algorithm, config, total, training["seed"], demos, resumed=True)
+    trainer = RL[algorithm].trainer(config, total, training["seed"], demos, True)
     policy = checkpoint.load(directory, algorithm)
     try:
         state = eqx.tree_deserialise_leaves(directory / TRAINER_STATE, trainer.state())
     except Exception as e:  # a missing or foreign file
         raise AgentsError(f"{directory / TRAINER_STATE} cannot be resumed from: {e!r}") from e
     trainer.restore(policy.model, state, description)
-    with open(directory / CURVE_CSV, newline="") as f:
-        rows = list(csv.reader(f))[1:]
-    trainer.curve = [(int(a), float(b), float(c)) for a, b, c in rows]
+    steps_, score, rate = CURVE_COLUMNS
+    trainer.curve = [
+        (int(row[steps_]), float(row[score]), float(row[rate])) for row in read_curve(directory)
+    ]
     return trainer, _Spent(training["seconds"], training.get("cpu_seconds", 0.0))
 
 
@@ -190,6 +227,7 @@ def train_rl(
     *,
     num_envs: int | None = None,
     address: str | list[str] | None = None,
+    connect: ConnectOptions | None = None,
     demos: str | Path | None = None,
     seed: int = 0,
     resume: str | Path | None = None,
@@ -204,68 +242,49 @@ def train_rl(
     checkpointing to ``out``; returns the trainer. ``pipeline``: vector envs the environments
     are split into (:func:`make_envs`; the samples do not depend on it, only the speed).
     ``init`` and ``teacher`` (``ppo-kickstart``): the BC checkpoint its actor starts from and
-    whose actions it is pulled toward (``expert`` or ``planner``). ``connection``: the vector
-    env's connection keywords (``timeout``, ``tls``, ``tls_ca``, ...)."""
-    if algorithm not in RL_ALGORITHMS:
-        raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL_ALGORITHMS)})")
-    if algorithm == "gail" and demos is None:
-        raise AgentsError("gail needs --demos (a file written by python -m dinerdash collect)")
+    whose actions it is pulled toward (``expert`` or ``planner``). ``connect``: how to reach the
+    server(s) (:class:`dinerdash.ConnectOptions`; ``address`` and the connection keywords
+    ``timeout``, ``tls``, ``tls_ca``, ... are put in; none named: ``DINERDASH_ADDRESS``, else a
+    local server started here)."""
+    if algorithm not in RL:
+        raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL)})")
+    entry = RL[algorithm]
+    connect = options(connect, "train_rl", address, **connection)
+    if entry.needs_demos and demos is None:
+        raise AgentsError(
+            f"{algorithm} needs --demos (a file written by python -m dinerdash collect)"
+        )
     if steps is not None and steps < 1:
         raise AgentsError(f"--steps must be at least 1 (got {steps})")
     if pipeline < 1:
         raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
-    if algorithm == "ppo-kickstart" and init is None and resume is None:
-        raise AgentsError("ppo-kickstart needs --init DIR (a bc checkpoint) or --resume DIR")
-    if (init is not None or teacher is not None) and algorithm != "ppo-kickstart":
-        raise AgentsError(f"--init and --teacher are ppo-kickstart's; {algorithm} takes neither")
+    if entry.start is not None and init is None and resume is None:
+        raise AgentsError(f"{algorithm} needs --init DIR (a bc checkpoint) or --resume DIR")
+    if (init is not None or teacher is not None) and entry.start is None:
+        starters = ", ".join(name for name, e in RL.items() if e.start is not None)
+        raise AgentsError(f"--init and --teacher are {starters}'s; {algorithm} takes neither")
     out = Path(out)
     # A local server, if any, starts before any JAX work.
-    with local_server_unless_addressed(address) as (address, _):
+    with served(connect) as (connect, _):
         trainer, spent, config, demo_data = _prepare(
             algorithm, steps, num_envs, demos, resume, config
         )
-        if algorithm == "ppo-kickstart":
-            config = _kickstart_config(config, init, teacher, resumed=trainer is not None)
-            connection = {**connection, "expert": _teacher_keyword(config)}
-        envs = make_envs(config, address, pipeline, **connection)
+        if entry.start is not None:
+            config = entry.start(config, init, teacher, trainer is not None)
+        envs = make_envs(config, connect, pipeline, **entry.game(config))
         try:
             if trainer is None:
                 if config.observation_high is None:
                     # The networks scale the observation by the bounds of the server's Spec.
                     high = envs[0].single_observation_space.high
                     config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
-                trainer = _trainer_for(algorithm, config, steps, seed, demo_data)
+                trainer = entry.trainer(config, steps, seed, demo_data, False)
             _run(trainer, envs, out, algorithm, spent, progress)
         finally:
             for e in envs:
                 e.close()
         _save(trainer, out, algorithm, spent)
         return trainer
-
-
-def _kickstart_config(
-    config: ppo.PPOConfig, init: str | Path | None, teacher: str | None, resumed: bool
-) -> ppo.PPOConfig:
-    """A new ppo-kickstart run's config: its initialisation and teacher; a resumed run's as it
-    was (``--teacher`` must agree with it)."""
-    from . import kickstart
-
-    if resumed:
-        if teacher is not None and teacher != config.teacher:
-            raise AgentsError(
-                f"--teacher {teacher}: the run being resumed has teacher {config.teacher!r}"
-            )
-        return config
-    if not isinstance(config, kickstart.KickstartConfig):
-        config = kickstart.KickstartConfig(**config.to_json())
-    config = dataclasses.replace(config, teacher=teacher or config.teacher)
-    return kickstart.config_for_init(config, init)
-
-
-def _teacher_keyword(config: ppo.PPOConfig) -> bool | str:
-    from . import kickstart
-
-    return kickstart.TEACHERS[config.teacher]
 
 
 def _prepare(
@@ -278,11 +297,7 @@ def _prepare(
 ) -> tuple[ppo.Trainer | None, _Spent, ppo.PPOConfig, Any]:
     """The resumed trainer, or ``None`` for a new run (its trainer is made once the environments
     are there); the time spent, the run's config and the demonstrations (``None`` without)."""
-    demo_data = None
-    if demos is not None:
-        from .demos import load_demos
-
-        demo_data = load_demos(demos, None)
+    demo_data = load_demos(demos, None) if demos is not None else None
     if resume is not None:
         trainer, spent = _resume(Path(resume), algorithm, steps, demo_data)
         if num_envs is not None and num_envs != trainer.config.num_envs:
@@ -293,11 +308,7 @@ def _prepare(
         return trainer, spent, trainer.config, demo_data
     if steps is None:
         raise AgentsError("--steps is needed (or --resume DIR)")
-    if config is None and algorithm == "ppo-kickstart":
-        from . import kickstart
-
-        config = kickstart.KickstartConfig()
-    config = config or ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
+    config = config or RL[algorithm].config(masked=RL[algorithm].masked)
     if num_envs is not None:
         config = dataclasses.replace(config, num_envs=num_envs)
     return None, _Spent(), config, demo_data

@@ -170,8 +170,7 @@ def test_checkpoint_round_trip_gives_the_same_actions(tmp_path: Path, algorithm:
     # Random parameters everywhere (DPGM's tables start at zero; training is the learning test's
     # job): every leaf must survive the round trip for the actions to match.
     config = default_config(algorithm)
-    module = checkpoint.ALGORITHMS[algorithm]
-    model = module.init(config, 0)
+    model = checkpoint.lookup(algorithm).init(config, 0)
     rng = np.random.default_rng(1)
     model = jax.tree_util.tree_map(
         lambda leaf: (

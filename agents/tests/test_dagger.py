@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from dinerdash_agents import dagger, load
+from dinerdash_agents import dagger, load, train_dagger
 from dinerdash_agents.cli import main
 from dinerdash_agents.errors import AgentsError
 from dinerdash_agents.evaluate import evaluate_policy
@@ -147,7 +147,7 @@ def test_a_short_dagger_run_beats_random_on_unseen_seeds(
     description = json.loads((out / "checkpoint.json").read_text())
     assert description["algorithm"] == "dagger"
     assert description["config"]["betas"] == [1.0, 0.5]
-    rows = list(dagger.iter_rows(out))
+    rows = list(train_dagger.iter_rows(out))
     assert [int(r["round"]) for r in rows] == [1, 2]
     assert int(rows[-1]["dataset_steps"]) == description["data"]["steps"]
     policy = load(out)

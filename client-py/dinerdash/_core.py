@@ -133,13 +133,17 @@ class SessionCore:
     __slots__ = (
         "__weakref__",
         "caller",
+        "drain_ms",
         "endpoint",
+        "entering",
         "index",
         "last",
+        "owned",
         "pending",
         "reconnected",
         "session_id",
         "settings",
+        "source",
         "spec",
         "start",
         "stop",
@@ -165,6 +169,17 @@ class SessionCore:
         self.reconnected = False
         #: The thread that makes the Step calls of ``start_step``, started at the first one.
         self.caller: Caller | None = None
+        #: Which of the session's environments are still this core's (``None``: all). An
+        #: environment moved to another server at its episode end (:mod:`dinerdash._membership`)
+        #: stays in the session, stepped with the env's action for it, its results unused.
+        self.owned: np.ndarray | None = None
+        #: The server's ``drain_remaining_ms`` in the last Batch it sent (0: not draining).
+        self.drain_ms = 0
+        #: A transfer (:mod:`dinerdash._membership`): the core whose environments this one takes
+        #: over, each at its episode end; ``entering``: those whose autoreset (NEXT_STEP) is
+        #: played here at the next step.
+        self.source: SessionCore | None = None
+        self.entering: set[int] = set()
 
     @property
     def conn(self) -> Connection:
@@ -172,7 +187,52 @@ class SessionCore:
 
     @property
     def size(self) -> int:
+        """The session's environments (moved ones included)."""
         return self.stop - self.start
+
+    @property
+    def load(self) -> int:
+        """The environments this core still holds."""
+        return self.size if self.owned is None else int(self.owned.sum())
+
+    def runs(self) -> list[tuple[int, int]]:
+        """The environments this core holds, as contiguous ``(start, stop)`` runs of the env's
+        indices."""
+        if self.owned is None:
+            return [(self.start, self.stop)]
+        out, lo = [], None
+        for j, mine in enumerate([*self.owned.tolist(), False]):
+            if mine and lo is None:
+                lo = j
+            elif not mine and lo is not None:
+                out.append((self.start + lo, self.start + j))
+                lo = None
+        return out
+
+    def disown(self, lo: int, hi: int) -> None:
+        """Environments ``lo:hi`` moved to another core."""
+        if self.owned is None:
+            self.owned = np.ones(self.size, dtype=np.bool_)
+        self.owned[lo - self.start : hi - self.start] = False
+
+    def holds(self, i: int) -> bool:
+        """Environment ``i`` of the env is this core's."""
+        return self.start <= i < self.stop and (self.owned is None or self.owned[i - self.start])
+
+    def own(self, envs) -> None:
+        """Environments ``envs`` (indices of the env) are this core's from now on."""
+        for i in envs:
+            self.owned[i - self.start] = True
+        if self.owned.all():
+            self.owned = None
+
+    def given_up(self) -> bool:
+        return self.index in self.endpoint.given_up
+
+    def note(self, batch: pb.Batch) -> pb.Batch:
+        """Records what a Batch from the server says of the server (draining)."""
+        self.drain_ms = getattr(batch, "drain_remaining_ms", 0)
+        return batch
 
     # -- the session ----------------------------------------------------------------------------
 
@@ -310,16 +370,15 @@ class SessionCore:
                 batch = self.conn.call("Reset", request)
             else:
                 batch = self.conn.result("Reset", request, future)
-        except LOST as e:
-            if not self.settings.reconnect:
+        except ServiceError as e:
+            # A call cancelled because its server was given up (silent) is lost too.
+            if not self.settings.reconnect or not (isinstance(e, LOST) or self.given_up()):
                 raise self.fail(e) from None
             self.reopen(e)
             request.session_id = self.session_id
             request.ClearField("reset_mask")
             batch = self.conn.call("Reset", request)
-        except ServiceError as e:
-            raise self.fail(e) from None
-        self.last, self.pending = batch, None
+        self.last, self.pending = self.note(batch), None
         return batch
 
     # -- Step -----------------------------------------------------------------------------------
@@ -334,11 +393,13 @@ class SessionCore:
             batch = self.recover_step(gone)
         else:
             try:
-                batch = _shm.step(self, actions)  # shared memory when it applies, else gRPC
-            except LOST as e:
-                batch = self.recover_step(e)
+                # Shared memory when it applies, else gRPC.
+                batch = self.note(_shm.step(self, actions))
             except ServiceError as e:
-                raise self.fail(e) from None
+                # A call cancelled because its server was given up (silent) is lost too.
+                if not (isinstance(e, LOST) or self.given_up()):
+                    raise self.fail(e) from None
+                batch = self.recover_step(e)
         self.last = batch
         return batch
 

@@ -1,20 +1,25 @@
 """Where an environment's sessions live: :class:`Endpoint`, the connections to one or more
 servers chosen by the :class:`~dinerdash.connection.ConnectOptions` (or the local server this
 client started when no address is given), how a lost server is waited for and reconnected, and
-which servers were given up for good (a vector env's failover, ``failover_after``)."""
+which servers were given up (a vector env's failover, ``failover_after``), taken back or added
+(:mod:`dinerdash._membership`), or are draining."""
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import time
 from collections.abc import Callable, Sequence
 
-from .connection import Connection, ConnectOptions, resolve_replicas
-from .errors import ServiceTransportError
+from . import connection
+from .connection import Connection, ConnectOptions
+from .errors import EnvClosed, ServiceTransportError
 from .server import LocalServer
 
 __all__ = ["Endpoint", "choose_addresses"]
+
+log = logging.getLogger("dinerdash")
 
 
 def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
@@ -24,7 +29,7 @@ def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
         address = os.environ.get("DINERDASH_ADDRESS") or None
     if address is None:
         return None
-    return resolve_replicas(address)
+    return connection.resolve_replicas(address)
 
 
 class Endpoint:
@@ -35,9 +40,12 @@ class Endpoint:
     of several (``pick`` modulo their number), ``max_servers`` the first ones. Closing it closes
     every channel and stops the local server.
 
-    A server given up (:meth:`give_up`: it stayed unreachable past a vector env's
-    ``failover_after``) keeps its index, so that ``connections[i]`` still names server ``i``, but
-    its channel is closed and it is never called again, even if it comes back.
+    A server given up (:meth:`give_up`: it stayed unreachable or silent past a vector env's
+    ``failover_after``, or it drained) keeps its index, so that ``connections[i]`` still names
+    server ``i``, but its channel is closed and it is not called again until :meth:`take_back`
+    gives it a new one (it answered its health check again). :meth:`add` takes in a new server
+    (a DNS name's new replica) at the next index. A draining server (:attr:`draining`) keeps its
+    sessions until they move, but no new session is opened on it (:meth:`open_to_new`).
     """
 
     def __init__(
@@ -64,6 +72,11 @@ class Endpoint:
         self.addresses = addresses
         #: The indices of the servers given up, in the order they were lost.
         self.given_up: list[int] = []
+        #: Draining servers: index -> the time.monotonic() by which their sessions must be gone.
+        self.draining: dict[int, float] = {}
+        #: Servers given up for a failure (not drained), taken back or added, since the open.
+        self.failovers = 0
+        self.rejoins = 0
         try:
             for a in addresses:
                 self.connections.append(self.options.connect(a))
@@ -93,8 +106,12 @@ class Endpoint:
                 try:
                     create(conn)
                     return conn
-                except ServiceTransportError:
+                except (ServiceTransportError, EnvClosed):
                     pass  # went away again between connecting and creating: keep waiting
+            if index in self.given_up:  # meanwhile, a vector env's watch gave it up
+                raise ServiceTransportError(
+                    f"lost {lost}: {conn.address} was given up", address=conn.address
+                )
             if time.monotonic() >= deadline:
                 raise ServiceTransportError(
                     f"lost {lost} and could not reconnect to {conn.address} within {timeout:g} s",
@@ -106,12 +123,56 @@ class Endpoint:
         """The indices of the servers not given up."""
         return [i for i in range(len(self.connections)) if i not in self.given_up]
 
-    def give_up(self, index: int) -> None:
-        """Server ``index`` is lost for good: its channel is closed (which cancels any call still
-        waiting on it, and returns at once) and :meth:`live` leaves it out from now on."""
+    def open_to_new(self) -> list[int]:
+        """The indices of the servers that may take new sessions: live and not draining."""
+        return [i for i in self.live() if i not in self.draining]
+
+    def give_up(self, index: int, why: str | None = None) -> None:
+        """Server ``index`` is lost: its channel is closed (which cancels any call still waiting
+        on it, and returns at once) and :meth:`live` leaves it out until :meth:`take_back`.
+        ``why`` (a failure) is logged once, as a warning, and counted in :attr:`failovers`;
+        without it (a drained server) it is logged at info level."""
         if index not in self.given_up:
             self.given_up.append(index)
             self.connections[index].close()
+            self.draining.pop(index, None)
+            if why is None:
+                log.info("dinerdash: %s drained; its environments moved", self.addresses[index])
+            else:
+                self.failovers += 1
+                log.warning("dinerdash: gave up %s: %s", self.addresses[index], why)
+
+    def take_back(self, index: int, conn: Connection) -> None:
+        """Server ``index``, given up, answered its health check again: ``conn`` is its channel
+        from now on and it takes sessions again."""
+        self.given_up.remove(index)
+        self.connections[index] = conn
+        self.rejoins += 1
+        log.info("dinerdash: took back %s: it answers again", self.addresses[index])
+
+    def add(self, conn: Connection) -> int:
+        """A new server (``conn``'s address, e.g. a DNS name's new replica) taken in; its index."""
+        self.addresses.append(conn.address)
+        self.connections.append(conn)
+        self.rejoins += 1
+        log.info("dinerdash: took in %s: a new replica", conn.address)
+        return len(self.connections) - 1
+
+    def drain(self, index: int, remaining: float | None) -> None:
+        """Server ``index`` said it drains, with ``remaining`` seconds until its deadline
+        (``None``: not said, as when it refuses a session; a later Batch says it)."""
+        if index in self.given_up:
+            return
+        deadline = float("inf") if remaining is None else time.monotonic() + remaining
+        if index not in self.draining:
+            log.info(
+                "dinerdash: %s drains (%s): its environments move at their episode ends",
+                self.addresses[index],
+                "deadline unknown" if remaining is None else f"{remaining:.1f} s left",
+            )
+        elif remaining is None:
+            return
+        self.draining[index] = deadline
 
     def close(self) -> None:
         for conn in self.connections:

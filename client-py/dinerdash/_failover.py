@@ -1,8 +1,9 @@
 """Failover across servers: what becomes of the environments of a server that a vector env spread
 over several (``reconnect=True``) gave up, because it stayed unreachable past ``failover_after``.
 
-The env gives the server up for good (its channel is closed; if it comes back it stays unused)
-and moves each of its sessions' environments to the servers left: a new session on each, the
+The env gives the server up (its channel is closed; if it answers its health check again it is
+taken back, :mod:`dinerdash._membership`) and moves each of its sessions' environments to the
+servers left that take new sessions (not draining): a new session on each, the
 environments cut into contiguous pieces of sizes differing by at most one, the larger pieces to
 the servers that hold the fewest environments. Environment ``i`` keeps index ``i``: the env's
 cores stay ordered by their first environment. The cores of the servers that stayed up are not
@@ -52,30 +53,39 @@ def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int,
     return out
 
 
-def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[SessionCore]:
-    """New cores for the environments of ``core`` (whose server is given up) on the live
-    servers, given ``cores`` (the env's others, for the servers' loads), each started by
-    ``start``; its Batch becomes the new core's ``last``. A server that cannot take a session
-    now is passed over; none left raises :class:`~dinerdash.errors.NoServerLeft`."""
+def move(
+    core: SessionCore,
+    cores: list[SessionCore],
+    start: Start,
+    run: tuple[int, int] | None = None,
+) -> list[SessionCore]:
+    """New cores for the environments ``run`` (default: all) of ``core`` (whose server is given
+    up or drains) on the servers that take new sessions, given ``cores`` (the env's others, for
+    the servers' loads), each started by ``start``; its Batch becomes the new core's ``last``.
+    A server that cannot take a session now is passed over (one that says it drains is marked
+    so); none left raises :class:`~dinerdash.errors.NoServerLeft`."""
     endpoint = core.endpoint
-    candidates = endpoint.live()
+    first, stop = run if run is not None else (core.start, core.stop)
+    candidates = [i for i in endpoint.open_to_new() if i != core.index]
     while True:
         if not candidates:
             lost = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
+            draining = ", ".join(endpoint.addresses[i] for i in endpoint.draining)
             raise NoServerLeft(
-                f"no server left for environments {core.start}..{core.stop - 1}: every server "
-                f"of the env was given up ({lost}), each unreachable for more than "
-                f"failover_after={core.settings.failover_after:g} s",
+                f"no server left for environments {first}..{stop - 1}: every server of the env "
+                f"was given up ({lost or 'none'}), each unreachable for more than "
+                f"failover_after={core.settings.failover_after:g} s, or drains "
+                f"({draining or 'none'})",
                 address=core.conn.address,
             )
         loads = dict.fromkeys(candidates, 0)
         for c in cores:
             if c.index in loads:
-                loads[c.index] += c.size
+                loads[c.index] += c.load
         made: list[SessionCore] = []
         target = None
         try:
-            for lo, hi, target in pieces(core.start, core.stop, loads):
+            for lo, hi, target in pieces(first, stop, loads):
                 new = SessionCore(endpoint, target, lo, hi, core.settings)
                 new.create()
                 made.append(new)
@@ -84,7 +94,9 @@ def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[Sess
                 except ServiceError as e:
                     raise new.fail(e) from None
             return made
-        except PASSED_OVER:
+        except PASSED_OVER as e:
+            if getattr(e, "reason", None) == "DRAINING":
+                endpoint.drain(target, None)
             candidates.remove(target)
             for new in made:
                 new.close()
@@ -94,21 +106,26 @@ def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[Sess
             raise
 
 
-def fail_over(cores: list[SessionCore], lost: list[SessionCore], start: Start) -> list[SessionCore]:
+def fail_over(
+    cores: list[SessionCore], lost: list[SessionCore], start: Start, why: str | None = ""
+) -> list[SessionCore]:
     """The env's cores after the servers of the ``lost`` cores are given up and their
     environments moved (:func:`move`), ordered by their first environment. The lost cores are
     closed without calling their servers. On an error, the new sessions are closed again and
-    the lost cores stay (closed) where they were."""
+    the lost cores stay (closed) where they were. ``why`` is logged with the loss (``None``:
+    the servers drained, no failure)."""
     endpoint = lost[0].endpoint
     for core in lost:
-        endpoint.give_up(core.index)
+        reason = why or f"unreachable past failover_after={core.settings.failover_after:g} s"
+        endpoint.give_up(core.index, None if why is None else reason)
     for core in lost:
         core.close()
     out = [c for c in cores if all(c is not x for x in lost)]
     kept = len(out)
     try:
         for core in lost:
-            out.extend(move(core, out, start))
+            for run in core.runs():
+                out.extend(move(core, out, start, run))
     except BaseException:
         for new in out[kept:]:
             new.close()

@@ -33,6 +33,7 @@ from .errors import (
     ServiceTransportError,
     TLSMismatch,
     error_for_rpc,
+    status_details,
 )
 
 __all__ = [
@@ -111,22 +112,30 @@ def call_timeout(timeout: float | None) -> float:
     return timeout
 
 
-def check_failover_after(failover_after: Any) -> float | None:
-    """``failover_after=`` as seconds: ``None``, or a positive finite number (not a bool)."""
-    if failover_after is None:
+def check_seconds_or_none(name: str, value: Any, none: str = "never") -> float | None:
+    """Keyword ``name`` as seconds: ``None``, or a positive finite number (not a bool)."""
+    if value is None:
         return None
-    if isinstance(failover_after, bool) or not isinstance(failover_after, numbers.Real):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise TypeError(
-            "failover_after: expected a number of seconds or None, got "
-            f"{type(failover_after).__name__} {failover_after!r}"
+            f"{name}: expected a number of seconds or None, got {type(value).__name__} {value!r}"
         )
-    seconds = float(failover_after)
+    seconds = float(value)
     if not (seconds > 0 and math.isfinite(seconds)):
         raise ValueError(
-            "failover_after: expected a positive, finite number of seconds (or None: a lost "
-            f"server is waited for reconnect_timeout, as without failover), got {failover_after!r}"
+            f"{name}: expected a positive, finite number of seconds (or None: {none}), "
+            f"got {value!r}"
         )
     return seconds
+
+
+def check_failover_after(failover_after: Any) -> float | None:
+    """``failover_after=`` as seconds: ``None``, or a positive finite number (not a bool)."""
+    return check_seconds_or_none(
+        "failover_after",
+        failover_after,
+        "a lost server is waited for reconnect_timeout, as without failover",
+    )
 
 
 def tls_credentials(
@@ -273,8 +282,12 @@ class ConnectOptions:
         reconnect_timeout: seconds a lost server is waited for (the last one left, for a vector
             env with failover).
         failover_after: a vector env over several servers with ``reconnect=True``: seconds a lost
-            server is waited for before its environments move to the others; ``None``: no
-            failover. The single env has one server and ignores it.
+            server is waited for, or a server that answers nothing at all (a hung process, a
+            black-holed network) is borne with, before its environments move to the others;
+            ``None``: no failover. The single env has one server and ignores it.
+        resolve_every: a vector env with ``reconnect=True`` and failover: seconds between two
+            resolutions of a DNS-name ``address``, whose new replicas are taken in; ``None``:
+            resolved once, at connect.
         transport: how Steps travel: ``"auto"`` through shared memory when the server is on this
             machine and runs as this user (Linux), else gRPC; ``"shm"`` shared memory or an
             error saying why not; ``"grpc"`` always gRPC (:mod:`dinerdash._shm`).
@@ -290,6 +303,7 @@ class ConnectOptions:
     reconnect: bool = False
     reconnect_timeout: float = 60.0
     failover_after: float | None = 10.0
+    resolve_every: float | None = 30.0
     transport: str = "auto"
 
     def __post_init__(self) -> None:
@@ -307,6 +321,9 @@ class ConnectOptions:
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
                 raise ValueError(f"{name}: expected a positive number of seconds, got {value!r}")
         object.__setattr__(self, "failover_after", check_failover_after(self.failover_after))
+        object.__setattr__(
+            self, "resolve_every", check_seconds_or_none("resolve_every", self.resolve_every)
+        )
 
     @classmethod
     def merged(cls, connect: ConnectOptions | None, caller: str, **keywords: Any) -> ConnectOptions:
@@ -315,8 +332,12 @@ class ConnectOptions:
         ``caller``'s name. ``address=None`` keeps ``connect``'s address."""
         unknown = sorted(set(keywords) - set(CONNECT_FIELDS))
         if unknown:
+            # Python's own wording ("got an unexpected keyword argument 'x'"), which wrappers
+            # match on to drop a keyword they tried (TorchRL's GymEnv tries ``frameskip=``).
             raise TypeError(
-                f"{caller}() got unexpected keyword argument(s) {', '.join(map(repr, unknown))}; "
+                f"{caller}() got an unexpected keyword argument {unknown[0]!r}"
+                + (f" (and {', '.join(map(repr, unknown[1:]))})" if unknown[1:] else "")
+                + "; "
                 f"the connection keywords are {', '.join(CONNECT_FIELDS)}"
             )
         if keywords.get("address", 0) is None:
@@ -337,6 +358,12 @@ class ConnectOptions:
             tls=self.tls,
             tls_ca=self.tls_ca,
         )
+
+
+def _serving(reply: bytes) -> bool:
+    """A ``grpc.health.v1.HealthCheckResponse`` is SERVING: its field 1 (a varint) is 1. Decoded
+    by hand, so that the client needs no grpcio-health-checking."""
+    return reply == b"\x08\x01"
 
 
 #: The keywords that :class:`ConnectOptions` stands for, in its field order.
@@ -387,6 +414,7 @@ class Connection:
         else:
             self.channel = grpc.secure_channel(self.address, credentials, options=CHANNEL_OPTIONS)
         self.stub = pb_grpc.DinerDashStub(self.channel)
+        self._health: grpc.UnaryUnaryMultiCallable | None = None
         self._closed = False
         # A first short wait, then the TLS probe, then the rest: a TLS mismatch never gets an
         # answer, and should say so at once rather than after the whole connect timeout.
@@ -544,8 +572,8 @@ class Connection:
         timeout: float | None = None,
     ) -> int:
         retries = self.retries if retries is None else retries
-        if method in NOT_RETRIED:
-            retries = 0
+        if method in NOT_RETRIED or b"DRAINING" in (status_details(error) or b""):
+            retries = 0  # a draining server stays so: the caller goes elsewhere at once
         if error.code() == grpc.StatusCode.UNAVAILABLE and attempt < retries and not self._closed:
             time.sleep(self.retry_backoff * (2**attempt))
             return attempt + 1
@@ -573,6 +601,20 @@ class Connection:
         else:
             details = f"{method}: {details}"
         return error_for_rpc(error, details, self.address)
+
+    def health(self, timeout: float) -> grpc.Future:
+        """Starts a ``grpc.health.v1`` Check of the whole server (answered even while it drains,
+        and without the auth token) on this channel; the future's result is True when the server
+        is SERVING, False when it answered otherwise. A server that answers nothing leaves the
+        future pending until ``timeout``. What a vector env's watch and membership probe ask."""
+        self._check_open("Check")
+        if self._health is None:
+            self._health = self.channel.unary_unary(
+                "/grpc.health.v1.Health/Check",
+                request_serializer=bytes,
+                response_deserializer=_serving,
+            )
+        return self._health.future(b"", timeout=timeout)
 
     def server_info(self) -> pb.ServerInfoResponse:
         """The server's version, ruleset and limits."""

@@ -11,9 +11,12 @@ servers are called concurrently (each server's Step by a thread of the env). Env
 seeded with ``seed + i`` whatever server holds it, so the trajectories are the same as on one
 server. A session's calls always go to the server that created it.
 
-Failover (``reconnect=True``): a server unreachable for more than ``failover_after`` seconds is
-given up and its environments move to the servers left (:mod:`dinerdash._failover`); they keep
-their indices, and the other servers' sessions are not touched.
+Failover (``reconnect=True``): a server unreachable, or silent, for more than ``failover_after``
+seconds is given up and its environments move to the servers left (:mod:`dinerdash._failover`);
+they keep their indices, and the other servers' sessions are not touched. Membership
+(:mod:`dinerdash._membership`): a given-up server that answers again, or a DNS name's new
+replica, is taken in, and environments move onto it at their own episode ends until the loads
+differ by at most one; a draining server's environments move off it at their episode ends.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import grpc
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -49,10 +53,19 @@ from ._core import (
 )
 from ._decode import decode, join, seeds, slice_batch
 from ._endpoint import Endpoint
-from ._failover import fail_over
+from ._failover import PASSED_OVER, fail_over, pieces
+from ._membership import (
+    FINAL,
+    OUTCOME,
+    Membership,
+    await_replies,
+    boundary,
+    handover,
+    splice,
+)
 from ._proto import pb
 from .connection import ConnectOptions
-from .errors import EnvClosed, InvalidArgument
+from .errors import EnvClosed, InvalidArgument, ServiceError
 from .game import observation_space
 
 __all__ = ["DinerDashVectorEnv"]
@@ -65,7 +78,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     :class:`dinerdash.env.DinerDashEnv`; here every value gains a leading axis of ``num_envs``:
     observations ``(N, 40) float32``, rewards ``(N,) float64``, ``info["action_mask"]`` ``(N, 57)
     bool``, ``info["score"]``, ``info["lost"]``, ``info["tick"]`` and (``expert=True``)
-    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask.
+    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask; and
+    ``info["seed"]``, each environment's episode seed, at reset and at every step (the keys never
+    change, as for a ``SyncVectorEnv`` of :class:`~dinerdash.DinerDashEnv`; ``int64`` as there,
+    a seed given above 2**63 - 1 reading modulo 2**64).
 
     Autoreset: ``AutoresetMode.NEXT_STEP`` (default; the step after an episode ends resets that
     environment, ignores its action and reports reward 0 and ``info["seed"]``) or
@@ -85,10 +101,14 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
             its session and report its environments' episodes as truncated.
         failover_after: with ``reconnect=True`` and several servers: seconds a lost server is
-            waited for before it is given up and its environments move to the servers left (new
-            sessions, spread evenly; their episodes end truncated with ``info["reconnected"]``,
-            as after a reconnect). The last server left is waited for ``reconnect_timeout``,
-            then :class:`~dinerdash.errors.NoServerLeft` is raised. ``None``: no failover.
+            waited for, or a server that answers nothing (hung, black-holed) is borne with,
+            before it is given up and its environments move to the servers left (new sessions,
+            spread evenly; their episodes end truncated with ``info["reconnected"]``, as after a
+            reconnect). The last server left is waited for ``reconnect_timeout``, then
+            :class:`~dinerdash.errors.NoServerLeft` is raised. ``None``: no failover. A given-up
+            server that answers again is taken back.
+        resolve_every: with failover, seconds between resolutions of a DNS-name ``address``;
+            new replicas are taken in. ``None``: never.
         autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
         config: game configuration (GameConfig fields), as for the single env.
         max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
@@ -147,6 +167,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._options = ConnectOptions.merged(
             connect, "DinerDashVectorEnv", address=address, **connection
         )
+        self._membership: Membership | None = None
+        #: Environments moved to another server at their episode end (before a close()).
+        self._moves = 0
         self.reconnect = self._options.reconnect
         self.reconnect_timeout = self._options.reconnect_timeout
         self.failover_after = self._options.failover_after
@@ -181,6 +204,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """Connects and creates one session per server (at construction, and at a reset after
         close): the environments split into contiguous slices, one per server."""
         self._endpoint = Endpoint(self._options, max_servers=max(1, self.num_envs))
+        self._moves = 0
+        self._last_finish = time.monotonic()
         k = len(self._endpoint.connections)
         self._settings.split = k > 1
         sizes = [self.num_envs // k + (j < self.num_envs % k) for j in range(k)]
@@ -196,29 +221,68 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._close_sessions()
             self._endpoint.close()
             raise
+        if self._failover_on() and self._endpoint.server is None:
+            self._membership = Membership(self._endpoint, self._options)
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
+        self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
         self._closed = False
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
     @property
     def addresses(self) -> list[str]:
-        """The servers in use, in the order of the first environments they hold (after a
+        """The servers serving now, in the order of the first environments they hold (after a
         failover a server may hold several slices; the servers given up are left out)."""
-        return list(dict.fromkeys(c.conn.address for c in self._cores))
+        return list(dict.fromkeys(c.conn.address for _, _, c in self._pieces()))
 
     @property
     def lost_addresses(self) -> list[str]:
-        """The servers given up after ``failover_after`` (``reconnect=True``), in the order they
-        were lost; they are not used again, even if they come back, until a ``reset()`` after
-        ``close()`` starts over on every address."""
+        """The servers given up (``reconnect=True``: unreachable or silent past
+        ``failover_after``, or drained), in the order they were lost; one that answers its
+        health check again is taken back and leaves this list."""
         return [self._endpoint.addresses[i] for i in self._endpoint.given_up]
 
     @property
+    def failovers(self) -> int:
+        """Servers given up for a failure since the env's sessions were opened."""
+        return self._endpoint.failovers
+
+    @property
+    def rejoins(self) -> int:
+        """Servers taken in since the env's sessions were opened: given-up ones that answered
+        again, and a DNS name's new replicas."""
+        return self._endpoint.rejoins
+
+    @property
+    def moves(self) -> int:
+        """Environments moved to another server at their episode end (onto a server taken in,
+        or off a draining one), or, a draining server's deadline about to pass, cut."""
+        return self._moves
+
+    @property
     def env_slices(self) -> list[tuple[str, slice]]:
-        """Which server holds which environments: one entry per session, in environment
-        order (after a failover a server holds several)."""
-        return [(c.conn.address, slice(c.start, c.stop)) for c in self._cores]
+        """Which server holds which environments: one entry per contiguous run of a session's
+        environments, in environment order (after a failover a server holds several)."""
+        return [(c.conn.address, slice(lo, hi)) for lo, hi, c in self._pieces()]
+
+    def _pieces(self) -> list[tuple[int, int, SessionCore]]:
+        """``(start, stop, core)``: which core holds which environments, in environment order."""
+        out = [(lo, hi, c) for c in self._cores for lo, hi in c.runs()]
+        out.sort(key=lambda p: p[0])
+        return out
+
+    def _batches(self) -> list[pb.Batch]:
+        """The cores' last Batches cut to the environments each holds, in environment order."""
+        cores = self._cores
+        if all(c.owned is None for c in cores):
+            return [c.last for c in cores]
+        return [
+            c.last if c.owned is None else slice_batch(c.last, lo - c.start, hi - c.start)
+            for lo, hi, c in self._pieces()
+        ]
+
+    def _failover_on(self) -> bool:
+        return self.reconnect and self.failover_after is not None
 
     @property
     def session_ids(self) -> list[str | None]:
@@ -232,7 +296,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_open("watch_url()")
         if not 0 <= index < self.num_envs:
             raise IndexError(f"index must be in 0..{self.num_envs - 1}, got {index}")
-        core = next(c for c in self._cores if c.start <= index < c.stop)
+        core = next(c for lo, hi, c in self._pieces() if lo <= index < hi)
         return watch_url(core.conn, core.session_id, index - core.start)
 
     def _check_open(self, what: str) -> None:
@@ -280,16 +344,35 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             "arrivals": arrivals,
             "config": config,
         }
-        given_up = self._endpoint.given_up
+        given_up, endpoint = self._endpoint.given_up, self._endpoint
+        self._take_in()
+
+        # The moved environments' new sessions are reset whole, as after a reconnect.
+        def start(old: SessionCore, new: SessionCore) -> pb.Batch:
+            return new.conn.call("Reset", new.reset_request(**given))
+
+        for core in self._cores:
+            core.entering = set()
+        if mask is None:
+            self._complete_transfers()
+        if mask is None and self._failover_on():
+            # A full reset ends every episode: the environments of a draining server move now.
+            drained = [c for c in self._cores if c.index in endpoint.draining]
+            if drained:
+                self._moves += sum(c.load for c in drained)
+                self._cores = fail_over(self._cores, drained, start, why=None)
         calls, kept = [], set()
         for core in self._cores:
-            if mask is not None and not mask[core.start : core.stop].any():
+            if mask is not None and not any(mask[lo:hi].any() for lo, hi in core.runs()):
                 kept.add(id(core))
                 continue
             req = core.reset_request(**given, mask=mask)
             calls.append(
                 (core, req, None if core.index in given_up else core.conn.future("Reset", req))
             )
+        if self._failover_on() and len(endpoint.live()) > 1:
+            waiting = [(c.index, _ready(f)) for c, _, f in calls if f is not None]
+            await_replies(waiting, endpoint, self.failover_after, time.monotonic())
         lost = []
         for core, req, future in calls:
             try:
@@ -300,16 +383,16 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             except ServerLost:
                 lost.append(core)
         if lost:
-            # The moved environments' new sessions are reset whole, as after a reconnect.
-            def start(old: SessionCore, new: SessionCore) -> pb.Batch:
-                return new.conn.call("Reset", new.reset_request(**given))
-
             self._cores = fail_over(self._cores, lost, start)
-        batches = [core.last for core in self._cores]
-        reset = [bytes(core.size) if id(core) in kept else core.last.reset for core in self._cores]
+        batches = self._batches()
+        reset = [
+            bytes(hi - lo) if id(c) in kept else c.last.reset[lo - c.start : hi - c.start]
+            for lo, hi, c in self._pieces()
+        ]
         obs, info = decode(batches, self.num_envs, self.expert)
-        info["seed"] = seeds(batches)
+        info["seed"] = seeds(batches).astype(np.int64)  # as SyncVectorEnv; torch has no uint64
         info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
+        self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
         return obs, info
 
     def _reset_mask(self, reset_mask: Any, config: Any) -> np.ndarray | None:
@@ -348,13 +431,18 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_idle("step()")
         self._check_open("step()")
         cores = self._cores
-        if len(cores) == 1:
+        if len(cores) == 1 and not (self._failover_on() and len(self._endpoint.live()) > 1):
             # One blocking call: cheaper than a future (no hand-off to gRPC's completion thread).
             try:
-                return self._decode_step([cores[0].step(wire.tobytes())])
+                batches = [cores[0].step(wire.tobytes())]
             except ServerLost as e:
                 self._cores = fail_over(cores, [e.core], _interrupted)
-                return self._decode_step([c.last for c in self._cores])
+                batches = self._batches()
+            if self._membership is not None:
+                self._take_in()
+                self._settle()
+                batches = self._batches()
+            return self._decode_step(batches)
         self._start(wire)
         return self._decode_step(self._finish())
 
@@ -387,7 +475,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             raise NoAsyncCallError("step_wait() without a step_async() before it", "step")
         if timeout is not None:
             deadline = time.monotonic() + timeout
-            if not all(core.step_ready(deadline) for core in self._cores):
+            if not all(core.step_ready(deadline) for core in self._cores if core.caller):
                 raise multiprocessing.TimeoutError(
                     f"step_wait(): no reply within {timeout:g} s; the step is still "
                     "pending, call step_wait() again"
@@ -407,6 +495,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         for core in self._cores:
             core.start_step(wire[core.start : core.stop].tobytes())
         self._pending = True
+        self._sent = time.monotonic()
 
     def _finish(self) -> list[pb.Batch]:
         """Every core's Batch of the pending step. Every reply is awaited (and every core
@@ -414,9 +503,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         interrupted wait (Ctrl-C) leaves the step pending, to be collected by ``step_wait()``.
 
         The environments of a core whose server was lost past ``failover_after`` move to the
-        servers left first, and report this step as interrupted (:func:`_interrupted`)."""
-        for core in self._cores:
-            core.step_ready()
+        servers left first, and report this step as interrupted (:func:`_interrupted`). A server
+        that answers nothing (the step nor a health check) for ``failover_after`` is given up
+        first (:func:`~dinerdash._membership.await_replies`). Then the servers found are taken
+        in and environments at their episode ends move (:meth:`_settle`)."""
+        endpoint = self._endpoint
+        if self._failover_on() and len(endpoint.live()) > 1:
+            waiting = [(c.index, c.step_ready) for c in self._cores]
+            await_replies(waiting, endpoint, self.failover_after, self._sent)
+        else:
+            for core in self._cores:
+                core.step_ready()
         self._pending = False
         error, lost = None, []
         for core in self._cores:
@@ -431,7 +528,259 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._cores = fail_over(self._cores, lost, _interrupted)
         if error is not None:
             raise error
-        return [core.last for core in self._cores]
+        if self._failover_on():
+            self._take_in()
+            self._settle()
+        return self._batches()
+
+    def _take_in(self) -> None:
+        """The servers the membership thread found: given-up ones that answer again are taken
+        back, new replicas added (no more servers than environments)."""
+        if self._membership is None:
+            return
+        endpoint = self._endpoint
+        for index, conn in self._membership.found():
+            if index is not None and index in endpoint.given_up:
+                endpoint.take_back(index, conn)
+            elif index is None and conn.address not in endpoint.addresses:
+                if len(endpoint.live()) < self.num_envs:
+                    endpoint.add(conn)
+                else:
+                    conn.close()
+            else:
+                conn.close()
+
+    def _settle(self) -> None:
+        """After a step: notes which servers drain, then moves environments between servers at
+        their own episode ends (:func:`~dinerdash._membership.boundary`): off draining servers,
+        and from the most loaded servers onto the least loaded until the loads differ by at
+        most one. A move is a transfer (:meth:`_plan`): a session on the new server for a
+        contiguous run of environments, each of which enters it at its episode end
+        (:meth:`_enter`). The environments of a server whose drain deadline is about to pass
+        move at once, their episodes cut (truncated, ``info["reconnected"]``). Not in DISABLED
+        mode, where the caller resets finished environments: they move at a full reset."""
+        endpoint = self._endpoint
+        now = time.monotonic()
+        interval, self._last_finish = now - self._last_finish, now
+        for core in self._cores:
+            if core.drain_ms > 0:
+                endpoint.drain(core.index, core.drain_ms / 1000)
+        if self.autoreset_mode == AutoresetMode.DISABLED:
+            return
+        # NEXT_STEP: the environments whose episode ended at the last step autoreset here.
+        for new in [c for c in self._cores if c.entering]:
+            self._enter(new, sorted(new.entering))
+            new.entering = set()
+        targets = endpoint.open_to_new()
+        if targets:
+            self._plan(targets)
+        # A drain deadline closer than a few steps (and two seconds): move now, cut.
+        margin = max(2.0, 3 * interval)
+        late = {i for i, t in endpoint.draining.items() if t - now < margin}
+        for new in [c for c in self._cores if c.source is not None]:
+            source = new.source
+            ended = boundary(source.last, self.autoreset_mode)
+            due = [
+                i
+                for i in range(new.start, new.stop)
+                if source.holds(i) and ended[i - source.start] and not new.holds(i)
+            ]
+            if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+                new.entering.update(due)
+            elif due:
+                self._enter(new, due)
+        for core in [c for c in self._cores if c.index in late and c.load]:
+            targets = [j for j in endpoint.open_to_new() if j != core.index]
+            for lo, hi in core.runs():
+                for i in range(lo, hi):
+                    if targets and i not in self._entering():
+                        dest = min(targets, key=lambda j: (self._load(j), j))
+                        self._hand_over(core, i, dest, cut=True)
+        self._tidy()
+        for i in list(endpoint.draining):
+            if not any(c.index == i for c in self._cores):
+                endpoint.give_up(i)  # drained: probed, and taken back once it serves again
+
+    def _entering(self) -> set[int]:
+        return {i for c in self._cores for i in c.entering}
+
+    def _load(self, server: int) -> int:
+        """Environments server ``server`` holds, or will once its transfers are done."""
+        load = 0
+        for c in self._cores:
+            if c.index == server:
+                load += c.load
+            if c.source is not None:
+                pending = sum(c.source.holds(i) and not c.holds(i) for i in range(c.start, c.stop))
+                load += pending if c.index == server else 0
+                load -= pending if c.source.index == server else 0
+        return load
+
+    def _plan(self, targets: list[int]) -> None:
+        """Opens the transfers that, once done, leave no environment on a draining server and
+        loads that differ by at most one: each a session on a server of ``targets`` for a run
+        of another server's environments, the run a whole session's when one fits."""
+        endpoint = self._endpoint
+        covered = {
+            i
+            for c in self._cores
+            if c.source is not None
+            for i in range(c.start, c.stop)
+            if c.source.holds(i)
+        }
+
+        def runs(core: SessionCore) -> list[tuple[int, int]]:
+            out = []
+            for lo, hi in core.runs():
+                i = lo
+                while i < hi:
+                    if i in covered:
+                        i += 1
+                        continue
+                    j = i
+                    while j < hi and j not in covered:
+                        j += 1
+                    out.append((i, j))
+                    i = j
+            return out
+
+        for core in [c for c in self._cores if c.index in endpoint.draining]:
+            for lo, hi in runs(core):
+                loads = {j: self._load(j) for j in targets}
+                for a, b, dest in pieces(lo, hi, loads):
+                    if self._transfer(core, a, b, dest):
+                        covered.update(range(a, b))
+        for _ in range(4 * len(self._cores) + 4):
+            loads = {j: self._load(j) for j in targets}
+            dest = min(targets, key=lambda j: (loads[j], j))
+            most = max(loads.values())
+            k = (most - loads[dest]) // 2
+            if k < 1:
+                return
+            choices = [
+                (core, lo, hi)
+                for core in self._cores
+                if core.index in targets and loads[core.index] == most and core.source is None
+                for lo, hi in runs(core)
+            ]
+            whole = [x for x in choices if x[2] - x[1] <= k and x[2] - x[1] == x[0].load]
+            if whole:
+                core, lo, hi = max(whole, key=lambda x: (x[2] - x[1], -x[1]))
+            elif choices:
+                core, lo, hi = max(choices, key=lambda x: (x[2] - x[1], -x[1]))
+                lo = max(lo, hi - k)
+            else:
+                return
+            if not self._transfer(core, lo, hi, dest):
+                return
+            covered.update(range(lo, hi))
+
+    def _transfer(self, source: SessionCore, lo: int, hi: int, dest: int) -> bool:
+        """Opens a session on server ``dest`` for environments ``lo:hi`` of ``source``, each to
+        enter it at its episode end; until then its slots are stepped, their results unused.
+        False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
+        new = SessionCore(self._endpoint, dest, lo, hi, self._settings)
+        try:
+            new.create()
+            new.last = new.note(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
+        except PASSED_OVER as e:
+            new.close()
+            if getattr(e, "reason", None) == "DRAINING":
+                self._endpoint.drain(dest, None)
+            return False
+        except BaseException:
+            new.close()
+            raise
+        new.owned = np.zeros(new.size, dtype=np.bool_)
+        new.source = source
+        self._cores.append(new)
+        self._cores.sort(key=lambda c: c.start)
+        return True
+
+    def _enter(self, new: SessionCore, envs: list[int]) -> None:
+        """Environments ``envs`` of ``new.source`` enter ``new`` at their episode end: their
+        slots are reset (unseeded: the new server draws the seeds, as an autoreset does) and
+        their report of this step is the new episode's start (NEXT_STEP: this step is their
+        autoreset; SAME_STEP: the ended episode's outcome and ``final_*`` from the old server)."""
+        envs = [i for i in envs if new.source.holds(i)]
+        if not envs:
+            return
+        mask = np.zeros(new.size, dtype=np.bool_)
+        mask[[i - new.start for i in envs]] = True
+        request = pb.ResetRequest(session_id=new.session_id, reset_mask=mask.tobytes())
+        try:
+            first = new.note(new.conn.call("Reset", request))
+        except ServiceError:
+            return  # its server is going: the transfer is dropped at the next failover
+        batch = splice(new.last, first, mask)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            old = slice_batch(
+                new.source.last, new.start - new.source.start, new.stop - new.source.start
+            )
+            batch = splice(batch, old, mask, OUTCOME + FINAL)
+        else:
+            zeros = pb.Batch(
+                rewards=bytes(4 * new.size),
+                terminated=bytes(new.size),
+                truncated=bytes(new.size),
+            )
+            batch = splice(batch, zeros, mask, OUTCOME)
+        batch = splice(batch, pb.Batch(reset=b"\x01" * new.size), mask, ("reset",))
+        new.last = batch
+        for i in envs:
+            new.source.disown(i, i + 1)
+        new.own(envs)
+        self._moves += len(envs)
+
+    def _tidy(self) -> None:
+        """Closes the sessions whose environments have all moved, and ends the transfers that
+        are done or whose source is gone (a failover)."""
+        for core in list(self._cores):
+            if core.source is not None:
+                if core.owned is None:
+                    core.source = None
+                elif core.source not in self._cores or not any(
+                    core.source.holds(i) for i in range(core.start, core.stop)
+                ):
+                    core.source, core.entering = None, set()
+            if core.load == 0 and core.source is None:
+                core.close()
+                self._cores.remove(core)
+
+    def _complete_transfers(self) -> None:
+        """A full reset starts every episode: the transfers in progress are done at once."""
+        for new in [c for c in self._cores if c.source is not None]:
+            envs = [i for i in range(new.start, new.stop) if new.source.holds(i)]
+            for i in envs:
+                new.source.disown(i, i + 1)
+            new.own(envs)
+            new.entering = set()
+        self._tidy()
+
+    def _hand_over(self, core: SessionCore, i: int, dest: int, cut: bool) -> bool:
+        """Environment ``i`` of ``core`` moves to a new session on server ``dest`` (created
+        and reset now; unseeded: the new server draws the episode's seed, as an autoreset
+        does): its Batch of this step becomes the new core's (:func:`handover`). False when
+        ``dest`` cannot take it now (it drains, is full or unreachable): it stays, for now."""
+        new = SessionCore(self._endpoint, dest, i, i + 1, self._settings)
+        try:
+            new.create()
+            first = new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id))
+        except PASSED_OVER as e:
+            new.close()
+            if getattr(e, "reason", None) == "DRAINING":
+                self._endpoint.drain(dest, None)
+            return False
+        except BaseException:
+            new.close()
+            raise
+        ended = slice_batch(core.last, i - core.start, i - core.start + 1)
+        new.last, new.pending = handover(ended, first, self.autoreset_mode, cut)
+        new.reconnected = cut
+        core.disown(i, i + 1)
+        self._cores.append(new)
+        self._moves += 1
+        return True
 
     def action_masks(self) -> np.ndarray:
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
@@ -439,7 +788,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_idle("action_masks()")
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
-        masks = np.frombuffer(join([c.last for c in self._cores], "action_masks"), np.bool_)
+        masks = np.frombuffer(join(self._batches(), "action_masks"), np.bool_)
         return masks.reshape(self.num_envs, -1).copy()
 
     def _decode_step(self, batches: list[pb.Batch]):
@@ -449,12 +798,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         terminated = np.frombuffer(join(batches, "terminated"), dtype=np.bool_).copy()
         truncated = np.frombuffer(join(batches, "truncated"), dtype=np.bool_).copy()
         reset = np.frombuffer(join(batches, "reset"), dtype=np.bool_)
+        # Every step's info has reset's keys (TorchRL reads them once): each environment's
+        # episode seed, as a SyncVectorEnv of DinerDashEnv reports it.
+        ended_seeds = self._seeds
         if reset.any():
-            # The environments reset in this step carry their reset info: the seed.
-            info["seed"] = seeds(batches)
-            info["_seed"] = reset.copy()
+            self._seeds = np.where(reset, seeds(batches).astype(np.int64), self._seeds)
+        info["seed"], info["_seed"] = self._seeds.copy(), np.ones(n, np.bool_)
+        if reset.any():
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 final, final_info = decode(batches, n, self.expert, "final_", reset)
+                final_info["seed"] = np.where(reset, ended_seeds, 0)
+                final_info["_seed"] = reset.copy()
                 final_obs = np.full(n, None, dtype=object)
                 for i in np.flatnonzero(reset):  # only the environments that just ended
                     final_obs[i] = final[i]
@@ -466,7 +820,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             lost = np.zeros(n, dtype=np.bool_)
             for core in self._cores:
                 if core.reconnected:
-                    lost[core.start : core.stop] = True
+                    for lo, hi in core.runs():
+                        lost[lo:hi] = True
                     core.reconnected = False
             info["reconnected"] = lost
             info["_reconnected"] = lost.copy()
@@ -482,13 +837,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         if self.render_mode == "ansi":
             self._check_open("render()")
             return tuple(
-                core.render_text(i, self.ansi_color)
-                for core in self._cores
-                for i in range(core.size)
+                core.render_text(i - core.start, self.ansi_color)
+                for lo, hi, core in self._pieces()
+                for i in range(lo, hi)
             )
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")
-        obs, info = decode([c.last for c in self._cores], self.num_envs, self.expert)
+        obs, info = decode(self._batches(), self.num_envs, self.expert)
         lives = self.spec_proto.config.lives
         return tuple(
             _render.draw(
@@ -506,9 +861,28 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         ``reset()`` opens new sessions; other calls raise :class:`~dinerdash.EnvClosed`."""
         if not self._closed:
             self._pending = False  # the cores' threads end as the sessions close
+            if self._membership is not None:
+                self._membership.close()
+                self._membership = None
             self._close_sessions()
             self._endpoint.close()
             self._closed = True
+
+
+def _ready(future):
+    """``ready(deadline)`` of a grpc future: True once it has its outcome."""
+
+    def ready(deadline: float | None) -> bool:
+        timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+        try:
+            future.exception(timeout=timeout)
+        except grpc.FutureTimeoutError:
+            return False
+        except grpc.FutureCancelledError:
+            pass
+        return True
+
+    return ready
 
 
 def _interrupted(old: SessionCore, new: SessionCore) -> pb.Batch:

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use crate::budget::{Share, Tenant};
 use crate::pb;
-use crate::server::{self, ServerConfig, ServerError};
+use crate::server::{self, Listeners, ServerConfig, ServerError};
 use crate::session::{Autoreset, ExpertActions, Limits, ResetArgs, SessionOptions, Store};
 use crate::sim::{Config, NUM_ACTIONS};
 
@@ -76,9 +76,13 @@ pub async fn grpc(num_envs: usize, time: Duration) -> Result<f64, ServerError> {
         })?;
     let addr = listener.local_addr().map_err(ServerError::LocalAddr)?;
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
-    let serving = tokio::spawn(server::run(listener, ServerConfig::default(), async {
-        let _ = stopped.await;
-    }));
+    let serving = tokio::spawn(server::run(
+        Listeners::grpc(listener),
+        ServerConfig::default(),
+        async {
+            let _ = stopped.await;
+        },
+    ));
     let rate = async {
         let mut client = pb::diner_dash_client::DinerDashClient::connect(format!("http://{addr}"))
             .await

@@ -13,7 +13,6 @@
 //! - [`metrics`]: the counters and their Prometheus text.
 //! - [`shutdown`]: SIGINT/SIGTERM, the drain deadlines, the shutdown handles, and the
 //!   `UNAVAILABLE` a draining server answers.
-//! - [`fd_limit`]: the open-file limit: raised at start, and the connections it has room for.
 //! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
 //! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
 //! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
@@ -22,8 +21,9 @@
 //!   and the recording of whole episodes of a server-side policy.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
-//! - [`connections`]: the accept loop (backoff, limit, idle timeout, preface timeout, shedding)
-//!   and each connection's info.
+//! - [`connections`]: a folder, one job a file: the accept loop (backoff, limit), the table of
+//!   connections and shedding, the connection wrapper with its preface and idle timers, the
+//!   in-flight tower layer, and the open-file limit (`connections::fd_limit`).
 //! - [`auth`]: bearer tokens and the tenants they stand for (the tenants file), the
 //!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
 //!   over the connection limit, token.
@@ -49,7 +49,6 @@ pub mod config;
 pub mod connections;
 pub mod cpu;
 pub mod eval;
-pub mod fd_limit;
 pub mod health;
 pub mod http;
 pub mod metrics;

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use binary_support::Process;
 use dinerdash_server::connections;
-use dinerdash_server::fd_limit::{self, Budget};
+use dinerdash_server::connections::fd_limit::{self, Capacity};
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::server::ServerConfig;
 use grpc_support::{PATIENCE, TestServer, create, create_request, scrape, step};
@@ -84,7 +84,7 @@ async fn at_the_file_limit_silent_connections_make_room_for_a_client() {
         &format!("ulimit -n {SERVER_NOFILE} &&"),
         "--idle-timeout 1h --log-format json",
     );
-    let budget = Budget::for_limit(connections::DEFAULT_MAX_CONNECTIONS, Some(SERVER_NOFILE));
+    let capacity = Capacity::for_limit(connections::DEFAULT_MAX_CONNECTIONS, Some(SERVER_NOFILE));
 
     // The broken client: connects and never sends a byte.
     let connecting = Instant::now();
@@ -135,7 +135,7 @@ async fn at_the_file_limit_silent_connections_make_room_for_a_client() {
          connections closed by then and {sockets} sockets open in the server; idle CPU \
          {cpu_percent:.1} % of a core; all {closed} silent connections closed {:.1} s after the \
          client started",
-        budget.max_connections,
+        capacity.max_connections,
         connected.as_secs_f64() * 1000.0,
         to_serve.as_secs_f64() * 1000.0,
         all_closed_after.as_secs_f64(),
@@ -151,8 +151,8 @@ async fn at_the_file_limit_silent_connections_make_room_for_a_client() {
     assert_eq!(closed, SILENT, "silent connections left open");
     // Never more sockets than the cap, those on their way out and the listener.
     assert!(
-        sockets <= budget.max_connections + budget.max_over_limit + 1,
-        "{sockets} sockets at {budget:?}"
+        sockets <= capacity.max_connections + capacity.max_over_limit + 1,
+        "{sockets} sockets at {capacity:?}"
     );
 
     drop(silent);
@@ -164,7 +164,7 @@ async fn at_the_file_limit_silent_connections_make_room_for_a_client() {
     // The limit was capped and logged; accept never ran out of descriptors.
     assert!(
         stderr.contains("connection limit capped below the open-file limit")
-            && stderr.contains(&format!("\"max_connections\":{}", budget.max_connections)),
+            && stderr.contains(&format!("\"max_connections\":{}", capacity.max_connections)),
         "no cap logged:\n{stderr}"
     );
     // Shedding made room, unless this machine took so long to connect that the first silent

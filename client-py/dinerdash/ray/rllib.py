@@ -53,7 +53,16 @@ __all__ = [
 #: The RLlib environment :func:`register` registers.
 ENV_NAME = "DinerDash-v0"
 #: The ``env_config`` keys :func:`make_env` knows (RLlib adds ``num_envs`` itself).
-ENV_CONFIG_KEYS = ("address", "token", "timeout", "reconnect", "expert", "mask_observation")
+ENV_CONFIG_KEYS = (
+    "address",
+    "token",
+    "timeout",
+    "reconnect",
+    "expert",
+    "mask_observation",
+    "failover_after",
+    "reconnect_timeout",
+)
 
 
 def _dict_space(observations: spaces.Box, num_actions: int) -> spaces.Dict:
@@ -164,7 +173,10 @@ def make_env(config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
     EnvRunners by ``worker_index``: each gets its share), ``token``, ``timeout``, ``reconnect``
     (default ``False``), ``expert`` (``True``/``"planner"``: ``info["expert_action"]``),
     ``mask_observation`` (default ``True``: the ``Dict`` observation of
-    :class:`MaskedObservation`).
+    :class:`MaskedObservation`), ``failover_after`` and ``reconnect_timeout`` (as for
+    :class:`~dinerdash.DinerDashVectorEnv`: an EnvRunner whose share is several servers moves
+    a lost server's environments to the others, and takes the server back once it answers
+    again, e.g. after Ray restarted it on its node).
     """
     unknown = sorted(set(config) - {*ENV_CONFIG_KEYS, "num_envs"})
     if unknown:
@@ -180,6 +192,9 @@ def make_env(config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
         "reconnect": bool(config.get("reconnect", False)),
         "expert": config.get("expert", False),
     }
+    for key in ("failover_after", "reconnect_timeout"):
+        if key in config:
+            kwargs[key] = config[key]
     mask = bool(config.get("mask_observation", True))
     if "num_envs" in config:
         venv = DinerDashVectorEnv(
@@ -288,7 +303,10 @@ def masked_ppo(
     environment per batch).
 
     The environments reconnect (``env_config`` ``reconnect=True``): a server that
-    :func:`start_servers` restarts is found again on its port, its episodes end truncated.
+    :func:`start_servers` restarts is found again on its port, its episodes end truncated. An
+    EnvRunner with several servers moves a lost one's environments to its others after
+    ``failover_after`` (``env_config``; default 10 s) and, when Ray has restarted the server,
+    takes it back and moves environments onto it again at their episode ends.
 
     ``ppo_overrides``: any ``AlgorithmConfig`` setting, applied last (``lr=1e-4``,
     ``train_batch_size_per_learner=...``); an ``env_config`` is merged into this one

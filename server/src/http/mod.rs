@@ -40,7 +40,7 @@ const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(2);
 /// Most connections served at once, event streams included; more are answered 503. Each
 /// viewer costs a task, a socket and one frame in flight; the sockets come out of the
-/// descriptors [`crate::fd_limit`] keeps beside the gRPC connections, so there are few.
+/// descriptors [`crate::connections::fd_limit`] keeps beside the gRPC connections, so there are few.
 pub const MAX_CONNECTIONS: usize = 32;
 
 /// What the endpoint serves from. Shared by every connection.

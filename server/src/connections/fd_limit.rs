@@ -2,8 +2,8 @@
 //!
 //! Every connection holds a descriptor, and so do the listeners, the runtime, metrics scrapes and
 //! files read at start. At start the binary raises its soft limit to the hard one ([`raise`]);
-//! the accept loop then serves at most [`Budget::for_limit`] connections, so that it sheds
-//! connections (see [`crate::connections`]) before `accept` runs out of descriptors.
+//! the accept loop then serves at most [`Capacity::for_limit`] connections, so that it sheds
+//! connections (see [`super::accept`]) before `accept` runs out of descriptors.
 //!
 //! On platforms without `RLIMIT_NOFILE` (not Unix) there is no limit to raise or read, and the
 //! connection limit is taken as given.
@@ -62,7 +62,7 @@ fn show(limit: Option<u64>) -> String {
 
 /// How many connections the accept loop keeps open at once.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Budget {
+pub struct Capacity {
     /// Connections admitted and served.
     pub max_connections: usize,
     /// Connections beyond `max_connections` on their way out: accepted over the limit only to be
@@ -70,8 +70,8 @@ pub struct Budget {
     pub max_over_limit: usize,
 }
 
-impl Budget {
-    /// The budget for a connection limit of `requested` under an open-file limit of `nofile`
+impl Capacity {
+    /// The capacity for a connection limit of `requested` under an open-file limit of `nofile`
     /// (`None`: unlimited or unknown, the limit is taken as given).
     ///
     /// The headroom is [`MIN_HEADROOM`] descriptors or a sixteenth of the limit, whichever is
@@ -79,9 +79,9 @@ impl Budget {
     /// headroom; those on their way out may use half the headroom, and the descriptors below the
     /// cap that admitted ones leave free. The other half is for the rest of the process
     /// (listeners, the runtime, signal handling, metrics scrapes: about a dozen when idle).
-    pub fn for_limit(requested: usize, nofile: Option<u64>) -> Budget {
+    pub fn for_limit(requested: usize, nofile: Option<u64>) -> Capacity {
         let Some(limit) = nofile else {
-            return Budget {
+            return Capacity {
                 max_connections: requested,
                 max_over_limit: requested,
             };
@@ -90,7 +90,7 @@ impl Budget {
         let usable = usize::try_from(limit - headroom / 2).unwrap_or(usize::MAX);
         let cap = usize::try_from(limit - headroom).unwrap_or(usize::MAX);
         let max_connections = requested.min(cap);
-        Budget {
+        Capacity {
             max_connections,
             max_over_limit: max_connections.min(usable - max_connections),
         }
@@ -153,35 +153,35 @@ mod tests {
     #[test]
     fn the_cap_keeps_headroom_below_the_open_file_limit() {
         // `ulimit -n 1024`: 64 kept, 960 served, 32 more may be answered over the limit.
-        let at_1024 = Budget::for_limit(1024, Some(1024));
+        let at_1024 = Capacity::for_limit(1024, Some(1024));
         assert_eq!(
             at_1024,
-            Budget {
+            Capacity {
                 max_connections: 960,
                 max_over_limit: 32
             }
         );
         // A generous limit: the flag is the limit, and as many may be answered over it.
         assert_eq!(
-            Budget::for_limit(1024, Some(1 << 20)),
-            Budget {
+            Capacity::for_limit(1024, Some(1 << 20)),
+            Capacity {
                 max_connections: 1024,
                 max_over_limit: 1024
             }
         );
         // Large limits keep a sixteenth.
         assert_eq!(
-            Budget::for_limit(100_000, Some(65_536)).max_connections,
+            Capacity::for_limit(100_000, Some(65_536)).max_connections,
             65_536 - 4096
         );
         // Tiny limits keep half.
-        let tiny = Budget::for_limit(1024, Some(48));
+        let tiny = Capacity::for_limit(1024, Some(48));
         assert_eq!(tiny.max_connections, 24);
         assert_eq!(tiny.max_over_limit, 12);
         // Unknown: as given.
         assert_eq!(
-            Budget::for_limit(7, None),
-            Budget {
+            Capacity::for_limit(7, None),
+            Capacity {
                 max_connections: 7,
                 max_over_limit: 7
             }
@@ -189,7 +189,7 @@ mod tests {
         // Whatever the numbers, connections admitted or answered leave half the headroom free.
         for limit in [2, 16, 48, 100, 1024, 4096, 1 << 20] {
             for requested in [0, 1, 10, 1000, 1 << 30] {
-                let b = Budget::for_limit(requested, Some(limit));
+                let b = Capacity::for_limit(requested, Some(limit));
                 let headroom = MIN_HEADROOM.max(limit / 16).min(limit / 2);
                 assert!(b.max_connections <= requested);
                 assert!(

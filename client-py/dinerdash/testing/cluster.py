@@ -1,0 +1,321 @@
+"""``LocalCluster``: n real ``dinerdash-server`` processes on 127.0.0.1, and the ways to lose them.
+
+Each server is a :class:`~dinerdash.server.LocalServer` (the same binary lookup: the ``binary``
+argument, ``DINERDASH_SERVER``, the ``dinerdash-server`` wheel, ``PATH``, the workspace's release
+build) listening on a port it picked itself. A server keeps its index and its address for the
+whole life of the cluster: :meth:`LocalCluster.restart` starts it again on the same port, as a
+supervisor (systemd, Kubernetes, Ray) would.
+
+The faults are signals, so they are what a real machine does:
+
+================  ============  ================================================================
+method            signal        what a client sees
+================  ============  ================================================================
+``kill(i)``       ``SIGKILL``   a crash: connections reset, new ones refused
+``hang(i)``       ``SIGSTOP``   a hung process: connections stay up, nothing answers, not even
+                                HTTP/2 pings; ``resume(i)`` (``SIGCONT``) lets it go on
+``drain(i)``      ``SIGTERM``   a planned stop (a rolling update): what the server does on
+                                ``SIGTERM``, at once; ``wait(i)`` for it to exit
+``restart(i)``    ...           stops it (``SIGTERM`` and wait, or ``SIGKILL``), then the same
+                                port again
+================  ============  ================================================================
+
+Leaving the ``with`` block stops every server, hung ones included (they are resumed first):
+terminate, wait, kill.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from ..errors import LocalServerError
+from ..server import LocalServer, find_server_binary
+
+__all__ = ["LocalCluster", "server_args"]
+
+#: Seconds a restarted server keeps trying its old port: a port just freed by a killed process
+#: can stay taken for a moment.
+REBIND_TIMEOUT = 10.0
+
+
+def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
+    """Waits until process ``pid`` is stopped: a signal is delivered after ``kill`` returns, and
+    a thread of the server on another core may answer a call in between. Linux only (``/proc``);
+    elsewhere a short sleep."""
+    stat = Path(f"/proc/{pid}/stat")
+    if not stat.exists():
+        time.sleep(0.1)
+        return
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            # "PID (COMM) STATE ...": COMM may hold spaces and ")"; STATE follows the last ")".
+            state = stat.read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            return  # gone
+        if state in ("T", "t"):
+            return
+        time.sleep(0.005)
+
+
+def _ready(address: str, timeout: float) -> None:
+    """Waits until the server at ``address`` answers a call: it printed its port once bound, and
+    installs its signal handlers only once it serves (a ``SIGTERM`` before would kill it)."""
+    from ..connection import Connection
+    from ..errors import ServiceError
+
+    try:
+        Connection(address, connect_timeout=timeout).close()
+    except ServiceError:  # any answer (TLS, a token needed) will do; no answer fails later calls
+        pass
+
+
+def server_args(flags: dict[str, Any]) -> list[str]:
+    """Command-line arguments from keywords: ``max_sessions=8`` is ``--max-sessions 8``; ``True``
+    is the bare flag; ``None`` and ``False`` leave the flag out; a list or tuple repeats it."""
+    args: list[str] = []
+    for name, value in flags.items():
+        flag = "--" + name.replace("_", "-")
+        if value is None or value is False:
+            continue
+        if value is True:
+            args.append(flag)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                args += [flag, str(item)]
+        else:
+            args += [flag, str(value)]
+    return args
+
+
+class LocalCluster:
+    """``n`` ``dinerdash-server`` processes on ``127.0.0.1``, for integration tests and chaos runs.
+
+    ::
+
+        from dinerdash.testing import LocalCluster
+
+        with LocalCluster(3, max_sessions=8) as cluster:
+            envs = DinerDashVectorEnv(6, cluster.addresses, reconnect=True, failover_after=2)
+            envs.reset(seed=0)
+            cluster.hang(1)          # SIGSTOP: its connections stay up, nothing answers
+            ...
+            cluster.resume(1)
+
+    Args:
+        n: servers to start.
+        binary: the server binary (default: see :func:`~dinerdash.server.find_server_binary`).
+        startup_timeout: seconds each server may take to listen.
+        stop_timeout: seconds between terminate and kill when stopping a server.
+        server_flags: the servers' command-line flags as keywords: ``max_sessions=8`` is
+            ``--max-sessions 8``, ``drain_timeout=5`` is ``--drain-timeout 5``
+            (:func:`server_args`). Every server, those of :meth:`add` too, gets them.
+    """
+
+    def __init__(
+        self,
+        n: int = 3,
+        *,
+        binary: str | os.PathLike[str] | None = None,
+        startup_timeout: float = 30.0,
+        stop_timeout: float = 10.0,
+        **server_flags: Any,
+    ) -> None:
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise ValueError(f"n: expected a number of servers >= 0, got {n!r}")
+        for reserved in ("host", "port"):
+            if reserved in server_flags:
+                raise ValueError(
+                    f"{reserved}: a LocalCluster's servers listen on 127.0.0.1 and a port each "
+                    "picks itself"
+                )
+        self.binary = find_server_binary(binary)
+        self.startup_timeout = startup_timeout
+        self.stop_timeout = stop_timeout
+        self.server_flags = dict(server_flags)
+        self.args = server_args(self.server_flags)
+        #: The servers, one per index; a restarted server is a new object at the same index.
+        self.servers: list[LocalServer] = []
+        self._addresses: list[str] = []
+        self._hung: set[int] = set()
+        self._launcher = ThreadPoolExecutor(1, thread_name_prefix="dinerdash-cluster-launcher")
+        try:
+            for _ in range(n):
+                self.add()
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def addresses(self) -> list[str]:
+        """``"127.0.0.1:PORT"`` of every server, by index, whether it runs or not."""
+        return list(self._addresses)
+
+    def address(self, i: int) -> str:
+        return self._addresses[i]
+
+    def __len__(self) -> int:
+        return len(self.servers)
+
+    def _start(self, port: int) -> LocalServer:
+        # Started from the cluster's own thread: on Linux a server dies with the thread that
+        # started it (PR_SET_PDEATHSIG), and a caller's thread (a chaos monkey's) may end first.
+        return self._launcher.submit(self._launch, port).result()
+
+    def _launch(self, port: int) -> LocalServer:
+        server = LocalServer(
+            self.binary,
+            port=port,
+            args=self.args,
+            startup_timeout=self.startup_timeout,
+            stop_timeout=self.stop_timeout,
+        )
+        try:
+            _ready(server.address, self.startup_timeout)
+        except BaseException:
+            server.stop()
+            raise
+        return server
+
+    def add(self) -> int:
+        """Starts one more server (with the cluster's flags) on a new port; returns its index."""
+        server = self._start(0)
+        self.servers.append(server)
+        self._addresses.append(server.address)
+        return len(self.servers) - 1
+
+    def _process(self, i: int):
+        process = self.servers[i].process
+        if process is None:  # pragma: no cover - LocalServer always has one after start
+            raise LocalServerError(f"server {i} ({self._addresses[i]}) was never started")
+        return process
+
+    def pid(self, i: int) -> int:
+        """The process id of server ``i`` (a restarted server has a new one)."""
+        return self._process(i).pid
+
+    def is_running(self, i: int) -> bool:
+        """Whether server ``i``'s process exists (a hung one does)."""
+        return self._process(i).poll() is None
+
+    def is_hung(self, i: int) -> bool:
+        """Whether server ``i`` is stopped by :meth:`hang` and not resumed yet."""
+        return i in self._hung and self.is_running(i)
+
+    def _signal(self, i: int, sig: signal.Signals) -> bool:
+        process = self._process(i)
+        if process.poll() is not None:
+            return False
+        try:
+            process.send_signal(sig)
+        except ProcessLookupError:  # exited between poll and kill
+            return False
+        return True
+
+    def kill(self, i: int) -> None:
+        """``SIGKILL``: server ``i`` dies as in a crash, with no graceful shutdown. Returns when it
+        is gone."""
+        self._signal(i, signal.SIGKILL)
+        self._process(i).wait()
+        self._hung.discard(i)
+
+    def hang(self, i: int) -> None:
+        """``SIGSTOP``: server ``i`` stops answering anything while its connections stay open (a
+        stuck process, a paused VM); returns once it is stopped. :meth:`resume` lets it go on."""
+        if self._signal(i, signal.SIGSTOP):
+            self._hung.add(i)
+            _wait_stopped(self.pid(i))
+
+    def resume(self, i: int) -> None:
+        """``SIGCONT``: a hung server ``i`` goes on where it stopped."""
+        self._signal(i, signal.SIGCONT)
+        self._hung.discard(i)
+
+    def drain(self, i: int) -> None:
+        """``SIGTERM``, returning at once: server ``i`` does what it does on a planned stop (with
+        ``--drain-timeout``: refuses new sessions, serves its sessions until the deadline, then
+        exits). :meth:`wait` waits for it to exit."""
+        self.resume(i)  # a stopped process would only see the signal once resumed
+        self._signal(i, signal.SIGTERM)
+
+    def wait(self, i: int, timeout: float | None = None) -> int:
+        """Waits for server ``i``'s process to exit; returns its exit status (negative: the
+        signal that ended it). :class:`TimeoutError` past ``timeout`` seconds."""
+        try:
+            return self._process(i).wait(timeout)
+        except subprocess.TimeoutExpired:
+            raise TimeoutError(
+                f"server {i} ({self._addresses[i]}) still running after {timeout:g} s"
+            ) from None
+
+    def stop(self, i: int) -> None:
+        """Stops server ``i`` (resumed first if hung): terminate, wait, kill. It can be started
+        again with :meth:`restart`."""
+        self.resume(i)
+        self.servers[i].stop()
+
+    def restart(
+        self, i: int, *, wait_drain: bool = True, drain_timeout: float | None = None
+    ) -> None:
+        """Stops server ``i`` if it runs and starts it again on the same port; returns once the new
+        process listens (calls to the address work again).
+
+        ``wait_drain=True``: a planned restart, ``SIGTERM`` and wait for the server to exit on its
+        own (its drain, at most ``drain_timeout`` seconds, then ``SIGKILL``; default: no limit).
+        ``wait_drain=False``: a crash and a supervisor's restart, ``SIGKILL`` at once. A server
+        that is not running (killed, drained) is simply started again.
+        """
+        if self.is_running(i):
+            if wait_drain:
+                self.drain(i)
+                try:
+                    self.wait(i, drain_timeout)
+                except TimeoutError:
+                    self.kill(i)
+            else:
+                self.kill(i)
+        self.servers[i].stop()  # closes its stderr file; the process is gone already
+        port = int(self._addresses[i].rsplit(":", 1)[1])
+        deadline = time.monotonic() + REBIND_TIMEOUT
+        while True:
+            try:
+                server = self._start(port)
+                break
+            except LocalServerError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+        self.servers[i] = server
+        self._hung.discard(i)
+
+    def close(self) -> None:
+        """Stops every server, hung ones included: resume, terminate, wait, kill. Safe to call
+        twice."""
+        try:
+            for i, server in enumerate(self.servers):
+                try:
+                    self.resume(i)
+                finally:
+                    server.stop()
+        finally:
+            self._hung.clear()
+            self._launcher.shutdown(wait=True)
+
+    def __enter__(self) -> LocalCluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        states = []
+        for i, address in enumerate(self._addresses):
+            state = "hung" if self.is_hung(i) else "up" if self.is_running(i) else "down"
+            states.append(f"{address} {state}")
+        return f"LocalCluster([{', '.join(states)}])"

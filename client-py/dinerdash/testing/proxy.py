@@ -1,0 +1,360 @@
+"""``FaultProxy``: a TCP proxy on 127.0.0.1 that puts network faults between a client and a server.
+
+The client connects to :attr:`FaultProxy.address`; each connection is forwarded to ``target``
+until a fault is turned on:
+
+=================  =============================================================================
+``latency(s)``     every chunk of bytes is delivered ``s`` seconds after it arrived, both ways
+                   (order kept; throughput is not limited): a far or congested network
+``blackhole()``    connections stay open and new ones are accepted, but every byte, both ways,
+                   is swallowed: a network that drops packets without a reset, a paused VM
+``reset()``        every open connection is closed with a TCP reset (``SO_LINGER`` 0), once;
+                   new connections work: a middlebox or a peer that lost its state
+``cut()``          every open connection is reset, and new ones are accepted and reset at once
+                   (the port stays the proxy's) until :meth:`~FaultProxy.heal`: a partition
+``heal()``         back to plain forwarding. Connections that lost bytes to a black hole are
+                   reset (their streams have holes, as a TCP connection that timed out)
+=================  =============================================================================
+
+The proxy is stdlib only: an asyncio event loop in a daemon thread; the methods may be called from
+any thread and take effect before they return.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import socket
+import struct
+import threading
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["FaultProxy"]
+
+_NORMAL, _BLACKHOLE, _CUT = "normal", "blackhole", "cut"
+#: Bytes buffered toward one side before the proxy stops reading from the other.
+_HIGH_WATER = 1 << 20
+
+
+def _rst(transport: asyncio.BaseTransport | None) -> None:
+    """Closes ``transport`` with a TCP reset rather than a FIN: ``SO_LINGER`` on, 0 seconds."""
+    if transport is None or transport.is_closing():
+        return
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        except OSError:
+            pass
+    transport.abort()
+
+
+class _Side(asyncio.Protocol):
+    """One socket of a proxied connection: the client's (accepted) or the server's (dialled)."""
+
+    def __init__(self, link: _Link) -> None:
+        self.link = link
+        self.transport: asyncio.Transport | None = None
+        self.peer: _Side | None = None
+        #: (due time, bytes) waiting for their delivery to this side (the latency).
+        self.pending: collections.deque[tuple[float, bytes]] = collections.deque()
+        self.timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+        transport.set_write_buffer_limits(high=_HIGH_WATER)  # type: ignore[attr-defined]
+
+    def data_received(self, data: bytes) -> None:
+        proxy = self.link.proxy
+        if proxy._mode == _BLACKHOLE:
+            self.link.swallowed = True
+            return
+        if self.peer is not None:
+            self.peer.deliver(data, proxy._latency)
+
+    def deliver(self, data: bytes, latency: float) -> None:
+        """Writes ``data`` to this side now, or ``latency`` seconds after it arrived, never before
+        bytes that arrived earlier."""
+        if latency <= 0 and not self.pending:
+            self.write(data)
+            return
+        loop = self.link.proxy._loop
+        due = loop.time() + max(latency, 0.0)
+        if self.pending:
+            due = max(due, self.pending[-1][0])
+        self.pending.append((due, data))
+        if self.timer is None:
+            self.timer = loop.call_at(self.pending[0][0], self._flush)
+
+    def _flush(self) -> None:
+        self.timer = None
+        loop = self.link.proxy._loop
+        now = loop.time()
+        while self.pending and self.pending[0][0] <= now:
+            self.write(self.pending.popleft()[1])
+        if self.pending:
+            self.timer = loop.call_at(self.pending[0][0], self._flush)
+
+    def write(self, data: bytes) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.write(data)
+
+    def pause_writing(self) -> None:  # this side is slow to take bytes: stop reading the other
+        if self.peer is not None and self.peer.transport is not None:
+            self.peer.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        if self.peer is not None and self.peer.transport is not None:
+            self.peer.transport.resume_reading()
+
+    def eof_received(self) -> bool:
+        # A half close passes through, after the bytes still delayed.
+        if self.peer is not None:
+            self.peer.close_after_pending(half=True)
+        return True
+
+    def close_after_pending(self, half: bool = False) -> None:
+        """Closes this side (``half``: only its writing end) once its delayed bytes are out."""
+        if self.transport is None or self.transport.is_closing():
+            return
+        if self.pending:
+            loop = self.link.proxy._loop
+            loop.call_at(self.pending[-1][0], self.close_after_pending, half)
+        elif half and self.transport.can_write_eof():
+            self.transport.write_eof()
+        else:
+            self.transport.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        self.gone = True
+        self.link.lost(self, exc)
+
+    gone = False
+
+    def drop(self) -> None:
+        """Resets this side now, dropping the bytes still delayed."""
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        self.pending.clear()
+        _rst(self.transport)
+
+
+class _ClientSide(_Side):
+    """The accepted socket: the link dials the target when it arrives."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        self.link.accepted()
+
+
+class _Link:
+    """One proxied connection: the client's side and the server's side."""
+
+    def __init__(self, proxy: FaultProxy) -> None:
+        self.proxy = proxy
+        self.client: _Side = _ClientSide(self)
+        self.server: _Side | None = None
+        #: Bytes were swallowed by a black hole: the stream has a hole and cannot be healed.
+        self.swallowed = False
+        self.closed = False
+
+    def accepted(self) -> None:
+        if self.proxy._mode == _CUT:
+            self.reset()
+            return
+        self.proxy._links.add(self)
+        self.proxy._loop.create_task(self.dial())
+
+    async def dial(self) -> None:
+        """Connects to the target; the client's side is read only once this is done."""
+        assert self.client.transport is not None
+        self.client.transport.pause_reading()
+        try:
+            host, port = self.proxy._target
+            _, server = await self.proxy._loop.create_connection(lambda: _Side(self), host, port)
+        except OSError:
+            self.reset()  # as a server that refuses: the client sees its connection reset
+            return
+        if self.closed:
+            server.drop()
+            return
+        self.server = server
+        server.peer, self.client.peer = self.client, server
+        if not self.client.transport.is_closing():
+            self.client.transport.resume_reading()
+
+    def lost(self, side: _Side, exc: Exception | None) -> None:
+        """One side closed: a reset is passed on at once, a close after the bytes still due."""
+        other = self.server if side is self.client else self.client
+        if other is not None:
+            if exc is not None:
+                other.drop()
+            else:
+                other.close_after_pending()
+        if self.client.gone and (self.server is None or self.server.gone):
+            self.closed = True
+            self.proxy._links.discard(self)
+
+    def reset(self) -> None:
+        self.closed = True
+        self.client.drop()
+        if self.server is not None:
+            self.server.drop()
+        self.proxy._links.discard(self)
+
+
+class FaultProxy:
+    """A TCP proxy from ``127.0.0.1:PORT`` (:attr:`address`) to ``target`` (``"host:port"``) whose
+    faults can be switched on and off while clients use it (see the module's table).
+
+    ::
+
+        with LocalCluster(1) as cluster, FaultProxy(cluster.addresses[0]) as proxy:
+            env = gymnasium.make("dinerdash:DinerDash-v0", address=proxy.address)
+            proxy.latency(0.05)   # 50 ms each way
+            proxy.blackhole()     # nothing gets through, nothing is closed
+            proxy.heal()
+    """
+
+    def __init__(self, target: str, *, host: str = "127.0.0.1", port: int = 0) -> None:
+        target_host, _, target_port = target.rpartition(":")
+        if not target_host or not target_port.isdigit():
+            raise ValueError(f"target: expected 'host:port', got {target!r}")
+        self.target = target
+        self._target = (target_host.strip("[]"), int(target_port))
+        self._mode = _NORMAL
+        self._latency = 0.0
+        self._links: set[_Link] = set()
+        self._loop = asyncio.new_event_loop()
+        self._server: asyncio.AbstractServer | None = None
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name=f"dinerdash-fault-proxy-{target}", daemon=True
+        )
+        self._thread.start()
+        try:
+            self._server = self._call_async(
+                self._loop.create_server(lambda: self._accept(), host, port)
+            )
+        except BaseException:
+            self._stop_loop()
+            raise
+        sockname = self._server.sockets[0].getsockname()
+        #: ``"127.0.0.1:PORT"``: where clients connect instead of ``target``.
+        self.address = f"{sockname[0]}:{sockname[1]}"
+        self.port: int = sockname[1]
+
+    def _accept(self) -> _Side:
+        return _Link(self).client
+
+    def _call_async(self, coroutine: Any) -> Any:
+        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout=30)
+
+    def _call(self, fn: Callable[[], Any]) -> Any:
+        """Runs ``fn`` on the proxy's loop and returns its result: a fault is on when this
+        returns."""
+        if self._loop.is_closed():
+            raise RuntimeError(f"FaultProxy({self.target!r}) is closed")
+
+        async def run() -> Any:
+            return fn()
+
+        return self._call_async(run())
+
+    @property
+    def connections(self) -> int:
+        """Connections open through the proxy now."""
+        return self._call(lambda: len(self._links))
+
+    @property
+    def mode(self) -> str:
+        """``"normal"``, ``"blackhole"`` or ``"cut"``."""
+        return self._mode
+
+    def latency(self, seconds: float) -> None:
+        """Delays every chunk by ``seconds`` in each direction from now on (0: none)."""
+        if not seconds >= 0:
+            raise ValueError(f"latency: expected seconds >= 0, got {seconds!r}")
+
+        def set_latency() -> None:
+            self._latency = float(seconds)
+
+        self._call(set_latency)
+
+    def blackhole(self) -> None:
+        """Swallows every byte both ways; connections stay open, new ones are accepted."""
+
+        def on() -> None:
+            self._mode = _BLACKHOLE
+
+        self._call(on)
+
+    def reset(self) -> None:
+        """Closes every open connection with a TCP reset, both sides; new connections work."""
+
+        def reset_all() -> None:
+            for link in list(self._links):
+                link.reset()
+
+        self._call(reset_all)
+
+    def cut(self) -> None:
+        """Resets every open connection and every new one until :meth:`heal`."""
+
+        def on() -> None:
+            self._mode = _CUT
+            for link in list(self._links):
+                link.reset()
+
+        self._call(on)
+
+    def heal(self) -> None:
+        """Plain forwarding again, without latency; connections that lost bytes to
+        :meth:`blackhole` are reset."""
+
+        def off() -> None:
+            self._mode = _NORMAL
+            self._latency = 0.0
+            for link in list(self._links):
+                if link.swallowed:
+                    link.reset()
+
+        self._call(off)
+
+    def close(self) -> None:
+        """Stops listening and resets every connection; safe to call twice."""
+        if self._loop.is_closed():
+            return
+
+        async def shutdown() -> None:
+            if self._server is not None:
+                self._server.close()
+            for link in list(self._links):
+                link.reset()
+            await asyncio.sleep(0)  # let the aborts run
+
+        try:
+            self._call_async(shutdown())
+        finally:
+            self._stop_loop()
+
+    def _stop_loop(self) -> None:
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=10)
+        if not self._thread.is_alive():
+            self._loop.close()
+
+    def __enter__(self) -> FaultProxy:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (
+            f"FaultProxy({self.address} -> {self.target}, {self._mode}, latency={self._latency:g})"
+        )

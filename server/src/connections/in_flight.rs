@@ -1,0 +1,131 @@
+//! The tower layer that counts each connection's calls in flight, so that the accept loop never
+//! sheds a connection in the middle of a call.
+
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::task::{Context, Poll, ready};
+
+use http_body::{Body, Frame, SizeHint};
+use tonic::codegen::http;
+
+use super::conn_info_in;
+use super::table::Activity;
+
+/// Counts each connection's calls in flight, from the request's arrival until its response body
+/// ends or is dropped (streams included), so that the accept loop never sheds a connection in
+/// the middle of a call. Every service is behind it: `Server::builder().layer(InFlightLayer)`.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct InFlightLayer;
+
+impl<S> tower::Layer<S> for InFlightLayer {
+    type Service = InFlight<S>;
+
+    fn layer(&self, inner: S) -> InFlight<S> {
+        InFlight { inner }
+    }
+}
+
+/// The service [`InFlightLayer`] makes.
+#[derive(Debug, Clone)]
+pub struct InFlight<S> {
+    /// The services behind it.
+    inner: S,
+}
+
+impl<S, ReqBody, ResBody> tower::Service<http::Request<ReqBody>> for InFlight<S>
+where
+    S: tower::Service<http::Request<ReqBody>, Response = http::Response<ResBody>>,
+    S::Future: Unpin,
+{
+    type Response = http::Response<CallBody<ResBody>>;
+    type Error = S::Error;
+    type Future = CallFuture<S::Future>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, request: http::Request<ReqBody>) -> Self::Future {
+        let call = conn_info_in(request.extensions())
+            .and_then(|info| info.activity.as_ref())
+            .map(Call::new);
+        CallFuture {
+            inner: self.inner.call(request),
+            call,
+        }
+    }
+}
+
+/// A call in flight on a connection: counted until dropped.
+#[derive(Debug)]
+pub(super) struct Call(Arc<Activity>);
+
+impl Call {
+    pub(super) fn new(activity: &Arc<Activity>) -> Call {
+        activity.in_flight.fetch_add(1, Ordering::AcqRel);
+        Call(Arc::clone(activity))
+    }
+}
+
+impl Drop for Call {
+    fn drop(&mut self) {
+        self.0.in_flight.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+/// The response future of [`InFlight`]: hands the call to the response body.
+#[derive(Debug)]
+pub struct CallFuture<F> {
+    /// The inner service's future.
+    inner: F,
+    /// The call, until the response is ready.
+    call: Option<Call>,
+}
+
+impl<F, B, E> Future for CallFuture<F>
+where
+    F: Future<Output = Result<http::Response<B>, E>> + Unpin,
+{
+    type Output = Result<http::Response<CallBody<B>>, E>;
+
+    fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
+        let response = ready!(Pin::new(&mut self.inner).poll(cx));
+        let call = self.call.take();
+        Poll::Ready(response.map(|r| r.map(|body| CallBody { body, call })))
+    }
+}
+
+/// A response body that keeps its call counted until it ends or is dropped.
+#[derive(Debug)]
+pub struct CallBody<B> {
+    /// The body.
+    body: B,
+    /// The call, until the body ends.
+    call: Option<Call>,
+}
+
+impl<B: Body + Unpin> Body for CallBody<B> {
+    type Data = B::Data;
+    type Error = B::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Self::Data>, Self::Error>>> {
+        let frame = ready!(Pin::new(&mut self.body).poll_frame(cx));
+        if frame.is_none() {
+            self.call = None;
+        }
+        Poll::Ready(frame)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.body.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.body.size_hint()
+    }
+}
