@@ -28,6 +28,7 @@ import os
 import socket
 import struct
 import sys
+import time
 import weakref
 from typing import Any
 
@@ -36,7 +37,13 @@ import numpy as np
 
 from ._proto import pb
 from .connection import Connection
-from .errors import ServiceError, ServiceTimeout, ServiceTransportError, error_for_status
+from .errors import (
+    EnvClosed,
+    ServiceError,
+    ServiceTimeout,
+    ServiceTransportError,
+    error_for_status,
+)
 
 __all__ = ["Channel", "RegionBatch", "as_pb", "attach", "detach", "step"]
 
@@ -66,6 +73,8 @@ FIELDS = (
 )
 _TABLE, _LENGTHS, _ARRAYS = 32, 256, 512
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
+#: How often a Step waiting for its reply looks at its deadline and its connection.
+_TICK = 0.25
 #: The integer arrays that a ``pb.Batch`` holds as repeated fields.
 _REPEATED = {"seeds": "<u8", "stream_episodes": "<u4"}
 
@@ -122,6 +131,7 @@ class Channel:
         "_lengths",
         "_offsets",
         "address",
+        "conn",
         "mm",
         "num_envs",
         "session_id",
@@ -131,6 +141,7 @@ class Channel:
 
     def __init__(self, doorbell: str, session_id: str, conn: Connection) -> None:
         self.address = conn.address
+        self.conn = conn
         self.session_id = session_id
         self.timeout = conn.timeout
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
@@ -154,10 +165,12 @@ class Channel:
         except BaseException:
             sock.close()
             raise
-        # Blocking from here, with the call deadline as the receive timeout (no poll per recv).
+        # Blocking from here (no poll per recv), waking every _TICK to see the deadline and
+        # whether the connection was closed (a server given up: its calls end at once).
         sock.settimeout(None)
-        seconds = int(conn.timeout)
-        micros = int((conn.timeout - seconds) * 1e6)
+        tick = min(conn.timeout, _TICK)
+        seconds = int(tick)
+        micros = int((tick - seconds) * 1e6)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", seconds, micros))
         self.sock = sock
         magic, version, n, fields = struct.unpack_from("<IIII", self.mm, 0)
@@ -202,16 +215,32 @@ class Channel:
         self.mm[offset : offset + len(actions)] = actions
         try:
             self.sock.send(b"S")
-            reply = self.sock.recv(65536)
-        except BlockingIOError:
-            raise ServiceTimeout(
-                f"Step: no answer from the server at {self.address} within {self.timeout:g} s "
-                "(the timeout= keyword or DINERDASH_TIMEOUT sets this deadline)",
-                code=grpc.StatusCode.DEADLINE_EXCEEDED,
-                address=self.address,
-            ) from None
         except OSError:
             return None
+        deadline = None
+        while True:
+            try:
+                reply = self.sock.recv(65536)
+                break
+            except BlockingIOError:
+                if self.conn._closed:  # given up: as a gRPC call cancelled by its channel
+                    raise EnvClosed(
+                        "Step: the connection was closed during the call",
+                        code=grpc.StatusCode.CANCELLED,
+                    ) from None
+                now = time.monotonic()
+                if deadline is None:
+                    deadline = now + self.timeout - _TICK
+                if now >= deadline:
+                    raise ServiceTimeout(
+                        f"Step: no answer from the server at {self.address} within "
+                        f"{self.timeout:g} s (the timeout= keyword or DINERDASH_TIMEOUT sets this "
+                        "deadline)",
+                        code=grpc.StatusCode.DEADLINE_EXCEEDED,
+                        address=self.address,
+                    ) from None
+            except OSError:
+                return None
         if reply != b"K":
             if not reply:
                 return None
@@ -301,7 +330,7 @@ def step(core: Any, actions: bytes) -> Any:
         if channel.session_id == core.session_id:
             try:
                 batch = channel.step(actions)
-            except ServiceTimeout:
+            except (ServiceTimeout, EnvClosed):
                 detach(core)  # its late reply must not answer the next Step: gRPC from now on
                 raise
             if batch is not None:
