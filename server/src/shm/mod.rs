@@ -51,6 +51,9 @@ const POLL: Duration = Duration::from_millis(200);
 const THREAD_STACK: usize = 512 * 1024;
 /// The hello: `H` and a 32-digit session ID.
 const HELLO_BYTES: usize = 33;
+/// A client that connects and says nothing for this long is hung up on: it holds a thread, and
+/// no slot of `--max-shm-sessions` until its hello.
+const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Why a client was refused its region.
 #[derive(Debug, thiserror::Error)]
@@ -222,10 +225,15 @@ fn serve_client(sock: OwnedFd, shared: &Arc<Shared>) {
         return;
     }
     let mut hello = [0u8; 64];
+    let since = std::time::Instant::now();
     let n = loop {
         match rustix::net::recv(&sock, &mut hello, RecvFlags::empty()) {
             Ok((n, _)) => break n,
-            Err(Errno::AGAIN | Errno::INTR) if !shared.stopping.is_stopping() => continue,
+            Err(Errno::AGAIN | Errno::INTR)
+                if !shared.stopping.is_stopping() && since.elapsed() < HELLO_TIMEOUT =>
+            {
+                continue;
+            }
             Err(_) => return,
         }
     };
