@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from dinerdash import DinerDashEnv, DinerDashVectorEnv
 
 
@@ -19,8 +20,11 @@ def load(files):
     return episodes
 
 
-def test_every_recorded_episode_replays_through_the_env(address: str, conformance_files) -> None:
-    env = DinerDashEnv(address, expert=True)
+@pytest.mark.parametrize("transport", ["grpc", "shm"])
+def test_every_recorded_episode_replays_through_the_env(
+    address: str, conformance_files, transport: str
+) -> None:
+    env = DinerDashEnv(address, expert=True, transport=transport)
     replayed = 0
     try:
         for where, ep in load(conformance_files):
@@ -46,12 +50,13 @@ def test_every_recorded_episode_replays_through_the_env(address: str, conformanc
     assert replayed > 1000
 
 
+@pytest.mark.parametrize("transport", ["grpc", "shm"])
 def test_every_recorded_episode_replays_through_one_vector_env(
-    address: str, conformance_files
+    address: str, conformance_files, transport: str
 ) -> None:
     episodes = [ep for _, ep in load(conformance_files)]
     n = len(episodes)
-    envs = DinerDashVectorEnv(n, address, expert=True)
+    envs = DinerDashVectorEnv(n, address, expert=True, transport=transport)
     try:
         obs, info = envs.reset(seed=[ep["seed"] for ep in episodes])
         np.testing.assert_array_equal(obs, [ep["reset_obs"] for ep in episodes])

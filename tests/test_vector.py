@@ -48,10 +48,15 @@ def compare_partial_reset(mine: tuple, ref: tuple, done: np.ndarray, where: str)
             )
 
 
-def run_pair(address: str, mode: AutoresetMode, n: int = 4) -> int:
-    mine = DinerDashVectorEnv(n, address, expert=True, config=SHORT, autoreset_mode=mode)
+def run_pair(address: str, mode: AutoresetMode, n: int = 4, transport: str = "grpc") -> int:
+    mine = DinerDashVectorEnv(
+        n, address, expert=True, config=SHORT, autoreset_mode=mode, transport=transport
+    )
     ref = SyncVectorEnv(
-        [lambda: DinerDashEnv(address, expert=True, config=SHORT) for _ in range(n)],
+        [
+            lambda: DinerDashEnv(address, expert=True, config=SHORT, transport="grpc")
+            for _ in range(n)
+        ],
         autoreset_mode=mode,
     )
     ends = 0
@@ -87,10 +92,14 @@ def run_pair(address: str, mode: AutoresetMode, n: int = 4) -> int:
     return ends
 
 
+@pytest.mark.parametrize("transport", ["grpc", "shm"])
 @pytest.mark.parametrize("n", [1, 4])
 @pytest.mark.parametrize("mode", list(AutoresetMode))
-def test_same_as_gymnasium_sync_vector_env(address: str, mode: AutoresetMode, n: int) -> None:
-    assert run_pair(address, mode, n) >= 2  # the (auto)reset path was taken
+def test_same_as_gymnasium_sync_vector_env(
+    address: str, mode: AutoresetMode, n: int, transport: str
+) -> None:
+    """Over either transport, step for step the same as single envs stepped over gRPC."""
+    assert run_pair(address, mode, n, transport) >= 2  # the (auto)reset path was taken
 
 
 def test_make_vec_uses_the_batched_session(address: str) -> None:

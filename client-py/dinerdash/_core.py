@@ -21,6 +21,7 @@ import grpc
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from . import _shm
 from ._arguments import config_dict
 from ._caller import Caller
 from ._endpoint import Endpoint
@@ -252,6 +253,7 @@ class SessionCore:
         except ServiceError as e:
             raise self.fail(e) from None
         self.adopt(reply.session_id, reply.spec)
+        _shm.attach(self, reply.shm_doorbell)
         return reply.spec
 
     def adopt(self, session_id: str, spec: pb.Spec) -> None:
@@ -300,6 +302,7 @@ class SessionCore:
             ) from None
 
     def close(self) -> None:
+        _shm.detach(self)
         if self.caller is not None:
             self.caller.close()
             self.caller = None
@@ -391,11 +394,8 @@ class SessionCore:
             batch = self.recover_step(gone)
         else:
             try:
-                batch = self.note(
-                    self.conn.call(
-                        "Step", pb.StepRequest(session_id=self.session_id, actions=actions)
-                    )
-                )
+                # Shared memory when it applies, else gRPC.
+                batch = self.note(_shm.step(self, actions))
             except ServiceError as e:
                 # A call cancelled because its server was given up (silent) is lost too.
                 if not (isinstance(e, LOST) or self.given_up()):
@@ -425,7 +425,7 @@ class SessionCore:
         session for them (``reconnect=True``); raises ``error`` otherwise."""
         if not self.settings.reconnect or self.last is None:
             raise self.fail(error) from None
-        last = self.last
+        last = _shm.as_pb(self.last)
         self.reopen(error)
         first = self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id))
         return self.interrupt(last, first)

@@ -111,6 +111,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         servers=args.servers,
         sb3_envs=args.sb3_envs,
         sb3_steps=args.sb3_steps,
+        compare_transports=not args.no_transports,
         **connection_keywords(args),
     )
     return 0
@@ -208,6 +209,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sb3-envs", type=int, default=8, help="environments of the SB3 comparison")
     p.add_argument(
         "--sb3-steps", type=int, default=2_000, help="steps of the SB3 comparison (0: skip)"
+    )
+    p.add_argument(
+        "--no-transports",
+        action="store_true",
+        help="skip the table of gRPC and shared memory beside the server's own rates",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_bench)

@@ -48,6 +48,9 @@ __all__ = [
     "resolve_replicas",
 ]
 
+#: The ways Steps may travel (:attr:`ConnectOptions.transport`).
+TRANSPORTS = ("auto", "shm", "grpc")
+
 #: The port a server listens on when none is given (and the one the docker image exposes).
 DEFAULT_PORT = 50051
 
@@ -285,6 +288,9 @@ class ConnectOptions:
         resolve_every: a vector env with ``reconnect=True`` and failover: seconds between two
             resolutions of a DNS-name ``address``, whose new replicas are taken in; ``None``:
             resolved once, at connect.
+        transport: how Steps travel: ``"auto"`` through shared memory when the server is on this
+            machine and runs as this user (Linux), else gRPC; ``"shm"`` shared memory or an
+            error saying why not; ``"grpc"`` always gRPC (:mod:`dinerdash._shm`).
     """
 
     address: str | tuple[str, ...] | None = None
@@ -298,8 +304,14 @@ class ConnectOptions:
     reconnect_timeout: float = 60.0
     failover_after: float | None = 10.0
     resolve_every: float | None = 30.0
+    transport: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.transport not in TRANSPORTS:
+            raise ValueError(
+                f"transport: expected one of {', '.join(map(repr, TRANSPORTS))}, got "
+                f"{self.transport!r}"
+            )
         if self.address is not None and not isinstance(self.address, str):
             object.__setattr__(self, "address", tuple(self.address))
         object.__setattr__(self, "timeout", call_timeout(self.timeout))

@@ -164,6 +164,8 @@ enum Holding {
     Session { envs: u64 },
     /// A Rollout stream.
     Rollout,
+    /// A shared-memory region (bytes only).
+    Region,
 }
 
 /// Bytes and slots held for a session or a Rollout stream; given back when dropped.
@@ -200,6 +202,7 @@ impl Drop for Charge {
                 give(&m.live_rollouts, 1);
                 give(&self.tenant.rollouts, 1);
             }
+            Holding::Region => {}
         }
     }
 }
@@ -279,6 +282,21 @@ impl Budget {
             budget: Arc::clone(self),
             tenant: Arc::clone(tenant),
             holding: Holding::Session { envs },
+            bytes,
+        })
+    }
+
+    /// Charges a session's shared-memory region of `bytes` to `tenant`, or refuses it.
+    pub fn charge_region(
+        self: &Arc<Self>,
+        tenant: &Arc<Tenant>,
+        bytes: u64,
+    ) -> Result<Charge, BudgetError> {
+        self.take_bytes(bytes)?;
+        Ok(Charge {
+            budget: Arc::clone(self),
+            tenant: Arc::clone(tenant),
+            holding: Holding::Region,
             bytes,
         })
     }

@@ -15,6 +15,9 @@ use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
 use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 
+/// Default `--max-shm-sessions`: each holds a thread and a region (~240 bytes an environment).
+pub const DEFAULT_MAX_SHM_SESSIONS: u32 = 64;
+
 /// How log lines are written (to stderr).
 // The variants' doc comments would show in `--help`; the flag's own help says enough.
 #[allow(missing_docs)]
@@ -95,6 +98,11 @@ pub struct ServeArgs {
     /// once. Give orchestrators a longer grace period (terminationGracePeriodSeconds).
     #[arg(long, default_value = "30", value_parser = parse_drain_timeout)]
     pub drain_timeout: Duration,
+    /// Most sessions stepped through shared memory at once (clients on this host, running as
+    /// this user; Linux): each holds a thread and a region counted in --max-memory. 0 offers
+    /// none: every client steps over gRPC.
+    #[arg(long, default_value_t = DEFAULT_MAX_SHM_SESSIONS)]
+    pub max_shm_sessions: u32,
 }
 
 /// Why the flags describe no server that may start.
@@ -262,6 +270,9 @@ pub struct ServerConfig {
     pub rollout: rollout::Limits,
     /// Serve TLS with this identity; `None` serves plaintext.
     pub tls: Option<TlsPem>,
+    /// Most sessions stepped through shared memory at once; 0 (the default of a library
+    /// embedding; the binary's is [`DEFAULT_MAX_SHM_SESSIONS`]) offers none.
+    pub max_shm_sessions: usize,
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
@@ -316,6 +327,7 @@ impl ServerConfig {
                 ..connections::Limits::default()
             },
             tls,
+            max_shm_sessions: args.max_shm_sessions as usize,
         })
     }
 

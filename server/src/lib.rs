@@ -33,13 +33,18 @@
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status` ([`service::status`](mod@service::status));
 //!   StepStream and Rollout streams.
+//! - [`shm`]: the same-host data plane (Linux): a session's Steps through a shared-memory region
+//!   and a doorbell socket, for clients on the server's host running as its user.
 //! - [`config`]: the `serve` flags and what they decide ([`config::ServerConfig::from_args`]).
 //! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and HTTP together
 //!   on a listener until a shutdown future completes; [`server::serve`] is the binary's.
 //! - [`health`]: the `health` command's grpc.health.v1 client.
+//! - [`ceiling`]: the `ceiling` command: the server's own batch rate, in process and through a
+//!   Rust gRPC client, that `python -m dinerdash bench` prints beside the Python client's.
 
 pub mod auth;
 pub mod budget;
+pub mod ceiling;
 pub mod codec;
 pub mod config;
 pub mod connections;
@@ -53,6 +58,8 @@ pub mod rollout;
 pub mod server;
 pub mod service;
 pub mod session;
+#[cfg(target_os = "linux")]
+pub mod shm;
 pub mod shutdown;
 pub mod sim;
 

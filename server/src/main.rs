@@ -32,6 +32,44 @@ enum Command {
     Eval(EvalArgs),
     /// Asks a running server's grpc.health.v1 service; exits 0 if it is SERVING.
     Health(HealthArgs),
+    /// Prints the server's own rates for a session of N (env-steps/s, in process and through a
+    /// Rust gRPC client): the ceiling of any client, for `python -m dinerdash bench`.
+    Ceiling(CeilingArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct CeilingArgs {
+    /// Environments in the session (one line per value).
+    #[arg(long, default_values_t = [1, 256, 1024])]
+    num_envs: Vec<usize>,
+    /// How long each measurement lasts (seconds, or with ms, s, m or h).
+    #[arg(long, default_value = "2", value_parser = parse_duration)]
+    time: Duration,
+}
+
+/// One line per N: `N in_process grpc` (env-steps/s).
+fn run_ceiling(args: &CeilingArgs) -> ExitCode {
+    let rt = match runtime() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    for &n in &args.num_envs {
+        let local = dinerdash_server::ceiling::in_process(n, args.time);
+        let grpc = rt
+            .block_on(dinerdash_server::ceiling::grpc(n, args.time))
+            .map_err(|e| e.to_string());
+        match (local, grpc) {
+            (Ok(local), Ok(grpc)) => println!("{n} {local:.0} {grpc:.0}"),
+            (Err(e), _) | (_, Err(e)) => {
+                eprintln!("error: {e}");
+                return ExitCode::FAILURE;
+            }
+        }
+    }
+    ExitCode::SUCCESS
 }
 
 #[derive(Debug, clap::Args)]
@@ -132,6 +170,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     match cli.command {
         Some(Command::Eval(args)) => run_eval(&args),
+        Some(Command::Ceiling(args)) => run_ceiling(&args),
         Some(Command::Health(args)) => {
             let probe = |tls_ca: Option<Vec<u8>>| Probe {
                 address: args.address.clone(),

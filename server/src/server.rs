@@ -112,6 +112,21 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     shutdown::serve_until_signal(config.drain_timeout, |stop| run(listeners, config, stop)).await
 }
 
+/// Starts the shared-memory doorbell ([`crate::shm`]) for up to `max` sessions and returns its
+/// name; empty when there is none (`max` is 0, not Linux, or the socket could not be made: the
+/// clients then step over gRPC).
+fn start_doorbell(store: &Store, max: usize, stopping: &shutdown::Shutdown) -> String {
+    #[cfg(target_os = "linux")]
+    if max > 0 {
+        match crate::shm::Doorbell::start(store.clone(), max, stopping.clone()) {
+            Ok(doorbell) => return doorbell.name().to_owned(),
+            Err(e) => tracing::warn!(error = %e, "no shared-memory data plane"),
+        }
+    }
+    let _ = (store, max, stopping);
+    String::new()
+}
+
 /// The sockets a server serves, bound by its caller: [`serve`] binds them from the flags, tests
 /// on `127.0.0.1:0`.
 #[derive(Debug)]
@@ -144,6 +159,7 @@ pub async fn run(
 
     let sweeper = tokio::spawn(store.clone().sweep_until(stopping.clone()));
     let (sessions, drain_timeout) = (store.clone(), config.drain_timeout);
+    let doorbell = start_doorbell(&store, config.max_shm_sessions, &stopping);
     let (health, health_service) = tonic_health::server::health_reporter();
     health
         .set_serving::<DinerDashServer<DinerDashService>>()
@@ -176,7 +192,8 @@ pub async fn run(
         stopping.clone(),
     )
     .with_http_addr(http_addr)
-    .with_rollout_limits(config.rollout);
+    .with_rollout_limits(config.rollout)
+    .with_shm_doorbell(&doorbell);
     let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);

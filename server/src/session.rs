@@ -231,6 +231,16 @@ impl FoundSession {
         self.session.options.expert_actions
     }
 
+    /// N (no lock: fixed at creation).
+    pub fn num_envs(&self) -> usize {
+        self.session.num_envs
+    }
+
+    /// Whose share the session counts against.
+    pub fn tenant(&self) -> &Arc<Tenant> {
+        self.session._charge.tenant()
+    }
+
     /// Resets every environment of the session.
     pub fn reset(&self, args: &ResetArgs) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
@@ -335,6 +345,12 @@ impl Store {
             .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
         session.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
         Ok(session)
+    }
+
+    /// Whether session `id` is live, without marking it used (a shared-memory session's thread
+    /// asks, to end with its session).
+    pub fn contains(&self, id: &str) -> bool {
+        SessionId::parse(id).is_ok_and(|key| self.shard(key).contains_key(&key))
     }
 
     /// Charges a session of `num_envs` environments to `tenant`, before they are allocated.

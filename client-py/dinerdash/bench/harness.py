@@ -12,6 +12,13 @@ comparison.
   (``step_async`` on one while ``step_wait`` collects the other).
 - With the ``sb3`` extra: SB3's ``DummyVecEnv`` of single envs against
   :func:`dinerdash.sb3.make_vec_env`.
+- **Transports** (:func:`transports`): the single env, N = 256 and N = 1024 stepped by this
+  client over gRPC and over shared memory (``transport=``), beside the server's own rates on
+  this machine (``dinerdash-server ceiling``: in process, and through a Rust gRPC client), the
+  limit any client can reach.
+
+The lines above the transports table step with the ``transport`` the connection keywords give
+(gRPC unless told otherwise), so that they stay comparable with earlier runs.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import numpy as np
 
 from ..game import NUM_ACTIONS
 
-__all__ = ["run", "tcp_floor"]
+__all__ = ["ceiling", "run", "tcp_floor", "transports"]
 
 # The echo side of the TCP floor: a child process, so that the ping-pong crosses processes (and
 # cores) as a call to a server does; it prints its port, then echoes until the socket closes.
@@ -77,6 +84,7 @@ def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
     from .._proto import pb
     from ..connection import Connection
 
+    connection.pop("transport", None)  # a bare RPC: always gRPC
     with Connection(address, **connection) as conn:
         request = pb.ServerInfoRequest()
         for _ in range(100):
@@ -162,6 +170,128 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         envs.close()
 
 
+def ceiling(sizes: list[int], seconds: float = 2.0) -> dict[int, tuple[float, float]]:
+    """The server's own env-steps/s for a session of each N of ``sizes``, measured by its
+    binary on this machine: ``{N: (in process, Rust gRPC client)}``."""
+    from ..server import find_server_binary
+
+    out = subprocess.run(
+        [
+            str(find_server_binary()),
+            "ceiling",
+            "--time",
+            f"{int(seconds * 1000)}ms",
+            *(f"--num-envs={n}" for n in sizes),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60 + 4 * seconds * len(sizes),
+    )
+    rates = {}
+    for line in out.stdout.split("\n"):
+        if line.strip():
+            n, local, grpc = line.split()
+            rates[int(n)] = (float(local), float(grpc))
+    return rates
+
+
+_SEQPACKET_ECHO = """
+import socket, sys
+s = socket.socket(fileno=int(sys.argv[1]))
+while True:
+    d = s.recv(64)
+    if not d:
+        break
+    s.send(d)
+"""
+
+
+def doorbell_floor(round_trips: int = 5000) -> float:
+    """Microseconds of one Unix ``SOCK_SEQPACKET`` round trip (one byte each way) to a child
+    process: the least a shared-memory Step costs here, as :func:`tcp_floor` is gRPC's."""
+    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    child = subprocess.Popen(
+        [sys.executable, "-c", _SEQPACKET_ECHO, str(theirs.fileno())],
+        pass_fds=[theirs.fileno()],
+        stdin=subprocess.DEVNULL,
+    )
+    theirs.close()
+    try:
+        for _ in range(200):
+            mine.send(b"x")
+            mine.recv(64)
+        start = time.perf_counter()
+        for _ in range(round_trips):
+            mine.send(b"x")
+            mine.recv(64)
+        return (time.perf_counter() - start) / round_trips * 1e6
+    finally:
+        mine.close()
+        try:
+            child.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+
+
+def transports(
+    address: str | list[str],
+    steps: int,
+    vec_steps: int,
+    sizes: tuple[int, ...] = (256, 1024),
+    rounds: int = 3,
+) -> None:
+    """Prints the transports table: this client over gRPC and over shared memory, and the
+    server's ceiling, for the single env and a vector env of each N of ``sizes``. Each figure is
+    the best of ``rounds`` rounds that take turns, so that a burst of load elsewhere on the
+    machine during one measurement does not decide the comparison."""
+    first = address[0] if isinstance(address, list) else address
+    rows = [1] if steps > 0 else []
+    rows += list(sizes) if vec_steps > 0 else []
+    best: dict[tuple[str, int], float] = {}
+    cpu_micros = float("inf")
+
+    def keep(key: tuple[str, int], rate: float) -> None:
+        best[key] = max(best.get(key, 0.0), rate)
+
+    floor = doorbell_floor()
+    print(f"doorbell floor     : {floor:12,.1f} us/round trip  (Unix SEQPACKET, two processes)")
+    for _ in range(rounds):
+        for n, (local, rust) in ceiling(rows, seconds=1.0).items():
+            keep(("local", n), local)
+            keep(("rust", n), rust)
+        for n in rows:
+            for transport in ("grpc", "shm"):
+                if n == 1:
+                    cpu = time.process_time()
+                    rate = _single(first, steps, transport=transport)
+                    if transport == "shm":
+                        # Client CPU per step (this process: the env, decode, the doorbell).
+                        used = (time.process_time() - cpu) / steps * 1e6
+                        cpu_micros = min(cpu_micros, used)
+                else:
+                    rate = _vector(first, n, vec_steps, False, transport=transport)
+                keep((transport, n), rate)
+    print(
+        "transports         :     gRPC          shm      server in process  Rust gRPC client"
+        "   shm / Rust gRPC   (env-steps/s, best of "
+        f"{rounds})"
+    )
+    for n in rows:
+        label = "single env" if n == 1 else f"N={n}"
+        grpc, shm, local, rust = (best[(k, n)] for k in ("grpc", "shm", "local", "rust"))
+        print(
+            f"  {label:<17}: {grpc:10,.0f} {shm:12,.0f} {local:16,.0f} {rust:17,.0f}"
+            f" {shm / rust:14.0%}"
+        )
+    if cpu_micros < float("inf"):
+        print(
+            f"  single env over shm: {cpu_micros:.1f} us of client CPU a step (the rest of a "
+            "step is waiting for the server)"
+        )
+
+
 def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
     """One uniformly random legal action per row of ``masks``."""
     return np.argmax(rng.random(masks.shape) * masks, axis=1)
@@ -210,13 +340,16 @@ def run(
     servers: int = 1,
     sb3_envs: int = 8,
     sb3_steps: int = 2_000,
+    compare_transports: bool = True,
     **connection: Any,
 ) -> None:
     """The ``bench`` command: prints one line per measurement. Without ``address`` (and
     ``DINERDASH_ADDRESS``) it starts ``servers`` local servers; a step count of 0 skips its
-    measurement; ``connection``: ``timeout``, ``tls``, ``tls_ca`` of every client."""
+    measurement; ``connection``: ``timeout``, ``tls``, ``tls_ca`` of every client, and
+    ``transport`` (default ``"grpc"``) of the lines before the transports table."""
     from ..server import LocalServer
 
+    connection.setdefault("transport", "grpc")
     reference = None
 
     def times(rate: float) -> str:
@@ -276,6 +409,8 @@ def run(
                 f"pipelined 2 x N={n:<3}: {rate:12,.0f} env-steps/s   (two vector envs, one step "
                 f"on the wire; {times(rate)})"
             )
+        if compare_transports:
+            transports(address, steps, vec_steps)
         if sb3_steps > 0:
             try:
                 dummy, adapter = _sb3(address, sb3_envs, sb3_steps, **connection)

@@ -157,10 +157,16 @@ fn spec_to(spec: &SessionSpec) -> pb::Spec {
     }
 }
 
-pub(super) fn created(id: SessionId, spec: &SessionSpec) -> pb::CreateSessionResponse {
+/// The reply naming a new session; `shm_doorbell` is the server's doorbell, or empty.
+pub(super) fn created(
+    id: SessionId,
+    spec: &SessionSpec,
+    shm_doorbell: &str,
+) -> pb::CreateSessionResponse {
     pb::CreateSessionResponse {
         session_id: id.to_string(),
         spec: Some(spec_to(spec)),
+        shm_doorbell: shm_doorbell.to_owned(),
     }
 }
 

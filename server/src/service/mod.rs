@@ -64,6 +64,9 @@ pub struct DinerDashService {
     http_addr: Option<std::net::SocketAddr>,
     /// What one Rollout request may do.
     rollout: rollout::Limits,
+    /// The shared-memory doorbell told in CreateSession, Fork and Restore replies ([`crate::shm`],
+    /// which comes after this module); empty when the server offers none.
+    shm_doorbell: Arc<str>,
 }
 
 impl DinerDashService {
@@ -82,6 +85,7 @@ impl DinerDashService {
             stopping,
             http_addr: None,
             rollout: rollout::Limits::default(),
+            shm_doorbell: Arc::from(""),
         }
     }
 
@@ -89,6 +93,14 @@ impl DinerDashService {
     pub fn with_rollout_limits(self, limits: rollout::Limits) -> DinerDashService {
         DinerDashService {
             rollout: limits,
+            ..self
+        }
+    }
+
+    /// The same service, naming `doorbell` in the replies that create a session.
+    pub fn with_shm_doorbell(self, doorbell: &str) -> DinerDashService {
+        DinerDashService {
+            shm_doorbell: Arc::from(doorbell),
             ..self
         }
     }
@@ -186,7 +198,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .create(&tenant, r.num_envs, config, options, r.seed)
             .map_err(|e| self.fail(e))?;
         tracing::info!(session = %id, "session created");
-        Ok(Response::new(created(id, &spec)))
+        Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
     #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
@@ -243,7 +255,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .fork(&self.tenant(&request), &request.get_ref().session_id)
             .map_err(|e| self.fail(e))?;
         tracing::info!(fork = %id, "session forked");
-        Ok(Response::new(created(id, &spec)))
+        Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
     #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
@@ -269,7 +281,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .restore(&self.tenant(&request), &request.get_ref().snapshot)
             .map_err(|e| self.fail(e))?;
         tracing::info!(session = %id, "session restored");
-        Ok(Response::new(created(id, &spec)))
+        Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
     #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]

@@ -1,0 +1,354 @@
+"""The same-host data plane: a session's Steps through shared memory instead of gRPC, when the
+server runs on this machine as this user (Linux).
+
+The session is created, reset, forked and closed over gRPC as always. CreateSession names the
+server's doorbell (``CreateSessionResponse.shm_doorbell``), an abstract-namespace Unix socket;
+:func:`attach` connects to it, says hello with the session ID and receives the session's
+region, a memfd it maps. Each Step then writes the actions into the region, sends one byte and
+waits for one byte back; the reply's arrays are in the region at fixed offsets (the layout of
+``server/src/shm/layout.rs``), copied out in one piece per step and handed to the decoders as a
+:class:`RegionBatch`, which reads like a ``pb.Batch`` without building anything per environment.
+
+The server checks the actions exactly as its gRPC Step does and refuses them with the same code,
+message and details, which become the same typed exception here. A doorbell that closes under a
+Step (the server died, drained, or forgot the session) makes that Step go over gRPC, whose answer
+(``UNAVAILABLE``, ``NOT_FOUND``, or the Batch) is the one the gRPC path would have given; the
+session steps over gRPC from then on.
+
+``transport`` (:class:`~dinerdash.ConnectOptions`): ``"auto"`` uses shared memory whenever
+:func:`attach` succeeds and gRPC otherwise; ``"shm"`` raises
+:class:`~dinerdash.errors.ServiceTransportError` saying why it cannot; ``"grpc"`` never tries.
+"""
+
+from __future__ import annotations
+
+import array
+import mmap
+import os
+import socket
+import struct
+import sys
+import time
+import weakref
+from typing import Any
+
+import grpc
+import numpy as np
+
+from ._proto import pb
+from .connection import Connection
+from .errors import (
+    EnvClosed,
+    ServiceError,
+    ServiceTimeout,
+    ServiceTransportError,
+    error_for_status,
+)
+
+__all__ = ["Channel", "RegionBatch", "as_pb", "attach", "detach", "step"]
+
+#: "DDsh" and the layout version this client reads.
+_MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
+#: The layout's arrays, in order; ``actions`` is the one the client writes.
+FIELDS = (
+    "actions",
+    "observations",
+    "rewards",
+    "terminated",
+    "truncated",
+    "scores",
+    "lost",
+    "ticks",
+    "action_masks",
+    "expert_actions",
+    "reset",
+    "seeds",
+    "stream_episodes",
+    "final_observations",
+    "final_scores",
+    "final_lost",
+    "final_ticks",
+    "final_action_masks",
+    "final_expert_actions",
+)
+_TABLE, _LENGTHS, _ARRAYS = 32, 256, 512
+#: The last reply's ``drain_remaining_ms``, right after the lengths.
+_DRAIN_AT, _DRAIN = _LENGTHS + 4 * len(FIELDS), struct.Struct("<I")
+_CODES = {c.value[0]: c for c in grpc.StatusCode}
+#: How often a Step waiting for its reply looks at its deadline and its connection.
+_TICK = 0.25
+#: The integer arrays that a ``pb.Batch`` holds as repeated fields.
+_REPEATED = {"seeds": "<u8", "stream_episodes": "<u4"}
+
+#: The channel of each core (by the core, weakly: a dropped env takes its channel along), and
+#: the doorbell each server named (by its connection).
+_CHANNELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_DOORBELLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: The session each core last tried to attach, so that a session stepping over gRPC (refused,
+#: or forked without a CreateSession) tries once, not at every Step.
+_TRIED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+class RegionBatch:
+    """One Step's reply read from the region: the arrays of a ``pb.Batch`` by the same names
+    (``bytes``-like views of one private copy; ``seeds`` and ``stream_episodes`` as numpy
+    arrays), absent ones empty. :meth:`to_pb` makes a real ``pb.Batch`` where one is needed."""
+
+    __slots__ = ("_data", "_spans", "drain_remaining_ms", "num_envs")
+
+    def __init__(
+        self,
+        data: bytes,
+        spans: dict[str, tuple[int, int]],
+        num_envs: int,
+        drain_remaining_ms: int = 0,
+    ) -> None:
+        self._data = memoryview(data)
+        self._spans = spans
+        self.num_envs = num_envs
+        self.drain_remaining_ms = drain_remaining_ms
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            lo, hi = self._spans[name]
+        except KeyError:
+            if name in FIELDS:
+                return np.zeros(0, dtype=_REPEATED[name]) if name in _REPEATED else b""
+            raise AttributeError(name) from None
+        view = self._data[lo:hi]
+        return np.frombuffer(view, dtype=_REPEATED[name]) if name in _REPEATED else view
+
+    def to_pb(self) -> pb.Batch:
+        out = pb.Batch(num_envs=self.num_envs, drain_remaining_ms=self.drain_remaining_ms)
+        for name in self._spans:
+            value = getattr(self, name)
+            if name in _REPEATED:
+                getattr(out, name).extend(value.tolist())
+            else:
+                setattr(out, name, bytes(value))
+        return out
+
+    def ListFields(self):
+        return self.to_pb().ListFields()
+
+
+class Channel:
+    """One session's doorbell socket and mapped region."""
+
+    __slots__ = (
+        "_known",
+        "_lengths",
+        "_offsets",
+        "address",
+        "conn",
+        "mm",
+        "num_envs",
+        "session_id",
+        "sock",
+        "timeout",
+    )
+
+    def __init__(self, doorbell: str, session_id: str, conn: Connection) -> None:
+        self.address = conn.address
+        self.conn = conn
+        self.session_id = session_id
+        self.timeout = conn.timeout
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
+        try:
+            sock.settimeout(conn.timeout)
+            sock.connect("\0" + doorbell)
+            sock.sendall(b"H" + session_id.encode())
+            reply, ancillary, _, _ = sock.recvmsg(65536, socket.CMSG_SPACE(4))
+            fds = array.array("i")
+            for level, kind, data in ancillary:
+                if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+                    fds.frombytes(data[: len(data) - len(data) % fds.itemsize])
+            if reply[:1] != b"R" or len(fds) != 1:
+                for fd in fds:
+                    os.close(fd)
+                raise self._refusal("shared memory", reply)
+            try:
+                self.mm = mmap.mmap(fds[0], 0)
+            finally:
+                os.close(fds[0])
+        except BaseException:
+            sock.close()
+            raise
+        # Blocking from here (no poll per recv), waking every _TICK to see the deadline and
+        # whether the connection was closed (a server given up: its calls end at once).
+        sock.settimeout(None)
+        tick = min(conn.timeout, _TICK)
+        seconds = int(tick)
+        micros = int((tick - seconds) * 1e6)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", seconds, micros))
+        self.sock = sock
+        magic, version, n, fields = struct.unpack_from("<IIII", self.mm, 0)
+        if (magic, version, fields) != (_MAGIC, _VERSION, len(FIELDS)):
+            self.close()
+            raise ServiceTransportError(
+                f"the server at {self.address} speaks shared-memory layout {version}, this "
+                f"client {_VERSION}",
+                address=self.address,
+            )
+        self.num_envs = n
+        self._offsets = [
+            struct.unpack_from("<I", self.mm, _TABLE + 8 * i)[0] for i in range(len(FIELDS))
+        ]
+        self._lengths = np.frombuffer(self.mm, dtype="<u4", count=len(FIELDS), offset=_LENGTHS)
+        #: The lengths of the last reply, and the spans and end they gave (a session's replies
+        #: mostly repeat them).
+        self._known: tuple[bytes, dict[str, tuple[int, int]], int] = (b"", {}, _ARRAYS)
+
+    def _refusal(self, method: str, reply: bytes) -> ServiceError:
+        """The typed exception of an ``E`` reply (code, message, ``google.rpc.Status``)."""
+        if reply[:1] != b"E" or len(reply) < 9:
+            return ServiceTransportError(
+                f"{method}: unexpected reply {bytes(reply[:16])!r} from the doorbell",
+                address=self.address,
+            )
+        code, size = struct.unpack_from("<II", reply, 1)
+        message = bytes(reply[9 : 9 + size]).decode("utf-8", "replace")
+        code = _CODES.get(code, grpc.StatusCode.UNKNOWN)
+        if code == grpc.StatusCode.UNAVAILABLE:
+            message = (
+                f"{method}: the server at {self.address} is unavailable after 1 attempt ({message})"
+            )
+        else:
+            message = f"{method}: {message}"
+        return error_for_status(code, message, self.address, bytes(reply[9 + size :]) or None)
+
+    def step(self, actions: bytes) -> RegionBatch | None:
+        """One Step: the reply, the server's typed refusal raised, or ``None`` when the doorbell
+        closed (the Step is then to be made over gRPC)."""
+        offset = self._offsets[0]
+        self.mm[offset : offset + len(actions)] = actions
+        try:
+            self.sock.send(b"S")
+        except OSError:
+            return None
+        deadline = None
+        while True:
+            try:
+                reply = self.sock.recv(65536)
+                break
+            except BlockingIOError:
+                if self.conn._closed:  # given up: as a gRPC call cancelled by its channel
+                    raise EnvClosed(
+                        "Step: the connection was closed during the call",
+                        code=grpc.StatusCode.CANCELLED,
+                    ) from None
+                now = time.monotonic()
+                if deadline is None:
+                    deadline = now + self.timeout - _TICK
+                if now >= deadline:
+                    raise ServiceTimeout(
+                        f"Step: no answer from the server at {self.address} within "
+                        f"{self.timeout:g} s (the timeout= keyword or DINERDASH_TIMEOUT sets this "
+                        "deadline)",
+                        code=grpc.StatusCode.DEADLINE_EXCEEDED,
+                        address=self.address,
+                    ) from None
+            except OSError:
+                return None
+        if reply != b"K":
+            if not reply:
+                return None
+            raise self._refusal("Step", reply)
+        lengths = self._lengths.tobytes()
+        known, spans, end = self._known
+        if lengths != known:
+            spans, end = {}, _ARRAYS
+            for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
+                if size and name != "actions":
+                    spans[name] = (lo - _ARRAYS, lo - _ARRAYS + size)
+                    end = max(end, lo + size)
+            self._known = (lengths, spans, end)
+        (drain,) = _DRAIN.unpack_from(self.mm, _DRAIN_AT)
+        return RegionBatch(self.mm[_ARRAYS:end], spans, self.num_envs, drain)
+
+    def close(self) -> None:
+        self.sock.close()
+        self._lengths = None  # the one view of the mapping this side keeps
+        try:
+            self.mm.close()
+        except BufferError:  # a view still exported: the mapping goes with it
+            pass
+
+
+def as_pb(batch: Any) -> Any:
+    """``batch`` as a ``pb.Batch`` (a :class:`RegionBatch` converted, anything else as is)."""
+    return batch.to_pb() if isinstance(batch, RegionBatch) else batch
+
+
+def attach(core: Any, doorbell: str | None = None) -> None:
+    """Opens the shared-memory channel of ``core``'s session when its transport allows it;
+    ``doorbell`` is what CreateSession named (``None``: what this server named before, for a
+    forked or restored session). ``transport="shm"`` raises when it cannot be used."""
+    conn = core.conn
+    if doorbell is not None:
+        _DOORBELLS[conn] = doorbell
+    transport = core.endpoint.options.transport
+    detach(core)
+    _TRIED[core] = core.session_id
+    if transport == "grpc" or core.session_id is None:
+        return
+    doorbell = _DOORBELLS.get(conn, "")
+    why = None
+    if sys.platform != "linux":
+        why = "shared memory needs Linux"
+    elif not doorbell:
+        why = (
+            f"the server at {conn.address} offers no shared memory (--max-shm-sessions 0, not "
+            "on Linux, or a server older than the shared-memory data plane)"
+        )
+    else:
+        try:
+            _CHANNELS[core] = Channel(doorbell, core.session_id, conn)
+            return
+        except (ConnectionRefusedError, FileNotFoundError):
+            why = (
+                f"the server at {conn.address} is not on this machine (or runs in another "
+                "network namespace, e.g. another container): shared memory needs client and "
+                "server on one host"
+            )
+        except ServiceError as e:
+            why = f"the server refused shared memory: {e.details}"
+        except OSError as e:
+            why = f"the doorbell failed: {e}"
+    if transport == "shm":
+        raise ServiceTransportError(
+            f"transport='shm': {why}; use transport='auto' to fall back to gRPC",
+            address=conn.address,
+        )
+
+
+def detach(core: Any) -> None:
+    """Closes ``core``'s channel, if any (its session closed or replaced)."""
+    channel = _CHANNELS.pop(core, None)
+    if channel is not None:
+        channel.close()
+
+
+def step(core: Any, actions: bytes) -> Any:
+    """``core``'s Step over shared memory when its session has a channel, else over gRPC (also
+    when the doorbell closed under this Step: gRPC then answers as it would have)."""
+    channel = _CHANNELS.get(core)
+    if channel is None and _TRIED.get(core) != core.session_id:
+        attach(core)  # a session forked or restored: no CreateSession named the doorbell
+        channel = _CHANNELS.get(core)
+    if channel is not None:
+        if channel.session_id == core.session_id:
+            try:
+                batch = channel.step(actions)
+            except (ServiceTimeout, EnvClosed):
+                detach(core)  # its late reply must not answer the next Step: gRPC from now on
+                raise
+            if batch is not None:
+                return batch
+        detach(core)
+    try:
+        return core.conn.call("Step", pb.StepRequest(session_id=core.session_id, actions=actions))
+    except ServiceError:
+        # A lost server's recovery (and a failover's slice of it) copies the last Batch.
+        core.last = as_pb(core.last)
+        raise

@@ -1,0 +1,230 @@
+"""The same-host shared-memory data plane (``transport=``): refusals typed as over gRPC, the
+fallbacks, and what either side's ``kill -9`` leaves behind (nothing: no memfd in the server, no
+file in /dev/shm), and a client that stops reading, which stalls nobody."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from dinerdash import (
+    ConnectOptions,
+    DinerDashEnv,
+    DinerDashVectorEnv,
+    InvalidArgument,
+    ServiceTransportError,
+    _shm,
+)
+from gymnasium.vector import AutoresetMode
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="shared memory needs Linux")
+
+#: Longest any wait here lasts: far above what it takes, so that load cannot fail a test.
+PATIENCE = 60.0
+
+
+def regions(pid: int) -> int:
+    """The session regions (memfds) process ``pid`` holds open."""
+    count = 0
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            count += os.readlink(f"/proc/{pid}/fd/{fd}").startswith("/memfd:dinerdash-session")
+        except OSError:
+            pass  # closed meanwhile
+    return count
+
+
+def open_fds(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))
+
+
+def wait_until(condition, what: str) -> None:
+    deadline = time.monotonic() + PATIENCE
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"not within {PATIENCE:g} s: {what}")
+        time.sleep(0.05)
+
+
+def test_the_region_is_used_and_refuses_bad_actions_as_grpc_does(server) -> None:
+    envs = {t: DinerDashVectorEnv(3, server.address, transport=t) for t in ("shm", "grpc")}
+    try:
+        assert regions(server.pid) >= 1
+        refused = {}
+        for transport, env in envs.items():
+            env.reset(seed=1)
+            core = env._cores[0]
+            # Past the client's own check, as a client of another language could send them.
+            bad = np.array([0, 57, 0], dtype="<i4").tobytes()
+            with pytest.raises(InvalidArgument) as e:
+                core.step(bad)
+            refused[transport] = e.value
+            env.step(np.zeros(3, dtype=np.int64))  # the refused step changed nothing
+        shm, grpc = refused["shm"], refused["grpc"]
+        assert (shm.details, shm.reason, shm.field, shm.env_index, shm.code) == (
+            grpc.details,
+            grpc.reason,
+            grpc.field,
+            grpc.env_index,
+            grpc.code,
+        )
+        assert shm.reason == "ACTION_OUT_OF_RANGE" and shm.env_index == 1
+    finally:
+        for env in envs.values():
+            env.close()
+
+
+def test_shm_away_from_the_server_says_why_and_auto_falls_back(start_server) -> None:
+    bare = start_server("--max-shm-sessions", "0")
+    with pytest.raises(ServiceTransportError, match="offers no shared memory"):
+        DinerDashEnv(bare.address, transport="shm")
+    env = DinerDashEnv(bare.address)  # auto: gRPC
+    try:
+        env.reset(seed=0)
+        env.step(0)
+        assert regions(bare.pid) == 0
+        # What a client on another machine meets: a doorbell name not bound on its host.
+        with pytest.raises(ServiceTransportError, match="not on this machine"):
+            env._core.endpoint.options = ConnectOptions(bare.address, transport="shm")
+            _shm.attach(env._core, "dinerdash-0-on-another-host")
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="transport"):
+        ConnectOptions(transport="tcp")
+
+
+_CLIENT = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    from dinerdash import DinerDashVectorEnv
+    env = DinerDashVectorEnv(64, sys.argv[1], transport="shm")
+    env.reset(seed=0)
+    print("stepping", flush=True)
+    while True:
+        env.step(np.zeros(64, dtype=np.int64))
+    """
+)
+
+
+def test_a_killed_client_leaves_nothing_and_others_step_on(start_server) -> None:
+    server = start_server()
+    shm_before = sorted(os.listdir("/dev/shm"))
+    other = DinerDashVectorEnv(4, server.address, transport="shm")
+    try:
+        other.reset(seed=0)
+        baseline = open_fds(server.pid)
+        for _ in range(2):
+            client = subprocess.Popen(
+                [sys.executable, "-c", _CLIENT, server.address],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+            )
+            try:
+                assert client.stdout.readline().strip() == b"stepping"
+                time.sleep(0.2)  # mid-step, most likely
+                assert regions(server.pid) == 2
+            finally:
+                client.send_signal(signal.SIGKILL)
+                client.wait(timeout=PATIENCE)
+                client.stdout.close()
+            wait_until(lambda: regions(server.pid) == 1, "the killed client's region freed")
+            wait_until(lambda: open_fds(server.pid) == baseline, "the fd count back to baseline")
+            for _ in range(20):
+                other.step(np.zeros(4, dtype=np.int64))
+        assert sorted(os.listdir("/dev/shm")) == shm_before
+    finally:
+        other.close()
+
+
+@pytest.mark.parametrize("transport", ["grpc", "shm"])
+def test_a_killed_server_gives_the_same_typed_error(start_server, transport: str) -> None:
+    server = start_server()
+    env = DinerDashVectorEnv(64, server.address, transport=transport)
+    try:
+        env.reset(seed=0)
+        env.step(np.zeros(64, dtype=np.int64))
+        env.step_async(np.zeros(64, dtype=np.int64))
+        server.kill()
+        with pytest.raises(ServiceTransportError):
+            try:
+                env.step_wait()  # the step in flight, or the next one, meets the dead server
+            except ServiceTransportError:
+                raise
+            else:
+                env.step(np.zeros(64, dtype=np.int64))
+    finally:
+        env.close()
+
+
+def test_a_client_that_stops_reading_stalls_nobody(start_server) -> None:
+    server = start_server()
+    stuck = DinerDashVectorEnv(8, server.address, transport="shm")
+    other = DinerDashVectorEnv(8, server.address, transport="shm")
+    try:
+        stuck.reset(seed=0)
+        other.reset(seed=1)
+        channel = _shm._CHANNELS[stuck._cores[0]]
+        # Ring the doorbell without ever reading a reply, until the server gives the socket up
+        # (its replies fill this side's queue: it hangs up rather than wait).
+        channel.sock.setblocking(False)
+        deadline = time.monotonic() + PATIENCE
+        while True:
+            try:
+                channel.sock.send(b"S")
+            except BlockingIOError:
+                assert time.monotonic() < deadline, "the server never hung up"
+                time.sleep(0.001)
+            except (BrokenPipeError, ConnectionResetError):
+                break
+        # The other session steps all along, and the stuck one's region is given up.
+        for _ in range(50):
+            other.step(np.zeros(8, dtype=np.int64))
+        wait_until(lambda: regions(server.pid) == 1, "the unread session's region freed")
+    finally:
+        stuck.close()
+        other.close()
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_reconnect_after_a_restart_attaches_again(start_server, mode: AutoresetMode) -> None:
+    server = start_server()
+    env = DinerDashVectorEnv(
+        4, server.address, transport="shm", reconnect=True, autoreset_mode=mode
+    )
+    try:
+        env.reset(seed=0)
+        env.step(np.zeros(4, dtype=np.int64))
+        server.kill()
+        again = server.restart()
+        start_server.started.append(again)
+        _, reward, terminated, truncated, _ = env.step(np.zeros(4, dtype=np.int64))
+        assert truncated.all() and not terminated.any() and not reward.any()
+        for _ in range(5):
+            env.step(np.zeros(4, dtype=np.int64))
+        assert regions(again.pid) == 1  # the new session steps through shared memory again
+    finally:
+        env.close()
+
+
+def test_closing_envs_unmaps_their_regions(server) -> None:
+    def mapped() -> int:
+        with open("/proc/self/maps") as f:
+            return sum("dinerdash-session" in line for line in f)
+
+    # One mapping, and the one descriptor Python's mmap keeps, per open env; both go at close.
+    # (The process's other fds come and go with gRPC's threads, so they are not counted.)
+    before = (mapped(), regions(os.getpid()))
+    for _ in range(3):
+        env = DinerDashVectorEnv(8, server.address, transport="shm")
+        env.reset(seed=0)
+        env.step(np.zeros(8, dtype=np.int64))
+        assert (mapped(), regions(os.getpid())) == (before[0] + 1, before[1] + 1)
+        env.close()
+    assert (mapped(), regions(os.getpid())) == before
