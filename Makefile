@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SERVER := target/release/dinerdash-server
 
-.PHONY: serve build build-server test test-rust test-python test-agents lint bench bench-rllib soak docker-smoke k8s-validate venv clean wheels wheel-smoke cross-check
+.PHONY: serve build build-server test test-rust test-python test-agents lint bench bench-rllib soak chaos docker-smoke k8s-validate venv clean wheels wheel-smoke cross-check
 
 ## Start the gRPC server on port 50051 (Ctrl-C stops it).
 serve:
@@ -21,11 +21,12 @@ build: build-server
 
 # The sb3 extra (stable-baselines3, sb3-contrib) is for tests/test_sb3.py; it brings torch from
 # PyPI, a large download (2-3 minutes the first time). The ray extra (Ray with RLlib, which pins
-# gymnasium 1.2.x) is for tests/test_ray.py.
+# gymnasium 1.2.x) is for tests/test_ray.py; the torchrl extra (TorchRL, on the same torch) for
+# tests/test_torchrl.py.
 $(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray]' -e 'agents[dev]'
+	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray,torchrl]' -e 'agents[dev]'
 	touch $@
 
 venv: $(VENV)/.installed
@@ -93,6 +94,15 @@ bench-rllib: build-server venv
 ## server's peak RSS, Step p50/p99, errors and sessions lost (SOAK_ARGS="--duration 60" to shorten).
 soak: build-server venv
 	$(PY) scripts/soak.py --server $(abspath $(SERVER)) $(SOAK_ARGS)
+
+## Masked PPO across three local servers while a seeded monkey kills, hangs, black-holes, drains
+## and restarts them every 10-20 s; prints steps, exceptions, failovers, rejoins, moves, truncated
+## episodes and the final score beside an undisturbed run of the same seed and length
+## (scripts/chaos.py; CHAOS_DURATION=120 to shorten, CHAOS_ARGS="--seed 1" for more).
+CHAOS_DURATION ?= 180
+chaos: build-server venv
+	$(PY) scripts/chaos.py --server $(abspath $(SERVER)) --duration $(CHAOS_DURATION) \
+		--undisturbed $(CHAOS_ARGS)
 
 ## The docker image end to end (needs a Docker engine with compose): build it, start three
 ## healthy replicas and run the example trainer over all three; exit status is the trainer's.

@@ -8,6 +8,9 @@
 #   - dinerdash-server eval --policy expert --episodes 3;
 #   - python -m dinerdash evaluate --episodes 3;
 #   - python -m dinerdash_agents evaluate on a committed checkpoint;
+#   each checked against the known scores (the game is deterministic for a seed): the expert's
+#   seeds 0..2 (EXPERT_SCORES), the checkpoint's seeds 1000..1002 as docs/results/results.json
+#   reports them;
 #   - dinerdash-server --version, python -m dinerdash_server --version and the three packages'
 #     versions agree.
 # Prints the install time and the checks' time. Usage: scripts/wheel_smoke.sh [DIST_DIR]
@@ -17,6 +20,26 @@ root="$(cd "$(dirname "$0")/.." && pwd)"
 dist="$(cd "${1:-$root/dist}" && pwd)"
 python="${PYTHON:-python3}"
 checkpoint="$root/docs/results/checkpoints/bc-70"
+# The reference expert's final scores on seeds 0, 1, 2 (ruleset v0; `dinerdash-server eval
+# --policy expert --episodes 3` prints their mean, 5700.0).
+EXPERT_SCORES="[5240, 5600, 6260]"
+# bc-70's on seeds 1000..1002, from the results table's per-episode scores.
+checkpoint_scores="$("$python" -c 'import json, sys
+rows = json.load(open(sys.argv[1]))["agents"]
+print([row["scores"][:3] for row in rows if row["name"] == "bc-70"][0])' "$root/docs/results/results.json")"
+
+# The last line of a command's output is its --json; its "scores" must be $1.
+check_scores() {
+    local want="$1" out got
+    shift
+    out="$(in_venv "$@")"
+    printf '%s\n' "$out"
+    got="$(printf '%s\n' "$out" | tail -n 1 | "$python" -c 'import json, sys; print(json.load(sys.stdin)["scores"])')"
+    if [ "$got" != "$want" ]; then
+        echo "wheel-smoke: $*: scores $got, want $want" >&2
+        exit 1
+    fi
+}
 
 one_wheel() {
     local matches=("$dist"/$1)
@@ -88,6 +111,8 @@ try:
         _, reward, terminated, truncated, info = env.step(info["expert_action"])
         steps, total, done = steps + 1, total + float(reward), terminated or truncated
     assert done, f"the expert episode did not end within {steps} steps"
+    # Seed 0's expert episode, as every build of ruleset v0 plays it.
+    assert (steps, total, info["score"]) == (365, 5240.0, 5240), (steps, total, info["score"])
     assert server is not None and os.path.realpath(server.binary) == os.path.realpath(binary)
 finally:
     env.close()
@@ -106,13 +131,19 @@ done
 echo "$want"
 
 echo "== wheel-smoke: dinerdash-server eval --policy expert --episodes 3"
-in_venv dinerdash-server eval --policy expert --episodes 3
+eval_out="$(in_venv dinerdash-server eval --policy expert --episodes 3)"
+echo "$eval_out"
+if ! printf '%s\n' "$eval_out" | grep -q '^score  5700.0 '; then
+    echo "wheel-smoke: dinerdash-server eval: the expert's mean on seeds 0..2 is not 5700.0" >&2
+    exit 1
+fi
 
 echo "== wheel-smoke: python -m dinerdash evaluate --episodes 3"
-in_venv python -m dinerdash evaluate --episodes 3 --num-envs 3
+check_scores "$EXPERT_SCORES" python -m dinerdash evaluate --episodes 3 --num-envs 3 --json
 
 echo "== wheel-smoke: python -m dinerdash_agents evaluate (docs/results/checkpoints/bc-70)"
-in_venv python -m dinerdash_agents evaluate checkpoint --episodes 3 --num-envs 3
+check_scores "$checkpoint_scores" python -m dinerdash_agents evaluate checkpoint --episodes 3 \
+    --seed 1000 --num-envs 3 --json
 
 done_at=$(date +%s.%N)
 awk -v a="$start" -v b="$installed" -v c="$done_at" 'BEGIN {

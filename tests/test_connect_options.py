@@ -87,7 +87,9 @@ def test_every_field_is_a_keyword_of_the_envs(address: str) -> None:
 
 
 def test_an_unknown_keyword_is_refused_by_name(address: str) -> None:
-    with pytest.raises(TypeError, match=r"DinerDashEnv\(\) got unexpected keyword.*'adress'"):
+    with pytest.raises(
+        TypeError, match=r"DinerDashEnv\(\) got an unexpected keyword argument 'adress'"
+    ):
         dinerdash.DinerDashEnv(adress=address)
     with pytest.raises(TypeError, match=r"rollout\(\).*'tiemout'"):
         next(dinerdash.rollout("expert", seeds=[0], address=address, tiemout=3))

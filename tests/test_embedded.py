@@ -44,7 +44,17 @@ def binary_env(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("DINERDASH_SERVER", str(server_binary()))
 
 
-def test_env_starts_and_stops_its_own_server(binary_env) -> None:
+def _expert_steps(env, steps: int) -> list[tuple]:
+    """``steps`` expert steps from ``reset(seed=0)``: (observation, reward, score) of each."""
+    obs, info = env.reset(seed=0)
+    seen = [(obs.tolist(), 0.0, info["score"])]
+    for _ in range(steps):
+        obs, reward, _, _, info = env.step(info["expert_action"])
+        seen.append((obs.tolist(), float(reward), info["score"]))
+    return seen
+
+
+def test_env_starts_and_stops_its_own_server(binary_env, address: str) -> None:
     before = set(children_named_server())
     env = gymnasium.make("dinerdash:DinerDash-v0", expert=True)
     server = env.unwrapped.server
@@ -52,10 +62,16 @@ def test_env_starts_and_stops_its_own_server(binary_env) -> None:
     pid = server.pid
     assert env.unwrapped.address == server.address and server.address.startswith("127.0.0.1:")
     assert pid in set(children_named_server()) - before
-    _, info = env.reset(seed=0)
-    env.step(info["expert_action"])
+    # It plays the game: the same expert episode, step for step, as the test server's.
+    played = _expert_steps(env, 60)
     env.close()
     assert gone(pid) and pid not in children_named_server()
+    reference = gymnasium.make("dinerdash:DinerDash-v0", expert=True, address=address)
+    try:
+        assert played == _expert_steps(reference, 60)
+    finally:
+        reference.close()
+    assert played[-1][2] > 0  # the expert has scored by then
 
 
 def test_local_server_ignores_dinerdash_tls_ca(binary_env, monkeypatch, tmp_path: Path) -> None:
@@ -65,25 +81,37 @@ def test_local_server_ignores_dinerdash_tls_ca(binary_env, monkeypatch, tmp_path
     env = gymnasium.make("dinerdash:DinerDash-v0", expert=True)
     try:
         _, info = env.reset(seed=0)
-        env.step(info["expert_action"])
+        _, _, _, _, info = env.step(info["expert_action"])
+        assert info["tick"] == 1
     finally:
         env.close()
 
 
-def test_vector_env_starts_and_stops_its_own_server(binary_env) -> None:
+def test_vector_env_starts_and_stops_its_own_server(binary_env, address: str) -> None:
     envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=4)
     pid = envs.server.pid
     assert not gone(pid) and pid in children_named_server()
-    envs.reset(seed=0)
+    obs, _ = envs.reset(seed=0)
     envs.close()
     assert gone(pid) and pid not in children_named_server()
+    # Environment i is seeded 0 + i, as a single env on the test server seeded i starts.
+    for i in range(4):
+        single = dinerdash.DinerDashEnv(address)
+        try:
+            assert (obs[i] == single.reset(seed=i)[0]).all(), i
+        finally:
+            single.close()
 
 
-def test_rollout_starts_and_stops_its_own_server(binary_env) -> None:
+def test_rollout_starts_and_stops_its_own_server(binary_env, address: str) -> None:
     before = set(children_named_server())
-    episodes = list(dinerdash.rollout("random", episodes=2))
+    episodes = list(dinerdash.rollout("expert", episodes=2))
     assert [ep.seed for ep in episodes] == [0, 1]
     assert set(children_named_server()) <= before
+    # The same episodes as the test server plays (the expert's scores are deterministic).
+    reference = list(dinerdash.rollout("expert", episodes=2, address=address))
+    assert [(ep.score, ep.steps) for ep in episodes] == [(ep.score, ep.steps) for ep in reference]
+    assert all(ep.score > 0 for ep in episodes)
 
 
 def test_commands_start_a_server_only_without_an_address(
@@ -139,7 +167,8 @@ def test_reconnect_restarts_a_local_server_that_died(binary_env) -> None:
         assert truncated and info["reconnected"]
         assert server.is_running() and server.pid != first_pid
         env.reset(seed=0)
-        env.step(0)
+        _, _, _, truncated, info = env.step(0)
+        assert not truncated and info["tick"] == 1 and "reconnected" not in info
     finally:
         env.close()
     assert gone(first_pid) and gone(server.pid)

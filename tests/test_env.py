@@ -98,7 +98,9 @@ def test_infos_hold_the_documented_keys(address: str) -> None:
         for _ in range(50):
             obs, reward, terminated, truncated, info = env.step(info["expert_action"])
             total += reward
-            assert set(info) == {"action_mask", "score", "lost", "tick", "expert_action"}
+            # Every step's info has reset's keys (TorchRL reads them once), the seed kept.
+            assert set(info) == {"action_mask", "score", "lost", "tick", "expert_action", "seed"}
+            assert info["seed"] == 3
             assert obs.dtype == np.float32 and obs in env.observation_space
         assert info["tick"] == 50
         assert total == info["score"]  # reward is the change of the score

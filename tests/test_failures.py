@@ -59,18 +59,26 @@ def test_reconnect_waits_for_a_server_that_comes_back_later(start_server) -> Non
     try:
         env.reset(seed=2)
         server.kill()
+        restarting: list[float] = []  # when the restart began (monotonic)
 
         def restart() -> None:
             time.sleep(1.0)
+            restarting.append(time.monotonic())
             start_server.started.append(server.restart())
 
         thread = threading.Thread(target=restart)
         thread.start()
+        began = time.monotonic()
         _, _, _, truncated, info = env.step(0)  # blocks until the server is back
+        returned = time.monotonic()
         thread.join(timeout=30)
         assert truncated and info["reconnected"]
-        env.reset(seed=2)
-        env.step(0)
+        # The step waited: it came back only after the restart had begun (no server answered
+        # before), so at least the second the restart was held back.
+        assert restarting and returned >= restarting[0] >= began + 1.0, (began, restarting)
+        _, info = env.reset(seed=2)
+        _, _, _, truncated, info = env.step(0)
+        assert not truncated and info["tick"] == 1
     finally:
         env.close()
 

@@ -160,7 +160,10 @@ def test_killed_replica_recovers_with_reconnect(three, start_server) -> None:
         np.testing.assert_array_equal(obs[:5], ref[0][:5])
         np.testing.assert_array_equal(reward[:5], ref[1][:5])
         obs, reward, terminated, truncated, info = envs.step(info["expert_action"])
-        np.testing.assert_array_equal(info["_seed"], [False] * 5 + [True] * 2)  # the autoreset
+        # The autoreset: new episodes, seeded by the restarted replica (64-bit entropy), the
+        # others' seeds kept.
+        np.testing.assert_array_equal(info["seed"][:5], np.arange(5))
+        assert (info["seed"][5:] != [5, 6]).all(), info["seed"]
         np.testing.assert_array_equal(info["tick"][5:], [0, 0])
         assert (info["tick"][:5] == 22).all()
     finally:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -175,6 +176,21 @@ def test_restart_after_a_kill_and_a_hung_restart() -> None:
         cluster.hang(0)
         cluster.restart(0, wait_drain=False)  # a hung server is killed and replaced
         assert gone(pid) and not cluster.is_hung(0) and answers(address)
+
+
+def test_a_server_restarted_from_a_thread_outlives_the_thread() -> None:
+    """A server dies with the thread that started it (PR_SET_PDEATHSIG): the cluster starts its
+    servers from a thread of its own, so a chaos monkey's thread may restart them and end."""
+    with LocalCluster(1) as cluster:
+        monkey = threading.Thread(target=cluster.restart, args=(0,), kwargs={"wait_drain": False})
+        monkey.start()
+        monkey.join()
+        pid = cluster.pid(0)
+        watched = time.monotonic()
+        while time.monotonic() - watched < 2.0:  # a SIGTERM would end it well within this
+            assert cluster.is_running(0) and cluster.pid(0) == pid
+            time.sleep(0.05)
+        assert answers(cluster.addresses[0])
 
 
 def test_add_starts_one_more_server() -> None:
@@ -369,3 +385,12 @@ def test_the_plugin_in_a_users_test_file(
 def test_the_plugin_registers_its_marker(pytester: pytest.Pytester) -> None:
     result = pytester.runpytest("--markers")
     result.stdout.fnmatch_lines(["@pytest.mark.dinerdash_cluster(n=3, **server_flags):*"])
+
+
+def test_the_users_test_file_of_the_client_guide(pytester: pytest.Pytester) -> None:
+    guide = (Path(__file__).resolve().parent.parent / "docs" / "client.md").read_text()
+    section = guide.split("## Testing your own training code", 1)[1].split("\n## ", 1)[0]
+    code = section.split("```python\n", 1)[1].split("```", 1)[0]
+    pytester.makepyfile(test_my_training=code)
+    result = pytester.runpytest("-q", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=3)

@@ -28,8 +28,7 @@ def compare_info(mine: dict, ref: dict, where: str) -> None:
             np.testing.assert_array_equal(
                 mine[key].astype(ref[key].dtype), ref[key], err_msg=f"{where} {key}"
             )
-            if key != "seed":  # SyncVectorEnv stores u64 seeds as int64; ours are uint64
-                assert mine[key].dtype == ref[key].dtype, f"{where} {key}"
+            assert mine[key].dtype == ref[key].dtype, f"{where} {key}"
 
 
 def compare_partial_reset(mine: tuple, ref: tuple, done: np.ndarray, where: str) -> None:
@@ -111,7 +110,9 @@ def test_make_vec_uses_the_batched_session(address: str) -> None:
             np.testing.assert_array_equal(info[f"_{key}"], np.ones(8, dtype=bool))
         obs, reward, terminated, truncated, info = envs.step(info["expert_action"])
         assert reward.dtype == np.float64 and terminated.dtype == np.bool_
-        assert "seed" not in info  # no environment was reset in this step
+        # The same keys as at reset (TorchRL reads them once): each episode's seed kept.
+        np.testing.assert_array_equal(info["seed"], np.arange(8))
+        assert info["_seed"].all()
     finally:
         envs.close()
 

@@ -320,8 +320,12 @@ class ConnectOptions:
         ``caller``'s name. ``address=None`` keeps ``connect``'s address."""
         unknown = sorted(set(keywords) - set(CONNECT_FIELDS))
         if unknown:
+            # Python's own wording ("got an unexpected keyword argument 'x'"), which wrappers
+            # match on to drop a keyword they tried (TorchRL's GymEnv tries ``frameskip=``).
             raise TypeError(
-                f"{caller}() got unexpected keyword argument(s) {', '.join(map(repr, unknown))}; "
+                f"{caller}() got an unexpected keyword argument {unknown[0]!r}"
+                + (f" (and {', '.join(map(repr, unknown[1:]))})" if unknown[1:] else "")
+                + "; "
                 f"the connection keywords are {', '.join(CONNECT_FIELDS)}"
             )
         if keywords.get("address", 0) is None:

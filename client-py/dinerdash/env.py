@@ -116,8 +116,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
 
     ``reset`` and ``step`` return ``info`` with ``action_mask`` (``bool`` array of 57), ``score``
     (the episode's total so far), ``lost`` (groups lost), ``tick`` (ticks since reset), and with
-    ``expert=True`` ``expert_action``, the reference expert's choice in the state returned. The
-    ``reset`` info also holds ``seed``, the seed that replays the episode.
+    ``expert=True`` ``expert_action``, the reference expert's choice in the state returned, and
+    ``seed``, the seed that replays the episode: the same keys at reset and at every step.
 
     ## Arguments
 
@@ -270,6 +270,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             info["reconnected"] = True
             return self._last_obs.copy(), 0.0, False, True, info
         obs, info = decode_one(batch, self.expert)
+        info["seed"] = self._last_info["seed"]  # every step's info has reset's keys
         self._last_obs, self._last_info = obs, info
         reward = float(int.from_bytes(batch.rewards, "little", signed=True))
         return obs.copy(), reward, batch.terminated[0] != 0, batch.truncated[0] != 0, dict(info)

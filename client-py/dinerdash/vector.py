@@ -78,7 +78,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     :class:`dinerdash.env.DinerDashEnv`; here every value gains a leading axis of ``num_envs``:
     observations ``(N, 40) float32``, rewards ``(N,) float64``, ``info["action_mask"]`` ``(N, 57)
     bool``, ``info["score"]``, ``info["lost"]``, ``info["tick"]`` and (``expert=True``)
-    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask.
+    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask; and
+    ``info["seed"]``, each environment's episode seed, at reset and at every step (the keys never
+    change, as for a ``SyncVectorEnv`` of :class:`~dinerdash.DinerDashEnv`; ``int64`` as there,
+    a seed given above 2**63 - 1 reading modulo 2**64).
 
     Autoreset: ``AutoresetMode.NEXT_STEP`` (default; the step after an episode ends resets that
     environment, ignores its action and reports reward 0 and ``info["seed"]``) or
@@ -222,6 +225,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._membership = Membership(self._endpoint, self._options)
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
+        self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
         self._closed = False
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
@@ -386,8 +390,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             for lo, hi, c in self._pieces()
         ]
         obs, info = decode(batches, self.num_envs, self.expert)
-        info["seed"] = seeds(batches)
+        info["seed"] = seeds(batches).astype(np.int64)  # as SyncVectorEnv; torch has no uint64
         info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
+        self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
         return obs, info
 
     def _reset_mask(self, reset_mask: Any, config: Any) -> np.ndarray | None:
@@ -793,12 +798,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         terminated = np.frombuffer(join(batches, "terminated"), dtype=np.bool_).copy()
         truncated = np.frombuffer(join(batches, "truncated"), dtype=np.bool_).copy()
         reset = np.frombuffer(join(batches, "reset"), dtype=np.bool_)
+        # Every step's info has reset's keys (TorchRL reads them once): each environment's
+        # episode seed, as a SyncVectorEnv of DinerDashEnv reports it.
+        ended_seeds = self._seeds
         if reset.any():
-            # The environments reset in this step carry their reset info: the seed.
-            info["seed"] = seeds(batches)
-            info["_seed"] = reset.copy()
+            self._seeds = np.where(reset, seeds(batches).astype(np.int64), self._seeds)
+        info["seed"], info["_seed"] = self._seeds.copy(), np.ones(n, np.bool_)
+        if reset.any():
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 final, final_info = decode(batches, n, self.expert, "final_", reset)
+                final_info["seed"] = np.where(reset, ended_seeds, 0)
+                final_info["_seed"] = reset.copy()
                 final_obs = np.full(n, None, dtype=object)
                 for i in np.flatnonzero(reset):  # only the environments that just ended
                     final_obs[i] = final[i]

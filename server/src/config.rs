@@ -8,12 +8,11 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use clap::ValueEnum;
-use tokio::net::TcpListener;
 
 use crate::auth::{Token, tenant_tokens};
 use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
 use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
-use crate::rollout::MAX_ROLLOUT_WORK_STEPS;
+use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
 use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 
 /// How log lines are written (to stderr).
@@ -223,7 +222,7 @@ pub struct TlsPem {
     pub key: Vec<u8>,
 }
 
-/// Everything the server (`server::run`) needs besides the listener.
+/// Everything the server (`server::run`) needs besides its listeners: values only, no socket.
 #[derive(Debug, Default)]
 pub struct ServerConfig {
     /// Session limits and the idle TTL.
@@ -238,11 +237,10 @@ pub struct ServerConfig {
     pub connection_share: Share,
     /// Connection limit and idle timeout.
     pub connections: connections::Limits,
+    /// What one Rollout request may do.
+    pub rollout: rollout::Limits,
     /// Serve TLS with this identity; `None` serves plaintext.
     pub tls: Option<TlsPem>,
-    /// Serve the HTTP endpoint (the sessions and watch pages, their feeds, and Prometheus
-    /// metrics; asking for the same tokens as the RPCs) on this listener; `None` serves none.
-    pub http_listener: Option<TcpListener>,
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
@@ -254,8 +252,8 @@ fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
 
 impl ServerConfig {
     /// The configuration `args` describe: the TLS files read, the tenants file's tenants as
-    /// tokens, the limits; refused unless [`ServeArgs::validate`] passes. No listener is bound
-    /// (`http_listener` is `None`).
+    /// tokens, the limits; refused unless [`ServeArgs::validate`] passes. Nothing is bound: the
+    /// caller binds the listeners and hands them to `server::run`.
     pub fn from_args(args: &ServeArgs) -> Result<ServerConfig, ConfigError> {
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => Some(TlsPem {
@@ -283,7 +281,9 @@ impl ServerConfig {
                 max_envs_per_session: args.max_envs_per_session as usize,
                 session_ttl: args.session_ttl,
                 max_memory: args.max_memory,
-                max_rollout_work_steps: args.max_rollout_work_steps,
+            },
+            rollout: rollout::Limits {
+                max_work_steps: args.max_rollout_work_steps,
             },
             auth_token: args.auth_token.clone().filter(|t| !t.is_empty()),
             tenants,
@@ -294,7 +294,6 @@ impl ServerConfig {
                 ..connections::Limits::default()
             },
             tls,
-            http_listener: None,
         })
     }
 

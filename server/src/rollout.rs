@@ -16,8 +16,8 @@ pub const MAX_ROLLOUT_STEPS: u32 = 100_000;
 /// Most episodes one Rollout request may ask for.
 pub const MAX_ROLLOUT_EPISODES: u32 = 10_000;
 /// Default most steps one Rollout request may record over all its episodes (~1 GB of output,
-/// seconds to minutes of a worker): the request's work cap (`Limits::max_rollout_work_steps`). 10,000 seeds of no-decay games would otherwise ask for
-/// ~10^9 steps.
+/// seconds to minutes of a worker): the request's work cap ([`Limits::max_work_steps`]). 10,000
+/// seeds of no-decay games would otherwise ask for ~10^9 steps.
 pub const MAX_ROLLOUT_WORK_STEPS: u64 = 10_000_000;
 /// Bytes one recorded step takes at most: observation, action, reward, expert action, mask.
 pub const MAX_BYTES_PER_STEP: u64 = (OBSERVATION_SIZE + 1 + 4 + 1 + NUM_ACTIONS) as u64;
@@ -28,7 +28,23 @@ pub const ROLLOUT_BUFFER: usize = 1;
 /// the transport's send buffer, and the one being recorded.
 const ROLLOUT_EPISODES_HELD: u64 = ROLLOUT_BUFFER as u64 + 2;
 
-/// Why a Rollout request is refused before anything is recorded.
+/// What a server lets one Rollout request do (`--max-rollout-work-steps`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Most steps one Rollout request may record over all its episodes (its work cap).
+    pub max_work_steps: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_work_steps: MAX_ROLLOUT_WORK_STEPS,
+        }
+    }
+}
+
+/// Why a Rollout request is refused before anything is recorded; the service maps each to its
+/// status once ([`crate::service::status`](mod@crate::service::status)).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum RolloutError {
     /// A field is out of range; the message starts with the field's name (`seeds`, `max_steps`,

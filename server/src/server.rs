@@ -1,10 +1,10 @@
 //! Puts the server together: the `DinerDash` service behind the request gate, the standard
 //! `grpc.health.v1` service, server reflection, optional TLS, the idle-session sweeper and the
-//! HTTP endpoint (pages, feeds, metrics), all served on a listener the caller bound until a shutdown future completes
-//! ([`run`]).
+//! HTTP endpoint (pages, feeds, metrics), served on the [`Listeners`] the caller bound until a
+//! shutdown future completes ([`run`]).
 //!
-//! The binary calls [`serve`], which binds `--host:--port` and passes [`crate::shutdown::signal`];
-//! tests pass `127.0.0.1:0` and a oneshot to [`run`].
+//! The binary calls [`serve`], which binds `--host:--port` (and `--http-host:--http-port`) and
+//! passes [`crate::shutdown::signal`]; tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
 
 use std::future::Future;
 use std::io::Write as _;
@@ -73,14 +73,20 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
                 source,
             })
     }
-    let mut config = ServerConfig::from_args(args)?;
+    let config = ServerConfig::from_args(args)?;
     // Room for connections: the accept loop caps --max-connections below this limit.
     connections::fd_limit::raise();
-    let listener = bind(&args.host, args.port, "").await?;
-    if let Some(port) = args.http_port {
-        config.http_listener = Some(bind(&args.http_host, port, " for the web pages").await?);
-    }
-    let addr = listener.local_addr().map_err(ServerError::LocalAddr)?;
+    let listeners = Listeners {
+        grpc: bind(&args.host, args.port, "").await?,
+        http: match args.http_port {
+            Some(port) => Some(bind(&args.http_host, port, " for the web pages").await?),
+            None => None,
+        },
+    };
+    let addr = listeners
+        .grpc
+        .local_addr()
+        .map_err(ServerError::LocalAddr)?;
     tracing::info!(
         %addr,
         tls = config.tls.is_some(),
@@ -99,13 +105,31 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     let _ = stdout.flush();
     drop(stdout);
 
-    shutdown::serve_until_signal(|stop| run(listener, config, stop)).await
+    shutdown::serve_until_signal(|stop| run(listeners, config, stop)).await
 }
 
-/// Serves on `listener` until `shutdown` completes, then stops accepting connections, lets the
+/// The sockets a server serves, bound by its caller: [`serve`] binds them from the flags, tests
+/// on `127.0.0.1:0`.
+#[derive(Debug)]
+pub struct Listeners {
+    /// The gRPC services.
+    pub grpc: TcpListener,
+    /// The HTTP endpoint: the sessions and watch pages, their feeds, and Prometheus metrics,
+    /// asking for the same tokens as the RPCs; `None` serves none.
+    pub http: Option<TcpListener>,
+}
+
+impl Listeners {
+    /// gRPC on `grpc`, no HTTP endpoint.
+    pub fn grpc(grpc: TcpListener) -> Listeners {
+        Listeners { grpc, http: None }
+    }
+}
+
+/// Serves on `listeners` until `shutdown` completes, then stops accepting connections, lets the
 /// RPCs in flight finish, and returns.
 pub async fn run(
-    listener: TcpListener,
+    listeners: Listeners,
     config: ServerConfig,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServerError> {
@@ -126,11 +150,8 @@ pub async fn run(
     let gate = RequestGate::new(tokens.clone(), stopping.clone());
     // The pages' feeds and the metrics ask for the same tokens as the RPCs, so that a server
     // that needs a token shows its sessions and load only to its token holders.
-    let http_addr = config
-        .http_listener
-        .as_ref()
-        .and_then(|l| l.local_addr().ok());
-    let http_task = config.http_listener.map(|l| {
+    let http_addr = listeners.http.as_ref().and_then(|l| l.local_addr().ok());
+    let http_task = listeners.http.map(|l| {
         if let Some(addr) = http_addr {
             tracing::info!("sessions page on http://{addr}/, metrics on http://{addr}/metrics");
         }
@@ -143,7 +164,8 @@ pub async fn run(
         config.connection_share,
         stopping.clone(),
     )
-    .with_http_addr(http_addr);
+    .with_http_addr(http_addr)
+    .with_rollout_limits(config.rollout);
     let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -161,7 +183,7 @@ pub async fn run(
     }
     // The accept loop stops (and closes the port) when the trigger fires.
     let incoming = connections::accept(
-        listener,
+        listeners.grpc,
         config.connections,
         config.connection_share,
         Arc::clone(&metrics),

@@ -22,7 +22,6 @@ pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions}
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
 use crate::metrics::Metrics;
-use crate::rollout::{MAX_ROLLOUT_WORK_STEPS, RolloutError};
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
 
@@ -85,15 +84,6 @@ impl From<BudgetError> for SessionError {
     }
 }
 
-impl From<RolloutError> for SessionError {
-    fn from(e: RolloutError) -> SessionError {
-        match e {
-            RolloutError::InvalidArgument(message) => SessionError::InvalidArgument(message),
-            RolloutError::OverBudget(e) => e.into(),
-        }
-    }
-}
-
 /// Default most live sessions: an idle single-environment session costs ~3.5 KB, so 100,000
 /// fit in well under 1 GiB.
 pub const DEFAULT_MAX_SESSIONS: u32 = 100_000;
@@ -120,8 +110,6 @@ pub struct Limits {
     pub session_ttl: Duration,
     /// Bytes sessions and Rollout streams may hold (the memory budget).
     pub max_memory: u64,
-    /// Most steps one Rollout request may record over all its episodes (its work cap).
-    pub max_rollout_work_steps: u64,
 }
 
 impl Default for Limits {
@@ -131,7 +119,6 @@ impl Default for Limits {
             max_envs_per_session: DEFAULT_MAX_ENVS_PER_SESSION as usize,
             session_ttl: DEFAULT_SESSION_TTL,
             max_memory: DEFAULT_MAX_MEMORY,
-            max_rollout_work_steps: MAX_ROLLOUT_WORK_STEPS,
         }
     }
 }

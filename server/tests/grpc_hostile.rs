@@ -453,9 +453,8 @@ async fn metrics_ask_for_the_servers_token() {
 #[tokio::test]
 async fn a_rollout_stops_at_its_work_cap() {
     let config = ServerConfig {
-        limits: Limits {
-            max_rollout_work_steps: 1000,
-            ..Limits::default()
+        rollout: dinerdash_server::rollout::Limits {
+            max_work_steps: 1000,
         },
         ..ServerConfig::default()
     };

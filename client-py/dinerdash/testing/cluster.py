@@ -30,6 +30,7 @@ import os
 import signal
 import subprocess
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -143,6 +144,7 @@ class LocalCluster:
         self.servers: list[LocalServer] = []
         self._addresses: list[str] = []
         self._hung: set[int] = set()
+        self._launcher = ThreadPoolExecutor(1, thread_name_prefix="dinerdash-cluster-launcher")
         try:
             for _ in range(n):
                 self.add()
@@ -162,6 +164,11 @@ class LocalCluster:
         return len(self.servers)
 
     def _start(self, port: int) -> LocalServer:
+        # Started from the cluster's own thread: on Linux a server dies with the thread that
+        # started it (PR_SET_PDEATHSIG), and a caller's thread (a chaos monkey's) may end first.
+        return self._launcher.submit(self._launch, port).result()
+
+    def _launch(self, port: int) -> LocalServer:
         server = LocalServer(
             self.binary,
             port=port,
@@ -290,12 +297,15 @@ class LocalCluster:
     def close(self) -> None:
         """Stops every server, hung ones included: resume, terminate, wait, kill. Safe to call
         twice."""
-        for i, server in enumerate(self.servers):
-            try:
-                self.resume(i)
-            finally:
-                server.stop()
-        self._hung.clear()
+        try:
+            for i, server in enumerate(self.servers):
+                try:
+                    self.resume(i)
+                finally:
+                    server.stop()
+        finally:
+            self._hung.clear()
+            self._launcher.shutdown(wait=True)
 
     def __enter__(self) -> LocalCluster:
         return self

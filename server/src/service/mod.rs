@@ -20,7 +20,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 pub use rollout_stream::ROLLOUT_UNREAD_TIMEOUT;
-pub use status::{ERROR_DOMAIN, status};
+pub use status::{ERROR_DOMAIN, rollout_status, status};
 pub use step_stream::StepReplies;
 
 use convert::{
@@ -33,7 +33,7 @@ use crate::connections::conn_info;
 use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
 use crate::pb;
-use crate::rollout::{MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
+use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{Batch, ExpertActions, FoundSession, SessionError, SessionOptions, Store};
 use crate::shutdown::Shutdown;
 use crate::sim::{self, SNAPSHOT_VERSION};
@@ -61,6 +61,8 @@ pub struct DinerDashService {
     stopping: Shutdown,
     /// Where the HTTP endpoint (the sessions and watch pages) listens, told by ServerInfo.
     http_addr: Option<std::net::SocketAddr>,
+    /// What one Rollout request may do.
+    rollout: rollout::Limits,
 }
 
 impl DinerDashService {
@@ -78,6 +80,15 @@ impl DinerDashService {
             unknown: Arc::new(Tenant::new("an unknown connection".into(), share)),
             stopping,
             http_addr: None,
+            rollout: rollout::Limits::default(),
+        }
+    }
+
+    /// The same service, letting each Rollout request do what `limits` allow.
+    pub fn with_rollout_limits(self, limits: rollout::Limits) -> DinerDashService {
+        DinerDashService {
+            rollout: limits,
+            ..self
         }
     }
 
@@ -125,9 +136,9 @@ impl DinerDashService {
         conn_info(request).map_or_else(|| Arc::clone(&self.unknown), |c| Arc::clone(&c.tenant))
     }
 
-    /// The status for `e`, counted.
-    fn fail(&self, e: SessionError) -> Status {
-        let status = status(e);
+    /// The status for `e` (a session or Rollout refusal), counted.
+    fn fail(&self, e: impl Into<Status>) -> Status {
+        let status = e.into();
         self.metrics.count_error(status.code() as usize);
         tracing::debug!(code = ?status.code(), message = status.message(), "request refused");
         status
@@ -269,10 +280,10 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             config_from(r.config.as_ref()),
             r.action_masks,
         )
-        .map_err(|e| self.fail(e.into()))?;
+        .map_err(|e| self.fail(e))?;
         let charge = plan
             .charge(self.store.budget(), &tenant)
-            .map_err(|e| self.fail(e.into()))?;
+            .map_err(|e| self.fail(e))?;
 
         let (tx, rx) = tokio::sync::mpsc::channel(ROLLOUT_BUFFER);
         let produce = Produce {
@@ -283,7 +294,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             config: plan.config,
             max_steps: plan.max_steps,
             masks: plan.action_masks,
-            work_cap: self.store.limits().max_rollout_work_steps,
+            work_cap: self.rollout.max_work_steps,
         };
         tokio::spawn(async move {
             produce.run(plan.seeds, tx).await;
@@ -309,7 +320,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             max_rollout_episodes: MAX_ROLLOUT_EPISODES,
             max_memory_bytes: self.store.budget().max_bytes(),
             memory_used_bytes: self.store.budget().used_bytes(),
-            max_rollout_work_steps: limits.max_rollout_work_steps,
+            max_rollout_work_steps: self.rollout.max_work_steps,
             max_message_bytes: MAX_MESSAGE_BYTES as u64,
             snapshot_version: u32::from(SNAPSHOT_VERSION),
             http_port: self.http_addr.map_or(0, |a| u32::from(a.port())),

@@ -8,13 +8,12 @@ use std::time::Duration;
 use tonic::Status;
 
 use super::convert::episode_to;
-use super::status::status;
+use super::status::rollout_status;
 use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::policy::PolicyKind;
-use crate::rollout::{self, Recording};
-use crate::session::SessionError;
+use crate::rollout::{self, Recording, RolloutError};
 use crate::shutdown::{self, STREAM_DRAIN_DEADLINE, Shutdown};
 use crate::sim::Config;
 
@@ -148,7 +147,7 @@ impl Produce {
         match job.await {
             Ok(Ok(Some(rec))) => Next::Episode(rec),
             Ok(Ok(None)) => Next::Gone,
-            Ok(Err(e)) => Next::Fail(status(SessionError::InvalidArgument(e.to_string()))),
+            Ok(Err(e)) => Next::Fail(rollout_status(RolloutError::InvalidArgument(e.to_string()))),
             Err(e) => {
                 tracing::error!("rollout worker failed: {e}");
                 Next::Fail(Status::internal(format!("rollout worker failed: {e}")))

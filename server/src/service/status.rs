@@ -1,5 +1,7 @@
-//! Where errors become `tonic::Status`: each [`SessionError`] mapped once, with the structured
-//! details clients read.
+//! Where errors become `tonic::Status`: one mapping per module's error, each variant mapped once,
+//! with the structured details clients read: [`status`] for the session store's
+//! [`SessionError`], [`rollout_status`] for the Rollout rules' [`RolloutError`]; both share the
+//! memory budget's reasons ([`BudgetError`]).
 
 use std::collections::HashMap;
 
@@ -7,6 +9,7 @@ use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use crate::budget::BudgetError;
+use crate::rollout::RolloutError;
 use crate::session::SessionError;
 
 /// `ErrorInfo.domain` of every error this server returns.
@@ -42,34 +45,7 @@ pub fn status(e: SessionError) -> Status {
             "TOO_MANY_SESSIONS",
             vec![("max_sessions", max.to_string())],
         ),
-        SessionError::OverBudget(b) => {
-            let (reason, metadata) = match b {
-                BudgetError::Memory { needed, used, max } => (
-                    "MEMORY_BUDGET",
-                    vec![
-                        ("needed_bytes", needed.to_string()),
-                        ("used_bytes", used.to_string()),
-                        ("max_bytes", max.to_string()),
-                    ],
-                ),
-                BudgetError::TenantEnvs { tenant, max, .. } => (
-                    "TENANT_ENVS",
-                    vec![("tenant", tenant.clone()), ("max", max.to_string())],
-                ),
-                BudgetError::TenantSessions { tenant, max } => (
-                    "TENANT_SESSIONS",
-                    vec![("tenant", tenant.clone()), ("max", max.to_string())],
-                ),
-                BudgetError::TenantRollouts { tenant, max } => (
-                    "TENANT_ROLLOUTS",
-                    vec![("tenant", tenant.clone()), ("max", max.to_string())],
-                ),
-                BudgetError::Sessions(max) => {
-                    ("TOO_MANY_SESSIONS", vec![("max_sessions", max.to_string())])
-                }
-            };
-            (Code::ResourceExhausted, reason, metadata)
-        }
+        SessionError::OverBudget(b) => over_budget(b),
         SessionError::NotReset => (Code::FailedPrecondition, "NOT_RESET", vec![]),
         SessionError::EpisodeOver => (
             Code::FailedPrecondition,
@@ -83,22 +59,95 @@ pub fn status(e: SessionError) -> Status {
         ),
         SessionError::Internal(_) => (Code::Internal, "INTERNAL", vec![]),
     };
+    let field = match &e {
+        SessionError::ActionOutOfRange { env, .. } => Some(format!("actions[{env}]")),
+        SessionError::KeptNeverReset(i) => Some(format!("reset_mask[{i}]")),
+        _ if code == Code::InvalidArgument => Some(offending_field(&message).to_owned()),
+        _ => None,
+    };
+    refusal(code, reason, metadata, message, field)
+}
+
+/// Maps a Rollout request's refusal to its gRPC status, with the same reasons and details as
+/// the session store's errors of the same kind.
+pub fn rollout_status(e: RolloutError) -> Status {
+    let message = e.to_string();
+    match &e {
+        RolloutError::InvalidArgument(_) => {
+            let field = offending_field(&message).to_owned();
+            refusal(
+                Code::InvalidArgument,
+                "INVALID_ARGUMENT",
+                vec![],
+                message,
+                Some(field),
+            )
+        }
+        RolloutError::OverBudget(b) => {
+            let (code, reason, metadata) = over_budget(b);
+            refusal(code, reason, metadata, message, None)
+        }
+    }
+}
+
+impl From<SessionError> for Status {
+    fn from(e: SessionError) -> Status {
+        status(e)
+    }
+}
+
+impl From<RolloutError> for Status {
+    fn from(e: RolloutError) -> Status {
+        rollout_status(e)
+    }
+}
+
+/// The code, reason and metadata of a refusal by the memory budget.
+fn over_budget(b: &BudgetError) -> (Code, &'static str, Vec<(&'static str, String)>) {
+    let (reason, metadata) = match b {
+        BudgetError::Memory { needed, used, max } => (
+            "MEMORY_BUDGET",
+            vec![
+                ("needed_bytes", needed.to_string()),
+                ("used_bytes", used.to_string()),
+                ("max_bytes", max.to_string()),
+            ],
+        ),
+        BudgetError::TenantEnvs { tenant, max, .. } => (
+            "TENANT_ENVS",
+            vec![("tenant", tenant.clone()), ("max", max.to_string())],
+        ),
+        BudgetError::TenantSessions { tenant, max } => (
+            "TENANT_SESSIONS",
+            vec![("tenant", tenant.clone()), ("max", max.to_string())],
+        ),
+        BudgetError::TenantRollouts { tenant, max } => (
+            "TENANT_ROLLOUTS",
+            vec![("tenant", tenant.clone()), ("max", max.to_string())],
+        ),
+        BudgetError::Sessions(max) => {
+            ("TOO_MANY_SESSIONS", vec![("max_sessions", max.to_string())])
+        }
+    };
+    (Code::ResourceExhausted, reason, metadata)
+}
+
+/// A status of `code` with `message`, an `ErrorInfo` of `reason` and `metadata`, and, when
+/// `field` is given, a `BadRequest` violation naming it.
+fn refusal(
+    code: Code,
+    reason: &str,
+    metadata: Vec<(&'static str, String)>,
+    message: String,
+    field: Option<String>,
+) -> Status {
     let metadata: HashMap<String, String> = metadata
         .into_iter()
         .map(|(k, v)| (k.to_string(), v))
         .collect();
     let mut details = ErrorDetails::with_error_info(reason, ERROR_DOMAIN, metadata);
-    match &e {
-        SessionError::ActionOutOfRange { env, .. } => {
-            details.add_bad_request_violation(format!("actions[{env}]"), message.clone());
-        }
-        SessionError::KeptNeverReset(i) => {
-            details.add_bad_request_violation(format!("reset_mask[{i}]"), message.clone());
-        }
-        _ if code == Code::InvalidArgument => {
-            details.add_bad_request_violation(offending_field(&message), message.clone());
-        }
-        _ => {}
+    if let Some(field) = field {
+        details.add_bad_request_violation(field, message.clone());
     }
     Status::with_error_details(code, message, details)
 }

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::policy::expert_action;
-use dinerdash_server::server::{self, ServerConfig, ServerError};
+use dinerdash_server::server::{self, Listeners, ServerConfig, ServerError};
 use dinerdash_server::sim::{Config, Game};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
@@ -30,17 +30,17 @@ pub struct TestServer {
 
 impl TestServer {
     /// Starts a server with `config` (its metrics listener is made here when `metrics`).
-    pub async fn start_with(mut config: ServerConfig, metrics: bool) -> TestServer {
-        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
+    pub async fn start_with(config: ServerConfig, metrics: bool) -> TestServer {
+        let mut listeners = Listeners::grpc(TcpListener::bind("127.0.0.1:0").await.unwrap());
+        let addr = listeners.grpc.local_addr().unwrap();
         let mut metrics_addr = None;
         if metrics {
             let l = TcpListener::bind("127.0.0.1:0").await.unwrap();
             metrics_addr = Some(l.local_addr().unwrap());
-            config.http_listener = Some(l);
+            listeners.http = Some(l);
         }
         let (stop, stopped) = oneshot::channel::<()>();
-        let task = tokio::spawn(server::run(listener, config, async {
+        let task = tokio::spawn(server::run(listeners, config, async {
             let _ = stopped.await;
         }));
         TestServer {
