@@ -127,6 +127,15 @@ AGENTS = [
     Agent(
         "dagger-gru-w10", "dagger-recurrent", 0, "masked", None, teacher="planner", training_seeds=3
     ),
+    Agent(
+        "dagger-stack-w10",
+        "dagger-recurrent",
+        0,
+        "masked",
+        None,
+        teacher="planner",
+        training_seeds=3,
+    ),
 ]
 #: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
 #: (docs/agents.md says why the planner's seat states weigh 10).
@@ -144,6 +153,16 @@ RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {
     # episodes), seat weight 10: chosen on seeds 2000..2049 (7,934 against 6,055).
     "dagger-gru-w10": {
         "kind": "gru",
+        "hidden": 256,
+        "rounds": 4,
+        "episodes_per_round": 128,
+        "epochs": 2,
+        "seat_weight": 10.0,
+    },
+    # The frame-stacked baseline at dagger-gru-w10's budget.
+    "dagger-stack-w10": {
+        "kind": "stack",
+        "stack": 8,
         "hidden": 256,
         "rounds": 4,
         "episodes_per_round": 128,
