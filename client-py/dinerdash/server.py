@@ -17,7 +17,6 @@ import os
 import queue
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -85,15 +84,18 @@ def _wheel_binary() -> Path | None:
         return None
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    try:
-        import ctypes
+def _death_signal() -> list[str]:
+    """The command prefix that makes the server die with the thread that started it: ``setpriv
+    --pdeathsig TERM`` where there is one (Linux, util-linux), else nothing.
 
-        libc = ctypes.CDLL(None, use_errno=True)
-        pr_set_pdeathsig = 1
-        libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
-    except Exception:
-        pass
+    Not a ``preexec_fn`` calling ``prctl``: with one, Python must ``fork`` and run code in the
+    child, and gRPC's ``pthread_atfork`` handlers wait for its threads first, for ever in a
+    process whose channels are reconnecting to a server that died (grpc/grpc#37259). Without one,
+    Python spawns with ``vfork``, which runs no handlers."""
+    if not sys.platform.startswith("linux"):
+        return []
+    setpriv = shutil.which("setpriv")
+    return [setpriv, "--pdeathsig", "TERM", "--"] if setpriv else []
 
 
 #: Seconds between the SIGTERMs that stop a server: its first one starts a drain that serves the
@@ -171,11 +173,10 @@ class LocalServer:
         cmd = [str(self.binary), "--host", self.host, "--port", str(self.port), *self.args]
         try:
             self.process = subprocess.Popen(
-                cmd,
+                [*_death_signal(), *cmd],
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=self._stderr,
-                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
             )
         except OSError as e:
             raise LocalServerError(f"could not start {cmd[0]}: {e}; {_BUILD_HINT}") from None

@@ -2,14 +2,11 @@
 
 Each server is a :class:`~dinerdash.server.LocalServer` (the same binary lookup: the ``binary``
 argument, ``DINERDASH_SERVER``, the ``dinerdash-server`` wheel, ``PATH``, the workspace's release
-build) listening on a port it picked itself. Unlike the embedded default it is started without a
-``preexec_fn``: Python then spawns it with ``vfork``, which runs no ``pthread_atfork`` handlers.
-gRPC's handlers wait for its threads before a ``fork``, and in a test process whose channels are
-reconnecting to a killed server that wait can last for ever (grpc/grpc#37259). On Linux, where
-``setpriv`` is installed, the server still dies with the thread that started it
-(``--pdeathsig``), a thread of the cluster's own. A server keeps its index and its address for the
-whole life of the cluster: :meth:`LocalCluster.restart` starts it again on the same port, as a
-supervisor (systemd, Kubernetes, Ray) would.
+build) listening on a port it picked itself; where ``setpriv`` is installed it dies with the
+thread that started it (``dinerdash.server._death_signal``), a thread of the cluster's own. A
+server keeps its index and its address for the whole life of the cluster:
+:meth:`LocalCluster.restart` starts it again on the same port, as a supervisor (systemd,
+Kubernetes, Ray) would.
 
 The faults are signals, so they are what a real machine does:
 
@@ -32,86 +29,21 @@ terminate, wait, kill.
 from __future__ import annotations
 
 import os
-import queue
-import shutil
 import signal
 import subprocess
-import sys
-import tempfile
-import threading
 import time
-import weakref
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from ..errors import LocalServerError
-from ..server import _BUILD_HINT, _LISTENING, LocalServer, _pump, _stop_process, find_server_binary
+from ..server import LocalServer, find_server_binary
 
 __all__ = ["LocalCluster", "server_args"]
 
 #: Seconds a restarted server keeps trying its old port: a port just freed by a killed process
 #: can stay taken for a moment.
 REBIND_TIMEOUT = 10.0
-
-
-def _death_signal() -> list[str]:
-    """The command prefix that makes the server die with the thread that started it: ``setpriv
-    --pdeathsig TERM`` where there is one (Linux, util-linux), else nothing."""
-    if not sys.platform.startswith("linux"):
-        return []
-    setpriv = shutil.which("setpriv")
-    return [setpriv, "--pdeathsig", "TERM", "--"] if setpriv else []
-
-
-class ClusterServer(LocalServer):
-    """A :class:`~dinerdash.server.LocalServer` started by ``vfork`` (no ``preexec_fn``): see the
-    module's docs. Everything but :meth:`start` is LocalServer's."""
-
-    def start(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            return
-        self._stderr = tempfile.TemporaryFile(mode="w+b")
-        cmd = [str(self.binary), "--host", self.host, "--port", str(self.port), *self.args]
-        try:
-            self.process = subprocess.Popen(
-                [*_death_signal(), *cmd],
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.PIPE,
-                stderr=self._stderr,
-            )
-        except OSError as e:
-            raise LocalServerError(f"could not start {cmd[0]}: {e}; {_BUILD_HINT}") from None
-        self._finalizer = weakref.finalize(self, _stop_process, self.process, self.stop_timeout)
-        lines: queue.Queue[str | None] = queue.Queue()
-        threading.Thread(
-            target=_pump,
-            args=(self.process.stdout, lines),
-            name="dinerdash-server-stdout",
-            daemon=True,
-        ).start()
-        deadline = time.monotonic() + self.startup_timeout
-        while True:
-            try:
-                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                tail = self._stderr_tail()
-                self.stop()
-                raise LocalServerError(
-                    f"{' '.join(cmd)} did not print 'dinerdash-server listening on HOST:PORT' "
-                    f"within {self.startup_timeout:g} s{tail}"
-                ) from None
-            if line is None:  # stdout closed: the server exited
-                code = self.process.wait()
-                tail = self._stderr_tail()
-                self.stop()
-                raise LocalServerError(
-                    f"{' '.join(cmd)} exited with status {code} before listening{tail}"
-                )
-            match = _LISTENING.match(line)
-            if match is not None:
-                self.address = match.group(1)
-                return
 
 
 def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
@@ -239,7 +171,7 @@ class LocalCluster:
         return self._launcher.submit(self._launch, port).result()
 
     def _launch(self, port: int) -> LocalServer:
-        server = ClusterServer(
+        server = LocalServer(
             self.binary,
             port=port,
             args=self.args,
