@@ -735,25 +735,35 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 return
             covered.update(range(lo, hi))
 
-    def _transfer(self, source: SessionCore, lo: int, hi: int, dest: int) -> bool:
-        """Opens a session on server ``dest`` for environments ``lo:hi`` of ``source``, each to
-        enter it at its episode end; until then its slots are stepped, their results unused.
-        False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
+    def _open(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, pb.Batch] | None:
+        """A new session on server ``dest`` for environments ``lo:hi``, created and reset
+        (unseeded: the new server draws the episodes' seeds, as an autoreset does), with its
+        first Batch; None when ``dest`` cannot take it now (it drains, is full or unreachable:
+        :meth:`_refused` notes why)."""
         new = SessionCore(self._endpoint, dest, lo, hi, self._settings)
         try:
             new.create(self._quick())
-            new.last = new.note(
-                new.conn.call(
-                    "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
-                )
+            first = new.conn.call(
+                "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
             )
         except ServiceError as e:
             new.close()
             self._refused(dest, e)
-            return False
+            return None
         except BaseException:
             new.close()
             raise
+        return new, first
+
+    def _transfer(self, source: SessionCore, lo: int, hi: int, dest: int) -> bool:
+        """Opens a session on server ``dest`` for environments ``lo:hi`` of ``source``, each to
+        enter it at its episode end; until then its slots are stepped, their results unused.
+        False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
+        opened = self._open(dest, lo, hi)
+        if opened is None:
+            return False
+        new, first = opened
+        new.last = new.note(first)
         new.owned = np.zeros(new.size, dtype=np.bool_)
         new.source = source
         self._cores.append(new)
@@ -826,19 +836,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         and reset now; unseeded: the new server draws the episode's seed, as an autoreset
         does): its Batch of this step becomes the new core's (:func:`handover`). False when
         ``dest`` cannot take it now (it drains, is full or unreachable): it stays, for now."""
-        new = SessionCore(self._endpoint, dest, i, i + 1, self._settings)
-        try:
-            new.create(self._quick())
-            first = new.conn.call(
-                "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
-            )
-        except ServiceError as e:
-            new.close()
-            self._refused(dest, e)
+        opened = self._open(dest, i, i + 1)
+        if opened is None:
             return False
-        except BaseException:
-            new.close()
-            raise
+        new, first = opened
         ended = slice_batch(core.last, i - core.start, i - core.start + 1)
         new.last, new.pending = handover(ended, first, self.autoreset_mode, cut)
         new.reconnected = cut
