@@ -83,7 +83,7 @@ def test_a_black_holed_server_is_given_up(dinerdash_cluster) -> None:
     s0, s1, s2 = dinerdash_cluster.addresses
     proxy = FaultProxy(s1)
     reference = DinerDashVectorEnv(N, s0, expert=True, config=CONFIG)
-    envs = make([s0, proxy.address, s2], timeout=60)
+    envs = make([s0, proxy.address, s2], timeout=60, transport="grpc")  # through the proxy
     try:
         took = run_loss(envs, reference, proxy.blackhole, plain_step)
         print(f"\n[black-holed server] given up in {took:.3f} s")
@@ -102,7 +102,7 @@ def test_a_slow_server_is_kept(dinerdash_cluster) -> None:
     s0, s1, s2 = dinerdash_cluster.addresses
     proxy = FaultProxy(s1)
     proxy.latency(0.6)
-    envs = make([s0, proxy.address, s2], failover_after=4.0)
+    envs = make([s0, proxy.address, s2], failover_after=4.0, transport="grpc")
     reference = DinerDashVectorEnv(N, s0, expert=True, config=CONFIG)
     try:
         rng = np.random.default_rng(1)

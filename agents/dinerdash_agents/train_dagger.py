@@ -34,7 +34,7 @@ from .dagger import (
 )
 from .evaluate import evaluate_policy
 
-__all__ = ["CURVE_COLUMNS", "iter_rows", "train_dagger"]
+__all__ = ["CURVE_COLUMNS", "iter_rows", "save_run", "train_dagger"]
 
 #: The columns of a DAgger run's ``curve.csv``.
 CURVE_COLUMNS = (
@@ -154,19 +154,59 @@ def _train(
         envs.close()
     assert best is not None
     seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
-    last_validation_seed = VALIDATION_SEED + config.validation_episodes - 1
     out = Path(out)
+    description = save_run(
+        out,
+        name=name,
+        algorithm="dagger",
+        config=config,
+        seeds=seeds,
+        data={"steps": aggregate.steps, "environment_steps": environment_steps},
+        seed=seed,
+        best=best,
+        seconds=seconds,
+        cpu_seconds=cpu_seconds,
+        final_loss=losses[-1],
+        rows=rows,
+        columns=CURVE_COLUMNS,
+        title=f"DAgger, teacher {config.teacher}: {out.name}",
+    )
+    return checkpoint.Policy(best[2], checkpoint.read_description(out)), description
+
+
+def save_run(
+    out: Path,
+    *,
+    name: str | None,
+    algorithm: str,
+    config: Any,
+    seeds: list[int],
+    data: dict[str, Any],
+    seed: int,
+    best: tuple[float, int, Any],
+    seconds: float,
+    cpu_seconds: float,
+    final_loss: float,
+    rows: list[dict[str, Any]],
+    columns: tuple[str, ...],
+    title: str,
+    training: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Saves a DAgger run's best round (``best``: its validation mean score, its round, its
+    parameters) as a checkpoint under ``out``, with its description and its curve (one row a
+    round, of ``columns``); returns the description. ``data`` and ``training``: the algorithm's
+    own entries of the description's "data" and "training" sections."""
+    last_validation_seed = VALIDATION_SEED + config.validation_episodes - 1
     description = {
         "name": name or out.name,
-        "algorithm": "dagger",
+        "algorithm": algorithm,
         "package_version": __version__,
         "config": config.to_json(),
         "data": {
             "teacher": config.teacher,
             "episodes": len(seeds),
             "seeds": [seeds[0], seeds[-1]],
-            "steps": aggregate.steps,
-            "environment_steps": environment_steps,
+            **data,
         },
         "training": {
             "seed": seed,
@@ -176,15 +216,15 @@ def _train(
             "validation_seeds": f"{VALIDATION_SEED}..{last_validation_seed}",
             "seconds": round(seconds, 3),
             "cpu_seconds": round(cpu_seconds, 3),
-            "final_losses": {"cross_entropy": round(losses[-1], 6)},
+            **(training or {}),
+            "final_losses": {"cross_entropy": round(final_loss, 6)},
         },
     }
-    title = f"DAgger, teacher {config.teacher}: {out.name}"
 
     def curve(tmp: Path) -> None:
         write_curve(
             tmp,
-            CURVE_COLUMNS,
+            columns,
             rows,
             lines={
                 "validation_mean_score": f"learner, seeds {VALIDATION_SEED}..",
@@ -197,7 +237,7 @@ def _train(
         )
 
     checkpoint.save(out, best[2], description, extra=curve)
-    return checkpoint.Policy(best[2], checkpoint.read_description(out)), description
+    return description
 
 
 def iter_rows(directory: str | Path) -> Iterator[dict[str, str]]:

@@ -14,9 +14,7 @@ import gymnasium
 import numpy as np
 
 from . import checkpoint
-from ._version import __version__
 from .connect import ConnectOptions, options, served
-from .curves import write_curve
 from .dagger import VALIDATION_SEED, MemoryFeatures, training_seeds
 from .evaluate import evaluate_policy
 from .recurrent import (
@@ -30,6 +28,7 @@ from .recurrent import (
     init,
     sequence_starts,
 )
+from .train_dagger import save_run
 
 __all__ = ["CURVE_COLUMNS", "play_round", "train_recurrent"]
 
@@ -232,48 +231,21 @@ def _train(out, config, connect, seed, name, progress):
     assert best is not None
     seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
     states = sum(len(e) for e in aggregate)
-    description = {
-        "name": name or out.name,
-        "algorithm": ALGORITHM,
-        "package_version": __version__,
-        "config": config.to_json(),
-        "data": {
-            "teacher": config.teacher,
-            "episodes": len(seeds),
-            "seeds": [seeds[0], seeds[-1]],
-            "steps": states,
-            "environment_steps": states,
-        },
-        "training": {
-            "seed": seed,
-            "rounds": config.rounds,
-            "best_round": best[1],
-            "best_validation_mean_score": round(best[0], 1),
-            "validation_seeds": (
-                f"{VALIDATION_SEED}..{VALIDATION_SEED + config.validation_episodes - 1}"
-            ),
-            "seconds": round(seconds, 3),
-            "cpu_seconds": round(cpu_seconds, 3),
-            "labelled_states_per_second": round(states / seconds, 1),
-            "final_losses": {"cross_entropy": round(losses[-1], 6)},
-        },
-    }
-    title = f"sequence DAgger ({config.kind}), teacher {config.teacher}: {out.name}"
-
-    def curve(tmp: Path) -> None:
-        write_curve(
-            tmp,
-            CURVE_COLUMNS,
-            rows,
-            lines={
-                "validation_mean_score": f"learner, seeds {VALIDATION_SEED}..",
-                "rollout_mean_score": "mixture policy π_i",
-            },
-            xlabel="DAgger round",
-            ylabel="mean final score",
-            title=title,
-            marker="o",
-        )
-
-    checkpoint.save(out, best[2], description, extra=curve)
+    description = save_run(
+        out,
+        name=name,
+        algorithm=ALGORITHM,
+        config=config,
+        seeds=seeds,
+        data={"steps": states, "environment_steps": states},
+        seed=seed,
+        best=best,
+        seconds=seconds,
+        cpu_seconds=cpu_seconds,
+        final_loss=losses[-1],
+        rows=rows,
+        columns=CURVE_COLUMNS,
+        title=f"sequence DAgger ({config.kind}), teacher {config.teacher}: {out.name}",
+        training={"labelled_states_per_second": round(states / seconds, 1)},
+    )
     return RecurrentPolicy(best[2], checkpoint.read_description(out)), description

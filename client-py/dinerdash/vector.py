@@ -735,7 +735,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 return
             covered.update(range(lo, hi))
 
-    def _open(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, pb.Batch] | None:
+    def _session_on(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, pb.Batch] | None:
         """A new session on server ``dest`` for environments ``lo:hi``, created and reset
         (unseeded: the new server draws the episodes' seeds, as an autoreset does), with its
         first Batch; None when ``dest`` cannot take it now (it drains, is full or unreachable:
@@ -759,7 +759,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """Opens a session on server ``dest`` for environments ``lo:hi`` of ``source``, each to
         enter it at its episode end; until then its slots are stepped, their results unused.
         False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
-        opened = self._open(dest, lo, hi)
+        opened = self._session_on(dest, lo, hi)
         if opened is None:
             return False
         new, first = opened
@@ -836,7 +836,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         and reset now; unseeded: the new server draws the episode's seed, as an autoreset
         does): its Batch of this step becomes the new core's (:func:`handover`). False when
         ``dest`` cannot take it now (it drains, is full or unreachable): it stays, for now."""
-        opened = self._open(dest, i, i + 1)
+        opened = self._session_on(dest, i, i + 1)
         if opened is None:
             return False
         new, first = opened
