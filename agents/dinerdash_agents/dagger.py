@@ -61,6 +61,7 @@ __all__ = [
     "DaggerConfig",
     "DaggerNet",
     "MemoryFeatures",
+    "SeedQueue",
     "betas",
     "config_from_json",
     "fit_round",
@@ -397,6 +398,41 @@ class RoundPlay:
     teacher_steps: int
 
 
+class SeedQueue:
+    """One episode per seed of ``seeds`` over the ``n`` environments of a vector env: which
+    episode each environment plays (``slot``, -1: none, it plays on unrecorded), which are still
+    recorded (``active``) and each episode's final score (``scores``, in the order of
+    ``seeds``). Environments beyond the seeds (fewer episodes than environments) start on the
+    first seed and are never recorded."""
+
+    def __init__(self, seeds: list[int], n: int) -> None:
+        first, self.queue = list(seeds[:n]), list(seeds[n:])
+        self.slot = list(range(len(first))) + [-1] * (n - len(first))
+        #: The seeds of the first reset, one per environment.
+        self.padded = first + [first[0]] * (n - len(first))
+        self.scores = np.zeros(len(seeds), np.int64)
+        self.next_episode = len(first)
+        self.active = np.array([s >= 0 for s in self.slot])
+
+    def end(self, ended: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """Records the final ``score`` of the episodes of the environments ``ended`` and starts
+        the next seed on each of them, or retires it when none is left: returns the reset mask
+        and the seeds to reset with (``options={"reset_mask": ...}``)."""
+        reset = np.zeros(len(self.slot), np.bool_)
+        new_seeds = list(self.padded)
+        for i in np.flatnonzero(ended):
+            self.scores[self.slot[i]] = score[i]
+            if self.queue:
+                new_seeds[i] = self.queue.pop(0)
+                self.slot[i] = self.next_episode
+                self.next_episode += 1
+                reset[i] = True
+            else:
+                self.slot[i] = -1
+                self.active[i] = False
+        return reset, new_seeds
+
+
 def play_round(
     envs: Any,
     learner: Callable[[np.ndarray, np.ndarray], np.ndarray],
@@ -416,20 +452,11 @@ def play_round(
     ``beta`` is 1. Environments left without a seed at the end play on unrecorded. With
     ``memory``, every observation is first extended by its :class:`MemoryFeatures` (for the
     learner and the aggregate alike)."""
-    n = envs.num_envs
-    queue = list(seeds)
-    first = queue[:n]
-    queue = queue[n:]
-    # Environments beyond the seeds (fewer episodes than environments) are never recorded.
-    slot = list(range(len(first)))  # episode index played by each environment, -1 idle
-    slot += [-1] * (n - len(first))
-    padded = first + [first[0]] * (n - len(first))
-    obs, info = envs.reset(seed=padded)
-    scores = np.zeros(len(seeds), np.int64)
+    episodes = SeedQueue(seeds, envs.num_envs)
+    slot, active = episodes.slot, episodes.active
+    obs, info = envs.reset(seed=episodes.padded)
     lengths = np.zeros(len(seeds), np.int64)
-    next_episode = len(first)
     states = teacher_steps = 0
-    active = np.array([s >= 0 for s in slot])
     while active.any():
         if memory is not None:
             obs = memory.augment(obs)
@@ -446,21 +473,10 @@ def play_round(
         ended = (np.asarray(terminated) | np.asarray(truncated)) & active
         if not ended.any():
             continue
-        reset = np.zeros(n, np.bool_)
-        new_seeds = list(padded)
-        for i in np.flatnonzero(ended):
-            scores[slot[i]] = info["score"][i]
-            if queue:
-                new_seeds[i] = queue.pop(0)
-                slot[i] = next_episode
-                next_episode += 1
-                reset[i] = True
-            else:
-                slot[i] = -1
-                active[i] = False
+        reset, new_seeds = episodes.end(ended, info["score"])
         if reset.any():
             obs, info = envs.reset(seed=new_seeds, options={"reset_mask": reset})
-    return RoundPlay(scores, lengths, states, teacher_steps)
+    return RoundPlay(episodes.scores, lengths, states, teacher_steps)
 
 
 def seat_weights(actions: np.ndarray, seat_weight: float) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 
 from . import checkpoint
 from .connect import ConnectOptions, options, served
-from .dagger import VALIDATION_SEED, MemoryFeatures, training_seeds
+from .dagger import VALIDATION_SEED, MemoryFeatures, SeedQueue, training_seeds
 from .evaluate import evaluate_policy
 from .recurrent import (
     ALGORITHM,
@@ -67,19 +67,14 @@ def play_round(
     With ``memory``, the recorded observations are extended by its features (as the learner's
     own, which it computes itself)."""
     n = envs.num_envs
-    queue = list(seeds)
-    first, queue = queue[:n], queue[n:]
-    slot = list(range(len(first))) + [-1] * (n - len(first))
-    padded = first + [first[0]] * (n - len(first))
-    obs, info = envs.reset(seed=padded)
+    played = SeedQueue(seeds, n)
+    slot, active = played.slot, played.active
+    obs, info = envs.reset(seed=played.padded)
     if learner is not None:
         learner.reset()
     record: list[dict[str, list]] = [
         {"obs": [], "mask": [], "action": []} for _ in range(len(seeds))
     ]
-    scores = np.zeros(len(seeds), np.int64)
-    next_episode = len(first)
-    active = np.array([s >= 0 for s in slot])
     restart = np.ones(n, np.bool_)
     while active.any():
         teacher = np.asarray(info["expert_action"], np.int64)
@@ -101,18 +96,7 @@ def play_round(
         ended = (np.asarray(terminated) | np.asarray(truncated)) & active
         if not ended.any():
             continue
-        reset = np.zeros(n, np.bool_)
-        new_seeds = list(padded)
-        for i in np.flatnonzero(ended):
-            scores[slot[i]] = info["score"][i]
-            if queue:
-                new_seeds[i] = queue.pop(0)
-                slot[i] = next_episode
-                next_episode += 1
-                reset[i] = True
-            else:
-                slot[i] = -1
-                active[i] = False
+        reset, new_seeds = played.end(ended, info["score"])
         if reset.any():
             obs, info = envs.reset(seed=new_seeds, options={"reset_mask": reset})
             restart = reset
@@ -122,7 +106,7 @@ def play_round(
         episodes.append(
             Episode(o, np.stack(r["mask"]), np.asarray(r["action"], np.int32), sequence_starts(o))
         )
-    return episodes, scores
+    return episodes, played.scores
 
 
 def train_recurrent(
