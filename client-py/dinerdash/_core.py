@@ -24,6 +24,7 @@ from gymnasium.vector import AutoresetMode
 from . import _shm
 from ._arguments import config_dict
 from ._caller import Caller
+from ._decode import copy_of
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection
@@ -435,12 +436,11 @@ class SessionCore:
         from a lost session, and starts the new session's, whose Reset replied ``first``: the
         old episodes end truncated (reward 0), and ``info["reconnected"]`` will say so."""
         n = self.size
-        out = pb.Batch()
         if self.settings.autoreset_mode != AutoresetMode.SAME_STEP:
             # This step ends the episodes (last state, truncated). NEXT_STEP: the next step
             # hands out the new session's first observations as the autoreset. DISABLED: the
             # caller resets them; the new session's episodes have already started.
-            out.CopyFrom(last)
+            out = copy_of(last)
             out.reset = bytes(n)
             del out.seeds[:]
             out.seeds.extend([0] * n)
@@ -448,7 +448,7 @@ class SessionCore:
                 self.pending = first
         else:
             # SAME_STEP: the new episodes start in this very step; the old ones are final_*.
-            out.CopyFrom(first)
+            out = copy_of(first)
             out.final_observations = last.observations
             out.final_scores = last.scores
             out.final_lost = last.lost

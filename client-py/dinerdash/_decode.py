@@ -26,6 +26,18 @@ def drain_remaining_ms(batch: pb.Batch | None) -> int:
     return 0 if batch is None else batch.drain_remaining_ms
 
 
+def copy_of(batch: Any) -> pb.Batch:
+    """A ``pb.Batch`` of ``batch``'s own: a copy of a gRPC reply, or the ``pb.Batch`` that a
+    shared-memory reply (:class:`dinerdash._shm.RegionBatch`, which protobuf cannot copy from)
+    makes of itself."""
+    to_pb = getattr(batch, "to_pb", None)
+    if to_pb is not None:
+        return to_pb()
+    out = pb.Batch()
+    out.CopyFrom(batch)
+    return out
+
+
 def slice_batch(batch: pb.Batch, lo: int, hi: int) -> pb.Batch:
     """Environments ``lo:hi`` of ``batch``: every packed field cut at its width per environment
     (the observations' 40 bytes, a score's 4, ...), every repeated field sliced."""

@@ -26,6 +26,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 
 from . import connection
+from ._decode import copy_of
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection, ConnectOptions, _split_host_port
@@ -214,14 +215,12 @@ def handover(ended: pb.Batch, first: pb.Batch, mode: AutoresetMode, cut: bool) -
     episodes end truncated in this step, as a failover's do, keeping this step's rewards."""
     n = ended.num_envs or len(ended.rewards) // 4
     if mode != AutoresetMode.SAME_STEP:
-        out = pb.Batch()
-        out.CopyFrom(ended)
+        out = copy_of(ended)
         if cut:
             terminated = np.frombuffer(ended.terminated, np.bool_)
             out.truncated = (~terminated).astype(np.uint8).tobytes()
         return out, first
-    out = pb.Batch()
-    out.CopyFrom(first)
+    out = copy_of(first)
     out.rewards = ended.rewards
     out.terminated = ended.terminated
     if cut:
@@ -263,8 +262,7 @@ def splice(base: pb.Batch, other: pb.Batch, mask: np.ndarray, fields=None) -> pb
     environments) for ``fields`` (default: every field ``other`` has but the episode outcome
     and ``final_*``); a field missing on one side counts as zeros."""
     n = len(mask)
-    out = pb.Batch()
-    out.CopyFrom(base)
+    out = copy_of(base)
     if fields is None:
         fields = [
             d.name
