@@ -10,6 +10,7 @@ the module's wall time); the training runs once, in :func:`trained`. Skipped whe
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -231,9 +232,11 @@ def test_a_dead_server_comes_back_on_its_port(pool) -> None:
 
 def test_a_server_ray_restarts_is_taken_back(pool) -> None:
     """An EnvRunner's env over both servers (what ``make_env`` builds for a runner whose share
-    is both): the first server's process dies, its environments move to the second after
-    ``failover_after``; Ray restarts the server on its port, and the env takes it back and
-    moves environments onto it at their episode ends until each server holds two."""
+    is both): the first server's process stops answering, its environments move to the second
+    after ``failover_after``; the process is then killed, Ray restarts the server on its port, and
+    the env takes it back and moves environments onto it at their episode ends until each server
+    holds two. (The process is stopped before it is killed because Ray can restart a killed
+    server in less than ``failover_after``: the env would then just reconnect, losing nothing.)"""
     from dinerdash.ray.rllib import make_env
 
     envs = make_env(
@@ -248,9 +251,10 @@ def test_a_server_ray_restarts_is_taken_back(pool) -> None:
     try:
         envs.reset(seed=0)
         pid = pool.pids()[0]
-        os.kill(pid, signal.SIGKILL)
+        os.kill(pid, signal.SIGSTOP)
         _, _, _, _, info = envs.step(np.zeros(4, dtype=np.int64))
         assert info["reconnected"][:2].all() and envs.lost_addresses == [pool.addresses[0]]
+        os.kill(pid, signal.SIGKILL)
         deadline = time.monotonic() + 60
         while envs.rejoins == 0 or len(envs.addresses) < 2:
             assert time.monotonic() < deadline, f"not taken back: {envs.env_slices}"
@@ -260,3 +264,5 @@ def test_a_server_ray_restarts_is_taken_back(pool) -> None:
         assert sorted(envs.addresses) == sorted(pool.addresses)
     finally:
         envs.close()
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)  # still stopped if an assertion above failed
