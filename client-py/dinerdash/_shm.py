@@ -77,6 +77,11 @@ _DRAIN_AT, _DRAIN = _LENGTHS + 4 * len(FIELDS), struct.Struct("<I")
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
 #: How often a Step waiting for its reply looks at its deadline and its connection.
 _TICK = 0.25
+#: A Step whose last reply came within this many seconds polls for its reply (non-blocking
+#: ``recv``) this long before it sleeps in ``recv``: on a virtual machine, waking a process
+#: whose CPU went idle costs tens of microseconds, more than a small session's Step. The
+#: server's session thread does the same for the next Step (``server/src/shm/mod.rs``, ``SPIN``).
+_SPIN = 100e-6
 #: The integer arrays that a ``pb.Batch`` holds as repeated fields.
 _REPEATED = {"seeds": "<u8", "stream_episodes": "<u4"}
 
@@ -92,9 +97,10 @@ _TRIED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 class RegionBatch:
     """One Step's reply read from the region: the arrays of a ``pb.Batch`` by the same names
     (``bytes``-like views of one private copy; ``seeds`` and ``stream_episodes`` as numpy
-    arrays), absent ones empty. :meth:`to_pb` makes a real ``pb.Batch`` where one is needed."""
+    arrays), absent ones empty. :meth:`to_pb` makes a real ``pb.Batch`` where one is needed.
 
-    __slots__ = ("_data", "_spans", "drain_remaining_ms", "num_envs")
+    The present arrays are plain instance attributes (set once, read as fast as any), the absent
+    ones the class's empty defaults below."""
 
     def __init__(
         self,
@@ -103,20 +109,16 @@ class RegionBatch:
         num_envs: int,
         drain_remaining_ms: int = 0,
     ) -> None:
-        self._data = memoryview(data)
+        view = memoryview(data)
+        fields = self.__dict__
+        for name, (lo, hi) in spans.items():
+            fields[name] = view[lo:hi]
+        for name, dtype in _REPEATED.items():
+            if name in spans:
+                fields[name] = np.frombuffer(fields[name], dtype=dtype)
         self._spans = spans
         self.num_envs = num_envs
         self.drain_remaining_ms = drain_remaining_ms
-
-    def __getattr__(self, name: str) -> Any:
-        try:
-            lo, hi = self._spans[name]
-        except KeyError:
-            if name in FIELDS:
-                return np.zeros(0, dtype=_REPEATED[name]) if name in _REPEATED else b""
-            raise AttributeError(name) from None
-        view = self._data[lo:hi]
-        return np.frombuffer(view, dtype=_REPEATED[name]) if name in _REPEATED else view
 
     def to_pb(self) -> pb.Batch:
         out = pb.Batch(num_envs=self.num_envs, drain_remaining_ms=self.drain_remaining_ms)
@@ -132,6 +134,14 @@ class RegionBatch:
         return self.to_pb().ListFields()
 
 
+for _name in FIELDS:
+    setattr(
+        RegionBatch,
+        _name,
+        np.zeros(0, dtype=_REPEATED[_name]) if _name in _REPEATED else b"",
+    )
+
+
 class Channel:
     """One session's doorbell socket and mapped region."""
 
@@ -139,6 +149,7 @@ class Channel:
         "_known",
         "_lengths",
         "_offsets",
+        "_quick",
         "address",
         "conn",
         "mm",
@@ -198,6 +209,8 @@ class Channel:
         #: The lengths of the last reply, and the spans and end they gave (a session's replies
         #: mostly repeat them).
         self._known: tuple[bytes, dict[str, tuple[int, int]], int] = (b"", {}, _ARRAYS)
+        #: Whether the last reply came within _SPIN: then the next one is polled for.
+        self._quick = False
 
     def _refusal(self, method: str, reply: bytes) -> ServiceError:
         """The typed exception of an ``E`` reply (code, message, ``google.rpc.Status``)."""
@@ -226,8 +239,10 @@ class Channel:
             self.sock.send(b"S")
         except OSError:
             return None
+        sent = time.perf_counter()
+        reply = self._poll(sent) if self._quick else None
         deadline = None
-        while True:
+        while reply is None:
             try:
                 reply = self.sock.recv(65536)
                 break
@@ -250,6 +265,7 @@ class Channel:
                     ) from None
             except OSError:
                 return None
+        self._quick = time.perf_counter() - sent < _SPIN
         if reply != b"K":
             if not reply:
                 return None
@@ -265,6 +281,19 @@ class Channel:
             self._known = (lengths, spans, end)
         (drain,) = _DRAIN.unpack_from(self.mm, _DRAIN_AT)
         return RegionBatch(self.mm[_ARRAYS:end], spans, self.num_envs, drain)
+
+    def _poll(self, sent: float) -> bytes | None:
+        """The reply if it comes within _SPIN of ``sent``, polled for without sleeping; ``None``
+        when it did not (or the socket failed: the blocking ``recv`` then says how)."""
+        sock, until = self.sock, sent + _SPIN
+        while True:
+            try:
+                return sock.recv(65536, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                if time.perf_counter() >= until:
+                    return None
+            except OSError:
+                return None
 
     def close(self) -> None:
         self.sock.close()
