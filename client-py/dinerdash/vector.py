@@ -606,8 +606,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         endpoint = self._endpoint
         now = time.monotonic()
         interval, self._last_finish = now - self._last_finish, now
-        quiet = (len(self._cores), len(endpoint.connections), tuple(endpoint.given_up))
-        if quiet == self._quiet and not any(
+        if self._shape() == self._quiet and not any(
             c.drain_ms or c.source is not None for c in self._cores
         ):
             return  # nothing changed and nothing under way: the common step
@@ -658,8 +657,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         settled = not (endpoint.draining or self._resting) and all(
             c.source is None for c in self._cores
         )
-        quiet = (len(self._cores), len(endpoint.connections), tuple(endpoint.given_up))
-        self._quiet = quiet if settled else None
+        self._quiet = self._shape() if settled else None
+
+    def _shape(self) -> tuple:
+        """The sessions and servers as :meth:`_settle` compares them from one step to the next:
+        a step whose shape is the last quiet one's has nothing to settle."""
+        endpoint = self._endpoint
+        return (len(self._cores), len(endpoint.connections), tuple(endpoint.given_up))
 
     def _entering(self) -> set[int]:
         return {i for c in self._cores for i in c.entering}
