@@ -4,7 +4,8 @@
 //! shutdown future completes ([`run`]).
 //!
 //! The binary calls [`serve`], which binds `--host:--port` (and `--http-host:--http-port`) and
-//! passes [`crate::shutdown::signal`]; tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
+//! runs it under [`crate::shutdown::serve_until_signal`] (the first SIGINT/SIGTERM starts the
+//! drain); tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
 
 use std::future::Future;
 use std::io::Write as _;

@@ -128,11 +128,6 @@ impl Default for Signals {
     }
 }
 
-/// Completes on the first SIGINT (Ctrl-C) or SIGTERM (`docker stop`, Kubernetes).
-pub async fn signal() {
-    Signals::new().recv().await;
-}
-
 /// The answer to calls that arrive, or streams still running, once the server stops.
 pub fn unavailable() -> tonic::Status {
     tonic::Status::unavailable("the server is shutting down; retry on another server")
