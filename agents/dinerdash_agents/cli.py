@@ -72,8 +72,17 @@ def _cmd_train_imitation(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_rl(args: argparse.Namespace) -> int:
+    from .errors import AgentsError
+    from .kickstart import KickstartConfig
     from .train_rl import train_rl
 
+    config = None
+    if args.kick_coef is not None:
+        if args.algorithm != "ppo-kickstart" or args.resume is not None:
+            raise AgentsError(
+                "--kick-coef is a new ppo-kickstart run's (a resumed run keeps its schedule)"
+            )
+        config = KickstartConfig(kick_coef=args.kick_coef)
     trainer = train_rl(
         args.algorithm,
         args.steps,
@@ -86,6 +95,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         pipeline=args.pipeline,
         init=args.init,
         teacher=args.teacher,
+        config=config,
     )
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
@@ -291,7 +301,15 @@ def _parser() -> argparse.ArgumentParser:
         f"the trainer acts for another (default {PIPELINE}: one, no overlap); speed only",
     )
     p.add_argument(
-        "--init", help="ppo-kickstart: the bc checkpoint directory its policy starts from"
+        "--init",
+        help="ppo-kickstart: the checkpoint its policy starts from (bc, or a feed-forward "
+        "dagger one, whose memory features it keeps)",
+    )
+    p.add_argument(
+        "--kick-coef",
+        type=float,
+        help="ppo-kickstart: the pull toward the teacher at the start (default 1; 0: none, "
+        "PPO from the --init policy)",
     )
     p.add_argument(
         "--teacher",

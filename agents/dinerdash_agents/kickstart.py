@@ -5,8 +5,11 @@ demonstration term of DAPG, Rajeswaran et al. 2018, with the teacher asked on-li
 
 - **The actor** is the BC checkpoint's network itself (``--init DIR``, a ``bc`` checkpoint: one
   hidden ReLU layer, its observation scaling by ruleset v0's upper bounds, as BC trained it), so
-  the run starts at BC's score instead of a random policy's. The critic is PPO's (two tanh layers
-  over the observation scaled by the server's Spec) and starts untrained.
+  the run starts at BC's score instead of a random policy's; or a feed-forward ``dagger``
+  checkpoint's network, with its :class:`~dinerdash_agents.dagger.MemoryFeatures` if it has
+  them (the trainer then computes them for every environment, and the checkpoint's policy
+  does when it plays). The critic is PPO's (two tanh layers over the observation scaled by the
+  server's Spec; never the memory features) and starts untrained.
 - **Critic warm-up**: the first ``critic_warmup`` iterations update only the critic; the policy
   terms are multiplied by 0, so the actor's gradients, and with Adam its updates, are exactly 0.
   The policy then moves on advantages of a critic that already knows the BC policy's returns.
@@ -34,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from dinerdash.game import OBSERVATION_SIZE
 
-from . import bc, checkpoint
+from . import bc, checkpoint, dagger
 from .errors import AgentsError
 from .ppo import PPOConfig, Rollout, Trainer, _forward, _mlp, make_update, observation_scale
 
@@ -59,10 +62,13 @@ class KickstartConfig(PPOConfig):
     initialisation, the teacher and the schedules."""
 
     ent_coef: float = 0.003
-    #: The BC checkpoint directory the actor started from, and its network's sizes.
+    #: The checkpoint directory the actor started from, and its network's sizes: a ``bc`` one's,
+    #: or with ``init_algorithm="dagger"`` the DAgger learner's whole config.
     init: str = ""
     bc_hidden: int = 512
     bc_dropout: float = 0.2
+    init_algorithm: str = "bc"
+    dagger_config: dict | None = None
     #: ``expert`` (the reference heuristic) or ``planner`` (the look-ahead planner).
     teacher: str = "expert"
     #: λ_k at the first iteration after the warm-up.
@@ -83,6 +89,15 @@ class KickstartConfig(PPOConfig):
             raise TypeError(f"teacher {self.teacher!r} is not one of {', '.join(TEACHERS)}")
         if self.kick_schedule not in ("linear", "geometric"):
             raise TypeError(f"kick_schedule {self.kick_schedule!r} is not linear or geometric")
+        if self.init_algorithm not in INITS:
+            raise TypeError(f"init_algorithm {self.init_algorithm!r} is not one of {INITS}")
+        if (self.init_algorithm == "dagger") != (self.dagger_config is not None):
+            raise TypeError("dagger_config goes with init_algorithm='dagger' (and only with it)")
+
+    @property
+    def memory(self) -> bool:
+        """Whether the actor sees the DAgger learner's memory features."""
+        return bool(self.dagger_config and self.dagger_config.get("memory"))
 
 
 def config_from_json(values: dict) -> KickstartConfig:
@@ -90,18 +105,22 @@ def config_from_json(values: dict) -> KickstartConfig:
 
 
 class KickstartModel(eqx.Module):
-    """The BC network as the actor, PPO's critic beside it. Calling it gives the actor's logits
-    (dropout off), as every agent of this package does."""
+    """The BC (or DAgger) network as the actor, PPO's critic beside it. Calling it gives the
+    actor's logits (dropout off), as every agent of this package does; the input is the
+    observation (B, 40), with the memory features after it when the actor has them."""
 
-    actor: bc.BehaviourCloning
+    actor: bc.BehaviourCloning | dagger.DaggerNet
     critic: list[eqx.nn.Linear]
     #: The critic's observation scale (:func:`~dinerdash_agents.ppo.observation_scale`).
     scale: tuple[float, ...] = eqx.field(static=True)
 
     def __init__(self, config: KickstartConfig, key: jax.Array) -> None:
         ka, kc = jax.random.split(key)
-        bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
-        self.actor = bc.BehaviourCloning(bc_config, ka)
+        if config.dagger_config is not None:
+            self.actor = dagger.DaggerNet(dagger.config_from_json(config.dagger_config), ka)
+        else:
+            bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
+            self.actor = bc.BehaviourCloning(bc_config, ka)
         self.critic = _mlp([OBSERVATION_SIZE, config.hidden, config.hidden, 1], 1.0, kc)
         self.scale = observation_scale(config)
 
@@ -112,6 +131,7 @@ class KickstartModel(eqx.Module):
         return self.actor(obs, mask)
 
     def value(self, obs: jax.Array) -> jax.Array:
+        obs = obs[:, :OBSERVATION_SIZE]  # never the memory features
         return _forward(self.critic, obs / jnp.asarray(self.scale, jnp.float32))[:, 0]
 
 
@@ -120,26 +140,39 @@ def init(config: KickstartConfig, seed: int = 0) -> KickstartModel:
     return KickstartModel(config, jax.random.PRNGKey(seed))
 
 
-def _bc_description(directory: str | Path) -> dict:
-    """The description of the checkpoint ``directory``, which must be a ``bc`` one."""
+#: The checkpoints an actor can start from: networks of one observation (and, for DAgger's,
+#: its memory features) to the 57 logits.
+INITS = ("bc", "dagger")
+
+
+def _init_description(directory: str | Path) -> dict:
+    """The description of the checkpoint ``directory``, which must be a ``bc`` or a ``dagger``
+    one."""
     description = checkpoint.read_description(directory)
     found = description.get("algorithm")
-    if found != "bc":
+    if found not in INITS:
         raise AgentsError(
-            f"--init {directory}: a {found!r} checkpoint; ppo-kickstart starts from a 'bc' one "
-            "(its actor is the BC network)"
+            f"--init {directory}: a {found!r} checkpoint; ppo-kickstart starts from a 'bc' or a "
+            "'dagger' one (its actor is that network)"
         )
     return description
 
 
-def _load_bc(directory: str | Path) -> bc.BehaviourCloning:
-    _bc_description(directory)
-    return checkpoint.load(directory, "bc").model
+def _load_init(directory: str | Path) -> bc.BehaviourCloning | dagger.DaggerNet:
+    return checkpoint.load(directory, _init_description(directory)["algorithm"]).model
 
 
 def config_for_init(config: KickstartConfig, directory: str | Path) -> KickstartConfig:
-    """``config`` with the BC checkpoint ``directory`` as its initialisation (path and sizes)."""
-    sizes = _bc_description(directory)["config"]
+    """``config`` with the checkpoint ``directory`` as its initialisation (path and sizes)."""
+    description = _init_description(directory)
+    sizes = description["config"]
+    if description["algorithm"] == "dagger":
+        return replace(
+            config,
+            init=str(directory),
+            init_algorithm="dagger",
+            dagger_config=dagger.config_from_json(sizes).to_json(),
+        )
     return replace(
         config,
         init=str(directory),
@@ -183,12 +216,16 @@ class KickstartTrainer(Trainer):
         model = init(config, seed)
         if load_init:
             if not config.init:
-                raise AgentsError("ppo-kickstart needs --init DIR (a bc checkpoint)")
-            model = eqx.tree_at(lambda m: m.actor, model, _load_bc(config.init))
+                raise AgentsError("ppo-kickstart needs --init DIR (a bc or dagger checkpoint)")
+            model = eqx.tree_at(lambda m: m.actor, model, _load_init(config.init))
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
-        self._buffers = Rollout(config.num_steps, config.num_envs, expert=True)
+        width = OBSERVATION_SIZE + (dagger.MEMORY_SIZE if config.memory else 0)
+        self._buffers = Rollout(config.num_steps, config.num_envs, expert=True, width=width)
+
+    def view(self):
+        return _view(self.config)
 
     def _combine(self, terms: dict, mb: dict, logits: jax.Array, coefs: dict):
         c = self.config
@@ -219,4 +256,12 @@ def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> di
     }
 
 
-checkpoint.register("ppo-kickstart", module=__name__, config_from_json=config_from_json, init=init)
+def _view(config: KickstartConfig):
+    """An actor with memory sees its observations with a fresh
+    :class:`~dinerdash_agents.dagger.MemoryFeatures` beside them (as it did when it learnt)."""
+    return dagger.MemoryFeatures().augment if config.memory else None
+
+
+checkpoint.register(
+    "ppo-kickstart", module=__name__, config_from_json=config_from_json, init=init, view=_view
+)

@@ -119,36 +119,31 @@ _LABELS = {
 }
 
 
+#: Training seeds of the agents that train in seconds (``paper`` trains them all), and of the
+#: long runs (committed checkpoints ``paper`` loads).
+FAST_SEEDS = 5
+LONG_SEEDS = 3
+
 AGENTS = [
-    Agent("dpgm-274", "dpgm", 274, "masked", 9608.1),
-    Agent("bc-274", "bc", 274, "masked", 7791.2),
-    Agent("bc-plain-274", "bc", 274, "plain", 7791.2),
-    Agent("dpgm-70", "dpgm", 70, "masked", 7064.3),
-    Agent("bc-70", "bc", 70, "masked", 6343.8),
-    Agent("bc-plain-70", "bc", 70, "plain", 6343.8),
-    Agent("bc-planner-274", "bc", 274, "masked", None, teacher="planner"),
-    Agent("dpgm-planner-274", "dpgm", 274, "masked", None, teacher="planner"),
-    Agent("ppo-masked", "ppo-masked", 0, "masked", 8799.1),
+    Agent("dpgm-274", "dpgm", 274, "masked", 9608.1, training_seeds=FAST_SEEDS),
+    Agent("bc-274", "bc", 274, "masked", 7791.2, training_seeds=FAST_SEEDS),
+    Agent("bc-plain-274", "bc", 274, "plain", 7791.2, training_seeds=FAST_SEEDS),
+    Agent("dpgm-70", "dpgm", 70, "masked", 7064.3, training_seeds=FAST_SEEDS),
+    Agent("bc-70", "bc", 70, "masked", 6343.8, training_seeds=FAST_SEEDS),
+    Agent("bc-plain-70", "bc", 70, "plain", 6343.8, training_seeds=FAST_SEEDS),
+    Agent("bc-planner-274", "bc", 274, "masked", None, "planner", FAST_SEEDS),
+    Agent("dpgm-planner-274", "dpgm", 274, "masked", None, "planner", FAST_SEEDS),
+    Agent("ppo-masked", "ppo-masked", 0, "masked", 8799.1, training_seeds=LONG_SEEDS),
     Agent("ppo", "ppo", 0, "unmasked", 8799.1),
-    Agent("gail-274", "gail", 274, "masked", 8254.4),
-    Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None),
-    Agent("dagger-planner", "dagger", 0, "masked", None, teacher="planner"),
-    Agent("dagger-expert", "dagger", 0, "masked", None, teacher="expert"),
-    Agent("dagger-planner-memory", "dagger", 0, "masked", None, teacher="planner"),
-    Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, teacher="planner", training_seeds=3),
-    Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, teacher="planner"),
-    Agent(
-        "dagger-gru-w10", "dagger-recurrent", 0, "masked", None, teacher="planner", training_seeds=3
-    ),
-    Agent(
-        "dagger-stack-w10",
-        "dagger-recurrent",
-        0,
-        "masked",
-        None,
-        teacher="planner",
-        training_seeds=3,
-    ),
+    Agent("gail-274", "gail", 274, "masked", 8254.4, training_seeds=LONG_SEEDS),
+    Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None, training_seeds=LONG_SEEDS),
+    Agent("dagger-planner", "dagger", 0, "masked", None, "planner"),
+    Agent("dagger-expert", "dagger", 0, "masked", None, "expert"),
+    Agent("dagger-planner-memory", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
+    Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
+    Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, "planner"),
+    Agent("dagger-gru-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
+    Agent("dagger-stack-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
 ]
 #: The DAgger rows' settings beyond :class:`~dinerdash_agents.dagger.DaggerConfig`'s defaults
 #: (docs/agents.md says why the planner's seat states weigh 10).
@@ -213,9 +208,7 @@ def run_paper(
     previous = None
     if update and (out / "results.json").is_file():
         previous = json.loads((out / "results.json").read_text())
-    if previous is not None and all(
-        row_name in {row["name"] for row in previous["agents"]} for row_name in _row_names()
-    ):
+    if previous is not None and all(_done(agent, previous) for agent in AGENTS):
         return _write(out, previous)
     # A local server, if any, starts before any JAX work.
     connect = options(connect, "run_paper", address, **connection)
@@ -224,8 +217,7 @@ def run_paper(
             if previous is not None:
                 # Only agents missing from the previous results are trained: the demonstrations
                 # are collected only if one of them needs them.
-                done = {row["name"] for row in previous["agents"]}
-                needs = {a.teacher for a in AGENTS if a.name not in done and a.episodes > 0}
+                needs = {a.teacher for a in AGENTS if not _done(a, previous) and a.episodes > 0}
             else:
                 needs = {"expert", "planner"}
             if demos is None and "expert" in needs:
@@ -304,50 +296,12 @@ def _experiment(
             "planner",
             lambda p: evaluate_through_env("planner", EVAL_EPISODES, progress=p, **common),
         )
-    kept = {row["name"]: row for row in (previous or {}).get("agents", [])}
+    job = _Job(out, demos, planner_demos, connect, seed, rl_steps, reuse=previous is not None)
     for agent in AGENTS:
-        if agent.name in kept:
-            rows.extend(row for name, row in kept.items() if name.split(" (")[0] == agent.name)
+        if previous is not None and _done(agent, previous):
+            rows.extend(r for r in previous["agents"] if r["name"].split(" (")[0] == agent.name)
             continue
-        if agent.training_seeds > 1 or agent.algorithm in SEQUENCE_ALGORITHMS:
-            rows.extend(_sequence_rows(agent, out, connect, seed, evaluate, common))
-            continue
-        run = _RUNS.get(agent.algorithm, _train_rl)
-        policy, description = run(
-            agent,
-            out,
-            demos if agent.teacher == "expert" else planner_demos,
-            connect,
-            seed,
-            rl_steps,
-        )
-        masks = [True, False] if agent.loss in ("plain", "unmasked") else [True]
-        for use_mask in masks:
-            name = agent.name + ("" if use_mask else " (no mask)")
-            result = evaluate(
-                name,
-                lambda p, m=use_mask, act=policy.act: evaluate_policy(
-                    act, EVAL_EPISODES, progress=p, use_mask=m, **common
-                ),
-            )
-            rows.append(
-                {
-                    "name": name,
-                    "label": agent.label + ("" if use_mask else ", greedy over all 57"),
-                    "algorithm": agent.algorithm,
-                    "episodes": agent.episodes,
-                    "loss": agent.loss,
-                    "greedy_over": "legal actions" if use_mask else "all 57 actions",
-                    "paper": agent.paper,
-                    "paper_fraction": None if agent.paper is None else agent.paper / PAPER_EXPERT,
-                    "fraction": result["mean"] / expert["mean"],
-                    "training_seconds": description["training"]["seconds"],
-                    "training_cpu_seconds": description["training"]["cpu_seconds"],
-                    "training_steps": description["data"].get("steps"),
-                    "environment_steps": description["data"].get("environment_steps"),
-                    **result,
-                }
-            )
+        rows.extend(_agent_rows(agent, job, evaluate, common))
     results = {
         "command": "python -m dinerdash_agents paper --out docs/results",
         "demonstrations": {
@@ -375,20 +329,55 @@ def _experiment(
     return _write(out, results)
 
 
-def _row_names() -> list[str]:
-    return [agent.name for agent in AGENTS]
+def _done(agent: Agent, previous: dict[str, Any]) -> bool:
+    """Whether ``previous`` results hold ``agent``'s row with all its training seeds."""
+    row = next((r for r in previous["agents"] if r["name"] == agent.name), None)
+    return row is not None and len(row.get("runs") or [row["scores"]]) == agent.training_seeds
+
+
+#: Pairs of rows whose difference the report gives with its paired interval (A, B, what A
+#: has that B lacks).
+COMPARISONS = [
+    ("dpgm-274", "bc-274", "DPGM's factored policy, 274 demos"),
+    ("dpgm-70", "bc-70", "DPGM's factored policy, 70 demos"),
+    ("ppo-kickstart", "ppo-masked", "the kick-start from BC"),
+    ("dagger-planner-memory", "dagger-planner", "the hand-made memory features"),
+    ("dagger-gru-w10", "dagger-stack-w10", "the recurrence, at the same budget"),
+]
+
+
+def _runs(row: dict[str, Any]) -> list[list[int]]:
+    return row.get("runs") or [row["scores"]]
 
 
 def _add_stats(results: dict[str, Any]) -> None:
     """Every row's (and the planner's and random play's) :mod:`~dinerdash_agents.stats`
     against the expert's scores on the same seeds: pooled over the row's training seeds
-    (``runs``, else its one run's ``scores``)."""
-    from .stats import agent_stats
+    (``runs``, else its one run's ``scores``); and the paired differences of
+    :data:`COMPARISONS`."""
+    from .stats import agent_stats, difference_interval
 
     expert = results["expert"]["scores"]
     for row in [results["planner"], results["random"], *results["agents"]]:
-        row["stats"] = agent_stats(row.get("runs") or [row["scores"]], expert).to_json()
+        row["stats"] = agent_stats(_runs(row), expert).to_json()
         row["fraction"] = row["stats"]["fraction"]
+    by = {row["name"]: row for row in results["agents"]}
+    results["differences"] = [
+        {
+            "a": a,
+            "b": b,
+            "what": what,
+            **dict(
+                zip(
+                    ("difference", "low", "high"),
+                    difference_interval(_runs(by[a]), _runs(by[b]), expert),
+                    strict=True,
+                )
+            ),
+        }
+        for a, b, what in COMPARISONS
+        if a in by and b in by
+    ]
 
 
 def _write(out: Path, results: dict[str, Any]) -> dict[str, Any]:
@@ -401,143 +390,170 @@ def _write(out: Path, results: dict[str, Any]) -> dict[str, Any]:
     return results
 
 
-#: Agents whose policy remembers the episode (:mod:`~dinerdash_agents.recurrent`): trained (or
-#: loaded) per training seed by :func:`_sequence_rows`.
-SEQUENCE_ALGORITHMS = ("dagger-recurrent",)
+@dataclass(frozen=True)
+class _Job:
+    """What every agent's training shares: the results directory, both demonstration files, the
+    server(s), the base training seed, the RL budget, and whether checkpoints that stand are
+    reused (``--update``) rather than trained again."""
+
+    out: Path
+    demos: Path
+    planner_demos: Path
+    connect: ConnectOptions
+    seed: int
+    rl_steps: int | None
+    reuse: bool
 
 
-def _sequence_rows(agent, out, connect, seed, evaluate, common) -> list[dict]:
-    """One row for an agent of several training seeds: each seed's checkpoint trained (unless it
-    stands) and evaluated; ``runs`` holds every seed's scores, ``scores`` seed 0's."""
-    runs, descriptions = [], []
+def _agent_rows(agent: Agent, job: _Job, evaluate, common) -> list[dict[str, Any]]:
+    """The agent's rows (one, or two for the plain-loss and unmasked agents: their policy also
+    played greedily over all 57 actions): each training seed's checkpoint trained (or loaded)
+    and evaluated; ``runs`` holds every seed's scores, ``scores`` seed 0's."""
+    masks = [True, False] if agent.loss in ("plain", "unmasked") else [True]
+    results: dict[bool, list[dict[str, Any]]] = {m: [] for m in masks}
+    descriptions = []
     for k in range(agent.training_seeds):
-        policy, description = _train_sequence(agent, out, connect, seed + k, k)
-        result = evaluate(
-            f"{agent.name} seed {k}",
-            lambda p, act=policy.act: evaluate_policy(act, EVAL_EPISODES, progress=p, **common),
-        )
-        runs.append(result)
+        policy, description = _RUNS.get(agent.algorithm, _train_rl)(agent, job, k)
         descriptions.append(description)
-    first, d0 = runs[0], descriptions[0]
-    return [
-        {
-            "name": agent.name,
-            "label": agent.label,
-            "algorithm": agent.algorithm,
-            "episodes": agent.episodes,
-            "loss": agent.loss,
-            "greedy_over": "legal actions",
-            "paper": None,
-            "paper_fraction": None,
-            "fraction": None,  # the mean over the runs' over the expert's: see _add_stats
-            "training_seconds": float(np.mean([d["training"]["seconds"] for d in descriptions])),
-            "training_cpu_seconds": float(
-                np.mean([d["training"]["cpu_seconds"] for d in descriptions])
-            ),
-            "training_steps": d0["data"].get("steps"),
-            "environment_steps": d0["data"].get("environment_steps"),
-            **first,
-            "runs": [r["scores"] for r in runs],
-            "run_means": [r["mean"] for r in runs],
-        }
-    ]
-
-
-def _train_sequence(agent, out, connect, seed, k):
-    """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
-    :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
-    from . import checkpoint
-    from .recurrent import RecurrentConfig
-    from .train_recurrent import train_recurrent
-
-    directory = agent.directory(out, k)
-    if not (directory / checkpoint.DESCRIPTION).is_file():
-        train_recurrent(
-            directory,
-            RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
-            connect=connect,
-            seed=seed,
-            name=directory.name,
+        for use_mask in masks:
+            name = agent.name + ("" if use_mask else " (no mask)")
+            seed_name = name if agent.training_seeds == 1 else f"{name} seed {k}"
+            results[use_mask].append(
+                evaluate(
+                    seed_name,
+                    lambda p, m=use_mask, act=policy.act: evaluate_policy(
+                        act, EVAL_EPISODES, progress=p, use_mask=m, **common
+                    ),
+                )
+            )
+    d0 = descriptions[0]
+    rows = []
+    for use_mask in masks:
+        runs = results[use_mask]
+        rows.append(
+            {
+                "name": agent.name + ("" if use_mask else " (no mask)"),
+                "label": agent.label + ("" if use_mask else ", greedy over all 57"),
+                "algorithm": agent.algorithm,
+                "episodes": agent.episodes,
+                "loss": agent.loss,
+                "greedy_over": "legal actions" if use_mask else "all 57 actions",
+                "paper": agent.paper,
+                "paper_fraction": None if agent.paper is None else agent.paper / PAPER_EXPERT,
+                "fraction": None,  # the runs' mean over the expert's: see _add_stats
+                "training_seconds": float(
+                    np.mean([d["training"]["seconds"] for d in descriptions])
+                ),
+                "training_cpu_seconds": float(
+                    np.mean([d["training"]["cpu_seconds"] for d in descriptions])
+                ),
+                "training_steps": d0["data"].get("steps"),
+                "environment_steps": d0["data"].get("environment_steps"),
+                **runs[0],
+                **(
+                    {"runs": [r["scores"] for r in runs], "run_means": [r["mean"] for r in runs]}
+                    if len(runs) > 1
+                    else {}
+                ),
+            }
         )
+    return rows
+
+
+def _standing(directory: Path) -> bool:
+    return (directory / checkpoint.DESCRIPTION).is_file()
+
+
+def _loaded(directory: Path) -> tuple[Any, dict[str, Any]]:
     return checkpoint.load(directory), checkpoint.read_description(directory)
 
 
-def _train_imitation(
-    agent: Agent,
-    out: Path,
-    demos: Path,
-    connect: ConnectOptions,
-    seed: int,
-    rl_steps: int | None,
-) -> tuple[Any, dict[str, Any]]:
-    """Trains an imitation agent on the first ``agent.episodes`` of ``demos`` (seconds)."""
+def _train_imitation(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
+    """Trains training seed ``k`` of an imitation agent on the first ``agent.episodes`` of its
+    teacher's demonstrations (seconds); with ``job.reuse``, a checkpoint that stands is loaded."""
+    directory = agent.directory(job.out, k)
+    if job.reuse and _standing(directory):
+        return _loaded(directory)
     return train_checkpoint(
         agent.algorithm,
-        demos,
-        out / "checkpoints" / agent.name,
+        job.demos if agent.teacher == "expert" else job.planner_demos,
+        directory,
         episodes=agent.episodes,
-        seed=seed,
+        seed=job.seed + k,
         config=default_config(agent.algorithm, loss=agent.loss),
-        name=agent.name,
+        name=directory.name,
     )
 
 
-def _train_rl(
-    agent: Agent,
-    out: Path,
-    demos: Path,
-    connect: ConnectOptions,
-    seed: int,
-    rl_steps: int | None,
-) -> tuple[Any, dict[str, Any]]:
-    """Trains an RL agent, or continues its run where a checkpoint of it already stands (a
-    finished run is only loaded: the full budgets take tens of minutes)."""
-
-    directory = out / "checkpoints" / agent.name
+def _train_rl(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
+    """Trains training seed ``k`` of an RL agent, or continues its run where a checkpoint of it
+    already stands (a finished run is only loaded: the full budgets take tens of minutes).
+    Kick-started PPO starts from the BC checkpoint of the same demonstrations and seed."""
+    directory = agent.directory(job.out, k)
     budgets = {"gail": GAIL_STEPS, "ppo-kickstart": KICKSTART_STEPS}
-    steps = rl_steps or budgets.get(agent.algorithm, RL_STEPS)
-    resume = directory if (directory / checkpoint.DESCRIPTION).is_file() else None
-    kickstart = RL[agent.algorithm].start is not None  # from a checkpoint, with a teacher
+    steps = job.rl_steps or budgets.get(agent.algorithm, RL_STEPS)
+    resume = directory if _standing(directory) else None
+    # Kick-started PPO starts from a checkpoint, with a teacher.
+    kickstart = RL[agent.algorithm].start is not None and resume is None
     train_rl(
         agent.algorithm,
         steps,
         directory,
-        connect=connect,
-        demos=demos if RL[agent.algorithm].needs_demos else None,
-        seed=seed,
+        connect=job.connect,
+        demos=job.demos if RL[agent.algorithm].needs_demos else None,
+        seed=job.seed + k,
         resume=resume,
-        # Kick-started from the BC checkpoint of the same demonstrations, trained above.
-        init=out / "checkpoints" / f"bc-{agent.episodes}" if kickstart and not resume else None,
-        teacher=agent.teacher if kickstart and not resume else None,
+        init=_bc_of(agent).directory(job.out, k) if kickstart else None,
+        teacher=agent.teacher if kickstart else None,
     )
-    return checkpoint.load(directory), checkpoint.read_description(directory)
+    return _loaded(directory)
 
 
-def _train_dagger(
-    agent: Agent,
-    out: Path,
-    demos: Path,
-    connect: ConnectOptions,
-    seed: int,
-    rl_steps: int | None,
-) -> tuple[Any, dict[str, Any]]:
-    """Runs DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`, or only loads a
-    checkpoint of it that already stands (the planner's rounds take minutes)."""
+def _bc_of(agent: Agent) -> Agent:
+    """The BC agent of the same demonstrations (kick-started PPO's initialisation)."""
+    return next(a for a in AGENTS if a.name == f"bc-{agent.episodes}")
 
-    directory = out / "checkpoints" / agent.name
-    if not (directory / checkpoint.DESCRIPTION).is_file():
+
+def _train_dagger(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
+    """Runs training seed ``k`` of DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`,
+    or only loads a checkpoint of it that already stands (the planner's rounds take minutes)."""
+    directory = agent.directory(job.out, k)
+    if not _standing(directory):
         train_dagger(
             directory,
             DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]),
-            connect=connect,
-            seed=seed,
-            name=agent.name,
+            connect=job.connect,
+            seed=job.seed + k,
+            name=directory.name,
         )
-    return checkpoint.load(directory), checkpoint.read_description(directory)
+    return _loaded(directory)
+
+
+def _train_recurrent(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
+    """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
+    :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
+    from .recurrent import RecurrentConfig
+    from .train_recurrent import train_recurrent
+
+    directory = agent.directory(job.out, k)
+    if not _standing(directory):
+        train_recurrent(
+            directory,
+            RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
+            connect=job.connect,
+            seed=job.seed + k,
+            name=directory.name,
+        )
+    return _loaded(directory)
 
 
 #: How each agent's policy is had, by algorithm (the RL ones: :func:`_train_rl`).
-_RUNS = {"bc": _train_imitation, "dpgm": _train_imitation, "dagger": _train_dagger}
+_RUNS = {
+    "bc": _train_imitation,
+    "dpgm": _train_imitation,
+    "dagger": _train_dagger,
+    "dagger-recurrent": _train_recurrent,
+}
 
 
 def _pct(x: float | None) -> str:
@@ -606,10 +622,21 @@ def _markdown(r: dict[str, Any]) -> str:
     by = {row["name"]: row for row in r["agents"]}
     lines += ["", "Paper's ordering, DPGM above BC (both with the loss over legal actions):"]
     for k in (274, 70):
-        d, b = by[f"dpgm-{k}"], by[f"bc-{k}"]
+        d, b = by[f"dpgm-{k}"]["stats"], by[f"bc-{k}"]["stats"]
         verdict = "yes" if d["mean"] > b["mean"] else "no"
         lines.append(
             f"- {k} demonstrations: DPGM {d['mean']:,.1f} vs BC {b['mean']:,.1f}: {verdict}"
+        )
+    lines += [
+        "",
+        "Paired differences, A − B in percent of the expert's mean, with a 95 % BCa interval "
+        "(A's, B's and the expert's scores resampled together seed by seed; each agent's runs "
+        "averaged per seed):",
+    ]
+    for d in r["differences"]:
+        lines.append(
+            f"- `{d['a']}` − `{d['b']}` ({d['what']}): {100 * d['difference']:+.1f} points "
+            f"[{100 * d['low']:+.1f}, {100 * d['high']:+.1f}]"
         )
     return "\n".join(lines) + "\n"
 

@@ -340,11 +340,15 @@ TIMED = ("act", "env", "bootstrap", "collect", "update")
 class Rollout:
     """Time-major buffers of one iteration: ``num_steps`` steps of ``num_envs`` environments."""
 
-    def __init__(self, steps: int, envs: int, expert: bool = False) -> None:
+    def __init__(
+        self, steps: int, envs: int, expert: bool = False, width: int = OBSERVATION_SIZE
+    ) -> None:
         #: With ``expert``: the teacher's action of each step (``info["expert_action"]`` of the
         #: observation acted on), for kick-starting.
         self.expert_actions = np.zeros((steps, envs), np.int32) if expert else None
-        self.obs = np.zeros((steps, envs, OBSERVATION_SIZE), np.float32)
+        #: The model's inputs: the observations, with a learner's memory features beside them
+        #: when ``width`` is wider (:meth:`Trainer.view`).
+        self.obs = np.zeros((steps, envs, width), np.float32)
         self.mask = np.zeros((steps, envs, NUM_ACTIONS), np.bool_)
         self.actions = np.zeros((steps, envs), np.int32)
         self.logp = np.zeros((steps, envs), np.float32)
@@ -380,7 +384,8 @@ class _Group:
 
     def __init__(self, envs: Any, rows: slice) -> None:
         self.envs, self.rows = envs, rows
-        #: The current observations, masks and infos of the group's environments.
+        #: The current observations (as the model sees them), masks and infos of the group's
+        #: environments.
         self.obs: np.ndarray = np.zeros(0)
         self.mask: np.ndarray = np.zeros(0)
         self.info: dict[str, Any] = {}
@@ -388,6 +393,11 @@ class _Group:
         #: and its index in the iteration.
         self.sent: Any = None
         self.step = 0
+        #: The group's own ``obs -> model input`` (:meth:`Trainer.view`), or ``None``.
+        self.view: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def see(self, obs: np.ndarray) -> np.ndarray:
+        return obs if self.view is None else self.view(obs)
 
 
 class Trainer:
@@ -396,7 +406,8 @@ class Trainer:
 
     GAIL subclasses it and replaces :meth:`rewards_of`; kick-starting adds a loss term through
     :meth:`update_coefs` and :func:`make_update`'s ``combine``, and keeps the teacher's actions
-    through :meth:`record_info`.
+    through :meth:`record_info`, and a learner with memory sees its observations through
+    :meth:`view`.
     """
 
     def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
@@ -454,8 +465,9 @@ class Trainer:
         self._groups, start = [], 0
         for part, size in zip(parts, sizes, strict=True):
             group = _Group(part, slice(start, start + size))
+            group.view = self.view()
             obs, info = part.reset(seed=self.seed * self.config.num_envs + self.steps + start)
-            group.obs, group.mask, group.info = obs, info["action_mask"], info
+            group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
             self._groups.append(group)
             start += size
         self._score = np.zeros(self.config.num_envs)
@@ -561,7 +573,14 @@ class Trainer:
                 score[i] = 0.0
             self.episodes += int(done.sum())
             del self.recent_scores[:-100]
-        group.obs, group.mask, group.info = obs, info["action_mask"], info
+        group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
+
+    def view(self) -> Callable[[np.ndarray], np.ndarray] | None:
+        """A fresh, stateful ``obs (B, 40) -> model input (B, width)`` for one vector env of
+        the trainer's, or ``None``: the model sees the observations themselves (PPO's). The
+        critic of such a model reads only the first 40 columns (a truncated episode's last
+        observation reaches it with the rest zero)."""
+        return None
 
     def _bootstrap(self) -> None:
         """The next values: the next step's values, 0 after a termination, and the critic's
@@ -570,11 +589,12 @@ class Trainer:
         began = time.perf_counter()
         b, n = self._buffers, self.config.num_envs
         b.next_values[:-1] = b.values[1:]
-        observations = [group.obs for group in self._groups]
-        observations += [final[None] for _, _, final in self._truncations]
-        rows = np.concatenate(observations)
-        padded = np.zeros((-(-len(rows) // n) * n, OBSERVATION_SIZE), np.float32)
-        padded[: len(rows)] = rows
+        current = np.concatenate([group.obs for group in self._groups])
+        finals = [final for _, _, final in self._truncations]
+        padded = np.zeros((-(-(n + len(finals)) // n) * n, b.obs.shape[-1]), np.float32)
+        padded[:n] = current
+        if finals:  # the observations alone (the critic reads only those columns)
+            padded[n : n + len(finals), :OBSERVATION_SIZE] = finals
         values = np.asarray(_values(self.model, padded))
         b.next_values[-1] = values[:n]
         for k, (t, i, _) in enumerate(self._truncations):

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from scipy import stats as _scipy_stats
 
-__all__ = ["AgentStats", "agent_stats", "fraction_interval", "iqm"]
+__all__ = ["AgentStats", "agent_stats", "difference_interval", "fraction_interval", "iqm"]
 
 #: Resamples of each bootstrap interval, and the generator seed that makes them reproducible.
 RESAMPLES = 10_000
@@ -90,6 +90,47 @@ def fraction_interval(
     )
     low, high = result.confidence_interval
     return float(low), float(high)
+
+
+def _difference(a: np.ndarray, b: np.ndarray, expert: np.ndarray, axis: int = -1) -> np.ndarray:
+    return (np.mean(a, axis=axis) - np.mean(b, axis=axis)) / np.mean(expert, axis=axis)
+
+
+def difference_interval(
+    scores_a: Any,
+    scores_b: Any,
+    expert: Any,
+    *,
+    confidence: float = CONFIDENCE,
+    resamples: int = RESAMPLES,
+    seed: int = BOOTSTRAP_SEED,
+) -> tuple[float, float, float]:
+    """How much more of the expert agent A scores than agent B: ``(mean(A) - mean(B)) /
+    mean(expert)`` and its ``confidence`` BCa interval, resampling the evaluation seeds with A's,
+    B's and the expert's scores on a seed kept together (all three played the same seeds).
+    ``scores_a``, ``scores_b``: (N,) or (R, N) (runs averaged per seed first); returns (point,
+    low, high)."""
+    a, b = (np.asarray(x, np.float64) for x in (scores_a, scores_b))
+    a, b = (x.mean(axis=0) if x.ndim == 2 else x for x in (a, b))
+    expert = np.asarray(expert, np.float64)
+    if not a.shape == b.shape == expert.shape or a.ndim != 1:
+        raise ValueError(
+            f"{np.shape(scores_a)}, {np.shape(scores_b)} and {expert.shape} do not pair"
+        )
+    if np.mean(expert) <= 0:
+        raise ValueError("the expert's mean must be positive to take fractions of it")
+    result = _scipy_stats.bootstrap(
+        (a, b, expert),
+        _difference,
+        paired=True,
+        vectorized=True,
+        n_resamples=resamples,
+        confidence_level=confidence,
+        method="BCa",
+        random_state=np.random.default_rng(seed),
+    )
+    low, high = result.confidence_interval
+    return float(_difference(a, b, expert)), float(low), float(high)
 
 
 @dataclass(frozen=True)

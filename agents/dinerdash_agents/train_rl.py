@@ -241,11 +241,11 @@ def train_rl(
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
     checkpointing to ``out``; returns the trainer. ``pipeline``: vector envs the environments
     are split into (:func:`make_envs`; the samples do not depend on it, only the speed).
-    ``init`` and ``teacher`` (``ppo-kickstart``): the BC checkpoint its actor starts from and
-    whose actions it is pulled toward (``expert`` or ``planner``). ``connect``: how to reach the
-    server(s) (:class:`dinerdash.ConnectOptions`; ``address`` and the connection keywords
-    ``timeout``, ``tls``, ``tls_ca``, ... are put in; none named: ``DINERDASH_ADDRESS``, else a
-    local server started here)."""
+    ``init`` and ``teacher`` (``ppo-kickstart``): the BC (or DAgger) checkpoint its actor starts
+    from and whose actions it is pulled toward (``expert`` or ``planner``). ``connect``: how to
+    reach the server(s) (:class:`dinerdash.ConnectOptions`; ``address`` and the connection
+    keywords ``timeout``, ``tls``, ``tls_ca``, ... are put in; none named:
+    ``DINERDASH_ADDRESS``, else a local server started here)."""
     if algorithm not in RL:
         raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL)})")
     entry = RL[algorithm]
@@ -259,7 +259,9 @@ def train_rl(
     if pipeline < 1:
         raise AgentsError(f"--pipeline must be at least 1 (got {pipeline})")
     if entry.start is not None and init is None and resume is None:
-        raise AgentsError(f"{algorithm} needs --init DIR (a bc checkpoint) or --resume DIR")
+        raise AgentsError(
+            f"{algorithm} needs --init DIR (a bc or dagger checkpoint) or --resume DIR"
+        )
     if (init is not None or teacher is not None) and entry.start is None:
         starters = ", ".join(name for name, e in RL.items() if e.start is not None)
         raise AgentsError(f"--init and --teacher are {starters}'s; {algorithm} takes neither")

@@ -168,3 +168,44 @@ def test_kickstart_refuses_a_missing_or_foreign_init(server_address: str, tmp_pa
         train_rl("ppo-kickstart", 100, tmp_path / "a", address=server_address, progress=False)
     with pytest.raises(AgentsError, match="ppo-kickstart's"):
         train_rl("ppo-masked", 100, tmp_path / "b", init=tmp_path, progress=False)
+
+
+def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
+    server_address: str, tmp_path: Path
+):
+    from dinerdash_agents import checkpoint, dagger
+
+    # A DAgger learner with memory features (untrained: what matters is its input's shape).
+    config = dagger.DaggerConfig(memory=True, hidden=32, layers=2)
+    init = tmp_path / "dagger"
+    description = {"name": "d", "algorithm": "dagger", "config": config.to_json()}
+    checkpoint.save(init, dagger.init(config, 3), description)
+    # Two iterations, both critic warm-up: the actor must come out exactly as it went in.
+    out = tmp_path / "kick"
+    run = kickstart.KickstartConfig(num_envs=8, num_steps=32, critic_warmup=2)
+    trainer = train_rl(
+        "ppo-kickstart",
+        2 * 8 * 32,
+        out,
+        address=server_address,
+        config=run,
+        init=init,
+        teacher="expert",
+        progress=False,
+    )
+    width = OBSERVATION_SIZE + dagger.MEMORY_SIZE
+    assert trainer._buffers.obs.shape == (32, 8, width)
+    # The memory features the actor acted on: counts in [0, 1], some of them under way.
+    memory = trainer._buffers.obs[..., OBSERVATION_SIZE:]
+    assert memory.min() >= 0 and memory.max() <= 1 and memory.any()
+    saved = json.loads((out / "checkpoint.json").read_text())["config"]
+    assert saved["init_algorithm"] == "dagger" and saved["dagger_config"]["memory"] is True
+    # Played from its checkpoint, it sees its memory as the DAgger learner does: the same
+    # actions, so the same scores, on the same seeds.
+    seeds = {"seed": 2000, "address": server_address, "num_envs": 4, "max_steps": 400}
+    kicked, _ = evaluate_policy(load(out).act, 4, **seeds)
+    learner, _ = evaluate_policy(load(init).act, 4, **seeds)
+    np.testing.assert_array_equal(kicked, learner)
+    # Other checkpoints are refused as a start.
+    with pytest.raises(AgentsError, match="'bc' or a 'dagger'"):
+        train_rl("ppo-kickstart", 100, tmp_path / "x", address=server_address, init=out)

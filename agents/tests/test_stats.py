@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dinerdash_agents.stats import agent_stats, fraction_interval, iqm
+from dinerdash_agents.stats import agent_stats, difference_interval, fraction_interval, iqm
 
 
 def test_iqm_of_known_arrays() -> None:
@@ -49,6 +49,24 @@ def test_coverage_of_the_95_percent_interval_is_near_95_percent() -> None:
         low, high = fraction_interval(agent, expert, resamples=2_000)
         misses += not low < 1.2 < high
     assert misses <= 12
+
+
+def test_the_paired_difference_of_two_agents_holds_the_true_one() -> None:
+    # Two agents and the expert on the same seeds of very different difficulty: A scores 1.10 and
+    # B 1.05 of the expert on each (small independent noise): the true difference is 0.05.
+    rng = np.random.default_rng(3)
+    difficulty = rng.uniform(2_000, 20_000, size=100)
+    expert, a, b = (f * difficulty + rng.normal(0, 300, size=100) for f in (1.0, 1.10, 1.05))
+    point, low, high = difference_interval(a, b, expert)
+    assert low < 0.05 < high and low < point < high
+    assert high - low < 0.03  # paired: the seeds' difficulty cancels from the difference
+    # Runs (R, N) are averaged per seed; swapping the agents negates the difference.
+    runs = np.stack([a - 50, a + 50])
+    assert difference_interval(runs, b, expert)[0] == pytest.approx(point)
+    swapped = difference_interval(b, a, expert)
+    assert swapped == pytest.approx((-point, -high, -low), abs=2e-3)
+    with pytest.raises(ValueError, match="pair"):
+        difference_interval(a, b[:50], expert)
 
 
 def test_agent_stats_pools_training_seeds() -> None:
