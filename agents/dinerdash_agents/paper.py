@@ -21,6 +21,7 @@ from . import checkpoint
 from .connect import ConnectOptions, options, served
 from .dagger import DaggerConfig
 from .evaluate import evaluate_policy
+from .kickstart import KickstartConfig
 from .train_dagger import train_dagger
 from .train_imitation import default_config, train_checkpoint
 from .train_rl import RL, RL_ALGORITHMS, train_rl
@@ -47,6 +48,9 @@ class Agent:
     teacher: str = "expert"
     #: Training seeds (runs): seed k > 0's checkpoint is ``checkpoints/<name>-seed<k>``.
     training_seeds: int = 1
+    #: Kick-started PPO: the agent whose checkpoint of the same training seed its actor starts
+    #: from.
+    start: str = ""
 
     def directory(self, out: Path, k: int) -> Path:
         """The checkpoint of training seed ``k`` (``seed + k``) under the results ``out``."""
@@ -111,8 +115,11 @@ _LABELS = {
     "ppo-masked": _ppo_label,
     "gail": lambda a: f"GAIL (masked PPO on a discriminator's reward), {a.episodes} demos",
     "ppo-kickstart": lambda a: (
-        f"masked PPO kick-started from `bc-{a.episodes}`, pulled toward the "
-        f"{a.teacher}'s actions (beyond the paper)"
+        f"masked PPO from `{a.start}`'s policy, its memory features kept, on the game's reward "
+        "alone (beyond the paper)"
+        if KICKSTART_SETTINGS.get(a.name, {}).get("kick_coef") == 0
+        else f"masked PPO kick-started from `{a.start}`, pulled toward the {a.teacher}'s "
+        "actions (beyond the paper)"
     ),
     "dagger": _dagger_label,
     "dagger-recurrent": _recurrent_label,
@@ -134,12 +141,22 @@ AGENTS = [
     Agent("bc-planner-274", "bc", 274, "masked", None, "planner", FAST_SEEDS),
     Agent("dpgm-planner-274", "dpgm", 274, "masked", None, "planner", FAST_SEEDS),
     Agent("ppo-masked", "ppo-masked", 0, "masked", 8799.1, training_seeds=LONG_SEEDS),
-    Agent("ppo", "ppo", 0, "unmasked", 8799.1),
+    Agent("ppo", "ppo", 0, "unmasked", 8799.1, training_seeds=LONG_SEEDS),
     Agent("gail-274", "gail", 274, "masked", 8254.4, training_seeds=LONG_SEEDS),
-    Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None, training_seeds=LONG_SEEDS),
-    Agent("dagger-planner", "dagger", 0, "masked", None, "planner"),
-    Agent("dagger-expert", "dagger", 0, "masked", None, "expert"),
+    Agent("ppo-kickstart", "ppo-kickstart", 274, "masked", None, "expert", LONG_SEEDS, "bc-274"),
+    Agent("dagger-planner", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
+    Agent("dagger-expert", "dagger", 0, "masked", None, "expert", LONG_SEEDS),
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
+    Agent(
+        "ppo-kickstart-memory",
+        "ppo-kickstart",
+        0,
+        "masked",
+        None,
+        "expert",
+        LONG_SEEDS,
+        "dagger-planner-memory",
+    ),
     Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, "planner"),
     Agent("dagger-gru-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
@@ -178,10 +195,14 @@ RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {
         "seat_weight": 10.0,
     },
 }
-#: Environment steps of the RL agents: the paper's PPO budget, GAIL's, and kick-started PPO's.
+#: Environment steps of the RL agents: the paper's PPO budget, and the others' by name.
 RL_STEPS = 30_000_000
-GAIL_STEPS = 10_000_000
-KICKSTART_STEPS = RL_STEPS
+STEPS = {"gail-274": 10_000_000, "ppo-kickstart": RL_STEPS, "ppo-kickstart-memory": 20_000_000}
+#: Kick-started rows' settings beyond :class:`~dinerdash_agents.kickstart.KickstartConfig`'s
+#: defaults: from the DAgger learner with memory, no pull toward a teacher (its pull would be
+#: toward the expert, whose play the planner's pupil does not follow; the planner as teacher
+#: costs the server a look-ahead at every step); chosen on seeds 2000..2099.
+KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {"ppo-kickstart-memory": {"kick_coef": 0.0}}
 
 
 def run_paper(
@@ -343,6 +364,8 @@ COMPARISONS = [
     ("ppo-kickstart", "ppo-masked", "the kick-start from BC"),
     ("dagger-planner-memory", "dagger-planner", "the hand-made memory features"),
     ("dagger-gru-w10", "dagger-stack-w10", "the recurrence, at the same budget"),
+    ("ppo-kickstart-memory", "dagger-planner-memory", "PPO on the game's reward after DAgger"),
+    ("ppo-kickstart-memory", "ppo-kickstart", "the memory features, both PPO from imitation"),
 ]
 
 
@@ -488,10 +511,9 @@ def _train_imitation(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, An
 def _train_rl(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
     """Trains training seed ``k`` of an RL agent, or continues its run where a checkpoint of it
     already stands (a finished run is only loaded: the full budgets take tens of minutes).
-    Kick-started PPO starts from the BC checkpoint of the same demonstrations and seed."""
+    A kick-started one starts from its start agent's checkpoint of the same training seed."""
     directory = agent.directory(job.out, k)
-    budgets = {"gail": GAIL_STEPS, "ppo-kickstart": KICKSTART_STEPS}
-    steps = job.rl_steps or budgets.get(agent.algorithm, RL_STEPS)
+    steps = job.rl_steps or STEPS.get(agent.name, RL_STEPS)
     resume = directory if _standing(directory) else None
     # Kick-started PPO starts from a checkpoint, with a teacher.
     kickstart = RL[agent.algorithm].start is not None and resume is None
@@ -503,47 +525,38 @@ def _train_rl(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
         demos=job.demos if RL[agent.algorithm].needs_demos else None,
         seed=job.seed + k,
         resume=resume,
-        init=_bc_of(agent).directory(job.out, k) if kickstart else None,
+        init=_start_of(agent).directory(job.out, k) if kickstart else None,
         teacher=agent.teacher if kickstart else None,
+        config=KickstartConfig(**KICKSTART_SETTINGS[agent.name])
+        if kickstart and agent.name in KICKSTART_SETTINGS
+        else None,
     )
     return _loaded(directory)
 
 
-def _bc_of(agent: Agent) -> Agent:
-    """The BC agent of the same demonstrations (kick-started PPO's initialisation)."""
-    return next(a for a in AGENTS if a.name == f"bc-{agent.episodes}")
+def _start_of(agent: Agent) -> Agent:
+    """The agent a kick-started one starts from."""
+    return next(a for a in AGENTS if a.name == agent.start)
 
 
-def _train_dagger(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
-    """Runs training seed ``k`` of DAgger with the agent's teacher and :data:`DAGGER_SETTINGS`,
+def _train_taught(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
+    """Runs training seed ``k`` of a DAgger agent with its teacher (a feed-forward learner with
+    :data:`DAGGER_SETTINGS`, a recurrent or frame-stacked one with :data:`RECURRENT_SETTINGS`),
     or only loads a checkpoint of it that already stands (the planner's rounds take minutes)."""
-    directory = agent.directory(job.out, k)
-    if not _standing(directory):
-        train_dagger(
-            directory,
-            DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]),
-            connect=job.connect,
-            seed=job.seed + k,
-            name=directory.name,
-        )
-    return _loaded(directory)
-
-
-def _train_recurrent(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
-    """Trains training seed ``k`` of a recurrent or frame-stacked DAgger agent with
-    :data:`RECURRENT_SETTINGS`, or only loads its checkpoint where it stands."""
     from .recurrent import RecurrentConfig
     from .train_recurrent import train_recurrent
 
     directory = agent.directory(job.out, k)
     if not _standing(directory):
-        train_recurrent(
-            directory,
-            RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
-            connect=job.connect,
-            seed=job.seed + k,
-            name=directory.name,
+        train, config = (
+            (train_dagger, DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]))
+            if agent.name in DAGGER_SETTINGS
+            else (
+                train_recurrent,
+                RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
+            )
         )
+        train(directory, config, connect=job.connect, seed=job.seed + k, name=directory.name)
     return _loaded(directory)
 
 
@@ -551,8 +564,8 @@ def _train_recurrent(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, An
 _RUNS = {
     "bc": _train_imitation,
     "dpgm": _train_imitation,
-    "dagger": _train_dagger,
-    "dagger-recurrent": _train_recurrent,
+    "dagger": _train_taught,
+    "dagger-recurrent": _train_taught,
 }
 
 
@@ -585,7 +598,8 @@ def _markdown(r: dict[str, Any]) -> str:
         "or the first 70 of them; the planner's rows: the look-ahead planner's episodes of the "
         "same seeds). RL agents: PPO on the game's reward, GAIL on a discriminator's, "
         "kick-started PPO on the game's reward from BC's policy with a decaying pull toward the "
-        "teacher's actions; environment steps in the training column; DAgger: rounds of the "
+        "teacher's actions, or from the DAgger learner with memory without a pull; environment "
+        "steps in the training column; DAgger: rounds of the "
         "learner's own episodes of training seeds, every state labelled by the planner or the "
         "expert (its states in that column). "
         f"Evaluation: {EVAL_EPISODES} unseen seeds "

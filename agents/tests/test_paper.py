@@ -41,10 +41,12 @@ def test_update_keeps_only_rows_with_all_their_training_seeds() -> None:
 def test_every_long_run_and_every_comparison_names_a_known_agent() -> None:
     names = {a.name for a in paper.AGENTS}
     assert {n for a, b, _ in paper.COMPARISONS for n in (a, b)} <= names
-    # Seed k > 0 of kick-started PPO starts from the same seed of its BC (which must have it).
-    kick = next(a for a in paper.AGENTS if a.algorithm == "ppo-kickstart")
-    bc = paper._bc_of(kick)
-    assert bc.training_seeds >= kick.training_seeds
+    # Seed k > 0 of a kick-started PPO starts from the same seed of its start (which must have
+    # it, and come before it in the table: it is trained first).
+    for kick in (a for a in paper.AGENTS if a.algorithm == "ppo-kickstart"):
+        start = paper._start_of(kick)
+        assert start.training_seeds >= kick.training_seeds
+        assert paper.AGENTS.index(start) < paper.AGENTS.index(kick)
 
 
 def test_the_report_pools_runs_and_gives_paired_differences(tmp_path) -> None:
@@ -90,7 +92,7 @@ def test_training_seed_k_of_a_long_run_has_its_own_directory_seed_and_bc_start(
     )
     kick = next(a for a in paper.AGENTS if a.algorithm == "ppo-kickstart")
     # Kick-started PPO's seed 2 starts from BC's seed 2 (a small one here, on 20 episodes).
-    start = paper._bc_of(kick).directory(tmp_path, 2)
+    start = paper._start_of(kick).directory(tmp_path, 2)
     train_checkpoint("bc", expert_demos, start, config=bc.BCConfig(hidden=64, epochs=1))
     _, description = paper._train_rl(kick, job, 2)
     directory = tmp_path / "checkpoints" / f"{kick.name}-seed2"
