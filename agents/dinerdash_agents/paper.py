@@ -353,7 +353,7 @@ def _experiment(
 def _done(agent: Agent, previous: dict[str, Any]) -> bool:
     """Whether ``previous`` results hold ``agent``'s row with all its training seeds."""
     row = next((r for r in previous["agents"] if r["name"] == agent.name), None)
-    return row is not None and len(row.get("runs") or [row["scores"]]) == agent.training_seeds
+    return row is not None and len(_runs(row)) == agent.training_seeds
 
 
 #: Pairs of rows whose difference the report gives with its paired interval (A, B, what A
@@ -433,17 +433,17 @@ def _agent_rows(agent: Agent, job: _Job, evaluate, common) -> list[dict[str, Any
     played greedily over all 57 actions): each training seed's checkpoint trained (or loaded)
     and evaluated; ``runs`` holds every seed's scores, ``scores`` seed 0's."""
     masks = [True, False] if agent.loss in ("plain", "unmasked") else [True]
+    names = {m: agent.name + ("" if m else " (no mask)") for m in masks}
     results: dict[bool, list[dict[str, Any]]] = {m: [] for m in masks}
     descriptions = []
     for k in range(agent.training_seeds):
         policy, description = _RUNS.get(agent.algorithm, _train_rl)(agent, job, k)
         descriptions.append(description)
         for use_mask in masks:
-            name = agent.name + ("" if use_mask else " (no mask)")
-            seed_name = name if agent.training_seeds == 1 else f"{name} seed {k}"
+            name = names[use_mask]
             results[use_mask].append(
                 evaluate(
-                    seed_name,
+                    name if agent.training_seeds == 1 else f"{name} seed {k}",
                     lambda p, m=use_mask, act=policy.act: evaluate_policy(
                         act, EVAL_EPISODES, progress=p, use_mask=m, **common
                     ),
@@ -455,7 +455,7 @@ def _agent_rows(agent: Agent, job: _Job, evaluate, common) -> list[dict[str, Any
         runs = results[use_mask]
         rows.append(
             {
-                "name": agent.name + ("" if use_mask else " (no mask)"),
+                "name": names[use_mask],
                 "label": agent.label + ("" if use_mask else ", greedy over all 57"),
                 "algorithm": agent.algorithm,
                 "episodes": agent.episodes,

@@ -51,6 +51,43 @@ def _ratio(agent: np.ndarray, expert: np.ndarray, axis: int = -1) -> np.ndarray:
     return np.mean(agent, axis=axis) / np.mean(expert, axis=axis)
 
 
+def _per_seed(scores: Any) -> np.ndarray:
+    """``scores`` (N,), or (R, N) averaged over its R runs seed by seed, as float64."""
+    x = np.asarray(scores, np.float64)
+    return x.mean(axis=0) if x.ndim == 2 else x
+
+
+def _expert_scores(expert: Any) -> np.ndarray:
+    expert = np.asarray(expert, np.float64)
+    if np.mean(expert) <= 0:
+        raise ValueError("the expert's mean must be positive to take fractions of it")
+    return expert
+
+
+def _paired_interval(
+    samples: tuple[np.ndarray, ...],
+    statistic: Any,
+    confidence: float,
+    resamples: int,
+    seed: int,
+    method: str,
+) -> tuple[float, float]:
+    """The ``confidence`` bootstrap interval of ``statistic(*samples)``, the samples' values on
+    one evaluation seed resampled together (``paired=True``)."""
+    result = _scipy_stats.bootstrap(
+        samples,
+        statistic,
+        paired=True,
+        vectorized=True,
+        n_resamples=resamples,
+        confidence_level=confidence,
+        method=method,
+        random_state=np.random.default_rng(seed),
+    )
+    low, high = result.confidence_interval
+    return float(low), float(high)
+
+
 def fraction_interval(
     scores: Any,
     expert: Any,
@@ -63,33 +100,18 @@ def fraction_interval(
     """The ``confidence`` bootstrap interval of ``mean(scores) / mean(expert)``, resampling the
     evaluation seeds: ``scores`` (N,) or (R, N) (R runs on the same N seeds; a seed's column is
     averaged over the runs first), ``expert`` (N,), paired seed by seed."""
-    agent = np.asarray(scores, np.float64)
-    if agent.ndim == 2:
-        agent = agent.mean(axis=0)
-    expert = np.asarray(expert, np.float64)
+    agent, expert = _per_seed(scores), np.asarray(expert, np.float64)
     if agent.ndim != 1 or agent.shape != expert.shape:
         raise ValueError(f"scores {np.shape(scores)} do not pair with expert {expert.shape}")
     if len(agent) < 2:
         raise ValueError("a bootstrap interval needs at least 2 evaluation seeds")
-    if np.mean(expert) <= 0:
-        raise ValueError("the expert's mean must be positive to take fractions of it")
+    expert = _expert_scores(expert)
     point = float(_ratio(agent, expert))
     if np.allclose(agent, point * expert):
         # Every resample's ratio is the same (BCa's acceleration is then 0/0): the interval is
         # the point.
         return point, point
-    result = _scipy_stats.bootstrap(
-        (agent, expert),
-        _ratio,
-        paired=True,
-        vectorized=True,
-        n_resamples=resamples,
-        confidence_level=confidence,
-        method=method,
-        random_state=np.random.default_rng(seed),
-    )
-    low, high = result.confidence_interval
-    return float(low), float(high)
+    return _paired_interval((agent, expert), _ratio, confidence, resamples, seed, method)
 
 
 def _difference(a: np.ndarray, b: np.ndarray, expert: np.ndarray, axis: int = -1) -> np.ndarray:
@@ -110,27 +132,14 @@ def difference_interval(
     B's and the expert's scores on a seed kept together (all three played the same seeds).
     ``scores_a``, ``scores_b``: (N,) or (R, N) (runs averaged per seed first); returns (point,
     low, high)."""
-    a, b = (np.asarray(x, np.float64) for x in (scores_a, scores_b))
-    a, b = (x.mean(axis=0) if x.ndim == 2 else x for x in (a, b))
-    expert = np.asarray(expert, np.float64)
+    a, b, expert = _per_seed(scores_a), _per_seed(scores_b), np.asarray(expert, np.float64)
     if not a.shape == b.shape == expert.shape or a.ndim != 1:
         raise ValueError(
             f"{np.shape(scores_a)}, {np.shape(scores_b)} and {expert.shape} do not pair"
         )
-    if np.mean(expert) <= 0:
-        raise ValueError("the expert's mean must be positive to take fractions of it")
-    result = _scipy_stats.bootstrap(
-        (a, b, expert),
-        _difference,
-        paired=True,
-        vectorized=True,
-        n_resamples=resamples,
-        confidence_level=confidence,
-        method="BCa",
-        random_state=np.random.default_rng(seed),
-    )
-    low, high = result.confidence_interval
-    return float(_difference(a, b, expert)), float(low), float(high)
+    expert = _expert_scores(expert)
+    low, high = _paired_interval((a, b, expert), _difference, confidence, resamples, seed, "BCa")
+    return float(_difference(a, b, expert)), low, high
 
 
 @dataclass(frozen=True)
