@@ -78,6 +78,7 @@ lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
 	$(VENV)/bin/ruff check client-py tests agents scripts server/python
+	scripts/buf_check.sh
 	$(VENV)/bin/ruff format --check client-py tests agents scripts server/python
 
 ## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench.
