@@ -15,10 +15,27 @@ Faults do not overlap: each is over before the next. The trainer (``reconnect=Tr
 ``failover_after``, ``timeout``) connects to the proxies. A step that raises is counted and
 training goes on from fresh vector envs (the iteration under way is collected again). At the end
 the script prints the steps, the exceptions, failovers, rejoins, moves (the vector env's counters
-where it has them), truncated episodes, and the trained policy's score on fixed evaluation seeds;
+where it has them), truncated episodes, and the trained policy's scores on fixed evaluation seeds;
 with ``--undisturbed``, beside a run of the same seed and the same number of iterations with no
-monkey. Exit status 1 when the trainer saw an exception, or the two scores differ by more than
-twice the standard error of their difference.
+monkey.
+
+The judge (:func:`judge`, exit status 1 when it finds anything):
+
+- the fault thread died (an exception in it is caught and reported), a fault it began did not end,
+  or a fault it had scheduled before the stop never began: fewer faults than scheduled;
+- an episode was cut (``info["reconnected"]``) while the last fault begun was a ``drain`` or a
+  ``restart`` (planned stops hand environments over at their episode ends: only crashes may cut),
+  or with no fault begun at all;
+- either run raised an exception;
+- the score: each run's policy is kept at its last ``--snapshots`` multiples of
+  ``--snapshot-every`` iterations (the same iterations in both runs), and every snapshot plays the
+  same evaluation seeds. Per seed, the chaos run's mean over its snapshots minus the undisturbed
+  run's is a paired difference; their mean must not fall below ``-2 sigma``, where ``sigma**2`` is
+  the paired differences' squared standard error plus the training noise measured on the
+  undisturbed run itself: the variance of its snapshots' mean scores, times ``2 / snapshots`` (a
+  difference of two such averages). A final score read at one iteration swings by ~20 % between
+  evaluations of the same run (docs/clusters.md), which a bar of the evaluation noise alone
+  ignored.
 
     .venv/bin/python scripts/chaos.py --server target/release/dinerdash-server --duration 180 \\
         --undisturbed
@@ -67,15 +84,16 @@ def keeper(binary: str, seed: int, monkey: bool, server_flags: dict, pipe: Any) 
             pipe.send([p.address for p in proxies])
             assert pipe.recv() == "go"
             stop = threading.Event()
-            faults: list[tuple[float, str, int]] = []
+            log = MonkeyLog()
             thread = None
             if monkey:
                 thread = threading.Thread(
-                    target=_monkey,
-                    args=(cluster, proxies, random.Random(seed), stop, faults),
+                    target=_guarded,
+                    args=(_monkey, cluster, proxies, random.Random(seed), stop, log),
                 )
                 thread.start()
             assert pipe.recv() == "stop"
+            log.stopped = time.monotonic()
             stop.set()
             if thread is not None:
                 thread.join()
@@ -84,21 +102,65 @@ def keeper(binary: str, seed: int, monkey: bool, server_flags: dict, pipe: Any) 
                 cluster.resume(i)
                 if not cluster.is_running(i):
                     cluster.restart(i)
-            pipe.send((faults, cluster.addresses))
+            pipe.send((log, cluster.addresses))
             assert pipe.recv() == "close"
         finally:
             for proxy in proxies:
                 proxy.close()
 
 
+@dataclass
+class Fault:
+    """One fault the monkey made; times are ``time.monotonic()`` (one clock for every process
+    of the machine, so the trainer's cut episodes can be set beside them)."""
+
+    began: float
+    kind: str
+    server: int
+    #: When it was over (the server back, the network healed); ``None``: it never was.
+    ended: float | None = None
+
+
+@dataclass
+class MonkeyLog:
+    """What the fault thread did, sent to the trainer's process at the end."""
+
+    faults: list[Fault] = field(default_factory=list)
+    #: When the next fault was due, drawn after the last one ended (``None`` before the first).
+    next_due: float | None = None
+    #: When the trainer said stop.
+    stopped: float | None = None
+    #: The exception that ended the fault thread, if one did.
+    error: str | None = None
+
+
+def _guarded(monkey: Any, *args: Any) -> None:
+    """Runs the fault thread; an exception that ends it is logged for the judge, never lost."""
+    log: MonkeyLog = args[-1]
+    try:
+        monkey(*args)
+    except BaseException as e:  # noqa: BLE001  (reported: the judge fails the run)
+        log.error = f"{type(e).__name__}: {e}"
+        print(f"[chaos] the fault thread died: {log.error}", flush=True)
+
+
 def _monkey(
-    cluster: Any, proxies: list, rng: random.Random, stop: threading.Event, faults: list
+    cluster: Any,
+    proxies: list,
+    rng: random.Random,
+    stop: threading.Event,
+    log: MonkeyLog,
 ):
     began = time.monotonic()
-    while not stop.wait(rng.uniform(10.0, 20.0)):
+    while True:
+        wait = rng.uniform(10.0, 20.0)
+        log.next_due = time.monotonic() + wait
+        if stop.wait(wait):
+            return
         fault, i = rng.choice(FAULTS), rng.randrange(len(proxies))
         recover = rng.uniform(2.0, 8.0)
-        faults.append((time.monotonic() - began, fault, i))
+        record = Fault(time.monotonic(), fault, i)
+        log.faults.append(record)
         _log(began, f"{fault} server {i} ({cluster.addresses[i]})")
         if fault == "kill":
             cluster.kill(i)
@@ -126,6 +188,7 @@ def _monkey(
         else:
             cluster.restart(i, wait_drain=True, drain_timeout=EXIT_TIMEOUT)
             _log(began, f"server {i} restarted")
+        record.ended = time.monotonic()
 
 
 # --- the trainer -------------------------------------------------------------------------------
@@ -143,10 +206,15 @@ class Tally:
     truncated: int = 0
     #: Episodes cut by a reconnect or a failover (``info["reconnected"]``).
     cut: int = 0
+    #: When episodes were cut: ``(time.monotonic(), how many)``.
+    cuts: list[tuple[float, int]] = field(default_factory=list)
     failovers: int | None = None
     rejoins: int | None = None
     moves: int | None = None
-    score: Any = None
+    #: The evaluation: one row per snapshot (its iteration in ``snapshot_iterations``), one
+    #: column per evaluation seed.
+    scores: Any = None
+    snapshot_iterations: list[int] = field(default_factory=list)
 
 
 def _counter(envs: list, name: str) -> int | None:
@@ -166,7 +234,10 @@ def _counting(envs: Any, tally: Tally) -> Any:
             tally.episodes += int((terminated | truncated).sum())
             tally.truncated += int(truncated.sum())
             if "reconnected" in info:
-                tally.cut += int((info["reconnected"] & info["_reconnected"]).sum())
+                cut = int((info["reconnected"] & info["_reconnected"]).sum())
+                if cut:
+                    tally.cut += cut
+                    tally.cuts.append((time.monotonic(), cut))
             return result
 
     return Counting(envs)
@@ -181,7 +252,8 @@ def train(
     iterations: int | None = None,
 ) -> Any:
     """Masked PPO on ``addresses`` for ``duration`` seconds or ``iterations`` iterations; returns
-    the trainer."""
+    the trainer and its policy at the last ``args.snapshots`` multiples of
+    ``args.snapshot_every`` iterations (``{iteration: model}``; models are immutable)."""
     import dataclasses
 
     from dinerdash_agents import ppo
@@ -203,6 +275,7 @@ def train(
     envs: list = []
     trainer = None
     counted: dict[str, int] = {}
+    snapshots: dict[int, Any] = {}
 
     def fresh() -> list:
         while True:
@@ -252,6 +325,10 @@ def train(
                 envs = fresh()
                 trainer.attach(envs)
                 continue
+            if trainer.iteration % args.snapshot_every == 0:
+                snapshots[trainer.iteration] = trainer.model
+                for old in sorted(snapshots)[: -args.snapshots]:
+                    del snapshots[old]
             if trainer.iteration % 10 == 0:
                 print(
                     f"[trainer] {time.monotonic() - began:6.1f} s: iteration {trainer.iteration}, "
@@ -266,29 +343,38 @@ def train(
     tally.iterations, tally.steps = trainer.iteration, trainer.steps
     tally.failovers = counted.get("failovers")
     tally.rejoins, tally.moves = counted.get("rejoins"), counted.get("moves")
-    return trainer
+    if not snapshots:  # a run shorter than one snapshot's spacing: its final policy
+        snapshots[trainer.iteration] = trainer.model
+    return trainer, snapshots
 
 
-def evaluate(trainer: Any, address: str, args: argparse.Namespace) -> Any:
-    """The greedy policy's final scores on the fixed seeds ``eval_seed`` .. + ``eval_episodes``."""
+def evaluate(
+    trainer: Any, snapshots: dict[int, Any], address: str, args: argparse.Namespace
+) -> tuple[Any, list[int]]:
+    """Each snapshot's greedy scores on the fixed seeds ``eval_seed`` .. + ``eval_episodes``:
+    (snapshots x seeds) and the snapshots' iterations."""
+    import numpy as np
     from dinerdash_agents.checkpoint import Policy
     from dinerdash_agents.evaluate import evaluate_policy
 
-    policy = Policy(trainer.model, {"algorithm": "ppo-masked"})
-    scores, _ = evaluate_policy(
-        policy.act,
-        args.eval_episodes,
-        seed=args.eval_seed,
-        address=address,
-        num_envs=min(64, args.eval_episodes),
-        max_steps=trainer.config.max_episode_steps,
-    )
-    return scores
+    rows = []
+    for iteration in sorted(snapshots):
+        policy = Policy(snapshots[iteration], {"algorithm": "ppo-masked"})
+        scores, _ = evaluate_policy(
+            policy.act,
+            args.eval_episodes,
+            seed=args.eval_seed,
+            address=address,
+            num_envs=min(64, args.eval_episodes),
+            max_steps=trainer.config.max_episode_steps,
+        )
+        rows.append(np.asarray(scores, dtype=np.float64))
+    return np.stack(rows), sorted(snapshots)
 
 
 def run(
     args: argparse.Namespace, monkey: bool, iterations: int | None = None
-) -> tuple[Tally, list]:
+) -> tuple[Tally, MonkeyLog]:
     """One run on its own servers: a child process keeps them (and the monkey)."""
     context = multiprocessing.get_context("spawn")
     parent, child = context.Pipe()
@@ -301,26 +387,28 @@ def run(
         target=keeper, args=(args.server, args.seed, monkey, flags, child), daemon=True
     )
     process.start()
-    tally, faults = Tally(), []
+    tally, log = Tally(), MonkeyLog()
     try:
         proxies = parent.recv()
         parent.send("go")
         try:
             if iterations is None:
-                trainer = train(proxies, args, tally, duration=args.duration)
+                trainer, snapshots = train(proxies, args, tally, duration=args.duration)
             else:
-                trainer = train(proxies, args, tally, iterations=iterations)
+                trainer, snapshots = train(proxies, args, tally, iterations=iterations)
         finally:
             parent.send("stop")
-            faults, servers = parent.recv()
-        tally.score = evaluate(trainer, servers[0], args)
+            log, servers = parent.recv()
+        tally.scores, tally.snapshot_iterations = evaluate(
+            trainer, snapshots, servers[0], args
+        )
         parent.send("close")
     finally:
         process.join(timeout=60)
         if process.is_alive():
             process.terminate()
             process.join()
-    return tally, faults
+    return tally, log
 
 
 def _supports_drain(binary: str) -> bool:
@@ -331,11 +419,19 @@ def _supports_drain(binary: str) -> bool:
     return "--drain-timeout" in shown.stdout
 
 
-def report(name: str, tally: Tally, faults: list | None) -> None:
+#: Faults whose outages may cut episodes: a crash, a hung process, a dead network. A drain or a
+#: restart is planned: its environments move at their episode ends.
+CRASHES = ("kill", "hang", "blackhole")
+#: Seconds of slack in the fault thread's own timing (a wake-up, a log line).
+SLACK = 1.0
+
+
+def report(name: str, tally: Tally, log: MonkeyLog | None) -> None:
     import numpy as np
 
-    scores = np.asarray(tally.score, dtype=np.float64)
-    sem = scores.std(ddof=1) / np.sqrt(len(scores)) if len(scores) > 1 else float("nan")
+    scores = np.asarray(tally.scores, dtype=np.float64)
+    final = scores[-1]
+    sem = final.std(ddof=1) / np.sqrt(len(final)) if len(final) > 1 else float("nan")
 
     def shown(value: int | None) -> str:
         return "n/a (this client has no such counter)" if value is None else f"{value}"
@@ -345,11 +441,13 @@ def report(name: str, tally: Tally, faults: list | None) -> None:
         f"  trained           {tally.iterations} iterations, {tally.steps:,} env steps, "
         f"{tally.seconds:.0f} s ({tally.steps / max(tally.seconds, 1e-9):,.0f} steps/s)"
     )
-    if faults is not None:
-        kinds = {k: sum(1 for _, f, _ in faults if f == k) for k in FAULTS}
+    if log is not None:
+        faults = log.faults
+        kinds = {k: sum(1 for f in faults if f.kind == k) for k in FAULTS}
         print(
             f"  faults            {len(faults)}: "
             + ", ".join(f"{k} {n}" for k, n in kinds.items())
+            + (f"; the fault thread died: {log.error}" if log.error else "")
         )
     print(f"  exceptions        {len(tally.exceptions)}")
     for text in tally.exceptions:
@@ -362,9 +460,84 @@ def report(name: str, tally: Tally, faults: list | None) -> None:
         f"(cut by a reconnect or failover: {tally.cut:,})"
     )
     print(
-        f"  final score       {scores.mean():,.1f} ± {sem:,.1f} (mean ± s.e., sd "
-        f"{scores.std(ddof=1):,.1f}) over {len(scores)} evaluation episodes"
+        f"  final score       {final.mean():,.1f} ± {sem:,.1f} (mean ± s.e., sd "
+        f"{final.std(ddof=1):,.1f}) over {len(final)} evaluation episodes"
     )
+    print(
+        "  snapshots         "
+        + ", ".join(
+            f"{i}: {row.mean():,.0f}"
+            for i, row in zip(tally.snapshot_iterations, scores)
+        )
+    )
+
+
+def score_gap(chaos: Any, calm: Any) -> tuple[float, float]:
+    """The chaos run's score minus the undisturbed run's, and its noise ``sigma``.
+
+    ``chaos`` and ``calm`` are (snapshots x seeds) scores of the same snapshot iterations on the
+    same seeds. The gap is the mean over seeds of the paired per-seed difference of the two runs'
+    snapshot averages. ``sigma**2`` is that mean's squared standard error plus the training
+    noise measured on the undisturbed run: the variance of its snapshots' mean scores, times
+    ``2 / snapshots`` (the variance of a difference of two such averages); with one snapshot
+    there is no training noise to measure and only the evaluation's counts."""
+    import numpy as np
+
+    chaos, calm = np.asarray(chaos, np.float64), np.asarray(calm, np.float64)
+    if chaos.shape != calm.shape:
+        raise ValueError(
+            f"the runs' scores differ in shape: {chaos.shape} and {calm.shape}"
+        )
+    snapshots, seeds = calm.shape
+    paired = chaos.mean(axis=0) - calm.mean(axis=0)
+    eval_var = paired.var(ddof=1) / seeds if seeds > 1 else 0.0
+    train_var = (
+        calm.mean(axis=1).var(ddof=1) * 2.0 / snapshots if snapshots > 1 else 0.0
+    )
+    return float(paired.mean()), float(np.sqrt(eval_var + train_var))
+
+
+def judge(chaos: Tally, log: MonkeyLog, calm: Tally | None) -> list[str]:
+    """Why the chaos run fails (empty: it passes). See the module's doc for each rule."""
+    failures = []
+    if log.error is not None:
+        failures.append(f"the fault thread died: {log.error}")
+    elif log.stopped is not None:
+        if log.next_due is None:
+            failures.append("the fault thread never ran")
+        elif log.next_due < log.stopped - SLACK and not any(
+            f.began >= log.next_due - SLACK for f in log.faults
+        ):
+            failures.append(
+                f"fewer faults than scheduled: one due {log.stopped - log.next_due:.1f} s "
+                "before the stop never began"
+            )
+    for f in log.faults:
+        if f.ended is None:
+            failures.append(f"{f.kind} of server {f.server} began and never ended")
+    for when, count in chaos.cuts:
+        under_way = [f for f in log.faults if f.began <= when]
+        if not under_way:
+            failures.append(f"{count} episodes cut with no fault begun")
+        elif under_way[-1].kind not in CRASHES:
+            f = under_way[-1]
+            failures.append(
+                f"a {f.kind} of server {f.server} cut {count} episodes "
+                f"({when - f.began:.1f} s after it began): planned stops must not cut episodes"
+            )
+    if chaos.exceptions:
+        failures.append(f"the chaos run raised {len(chaos.exceptions)} exceptions")
+    if calm is not None:
+        if calm.exceptions:
+            failures.append(
+                f"the undisturbed run raised {len(calm.exceptions)} exceptions"
+            )
+        gap, sigma = score_gap(chaos.scores, calm.scores)
+        if gap < -2 * sigma:
+            failures.append(
+                f"the score fell by {-gap:,.1f}, more than 2 sigma ({2 * sigma:,.1f})"
+            )
+    return failures
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -395,6 +568,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-episodes", type=int, default=64)
     parser.add_argument("--eval-seed", type=int, default=10_000)
     parser.add_argument(
+        "--snapshots",
+        type=int,
+        default=5,
+        help="policies kept at the end of each run, each evaluated on the same seeds",
+    )
+    parser.add_argument(
+        "--snapshot-every", type=int, default=10, help="iterations between snapshots"
+    )
+    parser.add_argument(
         "--undisturbed",
         action="store_true",
         help="also train the same seed, as many iterations, without the monkey",
@@ -402,31 +584,27 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not Path(args.server).is_file():
         parser.error(f"--server {args.server}: no such binary (make build-server)")
+    if args.snapshots < 1 or args.snapshot_every < 1:
+        parser.error("--snapshots and --snapshot-every must be at least 1")
 
-    chaos, faults = run(args, monkey=True)
-    report("chaos", chaos, faults)
-    failed = bool(chaos.exceptions)
+    chaos, log = run(args, monkey=True)
+    report("chaos", chaos, log)
+    calm = None
     if args.undisturbed:
         calm, _ = run(args, monkey=False, iterations=chaos.iterations)
         report("undisturbed, same seed and iterations", calm, None)
-        gap, noise = _difference(chaos.score, calm.score)
-        within = abs(gap) <= 2 * noise
+        gap, sigma = score_gap(chaos.scores, calm.scores)
         print(
-            f"\nchaos - undisturbed: {gap:+,.1f} (2 s.e. of the difference: {2 * noise:,.1f}): "
-            + ("within the noise" if within else "OUTSIDE the noise")
+            f"\nchaos - undisturbed over {len(calm.snapshot_iterations)} snapshots "
+            f"x {args.eval_episodes} seeds: {gap:+,.1f} (2 sigma: {2 * sigma:,.1f})"
         )
-        failed = failed or not within
-    print(f"exceptions: {len(chaos.exceptions)}; " + ("FAILED" if failed else "passed"))
-    return 1 if failed else 0
-
-
-def _difference(a: Any, b: Any) -> tuple[float, float]:
-    """The difference of the mean scores and its standard error."""
-    import numpy as np
-
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    se = np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
-    return float(a.mean() - b.mean()), float(se)
+    failures = judge(chaos, log, calm)
+    for text in failures:
+        print(f"FAILED: {text}")
+    print(
+        f"exceptions: {len(chaos.exceptions)}; " + ("FAILED" if failures else "passed")
+    )
+    return 1 if failures else 0
 
 
 if __name__ == "__main__":
