@@ -22,11 +22,12 @@ build: build-server
 # The sb3 extra (stable-baselines3, sb3-contrib) is for tests/test_sb3.py; it brings torch from
 # PyPI, a large download (2-3 minutes the first time). The ray extra (Ray with RLlib, which pins
 # gymnasium 1.2.x) is for tests/test_ray.py; the torchrl extra (TorchRL, on the same torch) for
-# tests/test_torchrl.py.
+# tests/test_torchrl.py; the minari extra for the Minari dataset test of tests/test_rollout_cli.py.
+# In CI (CI set) a skipped test fails (tests/conftest.py): every extra must be here.
 $(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray,torchrl]' -e 'agents[dev]'
+	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray,torchrl,minari]' -e 'agents[dev]'
 	touch $@
 
 venv: $(VENV)/.installed

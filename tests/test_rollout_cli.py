@@ -117,7 +117,7 @@ def test_cli_collect(address: str, tmp_path: Path) -> None:
 def test_cli_collect_writes_a_minari_dataset_when_minari_is_installed(
     address, tmp_path, monkeypatch
 ):
-    pytest.importorskip("minari", reason="minari is an optional extra")
+    pytest.importorskip("minari", reason="minari is an optional extra (make test installs it)")
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
     out = run_cli("collect", "--episodes", "2", "--out", str(tmp_path), "--address", address)
     assert "wrote Minari dataset dinerdash/expert-v0" in out
