@@ -1,5 +1,5 @@
 """Every checkpoint committed under docs/results/checkpoints loads, and replays the first
-evaluation seeds of the results table with the scores ``results.json`` reports for them (the
+ten evaluation seeds of the results table with the scores ``results.json`` reports for them (the
 table's numbers come from these files, played through the same evaluation loop)."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from dinerdash_agents import load
 from dinerdash_agents.evaluate import evaluate_policy
 
 RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results"
-#: Seeds replayed per checkpoint: the table's first ones (1000, 1001).
-REPLAYED = 2
+#: Seeds replayed per checkpoint: the table's first ten (1000..1009), played as one batch.
+REPLAYED = 10
 
 
 def _checkpoints() -> list[tuple[str, Path, list[int]]]:
@@ -39,7 +39,9 @@ def test_every_committed_checkpoint_has_a_row() -> None:
     assert names == on_disk
 
 
-@pytest.mark.parametrize(("name", "directory", "scores"), _checkpoints(), ids=lambda v: str(v))
+@pytest.mark.parametrize(
+    ("name", "directory", "scores"), _checkpoints(), ids=[c[0] for c in _checkpoints()]
+)
 def test_a_committed_checkpoint_replays_its_table_scores(
     name: str, directory: Path, scores: list[int], server_address: str
 ) -> None:
