@@ -262,8 +262,11 @@ def test_a_wrong_token_and_an_unknown_session_are_refused(start_server, browser,
         )
         assert browser.find_element(By.CSS_SELECTOR, "td.tenant").text == "tenant team-a"
 
-        # An unknown session ID: a readable 404 page.
+        # An unknown session ID: with tokens the page loads for any ID (a browser opening it
+        # sends no token, and the page must not tell anyone which IDs exist); the token's feed
+        # then refuses it exactly as it refuses another tenant's session.
         browser.get(f"{url}watch/{'0' * 32}?env=0")
-        heading = browser.find_element(By.CSS_SELECTOR, "#not-found h1")
-        assert heading.text == "Session not found"
-        assert "closed" in browser.find_element(By.ID, "not-found").text
+        problem = browser.find_element(By.ID, "problem")
+        wait_for("the refusal of an unknown ID", problem.is_displayed)
+        assert "no such session" in problem.text
+        assert shown_frame(browser) is None

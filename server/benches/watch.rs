@@ -15,7 +15,7 @@ use dinerdash_server::budget::{Share, Tenant};
 use dinerdash_server::http::{self, Access, Site};
 use dinerdash_server::metrics::Metrics;
 use dinerdash_server::session::{
-    Autoreset, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
+    Autoreset, Caller, ExpertActions, Limits, Owner, ResetArgs, SessionOptions, Store,
 };
 use dinerdash_server::shutdown;
 use dinerdash_server::sim::Config;
@@ -27,17 +27,19 @@ const VIEWERS: usize = 20;
 
 /// A session of `n` environments, reset, stepped by waiting.
 fn session(store: &Store, n: u32) -> String {
-    let tenant = Arc::new(Tenant::new("bench".into(), Share::default()));
+    let caller = Caller::shared(Arc::new(Tenant::new("bench".into(), Share::default())));
     let options = SessionOptions {
         autoreset: Autoreset::NextStep,
         action_masks: false,
         expert_actions: ExpertActions::None,
     };
     let (id, _) = store
-        .create(&tenant, n, Config::default(), options, Some(7))
+        .create(&caller, n, Config::default(), options, Some(7))
         .unwrap();
     let id = id.to_string();
-    store.reset(&id, &ResetArgs::default()).unwrap();
+    store
+        .reset(&Owner::Shared, &id, &ResetArgs::default())
+        .unwrap();
     id
 }
 
@@ -55,7 +57,7 @@ async fn stalled_viewer(addr: std::net::SocketAddr, id: &str, env: usize) -> Tcp
 /// Waits until session `id` has `n` viewers.
 fn wait_for_viewers(store: &Store, id: &str, n: usize) {
     for _ in 0..2000 {
-        let listing = store.summaries(|_| true, usize::MAX);
+        let listing = store.summaries(&Owner::Shared, usize::MAX);
         if listing
             .rows
             .iter()
@@ -69,7 +71,7 @@ fn wait_for_viewers(store: &Store, id: &str, n: usize) {
 }
 
 fn viewers_of(store: &Store, id: &str) -> usize {
-    let listing = store.summaries(|_| true, usize::MAX);
+    let listing = store.summaries(&Owner::Shared, usize::MAX);
     listing
         .rows
         .iter()
@@ -105,7 +107,7 @@ fn bench_watch(c: &mut Criterion) {
             format!("{n} env")
         };
         group.bench_function(format!("{label}, no viewer"), |b| {
-            b.iter(|| black_box(store.step(&id, &actions).unwrap()))
+            b.iter(|| black_box(store.step(&Owner::Shared, &id, &actions).unwrap()))
         });
         let viewers: Vec<TcpStream> = rt.block_on(async {
             let mut v = Vec::new();
@@ -117,7 +119,7 @@ fn bench_watch(c: &mut Criterion) {
         wait_for_viewers(&store, &id, VIEWERS);
         let on = if spread { "one per env" } else { "on env 0" };
         group.bench_function(format!("{label}, {VIEWERS} stalled viewers {on}"), |b| {
-            b.iter(|| black_box(store.step(&id, &actions).unwrap()))
+            b.iter(|| black_box(store.step(&Owner::Shared, &id, &actions).unwrap()))
         });
         eprintln!(
             "{label}: {} of {VIEWERS} stalled viewers still attached after the measurement",

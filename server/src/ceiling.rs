@@ -14,7 +14,9 @@ use std::time::{Duration, Instant};
 use crate::budget::{Share, Tenant};
 use crate::pb;
 use crate::server::{self, Listeners, ServerConfig, ServerError};
-use crate::session::{Autoreset, ExpertActions, Limits, ResetArgs, SessionOptions, Store};
+use crate::session::{
+    Autoreset, Caller, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
+};
 use crate::sim::{Config, NUM_ACTIONS};
 
 /// A fixed stream of random actions, packed as a Step carries them.
@@ -37,7 +39,7 @@ impl Actions {
 /// Env-steps/s of one session of `num_envs` stepped in process for about `time`.
 pub fn in_process(num_envs: usize, time: Duration) -> Result<f64, String> {
     let store = Store::new(Limits::default(), Arc::default());
-    let tenant = Arc::new(Tenant::new("ceiling".into(), Share::default()));
+    let caller = Caller::shared(Arc::new(Tenant::new("ceiling".into(), Share::default())));
     let options = SessionOptions {
         autoreset: Autoreset::NextStep,
         action_masks: true,
@@ -45,9 +47,9 @@ pub fn in_process(num_envs: usize, time: Duration) -> Result<f64, String> {
     };
     let n = u32::try_from(num_envs).map_err(|e| e.to_string())?;
     let (id, _) = store
-        .create(&tenant, n, Config::default(), options, Some(0))
+        .create(&caller, n, Config::default(), options, Some(0))
         .map_err(|e| e.to_string())?;
-    let session = store.find(&id.to_string()).map_err(|e| e.to_string())?;
+    let session = store.find(&caller.owner, &id.to_string()).map_err(|e| e.to_string())?;
     session
         .reset(&ResetArgs::default())
         .map_err(|e| e.to_string())?;

@@ -7,6 +7,12 @@
 //! session are serialized and different sessions run in parallel. std rather than tokio mutexes:
 //! no critical section ever awaits, and they are several times cheaper.
 //!
+//! Every session belongs to the identity that created it (its [`Owner`]), and every lookup by
+//! ID names the caller's identity: another identity's session is answered exactly as an unknown
+//! ID ([`SessionError::NotFound`], the same message), by the same code path, without marking it
+//! used. The ID is not the access check; with tenants (`--auth-tokens-file`) each tenant is its
+//! own identity, otherwise every caller is the one shared identity.
+//!
 //! - [`envs`]: the environments of one session and what Reset and Step do to them.
 //! - [`watch`]: each session's running summary and watched environments, read by the web pages.
 
@@ -162,6 +168,63 @@ impl std::fmt::Display for SessionId {
     }
 }
 
+/// Whose a session is: the identity every lookup by ID must name. Compared by identity
+/// ([`Owner::is`]), never by name.
+#[derive(Debug, Clone)]
+pub enum Owner {
+    /// Everyone who is not a tenant: the shared `--auth-token`, or a server without tokens (one
+    /// that serves only its own host).
+    Shared,
+    /// The tenant a token of `--auth-tokens-file` stands for (the `Arc` the request gate puts
+    /// in the request's extensions).
+    Tenant(Arc<Tenant>),
+}
+
+impl Owner {
+    /// The identity of a request that came with `tenant`'s token, or with no tenant's.
+    pub fn of(tenant: Option<&Arc<Tenant>>) -> Owner {
+        tenant.map_or(Owner::Shared, |t| Owner::Tenant(Arc::clone(t)))
+    }
+
+    /// Whether `self` and `other` are the same identity.
+    pub fn is(&self, other: &Owner) -> bool {
+        match (self, other) {
+            (Owner::Shared, Owner::Shared) => true,
+            (Owner::Tenant(a), Owner::Tenant(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        }
+    }
+}
+
+/// Who makes a request that creates a session: whose the session will be, and whose share it
+/// counts against. They differ without tenants: the identity is the shared one, the share the
+/// connection's (see [`crate::connections`]), which a reconnect changes while the owner stays.
+#[derive(Debug, Clone)]
+pub struct Caller {
+    /// The identity the new session belongs to.
+    pub owner: Owner,
+    /// Whose share the new session counts against.
+    pub tenant: Arc<Tenant>,
+}
+
+impl Caller {
+    /// A tenant calling with its own token: it is both the owner and the share.
+    pub fn tenant(tenant: Arc<Tenant>) -> Caller {
+        Caller {
+            owner: Owner::Tenant(Arc::clone(&tenant)),
+            tenant,
+        }
+    }
+
+    /// A caller of the shared identity whose requests count against `share`'s share.
+    pub fn shared(share: Arc<Tenant>) -> Caller {
+        Caller {
+            owner: Owner::Shared,
+            tenant: share,
+        }
+    }
+}
+
 /// What a client needs to know about a session it created (the protocol's `Spec`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SessionSpec {
@@ -179,6 +242,8 @@ pub struct Session {
     /// Its bytes in the memory budget and its slot in its tenant's share, given back when the
     /// last reference goes (closed or expired, and no request still using it).
     _charge: Charge,
+    /// Whose it is: every lookup by ID names an identity, and only this one finds it.
+    owner: Owner,
     /// Milliseconds since the store's epoch at the last lookup; the sweeper reads it.
     last_used_ms: AtomicU64,
     /// The environments. Locked for the whole of one Reset or Step.
@@ -239,6 +304,21 @@ impl FoundSession {
     /// Whose share the session counts against.
     pub fn tenant(&self) -> &Arc<Tenant> {
         self.session._charge.tenant()
+    }
+
+    /// Whose the session is (a fork or restore of it belongs to whoever makes it).
+    pub fn owner(&self) -> &Owner {
+        &self.session.owner
+    }
+
+    /// The session as versioned bytes.
+    pub fn snapshot(&self) -> Vec<u8> {
+        self.session.lock().snapshot()
+    }
+
+    /// One environment of the session drawn as text.
+    pub fn render(&self, env_index: u32, color: bool) -> Result<String, SessionError> {
+        self.session.lock().render(env_index, color)
     }
 
     /// Resets every environment of the session.
@@ -335,8 +415,29 @@ impl Store {
             .unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// The session with this ID, marked as used now.
-    fn get(&self, id: &str) -> Result<Arc<Session>, SessionError> {
+    /// The session with this ID if `owner` owns it, not marked as used. The one lookup every
+    /// access by ID goes through: a session of another owner is refused inside the same shard
+    /// lookup, with the error of an unknown ID, before anything about it is touched.
+    fn lookup(&self, owner: &Owner, id: &str) -> Result<Arc<Session>, SessionError> {
+        let key = SessionId::parse(id)?;
+        self.shard(key)
+            .get(&key)
+            .filter(|s| s.owner.is(owner))
+            .cloned()
+            .ok_or_else(|| SessionError::NotFound(id.to_owned()))
+    }
+
+    /// The session with this ID if `owner` owns it, marked as used now.
+    fn get(&self, owner: &Owner, id: &str) -> Result<Arc<Session>, SessionError> {
+        let session = self.lookup(owner, id)?;
+        session.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
+        Ok(session)
+    }
+
+    /// The session with this ID whoever owns it, marked as used now: only for a caller that
+    /// proved otherwise that it may use the session. The shared-memory doorbell's peer runs as
+    /// the server's own user and names the session in its hello ([`crate::shm`]).
+    pub fn find_proven(&self, id: &str) -> Result<FoundSession, SessionError> {
         let key = SessionId::parse(id)?;
         let session = self
             .shard(key)
@@ -344,7 +445,10 @@ impl Store {
             .cloned()
             .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
         session.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
-        Ok(session)
+        Ok(FoundSession {
+            session,
+            metrics: Arc::clone(&self.shared.metrics),
+        })
     }
 
     /// Whether session `id` is live, without marking it used (a shared-memory session's thread
@@ -361,11 +465,17 @@ impl Store {
             .charge_session(tenant, num_envs as u64, session_bytes(num_envs))?)
     }
 
-    /// Adds a session already charged and returns its ID and spec.
-    fn insert(&self, envs: Envs, charge: Charge) -> Result<(SessionId, SessionSpec), SessionError> {
+    /// Adds a session already charged, owned by `owner`, and returns its ID and spec.
+    fn insert(
+        &self,
+        owner: &Owner,
+        envs: Envs,
+        charge: Charge,
+    ) -> Result<(SessionId, SessionSpec), SessionError> {
         let now = self.now_ms();
         let session = Arc::new(Session {
             _charge: charge,
+            owner: owner.clone(),
             last_used_ms: AtomicU64::new(now),
             num_envs: envs.len(),
             options: *envs.options(),
@@ -393,10 +503,10 @@ impl Store {
         Ok((id, spec))
     }
 
-    /// Creates a session of `num_envs` environments, not reset yet.
+    /// Creates a session of `num_envs` environments, not reset yet, owned by `caller`.
     pub fn create(
         &self,
-        tenant: &Arc<Tenant>,
+        caller: &Caller,
         num_envs: u32,
         config: Config,
         options: SessionOptions,
@@ -412,16 +522,21 @@ impl Store {
         config
             .validate()
             .map_err(|e| SessionError::InvalidArgument(e.to_string()))?;
-        let charge = self.charge(tenant, n)?;
-        self.insert(Envs::new(n, config, options, seed)?, charge)
+        let charge = self.charge(&caller.tenant, n)?;
+        self.insert(&caller.owner, Envs::new(n, config, options, seed)?, charge)
     }
 
-    /// Closes a session.
-    pub fn close(&self, id: &str) -> Result<(), SessionError> {
+    /// Closes a session of `owner`'s.
+    pub fn close(&self, owner: &Owner, id: &str) -> Result<(), SessionError> {
         let key = SessionId::parse(id)?;
-        self.shard(key)
-            .remove(&key)
-            .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
+        let mut shard = self.shard(key);
+        // The owner check and the removal under one shard lock: another owner's session is
+        // neither removed nor told apart from an unknown ID.
+        let mine = shard.get(&key).is_some_and(|s| s.owner.is(owner));
+        let removed = mine.then(|| shard.remove(&key)).flatten();
+        drop(shard);
+        // Freed (if no request still holds it) outside the shard lock.
+        removed.ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
         self.shared
             .metrics
             .sessions_closed
@@ -430,61 +545,51 @@ impl Store {
         Ok(())
     }
 
-    /// The session with this ID, looked up once for a Reset or Step that may run elsewhere (the
-    /// service runs sessions whose expert actions come from the planner on its CPU pool).
-    pub fn find(&self, id: &str) -> Result<FoundSession, SessionError> {
+    /// Session `id` of `owner`'s, looked up once for a Reset or Step (or Render, Snapshot, Fork)
+    /// that may run elsewhere (the service runs those of sessions whose expert actions come from
+    /// the planner on its CPU pool).
+    pub fn find(&self, owner: &Owner, id: &str) -> Result<FoundSession, SessionError> {
         Ok(FoundSession {
-            session: self.get(id)?,
+            session: self.get(owner, id)?,
             metrics: Arc::clone(&self.shared.metrics),
         })
     }
 
-    /// Resets every environment of a session.
-    pub fn reset(&self, id: &str, args: &ResetArgs) -> Result<Batch, SessionError> {
-        self.find(id)?.reset(args)
+    /// Resets every environment of a session of `owner`'s.
+    pub fn reset(&self, owner: &Owner, id: &str, args: &ResetArgs) -> Result<Batch, SessionError> {
+        self.find(owner, id)?.reset(args)
     }
 
-    /// Steps every environment of a session.
-    pub fn step(&self, id: &str, actions: &[u8]) -> Result<Batch, SessionError> {
-        self.find(id)?.step(actions)
+    /// Steps every environment of a session of `owner`'s.
+    pub fn step(&self, owner: &Owner, id: &str, actions: &[u8]) -> Result<Batch, SessionError> {
+        self.find(owner, id)?.step(actions)
     }
 
-    /// A new session identical to this one, random streams included.
+    /// A new session of `caller`'s identical to `found`, random streams included.
     pub fn fork(
         &self,
-        tenant: &Arc<Tenant>,
-        id: &str,
+        caller: &Caller,
+        found: &FoundSession,
     ) -> Result<(SessionId, SessionSpec), SessionError> {
-        let session = self.get(id)?;
-        let envs = session.lock();
+        let envs = found.session.lock();
         // Charged before the copy is made: a refused Fork allocates nothing.
-        let charge = self.charge(tenant, envs.len())?;
+        let charge = self.charge(&caller.tenant, envs.len())?;
         let copy = envs.clone();
         drop(envs);
-        self.insert(copy, charge)
+        self.insert(&caller.owner, copy, charge)
     }
 
-    /// The session as versioned bytes.
-    pub fn snapshot(&self, id: &str) -> Result<Vec<u8>, SessionError> {
-        Ok(self.get(id)?.lock().snapshot())
-    }
-
-    /// A new session from snapshot bytes.
+    /// A new session of `caller`'s from snapshot bytes.
     pub fn restore(
         &self,
-        tenant: &Arc<Tenant>,
+        caller: &Caller,
         bytes: &[u8],
     ) -> Result<(SessionId, SessionSpec), SessionError> {
         // Decoding holds at most max_envs_per_session environments for a moment; they are kept
         // only once charged.
         let envs = Envs::restore(bytes, self.shared.limits.max_envs_per_session)?;
-        let charge = self.charge(tenant, envs.len())?;
-        self.insert(envs, charge)
-    }
-
-    /// One environment of a session drawn as text.
-    pub fn render(&self, id: &str, env_index: u32, color: bool) -> Result<String, SessionError> {
-        self.get(id)?.lock().render(env_index, color)
+        let charge = self.charge(&caller.tenant, envs.len())?;
+        self.insert(&caller.owner, envs, charge)
     }
 
     /// Closes every session idle for longer than the TTL; returns how many.
@@ -541,6 +646,11 @@ mod tests {
         Arc::new(Tenant::new("test".into(), crate::budget::Share::default()))
     }
 
+    /// A caller of the shared identity, on a connection of its own.
+    fn caller() -> Caller {
+        Caller::shared(tenant())
+    }
+
     fn options() -> SessionOptions {
         SessionOptions {
             autoreset: Autoreset::NextStep,
@@ -567,20 +677,20 @@ mod tests {
         };
         let store = Store::new(limits, Arc::default());
         let (a, _) = store
-            .create(&tenant(), 1, Config::default(), options(), None)
+            .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
         store
-            .create(&tenant(), 1, Config::default(), options(), None)
+            .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
         assert_eq!(
-            store.create(&tenant(), 1, Config::default(), options(), None),
+            store.create(&caller(), 1, Config::default(), options(), None),
             Err(SessionError::TooManySessions(2))
         );
-        store.close(&a.to_string()).unwrap();
+        store.close(&Owner::Shared, &a.to_string()).unwrap();
         assert_eq!(store.live(), 1);
-        assert!(store.close(&a.to_string()).is_err());
+        assert!(store.close(&Owner::Shared, &a.to_string()).is_err());
         store
-            .create(&tenant(), 1, Config::default(), options(), None)
+            .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
     }
 
@@ -593,9 +703,9 @@ mod tests {
             ..options()
         };
         let (id, _) = store
-            .create(&tenant(), 2, Config::default(), planner, None)
+            .create(&caller(), 2, Config::default(), planner, None)
             .unwrap();
-        let found = store.find(&id.to_string()).unwrap();
+        let found = store.find(&Owner::Shared, &id.to_string()).unwrap();
         assert_eq!(found.expert_actions(), ExpertActions::Planner);
         let args = ResetArgs {
             seed: Some(1),
@@ -603,13 +713,13 @@ mod tests {
         };
         assert_eq!(found.reset(&args).unwrap().num_envs, 2);
         // Closed meanwhile: the request that found it still finishes its step.
-        store.close(&id.to_string()).unwrap();
+        store.close(&Owner::Shared, &id.to_string()).unwrap();
         let batch = found.step(&[0; 8]).unwrap();
         assert_eq!(batch.expert_actions.len(), 2);
         assert_eq!(metrics.step_calls.load(Ordering::Relaxed), 1);
         assert_eq!(metrics.env_steps.load(Ordering::Relaxed), 2);
         assert!(matches!(
-            store.find(&id.to_string()),
+            store.find(&Owner::Shared, &id.to_string()),
             Err(SessionError::NotFound(_))
         ));
     }
@@ -622,14 +732,77 @@ mod tests {
         };
         let store = Store::new(limits, Arc::default());
         let (id, _) = store
-            .create(&tenant(), 1, Config::default(), options(), None)
+            .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
         std::thread::sleep(Duration::from_millis(5));
         assert_eq!(store.sweep(), 1);
         assert_eq!(store.live(), 0);
         assert!(matches!(
-            store.step(&id.to_string(), &[0; 4]),
+            store.step(&Owner::Shared, &id.to_string(), &[0; 4]),
             Err(SessionError::NotFound(_))
         ));
+    }
+
+    /// A session of another owner is found, closed, forked, stepped and snapshotted exactly as
+    /// an unknown ID is (the same error, message included), and is left as it was.
+    #[test]
+    fn another_owners_session_is_an_unknown_id() {
+        let store = Store::new(Limits::default(), Arc::default());
+        let a = Caller::tenant(tenant());
+        let b = Caller::tenant(tenant());
+        let (id, _) = store
+            .create(&a, 2, Config::default(), options(), Some(9))
+            .unwrap();
+        let (twin, _) = store
+            .create(&a, 2, Config::default(), options(), Some(9))
+            .unwrap();
+        let (id, twin) = (id.to_string(), twin.to_string());
+        let args = ResetArgs::default();
+        store.reset(&a.owner, &id, &args).unwrap();
+        store.reset(&a.owner, &twin, &args).unwrap();
+        let key = SessionId::parse(&id).unwrap();
+        let session = Arc::clone(&store.shard(key)[&key]);
+        session.last_used_ms.store(0, Ordering::Relaxed);
+        let unknown = "0123456789abcdef0123456789abcdef";
+        for asked in [id.as_str(), unknown] {
+            let not_found = Err(SessionError::NotFound(asked.to_owned()));
+            assert_eq!(store.reset(&b.owner, asked, &args).map(|_| ()), not_found);
+            assert_eq!(store.step(&b.owner, asked, &[0; 8]).map(|_| ()), not_found);
+            assert_eq!(store.find(&b.owner, asked).map(|_| ()), not_found);
+            assert_eq!(store.close(&b.owner, asked), not_found);
+            assert_eq!(store.find(&Owner::Shared, asked).map(|_| ()), not_found);
+            assert_eq!(store.watch(&b.owner, asked, 0).map(|_| ()), not_found);
+        }
+        assert_eq!(store.live(), 2);
+        // Nothing about it was touched: not even when it was last used.
+        assert_eq!(session.last_used_ms.load(Ordering::Relaxed), 0);
+        drop(session);
+        assert_eq!(store.summaries(&a.owner, 10).rows.len(), 2);
+        assert!(store.summaries(&b.owner, 10).rows.is_empty());
+        // Still the owner's, and exactly as its twin.
+        let stepped = store.step(&a.owner, &id, &[0; 8]).unwrap();
+        let twin_stepped = store.step(&a.owner, &twin, &[0; 8]).unwrap();
+        assert_eq!(stepped.observations, twin_stepped.observations);
+        assert_eq!(stepped.rewards, twin_stepped.rewards);
+        // Forks and restores belong to whoever makes them.
+        let found = store.find(&a.owner, &id).unwrap();
+        let (fork, _) = store.fork(&b, &found).unwrap();
+        let (restored, _) = store.restore(&b, &found.snapshot()).unwrap();
+        for made in [fork.to_string(), restored.to_string()] {
+            assert!(store.find(&b.owner, &made).is_ok());
+            assert_eq!(
+                store.find(&a.owner, &made).map(|_| ()),
+                Err(SessionError::NotFound(made.clone()))
+            );
+        }
+        assert_eq!(store.summaries(&b.owner, 10).rows.len(), 2);
+        // The shared identity is one identity, whatever share its sessions count against.
+        let (shared, _) = store
+            .create(&caller(), 1, Config::default(), options(), None)
+            .unwrap();
+        let other_connection = Caller::shared(tenant());
+        assert!(store.find(&other_connection.owner, &shared.to_string()).is_ok());
+        assert!(store.find(&a.owner, &shared.to_string()).is_err());
+        store.close(&Owner::Shared, &shared.to_string()).unwrap();
     }
 }

@@ -1,15 +1,17 @@
 //! Who is asking: the bearer token of an HTTP request, checked against the server's tokens, and
-//! which sessions that viewer may see.
+//! the identity ([`Owner`]) whose sessions that viewer may see, the same one its gRPC calls
+//! have: the pages look sessions up through the store's owner check like every RPC.
 //!
 //! A server without tokens serves its pages only on a local address (the command line refuses
-//! anything else) and shows every session. With tokens, every feed and `/metrics` need one:
-//! a tenant token (`--auth-tokens-file`) sees its tenant's sessions; the shared `--auth-token`
-//! sees the sessions that no tenant token created (those count against their connections).
+//! anything else) and shows every session (all are the shared identity's). With tokens, every
+//! feed and `/metrics` need one: a tenant token (`--auth-tokens-file`) sees its tenant's
+//! sessions; the shared `--auth-token` sees the sessions that no tenant token created.
 
 use std::sync::Arc;
 
 use crate::auth::Tokens;
 use crate::budget::Tenant;
+use crate::session::Owner;
 
 /// Who a request comes from.
 #[derive(Debug, Clone)]
@@ -20,6 +22,17 @@ pub enum Viewer {
     SharedToken,
     /// A tenant's token.
     Tenant(Arc<Tenant>),
+}
+
+impl Viewer {
+    /// The identity whose sessions the viewer sees: a tenant's, else the shared one (which, on
+    /// a server without tokens, owns every session).
+    pub fn owner(&self) -> Owner {
+        match self {
+            Viewer::Anyone | Viewer::SharedToken => Owner::Shared,
+            Viewer::Tenant(tenant) => Owner::Tenant(Arc::clone(tenant)),
+        }
+    }
 }
 
 /// Why a request was refused.
@@ -63,15 +76,6 @@ impl Access {
             Some(Some(tenant)) => Ok(Viewer::Tenant(tenant)),
         }
     }
-
-    /// Whether `viewer` may see a session of `tenant`.
-    pub fn sees(&self, viewer: &Viewer, tenant: &Arc<Tenant>) -> bool {
-        match viewer {
-            Viewer::Anyone => true,
-            Viewer::Tenant(mine) => Arc::ptr_eq(mine, tenant),
-            Viewer::SharedToken => !self.tokens.stand_for(tenant),
-        }
-    }
 }
 
 #[cfg(test)]
@@ -84,7 +88,6 @@ mod tests {
     fn tokens_choose_what_a_viewer_sees() {
         let a = Arc::new(Tenant::new("tenant a".into(), Share::default()));
         let b = Arc::new(Tenant::new("tenant b".into(), Share::default()));
-        let conn = Arc::new(Tenant::new("connection x".into(), Share::default()));
         let token = |token: &str, tenant: Option<&Arc<Tenant>>| Token {
             token: token.into(),
             tenant: tenant.cloned(),
@@ -99,16 +102,15 @@ mod tests {
             access.viewer(Some(b"Bearer nope")).unwrap_err(),
             Refused::Invalid
         );
-        let viewer_a = access.viewer(Some(b"Bearer aaa")).unwrap();
-        assert!(access.sees(&viewer_a, &a));
-        assert!(!access.sees(&viewer_a, &b));
-        assert!(!access.sees(&viewer_a, &conn));
-        let shared = access.viewer(Some(b" Bearer shared ")).unwrap();
-        assert!(access.sees(&shared, &conn));
-        assert!(!access.sees(&shared, &a));
+        let viewer_a = access.viewer(Some(b"Bearer aaa")).unwrap().owner();
+        assert!(viewer_a.is(&Owner::Tenant(Arc::clone(&a))));
+        assert!(!viewer_a.is(&Owner::Tenant(b)));
+        assert!(!viewer_a.is(&Owner::Shared));
+        let shared = access.viewer(Some(b" Bearer shared ")).unwrap().owner();
+        assert!(shared.is(&Owner::Shared));
+        assert!(!shared.is(&Owner::Tenant(a)));
         let open = Access::default();
         assert!(!open.needs_token());
-        let anyone = open.viewer(None).unwrap();
-        assert!(open.sees(&anyone, &a) && open.sees(&anyone, &conn));
+        assert!(open.viewer(None).unwrap().owner().is(&Owner::Shared));
     }
 }

@@ -163,7 +163,7 @@ impl Sessions {
     pub fn snapshot(&mut self, site: &Site) -> String {
         let listing = site
             .store
-            .summaries(|t| site.access.sees(&self.viewer, t), MAX_ROWS);
+            .summaries(&self.viewer.owner(), MAX_ROWS);
         let now = Instant::now();
         let env_steps = site.metrics.env_steps.load(Ordering::Relaxed);
         let rate = |now_count: u64, then_count: u64, since: Instant| {
@@ -230,6 +230,9 @@ pub enum NotWatched {
     /// The session has no such environment.
     #[error("{0}")]
     Invalid(String),
+    /// The blocking thread that attaches failed (a panic).
+    #[error("attaching the viewer failed: {0}")]
+    Failed(String),
 }
 
 /// A viewer of one environment.
@@ -283,8 +286,9 @@ struct FrameJson<'a> {
 }
 
 impl Watching {
-    /// Attaches to environment `env` (default 0) of session `id`, if `viewer` may see it; a
-    /// session it may not see is not found, as one that does not exist.
+    /// Attaches to environment `env` (default 0) of session `id`, if it is `viewer`'s; another
+    /// identity's session is not found, as one that does not exist. It may wait for the
+    /// session's lock (held by a planner Step): call it on a blocking thread.
     pub fn attach(
         site: &Site,
         viewer: &Viewer,
@@ -299,7 +303,7 @@ impl Watching {
         };
         let attached = site
             .store
-            .watch(id, env, |t| site.access.sees(viewer, t))
+            .watch(&viewer.owner(), id, env)
             .map_err(|e| match e {
                 SessionError::NotFound(_) => NotWatched::NotFound,
                 other => NotWatched::Invalid(other.to_string()),

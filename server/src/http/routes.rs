@@ -120,6 +120,9 @@ impl IntoResponse for Refusal {
                 response
             }
             Refusal::Watch(NotWatched::NotFound) => error(StatusCode::NOT_FOUND, &message),
+            Refusal::Watch(NotWatched::Failed(_)) => {
+                error(StatusCode::INTERNAL_SERVER_ERROR, &message)
+            }
             Refusal::Watch(_) => error(StatusCode::BAD_REQUEST, &message),
         }
     }
@@ -137,8 +140,12 @@ async fn sessions_page() -> Response {
     assets::page(assets::SESSIONS_PAGE)
 }
 
+/// The watch page. It carries no data, and a browser opening it sends no token: on a server with
+/// tokens it is served for any ID (the page's feed then answers 404 for an ID that is not the
+/// token's), so that the page tells nobody which IDs exist. Without tokens (a local-only
+/// endpoint, where every session is the shared identity's) an unknown ID gets the 404 page.
 async fn watch_page(State(s): State<Served>, Path(id): Path<String>) -> Response {
-    if s.site.store.exists(&id) {
+    if s.site.access.needs_token() || s.site.store.exists(&Viewer::Anyone.owner(), &id) {
         assets::page(assets::WATCH_PAGE)
     } else {
         assets::not_found(&id)
@@ -165,15 +172,23 @@ async fn sessions_events(State(s): State<Served>, headers: HeaderMap) -> Result<
     Ok(Feed::Sessions(Sessions::new(viewer)).into_sse(s.site, s.stopping))
 }
 
-/// The environment a watch route names, attached for the viewer the request's token names.
-fn watching(
+/// The environment a watch route names, attached for the viewer the request's token names. The
+/// attach copies the environment under the session's lock, which a planner Step may hold for
+/// long: it runs on a blocking thread, not on the async worker (the endpoint's connections are
+/// capped, so are these threads).
+async fn watching(
     s: &Served,
     headers: &HeaderMap,
-    id: &str,
-    env: &EnvParam,
+    id: String,
+    env: EnvParam,
 ) -> Result<Watching, Refusal> {
     let viewer = viewer(&s.site, headers)?;
-    Ok(Watching::attach(&s.site, &viewer, id, env.env.as_deref())?)
+    let site = Arc::clone(&s.site);
+    let attach = move || Watching::attach(&site, &viewer, &id, env.env.as_deref());
+    let attached = tokio::task::spawn_blocking(attach)
+        .await
+        .map_err(|e| NotWatched::Failed(e.to_string()))?;
+    Ok(attached?)
 }
 
 async fn watch_json(
@@ -182,7 +197,7 @@ async fn watch_json(
     Query(env): Query<EnvParam>,
     headers: HeaderMap,
 ) -> Result<Response, Refusal> {
-    Ok(json(watching(&s, &headers, &id, &env)?.snapshot()))
+    Ok(json(watching(&s, &headers, id, env).await?.snapshot()))
 }
 
 async fn watch_events(
@@ -191,6 +206,6 @@ async fn watch_events(
     Query(env): Query<EnvParam>,
     headers: HeaderMap,
 ) -> Result<Response, Refusal> {
-    let watching = watching(&s, &headers, &id, &env)?;
+    let watching = watching(&s, &headers, id, env).await?;
     Ok(Feed::Watch(Box::new(watching)).into_sse(s.site, s.stopping))
 }

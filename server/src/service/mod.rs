@@ -7,7 +7,15 @@
 //! - [`step_stream`]: StepStream's replies, each request stepped exactly as the unary Step does.
 //! - [`rollout_stream`]: the producer of a Rollout stream's episodes.
 //!
-//! Requests reach these handlers through the [`crate::auth::RequestGate`].
+//! Requests reach these handlers through the [`crate::auth::RequestGate`], which tags a tenant
+//! token's request with its tenant: that tenant is the request's identity ([`Owner`]), else the
+//! shared one, and every call that names a session names it with that identity (another
+//! identity's session is NOT_FOUND, as an unknown ID).
+//!
+//! No handler takes a session's lock on an async worker when a planner Step may hold it: Reset,
+//! Step, Render, Snapshot and Fork of a session whose expert actions come from the planner all
+//! run on the CPU pool ([`DinerDashService::with_session`]); other sessions' locks are held for
+//! one cheap Step at most, and are taken inline.
 
 pub mod convert;
 pub mod rollout_stream;
@@ -34,7 +42,10 @@ use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
-use crate::session::{Batch, ExpertActions, FoundSession, SessionError, SessionOptions, Store};
+use crate::session::{
+    Batch, Caller, ExpertActions, FoundSession, Owner, SessionError, SessionId, SessionOptions,
+    Store,
+};
 use crate::shutdown::Shutdown;
 use crate::sim::{self, SNAPSHOT_VERSION};
 
@@ -113,14 +124,16 @@ impl DinerDashService {
         }
     }
 
-    /// Looks session `id` up (once) and runs `job` (its Reset or Step) on it here, or on the CPU
-    /// pool when the session's expert actions come from the planner: its decisions cost too much
-    /// for an async worker.
-    async fn heavy_if_planner<F>(&self, id: &str, job: F) -> Result<Batch, Status>
+    /// Looks session `id` of `owner`'s up (once) and runs `job` (its Reset, Step, Render,
+    /// Snapshot or Fork) on it here, or on the CPU pool when the session's expert actions come
+    /// from the planner: its decisions cost too much for an async worker, and a job waiting for
+    /// that session's lock would block the worker while a planner Step holds it.
+    async fn with_session<F, R>(&self, owner: &Owner, id: &str, job: F) -> Result<R, Status>
     where
-        F: FnOnce(&FoundSession) -> Result<Batch, SessionError> + Send + 'static,
+        F: FnOnce(&FoundSession) -> Result<R, SessionError> + Send + 'static,
+        R: Send + 'static,
     {
-        let session = self.store.find(id).map_err(|e| self.fail(e))?;
+        let session = self.store.find(owner, id).map_err(|e| self.fail(e))?;
         let result = if session.expert_actions() == ExpertActions::Planner {
             self.cpu
                 .run(move || job(&session))
@@ -132,11 +145,11 @@ impl DinerDashService {
         result.map_err(|e| self.fail(e))
     }
 
-    /// One Step, as the unary call and each message of a StepStream do it.
-    async fn step_one(&self, r: pb::StepRequest) -> Result<pb::Batch, Status> {
+    /// One Step by `owner`, as the unary call and each message of a StepStream do it.
+    async fn step_one(&self, owner: &Owner, r: pb::StepRequest) -> Result<pb::Batch, Status> {
         let actions = r.actions;
         let batch = self
-            .heavy_if_planner(&r.session_id, move |session| session.step(&actions))
+            .with_session(owner, &r.session_id, move |session| session.step(&actions))
             .await?;
         Ok(self.reply(batch))
     }
@@ -159,12 +172,15 @@ impl DinerDashService {
         })
     }
 
-    /// Whose share a request counts against: its token's tenant, else its connection.
-    fn tenant<T>(&self, request: &Request<T>) -> Arc<Tenant> {
+    /// Who sends a request that creates a session: its token's tenant (owner and share), else
+    /// the shared identity with its connection's share.
+    fn caller<T>(&self, request: &Request<T>) -> Caller {
         if let Some(tenant) = request.extensions().get::<Arc<Tenant>>() {
-            return Arc::clone(tenant);
+            return Caller::tenant(Arc::clone(tenant));
         }
-        conn_info(request).map_or_else(|| Arc::clone(&self.unknown), |c| Arc::clone(&c.tenant))
+        let share =
+            conn_info(request).map_or_else(|| Arc::clone(&self.unknown), |c| Arc::clone(&c.tenant));
+        Caller::shared(share)
     }
 
     /// The status for `e` (a session or Rollout refusal), counted.
@@ -176,6 +192,21 @@ impl DinerDashService {
     }
 }
 
+/// The identity of a request: its token's tenant, else the shared identity.
+fn owner<T>(request: &Request<T>) -> Owner {
+    Owner::of(request.extensions().get::<Arc<Tenant>>())
+}
+
+/// Digits of a session ID that info-level logs show: enough to match a line with the sessions
+/// page (which shows as many), far from enough to name the session. The full ID, a capability
+/// without tenants, is logged at debug level only.
+const LOGGED_ID: usize = 8;
+
+/// The first [`LOGGED_ID`] characters of a session ID as a request gave it.
+fn short(id: &str) -> &str {
+    id.char_indices().nth(LOGGED_ID).map_or(id, |(i, _)| &id[..i])
+}
+
 #[tonic::async_trait]
 impl pb::diner_dash_server::DinerDash for DinerDashService {
     #[tracing::instrument(skip_all, fields(num_envs = request.get_ref().num_envs))]
@@ -184,7 +215,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         request: Request<pb::CreateSessionRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
         self.admit()?;
-        let tenant = self.tenant(&request);
+        let caller = self.caller(&request);
         let r = request.into_inner();
         let options = SessionOptions {
             autoreset: autoreset_from(r.autoreset_mode, r.num_envs).map_err(|e| self.fail(e))?,
@@ -195,19 +226,19 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         let config = config_from(r.config.as_ref());
         let (id, spec) = self
             .store
-            .create(&tenant, r.num_envs, config, options, r.seed)
+            .create(&caller, r.num_envs, config, options, r.seed)
             .map_err(|e| self.fail(e))?;
-        tracing::info!(session = %id, "session created");
+        created_log(id, "session created");
         Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
-    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    #[tracing::instrument(skip_all, fields(session = short(&request.get_ref().session_id)))]
     async fn close_session(
         &self,
         request: Request<pb::CloseSessionRequest>,
     ) -> Result<Response<pb::CloseSessionResponse>, Status> {
         self.store
-            .close(&request.get_ref().session_id)
+            .close(&owner(&request), &request.get_ref().session_id)
             .map_err(|e| self.fail(e))?;
         tracing::info!("session closed");
         Ok(Response::new(pb::CloseSessionResponse {}))
@@ -218,16 +249,20 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::ResetRequest>,
     ) -> Result<Response<pb::Batch>, Status> {
+        let owner = owner(&request);
         let (id, args) = reset_from(request.into_inner()).map_err(|e| self.fail(e))?;
         let batch = self
-            .heavy_if_planner(&id, move |session| session.reset(&args))
+            .with_session(&owner, &id, move |session| session.reset(&args))
             .await?;
         Ok(Response::new(self.reply(batch)))
     }
 
     #[tracing::instrument(level = "debug", skip_all, fields(session = %request.get_ref().session_id))]
     async fn step(&self, request: Request<pb::StepRequest>) -> Result<Response<pb::Batch>, Status> {
-        self.step_one(request.into_inner()).await.map(Response::new)
+        let owner = owner(&request);
+        self.step_one(&owner, request.into_inner())
+            .await
+            .map(Response::new)
     }
 
     type StepStreamStream = StepReplies;
@@ -239,34 +274,40 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
     ) -> Result<Response<StepReplies>, Status> {
         Ok(Response::new(StepReplies::new(
             self.clone(),
+            owner(&request),
             request.into_inner(),
             self.stopping.clone(),
         )))
     }
 
-    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    #[tracing::instrument(skip_all, fields(session = short(&request.get_ref().session_id)))]
     async fn fork(
         &self,
         request: Request<pb::ForkRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
         self.admit()?;
+        let caller = self.caller(&request);
+        let store = self.store.clone();
+        let owner = caller.owner.clone();
         let (id, spec) = self
-            .store
-            .fork(&self.tenant(&request), &request.get_ref().session_id)
-            .map_err(|e| self.fail(e))?;
-        tracing::info!(fork = %id, "session forked");
+            .with_session(&owner, &request.get_ref().session_id, move |found| {
+                store.fork(&caller, found)
+            })
+            .await?;
+        created_log(id, "session forked");
         Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
-    #[tracing::instrument(skip_all, fields(session = %request.get_ref().session_id))]
+    #[tracing::instrument(skip_all, fields(session = short(&request.get_ref().session_id)))]
     async fn snapshot(
         &self,
         request: Request<pb::SnapshotRequest>,
     ) -> Result<Response<pb::SnapshotResponse>, Status> {
         let snapshot = self
-            .store
-            .snapshot(&request.get_ref().session_id)
-            .map_err(|e| self.fail(e))?;
+            .with_session(&owner(&request), &request.get_ref().session_id, |found| {
+                Ok(found.snapshot())
+            })
+            .await?;
         Ok(Response::new(pb::SnapshotResponse { snapshot }))
     }
 
@@ -278,9 +319,9 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         self.admit()?;
         let (id, spec) = self
             .store
-            .restore(&self.tenant(&request), &request.get_ref().snapshot)
+            .restore(&self.caller(&request), &request.get_ref().snapshot)
             .map_err(|e| self.fail(e))?;
-        tracing::info!(session = %id, "session restored");
+        created_log(id, "session restored");
         Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
@@ -289,11 +330,14 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::RenderRequest>,
     ) -> Result<Response<pb::RenderResponse>, Status> {
-        let r = request.get_ref();
+        let owner = owner(&request);
+        let r = request.into_inner();
+        let (env_index, color) = (r.env_index, r.color);
         let text = self
-            .store
-            .render(&r.session_id, r.env_index, r.color)
-            .map_err(|e| self.fail(e))?;
+            .with_session(&owner, &r.session_id, move |found| {
+                found.render(env_index, color)
+            })
+            .await?;
         Ok(Response::new(pb::RenderResponse { text }))
     }
 
@@ -305,7 +349,8 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         request: Request<pb::RolloutRequest>,
     ) -> Result<Response<Self::RolloutStream>, Status> {
         self.admit()?;
-        let tenant = self.tenant(&request);
+        // A Rollout names no session: it plays fresh games, charged to the caller's share.
+        let tenant = self.caller(&request).tenant;
         let r = request.into_inner();
         let policy = policy_from(r.policy).map_err(|e| self.fail(e))?;
         let plan = RolloutPlan::new(
@@ -364,4 +409,12 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
                 .map_or_else(String::new, |a| a.ip().to_string()),
         }))
     }
+}
+
+/// Logs a session the caller now owns: its short ID at info level, its full ID at debug level
+/// (see [`LOGGED_ID`]).
+fn created_log(id: SessionId, what: &'static str) {
+    let full = id.to_string();
+    tracing::info!(session = short(&full), "{what}");
+    tracing::debug!(session = %full, "{what}: full ID");
 }

@@ -9,6 +9,7 @@ use tonic::{Status, Streaming};
 
 use super::DinerDashService;
 use crate::pb;
+use crate::session::Owner;
 use crate::shutdown::{self, Shutdown};
 
 /// The reply of one StepStream request and the stream's state for the next; `None`: the client
@@ -27,15 +28,17 @@ pub struct StepReplies {
 }
 
 impl StepReplies {
-    /// The replies to `requests`, each stepped by `service`; the stream ends with `UNAVAILABLE`
-    /// once `stopping` fires.
+    /// The replies to `requests`, each stepped by `service` for `owner` (the stream's identity,
+    /// fixed when it opened); the stream ends with `UNAVAILABLE` once `stopping` fires.
     pub(super) fn new(
         service: DinerDashService,
+        owner: Owner,
         requests: Streaming<pb::StepRequest>,
         stopping: Shutdown,
     ) -> StepReplies {
         let inbound = Inbound {
             service,
+            owner,
             requests,
             stopping,
         };
@@ -50,6 +53,8 @@ impl StepReplies {
 struct Inbound {
     /// Steps each request as the unary Step does.
     service: DinerDashService,
+    /// The identity the stream's token stands for: each request's session must be its own.
+    owner: Owner,
     /// The client's requests.
     requests: Streaming<pb::StepRequest>,
     /// Fires when the server drains.
@@ -68,7 +73,7 @@ impl Inbound {
         };
         match message {
             Ok(Some(request)) => {
-                let reply = self.service.step_one(request).await;
+                let reply = self.service.step_one(&self.owner, request).await;
                 Some((reply, self))
             }
             Ok(None) => None,

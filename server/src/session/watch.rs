@@ -13,7 +13,7 @@ use std::sync::atomic::{AtomicI64, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError, Weak};
 
 use super::envs::{Autoreset, Batch, Envs, ExpertActions};
-use super::{Session, SessionError, SessionId, Store};
+use super::{Owner, Session, SessionError, SessionId, Store};
 use crate::budget::Tenant;
 use crate::sim::Restaurant;
 
@@ -313,23 +313,14 @@ impl Session {
 }
 
 impl Store {
-    /// The session with this ID, not marked as used: looking is not using.
-    fn peek(&self, id: &str) -> Result<Arc<Session>, SessionError> {
-        let key = SessionId::parse(id)?;
-        self.shard(key)
-            .get(&key)
-            .cloned()
-            .ok_or_else(|| SessionError::NotFound(id.to_owned()))
+    /// Whether `owner` has a session of this ID (not marking it used).
+    pub fn exists(&self, owner: &Owner, id: &str) -> bool {
+        self.lookup(owner, id).is_ok()
     }
 
-    /// Whether a session has this ID (not marking it used).
-    pub fn exists(&self, id: &str) -> bool {
-        self.peek(id).is_ok()
-    }
-
-    /// The summaries of the live sessions whose tenant `visible` accepts, oldest first; at most
-    /// `max` of them, the most recently used when there are more.
-    pub fn summaries(&self, visible: impl Fn(&Arc<Tenant>) -> bool, max: usize) -> Listing {
+    /// The summaries of `owner`'s live sessions, oldest first; at most `max` of them, the most
+    /// recently used when there are more.
+    pub fn summaries(&self, owner: &Owner, max: usize) -> Listing {
         let now = self.now_ms();
         let mut listing = Listing::default();
         for shard in &self.shared.shards {
@@ -344,10 +335,10 @@ impl Store {
             for (id, s) in sessions {
                 listing.all_sessions += 1;
                 listing.all_envs += s.num_envs as u64;
-                let tenant = s._charge.tenant();
-                if !visible(tenant) {
+                if !s.owner.is(owner) {
                     continue;
                 }
+                let tenant = s._charge.tenant();
                 listing.rows.push(Summary {
                     id,
                     tenant: Arc::clone(tenant),
@@ -371,19 +362,12 @@ impl Store {
         listing
     }
 
-    /// Attaches a viewer to environment `env` of session `id`, if `visible` accepts its tenant
-    /// (else it is NOT_FOUND, as if it did not exist). The viewer's first frame is the
-    /// environment as it is now, copied under the session's lock once.
-    pub fn watch(
-        &self,
-        id: &str,
-        env: usize,
-        visible: impl Fn(&Arc<Tenant>) -> bool,
-    ) -> Result<Viewer, SessionError> {
-        let session = self.peek(id)?;
-        if !visible(session._charge.tenant()) {
-            return Err(SessionError::NotFound(id.to_owned()));
-        }
+    /// Attaches a viewer to environment `env` of session `id` of `owner`'s (another owner's
+    /// session is not found, as an unknown one). The viewer's first frame is the environment as
+    /// it is now, copied under the session's lock once: the lock a planner Step may hold for
+    /// long, so callers on an async runtime call this on a blocking thread.
+    pub fn watch(&self, owner: &Owner, id: &str, env: usize) -> Result<Viewer, SessionError> {
+        let session = self.lookup(owner, id)?;
         let n = session.num_envs;
         if env >= n {
             return Err(SessionError::InvalidArgument(format!(
@@ -419,13 +403,13 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::session::{Limits, ResetArgs, SessionOptions};
+    use crate::session::{Caller, Limits, ResetArgs, SessionOptions};
     use crate::sim::Config;
 
-    fn store() -> (Store, Arc<Tenant>, Arc<Tenant>) {
+    fn store() -> (Store, Caller, Caller) {
         let share = crate::budget::Share::default();
-        let a = Arc::new(Tenant::new("tenant a".into(), share));
-        let b = Arc::new(Tenant::new("tenant b".into(), share));
+        let a = Caller::tenant(Arc::new(Tenant::new("tenant a".into(), share)));
+        let b = Caller::tenant(Arc::new(Tenant::new("tenant b".into(), share)));
         (Store::new(Limits::default(), Arc::default()), a, b)
     }
 
@@ -456,19 +440,19 @@ mod tests {
             .create(&b, 1, config, options(Autoreset::SameStep), Some(2))
             .unwrap();
         let id = id.to_string();
-        store.reset(&id, &ResetArgs::default()).unwrap();
+        store.reset(&a.owner, &id, &ResetArgs::default()).unwrap();
         // Waiting only: the queue's patience runs out and the episodes end by losing a group.
         let mut steps = 0;
-        while store.summaries(|t| Arc::ptr_eq(t, &a), 10).rows[0]
+        while store.summaries(&a.owner, 10).rows[0]
             .tally
             .episodes
             < 2
         {
-            store.step(&id, &actions(2, 0)).unwrap();
+            store.step(&a.owner, &id, &actions(2, 0)).unwrap();
             steps += 2;
             assert!(steps < 100_000, "no episode ended");
         }
-        let listing = store.summaries(|t| Arc::ptr_eq(t, &a), 10);
+        let listing = store.summaries(&a.owner, 10);
         assert_eq!(
             (listing.visible, listing.all_sessions, listing.all_envs),
             (1, 2, 3)
@@ -484,7 +468,7 @@ mod tests {
             .create(&b, 1, config, options(Autoreset::SameStep), Some(3))
             .unwrap();
         let same = same.to_string();
-        let mut batch = store.reset(&same, &ResetArgs::default()).unwrap();
+        let mut batch = store.reset(&b.owner, &same, &ResetArgs::default()).unwrap();
         // The expert earns points for 30 steps, then waiting loses the game.
         let mut played = 0;
         let final_score = loop {
@@ -493,7 +477,7 @@ mod tests {
             } else {
                 0
             };
-            batch = store.step(&same, &actions(1, i32::from(choice))).unwrap();
+            batch = store.step(&b.owner, &same, &actions(1, i32::from(choice))).unwrap();
             played += 1;
             if batch.terminated[0] == 1 {
                 break i32::from_le_bytes(batch.final_scores[..4].try_into().unwrap());
@@ -501,17 +485,18 @@ mod tests {
             assert!(played < 100_000, "the episode did not end");
         };
         assert!(final_score > 0, "the expert scored");
-        let mine = |t: &Arc<Tenant>| Arc::ptr_eq(t, &b);
         let row = store
-            .summaries(mine, 10)
+            .summaries(&b.owner, 10)
             .rows
             .into_iter()
             .find(|r| r.id.to_string() == same)
             .unwrap();
         assert_eq!(row.tally.episodes, 1);
         assert_eq!(row.tally.recent_mean, Some(f64::from(final_score)));
-        assert_eq!(store.summaries(|_| true, 10).visible, 3);
-        assert_eq!(store.summaries(|_| true, 1).rows.len(), 1);
+        let listing = store.summaries(&b.owner, 10);
+        assert_eq!((listing.visible, listing.all_sessions), (2, 3));
+        assert_eq!(store.summaries(&b.owner, 1).rows.len(), 1);
+        assert_eq!(store.summaries(&Owner::Shared, 10).visible, 0);
     }
 
     #[test]
@@ -522,17 +507,18 @@ mod tests {
             .unwrap();
         let id = id.to_string();
         assert!(matches!(
-            store.watch(&id, 0, |t| Arc::ptr_eq(t, &b)),
+            store.watch(&b.owner, &id, 0),
             Err(SessionError::NotFound(_))
         ));
         assert!(matches!(
-            store.watch(&id, 3, |_| true),
+            store.watch(&a.owner, &id, 3),
             Err(SessionError::InvalidArgument(_))
         ));
-        let viewer = store.watch(&id, 1, |_| true).unwrap();
+        let viewer = store.watch(&a.owner, &id, 1).unwrap();
         assert!(viewer.frame().unwrap().game.is_none());
         let reset = store
             .reset(
+                &a.owner,
                 &id,
                 &ResetArgs {
                     seed: Some(4),
@@ -547,7 +533,7 @@ mod tests {
         let choice = reset.expert_actions[1];
         let mut acts = actions(3, 0);
         acts[4..8].copy_from_slice(&i32::from(choice).to_le_bytes());
-        let batch = store.step(&id, &acts).unwrap();
+        let batch = store.step(&a.owner, &id, &acts).unwrap();
         let frame = viewer.frame().unwrap();
         let last = frame.moves().next().unwrap();
         let reward = i32::from_le_bytes(batch.rewards[4..8].try_into().unwrap());
@@ -557,14 +543,14 @@ mod tests {
         assert_eq!(frame.expert, Some(batch.expert_actions[1]));
         let obs = frame.game.unwrap().observation().map(|v| v as u8);
         assert_eq!(obs[..], batch.observations[40..80]);
-        let second = store.watch(&id, 1, |_| true).unwrap();
-        assert_eq!(store.summaries(|_| true, 10).rows[0].viewers, 2);
+        let second = store.watch(&a.owner, &id, 1).unwrap();
+        assert_eq!(store.summaries(&a.owner, 10).rows[0].viewers, 2);
         drop(viewer);
         drop(second);
-        assert_eq!(store.summaries(|_| true, 10).rows[0].viewers, 0);
+        assert_eq!(store.summaries(&a.owner, 10).rows[0].viewers, 0);
         // Watching is not using: the idle clock keeps running; a closed session ends the view.
-        let viewer = store.watch(&id, 0, |_| true).unwrap();
-        store.close(&id).unwrap();
+        let viewer = store.watch(&a.owner, &id, 0).unwrap();
+        store.close(&a.owner, &id).unwrap();
         assert!(viewer.frame().is_none());
         assert_eq!(store.live(), 0);
     }

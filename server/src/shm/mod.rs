@@ -288,7 +288,7 @@ fn serve_client(sock: OwnedFd, shared: &Arc<Shared>) {
                     let _ = send(&sock, &ShmError::Region(e).message());
                     break;
                 }
-                let stepped = shared.store.find(&id).and_then(|s| s.step(&actions));
+                let stepped = shared.store.find_proven(&id).and_then(|s| s.step(&actions));
                 let sent = match stepped {
                     Ok(batch) => {
                         match region.write_batch(&batch, shared.stopping.drain_remaining_ms()) {
@@ -373,7 +373,7 @@ fn handshake(
         return Err(ShmError::Stopping);
     }
     let id = String::from_utf8_lossy(&hello[1..]).into_owned();
-    let session = shared.store.find(&id)?;
+    let session = shared.store.find_proven(&id)?;
     let taken = shared.live.fetch_add(1, Ordering::AcqRel);
     let slot = Slot(Arc::clone(shared));
     if taken >= shared.max {
