@@ -1,15 +1,23 @@
 """The same-host shared-memory data plane (``transport=``): refusals typed as over gRPC, the
 fallbacks, and what either side's ``kill -9`` leaves behind (nothing: no memfd in the server, no
-file in /dev/shm), and a client that stops reading, which stalls nobody."""
+file in /dev/shm), and a client that stops reading, which stalls nobody.
+
+Whom the client trusts: only a server on this host, and only a doorbell whose peer is that
+server (this user's uid, the pid its reply announced); anything else is told nothing, and the
+session steps over gRPC, the reason logged at debug level."""
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,6 +29,7 @@ from dinerdash import (
     ServiceTransportError,
     _shm,
 )
+from dinerdash._proto import pb
 from gymnasium.vector import AutoresetMode
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="shared memory needs Linux")
@@ -92,7 +101,10 @@ def test_shm_away_from_the_server_says_why_and_auto_falls_back(start_server) -> 
         # What a client on another machine meets: a doorbell name not bound on its host.
         with pytest.raises(ServiceTransportError, match="not on this machine"):
             env._core.endpoint.options = ConnectOptions(bare.address, transport="shm")
-            _shm.attach(env._core, "dinerdash-0-on-another-host")
+            _shm._OFFERS[env._core] = _shm.Offer(
+                env._core.session_id, "dinerdash-0-on-another-host", b"s" * 32, bare.pid
+            )
+            _shm.attach(env._core)
     finally:
         env.close()
     with pytest.raises(ValueError, match="transport"):
@@ -228,3 +240,177 @@ def test_closing_envs_unmaps_their_regions(server) -> None:
         assert (mapped(), regions(os.getpid())) == (before[0] + 1, before[1] + 1)
         env.close()
     assert (mapped(), regions(os.getpid())) == before
+
+
+class _Core:
+    """What :func:`dinerdash._shm.attach` reads of a session core, for a server at ``address``
+    that is never called."""
+
+    def __init__(self, address: str, transport: str) -> None:
+        self.conn = SimpleNamespace(address=address, timeout=5.0, _closed=False)
+        self.endpoint = SimpleNamespace(options=SimpleNamespace(transport=transport))
+        self.session_id = "ab" * 16
+
+
+def _offered(core: _Core, doorbell: str, secret: bytes, pid: int) -> None:
+    reply = pb.CreateSessionResponse(
+        session_id=core.session_id, shm_doorbell=doorbell, shm_secret=secret, shm_server_pid=pid
+    )
+    _shm.offer(core, reply)
+
+
+def _this_hosts_address() -> str | None:
+    """This host's address on its default route (no packet is sent), if it has one."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(("192.0.2.1", 9))
+        except OSError:
+            return None
+        return probe.getsockname()[0]
+
+
+def test_only_a_server_on_this_host_is_offered_shared_memory(monkeypatch, caplog) -> None:
+    assert _shm._on_this_host("127.0.0.1:50051")
+    assert _shm._on_this_host("localhost:50051")
+    assert _shm._on_this_host("[::1]:50051")
+    own = _this_hosts_address()
+    if own is not None:
+        assert _shm._on_this_host(f"{own}:50051")
+    assert not _shm._on_this_host("192.0.2.1:50051")  # TEST-NET-1: never this host's
+    assert not _shm._on_this_host("no-such-host.invalid:50051")
+
+    def no_doorbell(*args, **kwargs):
+        raise AssertionError("a doorbell was tried for a server on another host")
+
+    monkeypatch.setattr(_shm, "Channel", no_doorbell)
+    remote = _Core("192.0.2.1:50051", "shm")
+    _offered(remote, "dinerdash-1-remote", b"s" * 32, 1)
+    with pytest.raises(ServiceTransportError, match="not on this machine"):
+        _shm.attach(remote)
+    remote.endpoint.options.transport = "auto"
+    with caplog.at_level(logging.DEBUG, logger="dinerdash"):
+        _shm.attach(remote)
+    assert remote not in _shm._CHANNELS
+    assert "steps over gRPC: the server at 192.0.2.1:50051 is not on this machine" in caplog.text
+
+
+def test_a_server_that_sends_no_secret_or_pid_gets_grpc(monkeypatch, caplog) -> None:
+    monkeypatch.setattr(_shm, "Channel", None)  # never reached
+    for secret, pid in ((b"", os.getpid()), (b"s" * 32, 0)):
+        old = _Core("127.0.0.1:50051", "auto")
+        _offered(old, "dinerdash-1-old", secret, pid)
+        caplog.clear()
+        with caplog.at_level(logging.DEBUG, logger="dinerdash"):
+            _shm.attach(old)
+        assert old not in _shm._CHANNELS
+        assert "no session secret or pid" in caplog.text
+
+
+def _fake_doorbell() -> tuple[socket.socket, str]:
+    """A listening abstract socket of this process, under a fresh name."""
+    name = f"dinerdash-fake-{os.getpid()}-{time.monotonic_ns()}"
+    fake = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    fake.bind("\0" + name)
+    fake.listen(4)
+    fake.settimeout(PATIENCE)
+    return fake, name
+
+
+@pytest.mark.parametrize("transport", ["auto", "shm"])
+def test_a_doorbell_answered_by_another_process_is_told_nothing(
+    server, caplog, transport: str
+) -> None:
+    fake, name = _fake_doorbell()
+    env = DinerDashEnv(server.address, transport=transport)
+    try:
+        env.reset(seed=0)
+        core = env._core
+        assert core in _shm._CHANNELS
+        # The server's announced pid, but another process answers under the doorbell's name
+        # (this test's: as a process that took the name of a server gone would).
+        _shm._OFFERS[core] = dataclasses.replace(_shm._OFFERS[core], doorbell=name)
+        caplog.clear()
+        with caplog.at_level(logging.DEBUG, logger="dinerdash"):
+            if transport == "shm":
+                with pytest.raises(ServiceTransportError, match="not the server's pid"):
+                    _shm.attach(core)
+            else:
+                _shm.attach(core)
+        assert core not in _shm._CHANNELS
+        if transport == "auto":
+            assert (
+                f"the doorbell is not the server's: the doorbell {name!r} is answered by pid "
+                f"{os.getpid()}, not the server's pid {server.pid}"
+            ) in caplog.text
+        conn, _ = fake.accept()
+        with conn:
+            conn.settimeout(PATIENCE)
+            assert conn.recv(4096) == b""  # closed without a hello: no ID, no secret
+        env.step(0)  # over gRPC
+    finally:
+        env.close()
+        fake.close()
+
+
+_OTHER_USER_DOORBELL = textwrap.dedent(
+    """
+    import socket, sys
+    fake = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    fake.bind("\\0" + sys.argv[1])
+    fake.listen(4)
+    print("ready", flush=True)
+    conn, _ = fake.accept()
+    conn.settimeout(60)
+    print(conn.recv(4096).hex() or "nothing", flush=True)
+    """
+)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="a doorbell of a second user needs root to make")
+def test_a_doorbell_of_another_user_is_told_nothing(server, caplog) -> None:
+    name = f"dinerdash-other-user-{os.getpid()}-{time.monotonic_ns()}"
+    fake = subprocess.Popen(
+        [sys.executable, "-c", _OTHER_USER_DOORBELL, name],
+        stdout=subprocess.PIPE,
+        user=65534,
+        group=65534,
+        extra_groups=[],
+        cwd="/",
+    )
+    env = DinerDashEnv(server.address)
+    try:
+        assert fake.stdout.readline().strip() == b"ready"
+        env.reset(seed=0)
+        core = env._core
+        # Its pid is the one announced: only the uid tells it from the server.
+        _shm._OFFERS[core] = dataclasses.replace(_shm._OFFERS[core], doorbell=name, pid=fake.pid)
+        with caplog.at_level(logging.DEBUG, logger="dinerdash"):
+            _shm.attach(core)
+        assert core not in _shm._CHANNELS
+        assert f"is answered by uid 65534, not this user (uid {os.geteuid()})" in caplog.text
+        assert fake.stdout.readline().strip() == b"nothing"
+        env.step(0)
+    finally:
+        env.close()
+        fake.kill()
+        fake.wait(timeout=PATIENCE)
+        fake.stdout.close()
+
+
+def test_a_forked_session_attaches_with_its_own_secret(server) -> None:
+    env = DinerDashEnv(server.address, transport="shm")
+    child = None
+    try:
+        env.reset(seed=3)
+        child = env.fork()
+        offer = _shm._OFFERS[child._core]
+        assert len(offer.secret) == 32 and offer.secret != _shm._OFFERS[env._core].secret
+        assert repr(offer.secret) not in repr(offer)
+        for _ in range(3):
+            (obs, reward, *_), (twin, twin_reward, *_) = env.step(1), child.step(1)
+            assert np.array_equal(obs, twin) and reward == twin_reward
+        assert child._core in _shm._CHANNELS
+    finally:
+        if child is not None:
+            child.close()
+        env.close()

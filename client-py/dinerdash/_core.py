@@ -253,14 +253,16 @@ class SessionCore:
             reply = self.conn.call("CreateSession", request, timeout=timeout)
         except ServiceError as e:
             raise self.fail(e) from None
-        self.adopt(reply.session_id, reply.spec)
-        _shm.attach(self, reply.shm_doorbell)
+        self.adopt(reply)
+        _shm.attach(self)
         return reply.spec
 
-    def adopt(self, session_id: str, spec: pb.Spec) -> None:
-        """Makes ``session_id`` (created, forked or restored) this core's session."""
-        self.session_id, self.spec = session_id, spec
+    def adopt(self, reply: pb.CreateSessionResponse) -> None:
+        """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's,
+        with what it offers of shared memory."""
+        self.session_id, self.spec = reply.session_id, reply.spec
         self.last = self.pending = None
+        _shm.offer(self, reply)
 
     def reopen(self, error: ServiceError) -> None:
         """Waits for the lost server and opens a new session there (``reconnect=True``).

@@ -1,10 +1,15 @@
 """The same-host data plane: a session's Steps through shared memory instead of gRPC, when the
 server runs on this machine as this user (Linux).
 
-The session is created, reset, forked and closed over gRPC as always. CreateSession names the
-server's doorbell (``CreateSessionResponse.shm_doorbell``), an abstract-namespace Unix socket;
-:func:`attach` connects to it, says hello with the session ID and receives the session's
-region, a memfd it maps. Each Step then writes the actions into the region, sends one byte and
+The session is created, reset, forked and closed over gRPC as always. CreateSession (Fork,
+Restore) names the server's doorbell (``CreateSessionResponse.shm_doorbell``), an
+abstract-namespace Unix socket, and tells the caller the session's secret (``shm_secret``) and
+the server's pid (``shm_server_pid``). :func:`attach` uses the doorbell only when the server's
+address is this host's (loopback, or one of its own addresses), connects, and before it sends
+anything checks who answered (``SO_PEERCRED``: this user's uid and the server's pid); only
+then does it say hello with the session ID and secret, and receive the session's region, a
+memfd it maps. Whenever shared memory is not used, the reason is logged at debug level
+(logger ``dinerdash``). Each Step then writes the actions into the region, sends one byte and
 waits for one byte back; the reply's arrays are in the region at fixed offsets (the layout of
 ``server/src/shm/layout.rs``), copied out in one piece per step and handed to the decoders as a
 :class:`RegionBatch`, which reads like a ``pb.Batch`` without building anything per environment.
@@ -23,6 +28,10 @@ session steps over gRPC from then on.
 from __future__ import annotations
 
 import array
+import dataclasses
+import functools
+import ipaddress
+import logging
 import mmap
 import os
 import socket
@@ -36,7 +45,7 @@ import grpc
 import numpy as np
 
 from ._proto import pb
-from .connection import Connection
+from .connection import Connection, _split_host_port
 from .errors import (
     EnvClosed,
     ServiceError,
@@ -45,7 +54,7 @@ from .errors import (
     error_for_status,
 )
 
-__all__ = ["Channel", "RegionBatch", "as_pb", "attach", "detach", "step"]
+__all__ = ["Channel", "Offer", "RegionBatch", "as_pb", "attach", "detach", "offer", "step"]
 
 #: "DDsh" and the layout version this client reads.
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
@@ -85,13 +94,90 @@ _SPIN = 100e-6
 #: The integer arrays that a ``pb.Batch`` holds as repeated fields.
 _REPEATED = {"seeds": "<u8", "stream_episodes": "<u4"}
 
+log = logging.getLogger("dinerdash")
+
+#: SO_PEERCRED's ``struct ucred``: pid (signed), uid and gid (unsigned).
+_UCRED = struct.Struct("iII")
+
 #: The channel of each core (by the core, weakly: a dropped env takes its channel along), and
-#: the doorbell each server named (by its connection).
+#: the shared-memory offer of the session each core last created, forked or restored.
 _CHANNELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_DOORBELLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_OFFERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: The session each core last tried to attach, so that a session stepping over gRPC (refused,
 #: or forked without a CreateSession) tries once, not at every Step.
 _TRIED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+@dataclasses.dataclass(frozen=True)
+class Offer:
+    """What a CreateSession, Fork or Restore reply told its caller about the session's shared
+    memory. ``secret`` is the hello's credential: it is never shown (``repr``) nor logged."""
+
+    session_id: str
+    #: The abstract socket's name ("" when the server offers none).
+    doorbell: str
+    #: The session's secret (empty from a server older than the doorbell's peer check).
+    secret: bytes = dataclasses.field(repr=False)
+    #: The server's pid as its reply told it (0 from such an older server).
+    pid: int
+
+    @classmethod
+    def of(cls, reply: Any) -> Offer:
+        return cls(
+            reply.session_id,
+            reply.shm_doorbell,
+            bytes(getattr(reply, "shm_secret", b"")),
+            int(getattr(reply, "shm_server_pid", 0)),
+        )
+
+
+class _Untrusted(Exception):
+    """The doorbell's peer is not the server that made the offer: nothing was sent to it."""
+
+
+@functools.lru_cache(maxsize=64)
+def _on_this_host(address: str) -> bool:
+    """Whether every address ``address``'s host resolves to is this host's own: a loopback
+    address, or one this host can bind (an address of one of its interfaces). Only then can
+    the server be on this machine, and only then is its doorbell looked for."""
+    try:
+        host, port = _split_host_port(address)
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (OSError, ValueError, UnicodeError):
+        return False
+    if not infos:
+        return False
+    for family, _, _, _, sockaddr in infos:
+        try:
+            if ipaddress.ip_address(sockaddr[0].partition("%")[0]).is_loopback:
+                continue
+        except ValueError:
+            return False
+        try:
+            with socket.socket(family, socket.SOCK_DGRAM) as probe:
+                probe.bind((sockaddr[0], 0, *sockaddr[2:]))
+        except OSError:
+            return False
+    return True
+
+
+def _check_peer(sock: socket.socket, offer: Offer) -> None:
+    """Raises :class:`_Untrusted` unless the doorbell's peer runs as this user (its uid) and is
+    the process the server's reply named (its pid): read from ``SO_PEERCRED`` before anything
+    is sent, so that a process that took the doorbell's name is told nothing."""
+    raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size)
+    pid, uid, _ = _UCRED.unpack(raw)
+    if uid != os.geteuid():
+        raise _Untrusted(
+            f"the doorbell {offer.doorbell!r} is answered by uid {uid}, not this user (uid "
+            f"{os.geteuid()}): another user's process, or a server running as another user"
+        )
+    if pid != offer.pid:
+        raise _Untrusted(
+            f"the doorbell {offer.doorbell!r} is answered by pid {pid}, not the server's pid "
+            f"{offer.pid} (another process holds its name, or the server runs in another pid "
+            "namespace, e.g. another container)"
+        )
 
 
 class RegionBatch:
@@ -159,16 +245,17 @@ class Channel:
         "timeout",
     )
 
-    def __init__(self, doorbell: str, session_id: str, conn: Connection) -> None:
+    def __init__(self, offer: Offer, conn: Connection) -> None:
         self.address = conn.address
         self.conn = conn
-        self.session_id = session_id
+        self.session_id = offer.session_id
         self.timeout = conn.timeout
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
         try:
             sock.settimeout(conn.timeout)
-            sock.connect("\0" + doorbell)
-            sock.sendall(b"H" + session_id.encode())
+            sock.connect("\0" + offer.doorbell)
+            _check_peer(sock, offer)
+            sock.sendall(b"H" + offer.session_id.encode() + offer.secret)
             reply, ancillary, _, _ = sock.recvmsg(65536, socket.CMSG_SPACE(4))
             fds = array.array("i")
             for level, kind, data in ancillary:
@@ -309,30 +396,47 @@ def as_pb(batch: Any) -> Any:
     return batch.to_pb() if isinstance(batch, RegionBatch) else batch
 
 
-def attach(core: Any, doorbell: str | None = None) -> None:
+def offer(core: Any, reply: Any) -> None:
+    """Records what ``reply`` (CreateSession's, Fork's or Restore's, for the session ``core``
+    adopts) offers of shared memory; :func:`attach` uses it."""
+    _OFFERS[core] = Offer.of(reply)
+
+
+def attach(core: Any, reply: Any = None) -> None:
     """Opens the shared-memory channel of ``core``'s session when its transport allows it;
-    ``doorbell`` is what CreateSession named (``None``: what this server named before, for a
-    forked or restored session). ``transport="shm"`` raises when it cannot be used."""
+    ``reply``: the CreateSession reply that made the session (else what :func:`offer` recorded,
+    for a forked or restored one). ``transport="shm"`` raises when it cannot be used; whenever
+    the session steps over gRPC instead, the reason is logged at debug level."""
+    if reply is not None:
+        offer(core, reply)
     conn = core.conn
-    if doorbell is not None:
-        _DOORBELLS[conn] = doorbell
     transport = core.endpoint.options.transport
     detach(core)
     _TRIED[core] = core.session_id
     if transport == "grpc" or core.session_id is None:
         return
-    doorbell = _DOORBELLS.get(conn, "")
+    made = _OFFERS.get(core)
     why = None
     if sys.platform != "linux":
         why = "shared memory needs Linux"
-    elif not doorbell:
+    elif made is None or made.session_id != core.session_id or not made.doorbell:
         why = (
             f"the server at {conn.address} offers no shared memory (--max-shm-sessions 0, not "
             "on Linux, or a server older than the shared-memory data plane)"
         )
+    elif not made.secret or not made.pid:
+        why = (
+            f"the server at {conn.address} names a doorbell but no session secret or pid (a "
+            "server older than the doorbell's peer check): shared memory is not trusted there"
+        )
+    elif not _on_this_host(conn.address):
+        why = (
+            f"the server at {conn.address} is not on this machine (its address is neither "
+            "loopback nor one of this host's): shared memory needs client and server on one host"
+        )
     else:
         try:
-            _CHANNELS[core] = Channel(doorbell, core.session_id, conn)
+            _CHANNELS[core] = Channel(made, conn)
             return
         except (ConnectionRefusedError, FileNotFoundError):
             why = (
@@ -340,10 +444,13 @@ def attach(core: Any, doorbell: str | None = None) -> None:
                 "network namespace, e.g. another container): shared memory needs client and "
                 "server on one host"
             )
+        except _Untrusted as e:
+            why = f"the doorbell is not the server's: {e}"
         except ServiceError as e:
             why = f"the server refused shared memory: {e.details}"
         except OSError as e:
             why = f"the doorbell failed: {e}"
+    log.debug("session %s steps over gRPC: %s", core.session_id, why)
     if transport == "shm":
         raise ServiceTransportError(
             f"transport='shm': {why}; use transport='auto' to fall back to gRPC",

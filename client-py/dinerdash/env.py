@@ -324,7 +324,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         child._endpoint = Endpoint(child._options)
         child._core = SessionCore(child._endpoint, 0, 0, 1, copy.copy(self._settings))
         child._settings = child._core.settings
-        child._core.adopt(reply.session_id, reply.spec)
+        child._core.adopt(reply)
         child.spec_proto = reply.spec
         child._last_obs = None if self._last_obs is None else self._last_obs.copy()
         child._last_info = copy.deepcopy(self._last_info)
@@ -349,7 +349,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         self._check_open("restore()")
         reply = self._conn.call("Restore", pb.RestoreRequest(snapshot=bytes(snapshot)))
         old = self.session_id
-        self._core.adopt(reply.session_id, reply.spec)
+        self._core.adopt(reply)
         self.spec_proto = reply.spec
         if old is not None:
             try:

@@ -2,10 +2,14 @@
 //! tokio's blocking threads, never on the async workers that serve Step and Reset, and at most
 //! `workers` jobs run at once, so a flood of heavy requests queues here instead of starving
 //! every other client.
+//!
+//! The server's pool ([`CpuPool::beside_steps`]) is one per process: the gRPC service and the
+//! shared-memory data plane's session threads ([`CpuPool::acquire_blocking`]) take their permits
+//! from the same semaphore, so planner Steps are bounded together whichever transport asked.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
-use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, TryAcquireError};
 
 /// Why a job did not run to completion.
 #[derive(Debug, thiserror::Error)]
@@ -23,6 +27,8 @@ pub enum CpuError {
 pub struct CpuPool {
     /// One permit per job allowed to run at once.
     permits: Arc<Semaphore>,
+    /// The number of permits, for [`CpuPool::workers`].
+    max: usize,
 }
 
 impl CpuPool {
@@ -30,14 +36,42 @@ impl CpuPool {
     pub fn new(workers: usize) -> CpuPool {
         CpuPool {
             permits: Arc::new(Semaphore::new(workers.max(1))),
+            max: workers.max(1),
         }
     }
 
-    /// A pool that leaves one core to the async workers serving Step and Reset (one worker on
-    /// one or two cores): Rollouts being read must not raise other clients' Step latency.
+    /// The process's pool, which leaves one core to the async workers serving Step and Reset
+    /// (one worker on one or two cores): Rollouts being read must not raise other clients' Step
+    /// latency. Every call returns the same pool (the cores are the machine's, not a service's):
+    /// the gRPC service and the shared-memory data plane share its permits.
     pub fn beside_steps() -> CpuPool {
-        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        CpuPool::new(cores.saturating_sub(1))
+        static POOL: OnceLock<CpuPool> = OnceLock::new();
+        POOL.get_or_init(|| {
+            let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            CpuPool::new(cores.saturating_sub(1))
+        })
+        .clone()
+    }
+
+    /// How many jobs may run at once.
+    pub fn workers(&self) -> usize {
+        // The permits are never added to or forgotten: the count given to `new`, at least 1.
+        self.max
+    }
+
+    /// Waits for a free worker from a thread of its own outside the runtime (a shared-memory
+    /// session's thread), which then runs its job itself while it holds the permit: the same
+    /// bound as [`CpuPool::run`], without a hop to another thread. `runtime` drives the wait
+    /// when no permit is free at once; it must not be called from an async task.
+    pub fn acquire_blocking(
+        &self,
+        runtime: &tokio::runtime::Handle,
+    ) -> Result<OwnedSemaphorePermit, CpuError> {
+        match Arc::clone(&self.permits).try_acquire_owned() {
+            Ok(permit) => Ok(permit),
+            Err(TryAcquireError::Closed) => Err(CpuError::Closed),
+            Err(TryAcquireError::NoPermits) => runtime.block_on(self.acquire()),
+        }
     }
 
     /// Waits for a free worker. Holding the permit is what reserves the worker: pass it into
@@ -104,6 +138,31 @@ mod tests {
             job.await.unwrap().unwrap();
         }
         assert!(most.load(Ordering::SeqCst) <= 2);
+    }
+
+    #[test]
+    fn a_blocking_acquire_waits_for_a_free_worker_and_the_process_has_one_pool() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let pool = CpuPool::new(1);
+        let held = pool.acquire_blocking(runtime.handle()).unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (other, handle) = (pool.clone(), runtime.handle().clone());
+        let waiter = std::thread::spawn(move || {
+            let permit = other.acquire_blocking(&handle).unwrap();
+            tx.send(()).unwrap();
+            drop(permit);
+        });
+        // Not while the only worker is held (however long this side waits)...
+        assert!(rx.recv_timeout(std::time::Duration::from_millis(50)).is_err());
+        drop(held);
+        // ...and at once when it is free.
+        rx.recv_timeout(std::time::Duration::from_secs(60)).unwrap();
+        waiter.join().unwrap();
+        let (a, b) = (CpuPool::beside_steps(), CpuPool::beside_steps());
+        assert!(Arc::ptr_eq(&a.permits, &b.permits));
+        assert_eq!(a.workers(), b.workers());
     }
 
     #[tokio::test]

@@ -17,6 +17,7 @@
 //! - [`watch`]: each session's running summary and watched environments, read by the web pages.
 
 pub mod envs;
+mod shm_secret;
 pub mod watch;
 
 use std::collections::HashMap;
@@ -25,6 +26,7 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions};
+pub use shm_secret::{SHM_SECRET_BYTES, ShmSecret};
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
 use crate::metrics::Metrics;
@@ -234,6 +236,8 @@ pub struct SessionSpec {
     pub options: SessionOptions,
     /// The configuration of the next reset.
     pub config: Config,
+    /// The credential of the session's shared-memory hello, told only to its creator.
+    pub shm_secret: ShmSecret,
 }
 
 /// One session: its environments behind their own lock, and when it was last used.
@@ -259,6 +263,8 @@ pub struct Session {
     tally: watch::Tally,
     /// The environments someone watches.
     watch: watch::Watch,
+    /// What the shared-memory hello must carry for this session ([`Store::find_shm`]).
+    shm_secret: ShmSecret,
 }
 
 impl Session {
@@ -276,6 +282,7 @@ impl Session {
             num_envs: envs.len(),
             options: *envs.options(),
             config: envs.config(),
+            shm_secret: self.shm_secret,
         }
     }
 }
@@ -434,23 +441,6 @@ impl Store {
         Ok(session)
     }
 
-    /// The session with this ID whoever owns it, marked as used now: only for a caller that
-    /// proved otherwise that it may use the session. The shared-memory doorbell's peer runs as
-    /// the server's own user and names the session in its hello ([`crate::shm`]).
-    pub fn find_proven(&self, id: &str) -> Result<FoundSession, SessionError> {
-        let key = SessionId::parse(id)?;
-        let session = self
-            .shard(key)
-            .get(&key)
-            .cloned()
-            .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
-        session.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
-        Ok(FoundSession {
-            session,
-            metrics: Arc::clone(&self.shared.metrics),
-        })
-    }
-
     /// Whether session `id` is live, without marking it used (a shared-memory session's thread
     /// asks, to end with its session).
     pub fn contains(&self, id: &str) -> bool {
@@ -483,6 +473,7 @@ impl Store {
             created_ms: now,
             tally: watch::Tally::default(),
             watch: watch::Watch::default(),
+            shm_secret: ShmSecret::random()?,
         });
         let spec = session.spec();
         let id = loop {
@@ -553,6 +544,30 @@ impl Store {
             session: self.get(owner, id)?,
             metrics: Arc::clone(&self.shared.metrics),
         })
+    }
+
+    /// The session with this ID if `secret` is its shared-memory secret, for the doorbell's
+    /// hello and each of its Steps. A wrong secret gets exactly the answer of an unknown ID
+    /// (the same error, the same message), compared in constant time, and does not mark the
+    /// session used.
+    pub fn find_shm(&self, id: &str, secret: &[u8]) -> Result<FoundSession, SessionError> {
+        let key = SessionId::parse(id)?;
+        let session = self
+            .shard(key)
+            .get(&key)
+            .filter(|s| s.shm_secret.matches(secret))
+            .cloned()
+            .ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
+        session.last_used_ms.store(self.now_ms(), Ordering::Relaxed);
+        Ok(FoundSession {
+            session,
+            metrics: Arc::clone(&self.shared.metrics),
+        })
+    }
+
+    /// The counters (the shared-memory data plane counts its refusals there as gRPC does).
+    pub fn metrics(&self) -> &Arc<Metrics> {
+        &self.shared.metrics
     }
 
     /// Resets every environment of a session of `owner`'s.
@@ -722,6 +737,30 @@ mod tests {
             store.find(&Owner::Shared, &id.to_string()),
             Err(SessionError::NotFound(_))
         ));
+    }
+
+    #[test]
+    fn a_wrong_shm_secret_is_an_unknown_session() {
+        let store = Store::new(Limits::default(), Arc::default());
+        let (id, spec) = store
+            .create(&tenant(), 1, Config::default(), options(), None)
+            .unwrap();
+        let (fork, forked) = store.fork(&tenant(), &id.to_string()).unwrap();
+        assert_ne!(spec.shm_secret, forked.shm_secret, "a fork draws its own secret");
+        let id = id.to_string();
+        assert!(store.find_shm(&id, spec.shm_secret.expose()).is_ok());
+        let refused = |id: &str, secret: &[u8]| store.find_shm(id, secret).err().unwrap();
+        // Another session's secret, a wrong one, none: as an unknown ID.
+        let unknown = "0".repeat(32);
+        let expected = SessionError::NotFound(id.clone());
+        assert_eq!(refused(&id, forked.shm_secret.expose()), expected);
+        assert_eq!(refused(&id, &[0; SHM_SECRET_BYTES]), expected);
+        assert_eq!(refused(&id, &[]), expected);
+        assert_eq!(
+            refused(&unknown, spec.shm_secret.expose()),
+            SessionError::NotFound(unknown.clone())
+        );
+        assert!(store.find_shm(&fork.to_string(), forked.shm_secret.expose()).is_ok());
     }
 
     #[test]

@@ -2,8 +2,14 @@
 //! region and doorbell, gives exactly the Batches a twin session gives over gRPC; bad actions
 //! and unknown sessions are refused with gRPC's code and message; a client that goes ends its
 //! session's thread and frees the region's budget.
+//!
+//! And whom it trusts: a hello with a wrong secret is refused exactly as an unknown ID (also
+//! across tenants, on the real binary); another user's connection is closed before any thread
+//! starts (the real binary, and a second user made here when the test runs as root); silent
+//! connections past the cap are closed at once; a planner session's Steps wait for the CPU pool.
 #![cfg(target_os = "linux")]
 
+mod binary_support;
 mod grpc_support;
 
 use std::io::{IoSlice, IoSliceMut};
@@ -11,10 +17,15 @@ use std::mem::MaybeUninit;
 use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
-use dinerdash_server::pb;
+use binary_support::Process;
+use dinerdash_server::cpu::CpuPool;
+use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::server::ServerConfig;
 use dinerdash_server::shm::layout::{FIELDS, Layout};
-use grpc_support::{Actions, PATIENCE, TestServer, create_request, pack, reset, step};
+use dinerdash_server::shm::{HELLO_BYTES, MAX_PENDING_HELLOS};
+use grpc_support::{
+    Actions, PATIENCE, TestServer, create_request, metric, pack, reset, scrape, step,
+};
 use rustix::net::{
     AddressFamily, RecvAncillaryBuffer, RecvAncillaryMessage, RecvFlags, SendAncillaryBuffer,
     SendFlags, SocketAddrUnix, SocketFlags, SocketType,
@@ -27,8 +38,8 @@ struct ShmClient {
     layout: Layout,
 }
 
-/// Connects to `doorbell` and says hello for `session`: the region, or the `E` message.
-fn connect(doorbell: &str, session: &str) -> Result<ShmClient, Vec<u8>> {
+/// A connection to `doorbell` that has said nothing yet.
+fn silent(doorbell: &str) -> OwnedFd {
     let sock = rustix::net::socket_with(
         AddressFamily::UNIX,
         SocketType::SEQPACKET,
@@ -38,7 +49,18 @@ fn connect(doorbell: &str, session: &str) -> Result<ShmClient, Vec<u8>> {
     .unwrap();
     let addr = SocketAddrUnix::new_abstract_name(doorbell.as_bytes()).unwrap();
     rustix::net::connect(&sock, &addr).unwrap();
-    let hello = [b"H".as_slice(), session.as_bytes()].concat();
+    sock
+}
+
+/// Connects to `doorbell` and says hello for `session` with `secret`: the region, or the `E`
+/// message.
+fn connect(doorbell: &str, session: &str, secret: &[u8]) -> Result<ShmClient, Vec<u8>> {
+    hello(doorbell, &[b"H".as_slice(), session.as_bytes(), secret].concat())
+}
+
+/// Connects to `doorbell` and sends `hello` as it is: the region, or the `E` message.
+fn hello(doorbell: &str, hello: &[u8]) -> Result<ShmClient, Vec<u8>> {
+    let sock = silent(doorbell);
     rustix::net::sendmsg(
         &sock,
         &[IoSlice::new(&hello)],
@@ -165,6 +187,7 @@ async fn a_region_steps_exactly_as_grpc_in_every_autoreset_mode() {
         pb::AutoresetMode::Disabled,
     ] {
         let mut ids = Vec::new();
+        let mut secrets = Vec::new();
         let mut doorbell = String::new();
         for _ in 0..2 {
             let mut request = create_request(5, mode, Some(7));
@@ -177,12 +200,14 @@ async fn a_region_steps_exactly_as_grpc_in_every_autoreset_mode() {
             let reply = client.create_session(request).await.unwrap().into_inner();
             doorbell = reply.shm_doorbell;
             ids.push(reply.session_id);
+            secrets.push(reply.shm_secret);
         }
         assert!(doorbell.starts_with("dinerdash-"), "{doorbell:?}");
         let (over_shm, over_grpc) = (&ids[0], &ids[1]);
         reset(&mut client, over_shm, None).await;
         reset(&mut client, over_grpc, None).await;
-        let shm = tokio::task::block_in_place(|| connect(&doorbell, over_shm)).unwrap();
+        let shm =
+            tokio::task::block_in_place(|| connect(&doorbell, over_shm, &secrets[0])).unwrap();
         let mut actions = Actions::new(3);
         for k in 0..120 {
             let a: Vec<i32> = (0..5).map(|_| actions.next()).collect();
@@ -217,8 +242,9 @@ async fn bad_actions_and_unknown_sessions_are_refused_as_over_grpc() {
         .unwrap()
         .into_inner();
     let id = reply.session_id;
+    let secret = reply.shm_secret;
     reset(&mut client, &id, None).await;
-    let shm = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id)).unwrap();
+    let shm = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret)).unwrap();
     let refused = tokio::task::block_in_place(|| shm.step(&[0, 57, 0])).unwrap_err();
     let grpc = client
         .step(pb::StepRequest {
@@ -235,21 +261,22 @@ async fn bad_actions_and_unknown_sessions_are_refused_as_over_grpc() {
     assert!(tokio::task::block_in_place(|| shm.step(&[0, 0, 0])).is_ok());
 
     let unknown = "0".repeat(32);
-    let e = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &unknown))
+    let e = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &unknown, &secret))
         .err()
         .unwrap();
     assert_eq!(refusal(&e).0, tonic::Code::NotFound as i32);
 
     // --max-shm-sessions 2: a third region is refused, and given back when a client goes.
-    let other = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id)).unwrap();
-    let e = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id))
+    let other =
+        tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret)).unwrap();
+    let e = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret))
         .err()
         .unwrap();
     assert_eq!(refusal(&e).0, tonic::Code::ResourceExhausted as i32);
     drop(other);
     let deadline = Instant::now() + PATIENCE;
     loop {
-        match tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id)) {
+        match tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret)) {
             Ok(_) => break,
             Err(_) if Instant::now() < deadline => {
                 tokio::time::sleep(Duration::from_millis(20)).await;
@@ -268,4 +295,331 @@ async fn bad_actions_and_unknown_sessions_are_refused_as_over_grpc() {
     let e = tokio::task::block_in_place(|| shm.step(&[0, 0, 0])).unwrap_err();
     assert_eq!(refusal(&e).0, tonic::Code::NotFound as i32);
     server.stop().await;
+}
+
+/// The `E` message's code, and its message with `id` written as `<id>`: what an unknown ID and
+/// a wrong secret must both give.
+fn refused_as(e: &[u8], id: &str) -> (i32, String) {
+    let (code, message) = refusal(e);
+    (code, message.replace(id, "<id>"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_secret_is_refused_exactly_as_an_unknown_id() {
+    let server = TestServer::start_with(config(), true).await;
+    let mut client = server.client().await;
+    let mut made = Vec::new();
+    for _ in 0..2 {
+        let request = create_request(2, pb::AutoresetMode::NextStep, Some(3));
+        made.push(client.create_session(request).await.unwrap().into_inner());
+    }
+    let (a, b) = (&made[0], &made[1]);
+    assert_eq!(a.shm_secret.len(), 32);
+    assert_ne!(a.shm_secret, b.shm_secret);
+    assert_eq!(a.shm_server_pid, std::process::id());
+    // The reply's Debug shows no byte of the secret.
+    let shown = format!("{a:?}");
+    assert!(shown.contains("<32 bytes redacted>"), "{shown}");
+    assert!(!shown.contains(&format!("{:?}", a.shm_secret)), "{shown}");
+
+    let doorbell = a.shm_doorbell.clone();
+    let refused = |id: &str, secret: &[u8]| {
+        let e = tokio::task::block_in_place(|| connect(&doorbell, id, secret))
+            .err()
+            .expect("refused");
+        refused_as(&e, id)
+    };
+    let unknown = "0123456789abcdef0123456789abcdef";
+    let as_unknown = refused(unknown, &a.shm_secret);
+    let grpc = client
+        .step(pb::StepRequest {
+            session_id: unknown.into(),
+            actions: pack(&[0, 0]),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(
+        as_unknown,
+        (grpc.code() as i32, grpc.message().replace(unknown, "<id>"))
+    );
+    let mut flipped = a.shm_secret.clone();
+    flipped[31] ^= 1;
+    for secret in [b.shm_secret.clone(), vec![0; 32], flipped] {
+        assert_eq!(refused(&a.session_id, &secret), as_unknown);
+    }
+    // A client older than the secret (`H` and the ID only): refused, told why.
+    let old = [b"H".as_slice(), a.session_id.as_bytes()].concat();
+    let e = tokio::task::block_in_place(|| hello(&doorbell, &old))
+        .err()
+        .unwrap();
+    let (code, message) = refusal(&e);
+    assert_eq!(code, tonic::Code::InvalidArgument as i32);
+    assert!(message.contains("shm_secret"), "{message}");
+    assert!(message.contains(&HELLO_BYTES.to_string()), "{message}");
+    // Counted as gRPC counts its refusals: 4 over shared memory, 1 over gRPC.
+    let text = scrape(server.metrics_addr.unwrap()).await;
+    assert_eq!(
+        metric(&text, "dinerdash_rpc_errors_total{code=\"NOT_FOUND\"}"),
+        5
+    );
+    // The session's own secret still opens it.
+    reset(&mut client, &a.session_id, None).await;
+    let shm = tokio::task::block_in_place(|| connect(&doorbell, &a.session_id, &a.shm_secret))
+        .unwrap();
+    assert!(tokio::task::block_in_place(|| shm.step(&[0, 0])).is_ok());
+    server.stop().await;
+}
+
+/// Threads of process `pid` (its /proc status).
+fn threads(pid: u32) -> usize {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("Threads:"))
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap()
+}
+
+/// Threads of process `pid` named `name`.
+fn threads_named(pid: u32, name: &str) -> usize {
+    std::fs::read_dir(format!("/proc/{pid}/task"))
+        .unwrap()
+        .filter_map(Result::ok)
+        .filter(|task| {
+            std::fs::read_to_string(task.path().join("comm")).is_ok_and(|c| c.trim() == name)
+        })
+        .count()
+}
+
+/// A client run as another user: connects to the doorbell (argv 1), sends the hello (argv 2,
+/// hex) and prints the reply in hex: nothing when the server closed the connection unanswered.
+const OTHER_USER_CLIENT: &str = r#"
+import socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+s.settimeout(60)
+s.connect("\0" + sys.argv[1])
+try:
+    s.sendall(bytes.fromhex(sys.argv[2]))
+    reply = s.recv(4096)
+except (BrokenPipeError, ConnectionResetError):
+    reply = b""
+print(reply.hex(), flush=True)
+"#;
+
+/// Creates a session of `num_envs` and resets it: the creation's reply.
+async fn created(
+    client: &mut DinerDashClient<tonic::transport::Channel>,
+    num_envs: u32,
+) -> pb::CreateSessionResponse {
+    let request = create_request(num_envs, pb::AutoresetMode::NextStep, Some(11));
+    let reply = client.create_session(request).await.unwrap().into_inner();
+    reset(client, &reply.session_id, None).await;
+    reply
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn another_users_connection_is_closed_before_any_thread_starts() {
+    use std::os::unix::process::CommandExt;
+    if !rustix::process::geteuid().is_root() {
+        eprintln!(
+            "skipped: running a client as a second user (uid 65534) needs root (CI runs as \
+             root); the peer check itself is unit-tested in shm::tests"
+        );
+        return;
+    }
+    let server = Process::start("", "--max-shm-sessions 4");
+    let mut client = DinerDashClient::connect(format!("http://{}", server.addr))
+        .await
+        .unwrap();
+    let reply = created(&mut client, 1).await;
+    let pid = server.pid();
+    let before = threads(pid);
+    // Another user, even with the session's ID and secret: closed, unanswered, no thread.
+    let hello = [
+        b"H".as_slice(),
+        reply.session_id.as_bytes(),
+        &reply.shm_secret,
+    ]
+    .concat();
+    let (doorbell, hello) = (reply.shm_doorbell.clone(), hex(&hello));
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new("python3")
+            .args(["-c", OTHER_USER_CLIENT, &doorbell, &hello])
+            .current_dir("/")
+            .uid(65534)
+            .gid(65534)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let answer = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(answer.trim(), "", "another user was answered");
+    assert_eq!(threads_named(pid, "shm-session"), 0);
+    assert!(threads(pid) <= before, "{} threads, {before} before", threads(pid));
+    // The owner gets in: its thread, and its region.
+    let shm = tokio::task::block_in_place(|| {
+        connect(&reply.shm_doorbell, &reply.session_id, &reply.shm_secret)
+    })
+    .unwrap();
+    assert!(tokio::task::block_in_place(|| shm.step(&[0])).is_ok());
+    assert_eq!(threads_named(pid, "shm-session"), 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_connections_past_the_cap_are_closed_at_once() {
+    let server = TestServer::start_with(config(), false).await;
+    let mut client = server.client().await;
+    let reply = created(&mut client, 1).await;
+    let doorbell = reply.shm_doorbell.clone();
+    tokio::task::block_in_place(|| {
+        let waiting: Vec<OwnedFd> = (0..MAX_PENDING_HELLOS).map(|_| silent(&doorbell)).collect();
+        let extra = silent(&doorbell);
+        rustix::net::sockopt::set_socket_timeout(
+            &extra,
+            rustix::net::sockopt::Timeout::Recv,
+            Some(PATIENCE),
+        )
+        .unwrap();
+        let mut buf = [0u8; 64];
+        let (n, _) = rustix::net::recv(&extra, &mut buf, RecvFlags::empty()).unwrap();
+        assert_eq!(n, 0, "the connection past the cap is closed without a word");
+        // Those within the cap still wait for their hello (for seconds, not closed yet).
+        for sock in &waiting {
+            assert_eq!(
+                rustix::net::recv(sock, &mut buf, RecvFlags::DONTWAIT).unwrap_err(),
+                rustix::io::Errno::AGAIN
+            );
+        }
+    });
+    // Once they are gone, a client with its hello gets in.
+    let deadline = Instant::now() + PATIENCE;
+    let shm = loop {
+        match tokio::task::block_in_place(|| {
+            connect(&doorbell, &reply.session_id, &reply.shm_secret)
+        }) {
+            Ok(shm) => break shm,
+            Err(_) if Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            Err(e) => panic!("never let in: {e:?}"),
+        }
+    };
+    assert!(tokio::task::block_in_place(|| shm.step(&[0])).is_ok());
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_planner_sessions_steps_wait_for_the_cpu_pool() {
+    let server = TestServer::start_with(config(), false).await;
+    let mut client = server.client().await;
+    let mut request = create_request(1, pb::AutoresetMode::NextStep, Some(5));
+    request.expert_policy = pb::Policy::Planner.into();
+    let planner = client.create_session(request).await.unwrap().into_inner();
+    reset(&mut client, &planner.session_id, None).await;
+    let plain = created(&mut client, 1).await;
+    let doorbell = planner.shm_doorbell.clone();
+    let (p, q) = tokio::task::block_in_place(|| {
+        (
+            connect(&doorbell, &planner.session_id, &planner.shm_secret).unwrap(),
+            connect(&doorbell, &plain.session_id, &plain.shm_secret).unwrap(),
+        )
+    });
+    // Every worker of the pool the gRPC path uses is taken (by Rollouts, say).
+    let pool = CpuPool::beside_steps();
+    let mut held = Vec::new();
+    for _ in 0..pool.workers() {
+        held.push(pool.acquire().await.unwrap());
+    }
+    // A session without the planner steps on; the planner's Step waits for a worker.
+    assert!(tokio::task::block_in_place(|| q.step(&[0])).is_ok());
+    let (tx, rx) = std::sync::mpsc::channel();
+    let stepping = std::thread::spawn(move || tx.send(p.step(&[0]).is_ok()).unwrap());
+    let early = tokio::task::block_in_place(|| rx.recv_timeout(Duration::from_millis(300)));
+    assert!(
+        early.is_err(),
+        "a planner Step ran while every worker was taken"
+    );
+    drop(held);
+    let stepped = tokio::task::block_in_place(|| rx.recv_timeout(PATIENCE)).unwrap();
+    assert!(stepped);
+    stepping.join().unwrap();
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn another_tenant_knowing_the_id_but_not_the_secret_is_refused_as_unknown() {
+    let dir = std::env::temp_dir().join(format!("dinerdash-shm-tenants-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("tenants");
+    let (token_a, token_b) = ("tenant-a-0123456789abcdef", "tenant-b-0123456789abcdef");
+    std::fs::write(&file, format!("team-a {token_a}\nteam-b {token_b}\n")).unwrap();
+    let server = Process::start("", &format!("--auth-tokens-file '{}'", file.display()));
+    let mut c = DinerDashClient::connect(format!("http://{}", server.addr))
+        .await
+        .unwrap();
+    // Tenant A's session and its undisturbed twin; tenant B's own session.
+    let a = created_by(&mut c, token_a).await;
+    let twin = created_by(&mut c, token_a).await;
+    let b = created_by(&mut c, token_b).await;
+    let doorbell = a.shm_doorbell.clone();
+    let refused = |id: &str, secret: &[u8]| {
+        let e = tokio::task::block_in_place(|| connect(&doorbell, id, secret))
+            .err()
+            .expect("refused");
+        refused_as(&e, id)
+    };
+    // B knows A's ID: with its own secret, or a guess, it is told what an unknown ID is told.
+    let as_unknown = refused("00000000000000000000000000000000", &b.shm_secret);
+    assert_eq!(as_unknown.0, tonic::Code::NotFound as i32);
+    assert_eq!(refused(&a.session_id, &b.shm_secret), as_unknown);
+    assert_eq!(refused(&a.session_id, &[0; 32]), as_unknown);
+    // A's session is untouched: its next Step over shared memory equals its twin's over gRPC.
+    let shm = tokio::task::block_in_place(|| connect(&doorbell, &a.session_id, &a.shm_secret))
+        .unwrap();
+    let step = pb::StepRequest {
+        session_id: twin.session_id.clone(),
+        actions: pack(&[0, 1]),
+    };
+    let expected = c.step(with(token_a, step)).await.unwrap().into_inner();
+    let stepped = tokio::task::block_in_place(|| shm.step(&[0, 1])).unwrap();
+    assert_eq!(stepped, arrays(&expected));
+    drop(server);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `message` with `token` as its bearer token.
+fn with<T>(token: &str, message: T) -> tonic::Request<T> {
+    let mut request = tonic::Request::new(message);
+    let value = format!("Bearer {token}").parse().unwrap();
+    request.metadata_mut().insert("authorization", value);
+    request
+}
+
+/// A session of 2 environments (seed 9) created and reset (seed 4) by `token`'s tenant.
+async fn created_by(
+    c: &mut DinerDashClient<tonic::transport::Channel>,
+    token: &str,
+) -> pb::CreateSessionResponse {
+    let request = create_request(2, pb::AutoresetMode::NextStep, Some(9));
+    let reply = c
+        .create_session(with(token, request))
+        .await
+        .unwrap()
+        .into_inner();
+    let reset = pb::ResetRequest {
+        session_id: reply.session_id.clone(),
+        seed: Some(4),
+        ..Default::default()
+    };
+    c.reset(with(token, reset)).await.unwrap();
+    reply
 }

@@ -72,14 +72,18 @@ class CreateSessionRequest(_message.Message):
     def __init__(self, num_envs: _Optional[int] = ..., config: _Optional[_Union[GameConfig, _Mapping]] = ..., seed: _Optional[int] = ..., autoreset_mode: _Optional[_Union[AutoresetMode, str]] = ..., action_masks: _Optional[bool] = ..., expert_actions: _Optional[bool] = ..., expert_policy: _Optional[_Union[Policy, str]] = ...) -> None: ...
 
 class CreateSessionResponse(_message.Message):
-    __slots__ = ("session_id", "spec", "shm_doorbell")
+    __slots__ = ("session_id", "spec", "shm_doorbell", "shm_secret", "shm_server_pid")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     SPEC_FIELD_NUMBER: _ClassVar[int]
     SHM_DOORBELL_FIELD_NUMBER: _ClassVar[int]
+    SHM_SECRET_FIELD_NUMBER: _ClassVar[int]
+    SHM_SERVER_PID_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     spec: Spec
     shm_doorbell: str
-    def __init__(self, session_id: _Optional[str] = ..., spec: _Optional[_Union[Spec, _Mapping]] = ..., shm_doorbell: _Optional[str] = ...) -> None: ...
+    shm_secret: bytes
+    shm_server_pid: int
+    def __init__(self, session_id: _Optional[str] = ..., spec: _Optional[_Union[Spec, _Mapping]] = ..., shm_doorbell: _Optional[str] = ..., shm_secret: _Optional[bytes] = ..., shm_server_pid: _Optional[int] = ...) -> None: ...
 
 class Spec(_message.Message):
     __slots__ = ("num_envs", "observation_size", "observation_low", "observation_high", "observation_dtype", "num_actions", "ruleset", "server_version", "autoreset_mode", "config", "action_masks", "expert_actions", "expert_policy")

@@ -157,16 +157,41 @@ fn spec_to(spec: &SessionSpec) -> pb::Spec {
     }
 }
 
-/// The reply naming a new session; `shm_doorbell` is the server's doorbell, or empty.
+/// The reply naming a new session to its creator; `shm_doorbell` is the server's doorbell, or
+/// empty: then neither the session's shared-memory secret nor the server's pid is told.
 pub(super) fn created(
     id: SessionId,
     spec: &SessionSpec,
     shm_doorbell: &str,
 ) -> pb::CreateSessionResponse {
+    let offered = !shm_doorbell.is_empty();
     pb::CreateSessionResponse {
         session_id: id.to_string(),
         spec: Some(spec_to(spec)),
         shm_doorbell: shm_doorbell.to_owned(),
+        shm_secret: if offered {
+            spec.shm_secret.expose().to_vec()
+        } else {
+            Vec::new()
+        },
+        shm_server_pid: if offered { std::process::id() } else { 0 },
+    }
+}
+
+/// Every field but the shared-memory secret, of which only the length shows (prost's derived
+/// `Debug` is skipped for this message in `build.rs`).
+impl std::fmt::Debug for pb::CreateSessionResponse {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CreateSessionResponse")
+            .field("session_id", &self.session_id)
+            .field("spec", &self.spec)
+            .field("shm_doorbell", &self.shm_doorbell)
+            .field(
+                "shm_secret",
+                &format_args!("<{} bytes redacted>", self.shm_secret.len()),
+            )
+            .field("shm_server_pid", &self.shm_server_pid)
+            .finish()
     }
 }
 

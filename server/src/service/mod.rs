@@ -5,6 +5,8 @@
 //!   [`SessionError`] mapped once.
 //! - [`convert`]: the protocol's messages to the store's types and back.
 //! - [`step_stream`]: StepStream's replies, each request stepped exactly as the unary Step does.
+//! - [`step_path`]: a found session's Step or Reset, on the CPU pool for the planner, refusals
+//!   counted: the shared-memory data plane's path (the handlers' `heavy_if_planner` is the same).
 //! - [`rollout_stream`]: the producer of a Rollout stream's episodes.
 //!
 //! Requests reach these handlers through the [`crate::auth::RequestGate`], which tags a tenant
@@ -20,6 +22,7 @@
 pub mod convert;
 pub mod rollout_stream;
 pub mod status;
+pub mod step_path;
 pub mod step_stream;
 
 use std::sync::Arc;
