@@ -2,11 +2,11 @@
 
 A server started with ``--http-port P`` serves its live sessions at ``http://HOST:P/`` and any
 environment playing at ``http://HOST:P/watch/{session_id}?env=K`` (``https://`` when it serves
-TLS: the pages use the certificate of gRPC, so a client connected with TLS gets HTTPS URLs). The server tells where in
-``ServerInfo`` (``http_port``, ``http_host``), so the client needs no second address: the pages'
-host is the one they listen on, or, when that is a wildcard (``--http-host 0.0.0.0``), the host the
-client reached the server by. A session ID is a capability: its watch URL lets whoever holds it
-watch (the page also asks for a token when the server has tokens).
+TLS: the pages use the certificate of gRPC, so a client connected with TLS gets HTTPS URLs). The
+server tells where in ``ServerInfo`` (``http_port``, ``http_host``), so the client needs no second
+address: the pages' host is the one they listen on, or, when that is a wildcard (``--http-host
+0.0.0.0``), the host the client reached the server by. A session ID is a capability: its watch
+URL lets whoever holds it watch (the page also asks for a token when the server has tokens).
 
 ::
 

@@ -361,7 +361,10 @@ mod tests {
         assert!(hash.contains('#') && !hash.contains("01234567"), "{hash}");
         let short = parse_tenants("\nteam-b s3cret # old\n", Share::default()).unwrap_err();
         assert!(short.starts_with("line 2: tenant \"team-b\": "), "{short}");
-        assert!(!short.contains("s3cret"), "the error repeats the token: {short}");
+        assert!(
+            !short.contains("s3cret"),
+            "the error repeats the token: {short}"
+        );
         assert_eq!(without_comment("#all"), "");
         assert_eq!(without_comment("a b\t# c"), "a b\t");
         assert_eq!(without_comment("a b#c # d"), "a b#c ");

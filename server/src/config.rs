@@ -182,7 +182,8 @@ pub fn is_loopback(host: &str) -> bool {
         .strip_prefix('[')
         .and_then(|h| h.strip_suffix(']'))
         .unwrap_or(host);
-    bare.eq_ignore_ascii_case("localhost") || bare.parse::<IpAddr>().is_ok_and(|ip| ip.is_loopback())
+    bare.eq_ignore_ascii_case("localhost")
+        || bare.parse::<IpAddr>().is_ok_and(|ip| ip.is_loopback())
 }
 
 impl ServeArgs {
@@ -565,11 +566,24 @@ mod tests {
 
     #[test]
     fn grpc_beyond_this_machine_needs_a_token_or_insecure() {
-        for local in ["127.0.0.1", "127.0.0.2", "::1", "[::1]", "localhost", "LocalHost"] {
+        for local in [
+            "127.0.0.1",
+            "127.0.0.2",
+            "::1",
+            "[::1]",
+            "localhost",
+            "LocalHost",
+        ] {
             assert!(is_loopback(local), "{local}");
             flags(&["--host", local]).validate().unwrap();
         }
-        for public in ["0.0.0.0", "::", "10.0.0.7", "gpu-box", "localhost.example.com"] {
+        for public in [
+            "0.0.0.0",
+            "::",
+            "10.0.0.7",
+            "gpu-box",
+            "localhost.example.com",
+        ] {
             assert!(!is_loopback(public), "{public}");
             let refused = flags(&["--host", public]).validate().unwrap_err();
             assert!(matches!(&refused, ConfigError::PublicGrpc(h) if h == public));
@@ -604,7 +618,10 @@ mod tests {
             let message = refused.to_string();
             assert!(matches!(refused, ConfigError::AuthToken(_)), "{message}");
             assert!(message.contains(why), "{message}");
-            assert!(!message.contains(token), "the error repeats the token: {message}");
+            assert!(
+                !message.contains(token),
+                "the error repeats the token: {message}"
+            );
         }
         flags(&["--auth-token", "0123456789abcdef"])
             .validate()

@@ -197,7 +197,11 @@ pub async fn run(
     let http_addr = listeners.http.as_ref().and_then(|l| l.local_addr().ok());
     let http_task = listeners.http.map(|l| {
         if let Some(addr) = http_addr {
-            let scheme = if exposure.tls.is_some() { "https" } else { "http" };
+            let scheme = if exposure.tls.is_some() {
+                "https"
+            } else {
+                "http"
+            };
             tracing::info!(
                 "sessions page on {scheme}://{addr}/, metrics on {scheme}://{addr}/metrics"
             );

@@ -101,7 +101,10 @@ async fn public_pages_need_tls_and_weak_tokens_are_refused() {
     let path = file.to_str().unwrap();
     let message = stderr(&refused_start(&["--port", "0", "--auth-tokens-file", path], &[]).await);
     assert!(message.contains("line 2: tenant \"team-b\""), "{message}");
-    assert!(!message.contains("short\n") && !message.contains("aaaa"), "{message}");
+    assert!(
+        !message.contains("short\n") && !message.contains("aaaa"),
+        "{message}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -217,7 +220,9 @@ async fn the_web_endpoint_serves_tls_with_the_grpc_certificate_and_checks_the_ho
     // Plain HTTP gets no HTTP answer at all.
     let plain = exchange(
         TcpStream::connect(&pages).await.unwrap(),
-        &format!("GET /api/sessions HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {TOKEN}\r\n\r\n"),
+        &format!(
+            "GET /api/sessions HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {TOKEN}\r\n\r\n"
+        ),
     )
     .await;
     assert!(!plain.contains("HTTP/1.1"), "{plain:?}");

@@ -161,8 +161,13 @@ async fn tenant_tokens_have_their_own_shares() {
         request.metadata_mut().insert("authorization", value);
         request
     };
-    c.create_session(with("small-tenant-secret", 3)).await.unwrap();
-    let refused = c.create_session(with("small-tenant-secret", 2)).await.unwrap_err();
+    c.create_session(with("small-tenant-secret", 3))
+        .await
+        .unwrap();
+    let refused = c
+        .create_session(with("small-tenant-secret", 2))
+        .await
+        .unwrap_err();
     assert_eq!(refused.code(), Code::ResourceExhausted);
     assert!(
         refused.message().starts_with("tenant small holds 3"),
@@ -170,7 +175,9 @@ async fn tenant_tokens_have_their_own_shares() {
         refused.message()
     );
     // The same connection, another tenant: its own share.
-    c.create_session(with("big-tenant-secret-1", 500)).await.unwrap();
+    c.create_session(with("big-tenant-secret-1", 500))
+        .await
+        .unwrap();
     let wrong = c.create_session(with("nope", 1)).await.unwrap_err();
     assert_eq!(wrong.code(), Code::Unauthenticated);
     let missing = c.create_session(big(1)).await.unwrap_err();

@@ -209,7 +209,12 @@ async fn auth_token_is_required() {
         status.message(),
         "missing authorization metadata: send `authorization: Bearer <token>`"
     );
-    for wrong in ["Bearer s3cre", "Bearer s3cret-0123456789 ", "s3cret-0123456789", "Bearer S3CRET-0123456789"] {
+    for wrong in [
+        "Bearer s3cre",
+        "Bearer s3cret-0123456789 ",
+        "s3cret-0123456789",
+        "Bearer S3CRET-0123456789",
+    ] {
         let status = with_token(wrong)
             .server_info(pb::ServerInfoRequest {})
             .await

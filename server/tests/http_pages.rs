@@ -317,7 +317,11 @@ async fn tokens_show_each_tenant_its_own_sessions() {
     let (server, addr) = http_server(config).await;
     let mut c = server.client().await;
     let mut created = Vec::new();
-    for token in ["team-a-token-aaaa", "team-b-token-bbbb", "shared-token-ssss"] {
+    for token in [
+        "team-a-token-aaaa",
+        "team-b-token-bbbb",
+        "shared-token-ssss",
+    ] {
         let mut request = tonic::Request::new(create_request(1, pb::AutoresetMode::NextStep, None));
         let value = format!("Bearer {token}").parse().unwrap();
         request.metadata_mut().insert("authorization", value);
@@ -344,7 +348,12 @@ async fn tokens_show_each_tenant_its_own_sessions() {
         assert!(head.contains("www-authenticate: bearer"), "{head}");
         assert_eq!(get(addr, path, Some("nope")).await.status, 401, "{path}");
     }
-    assert_eq!(get(addr, "/metrics", Some("team-b-token-bbbb")).await.status, 200);
+    assert_eq!(
+        get(addr, "/metrics", Some("team-b-token-bbbb"))
+            .await
+            .status,
+        200
+    );
     let ids = |reply: Reply| -> Vec<String> {
         reply.json()["sessions"]
             .as_array()
@@ -365,7 +374,9 @@ async fn tokens_show_each_tenant_its_own_sessions() {
         ids(get(addr, "/api/sessions", Some("shared-token-ssss")).await),
         [shared.as_str()]
     );
-    let listing = get(addr, "/api/sessions", Some("team-a-token-aaaa")).await.json();
+    let listing = get(addr, "/api/sessions", Some("team-a-token-aaaa"))
+        .await
+        .json();
     assert_eq!(listing["sessions"][0]["tenant"], "tenant a");
     // Server totals are the server's, as /metrics gives them to any token holder.
     assert_eq!(listing["totals"]["sessions"], 3);

@@ -84,7 +84,13 @@ mod tests {
     #[test]
     fn ip_literals_and_localhost_on_loopback_are_served() {
         let local = hosts("127.0.0.1:8080", &[]);
-        for ok in ["localhost", "LOCALHOST:8080", "127.0.0.1:8080", "[::1]:8080", "10.0.0.7"] {
+        for ok in [
+            "localhost",
+            "LOCALHOST:8080",
+            "127.0.0.1:8080",
+            "[::1]:8080",
+            "10.0.0.7",
+        ] {
             assert!(local.allows(ok), "{ok}");
         }
         for refused in ["evil.example.com", "evil.example.com:8080", "", ":8080"] {
