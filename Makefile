@@ -108,8 +108,12 @@ chaos: build-server venv
 
 ## The docker image end to end (needs a Docker engine with compose): build it, start three
 ## healthy replicas and run the example trainer over all three; exit status is the trainer's.
+## The servers' token comes from docker/dinerdash.env, made here with a random one if missing.
 COMPOSE := docker compose -f docker/compose.yaml
-docker-smoke:
+docker/dinerdash.env:
+	umask 077 && echo "DINERDASH_AUTH_TOKEN=$$(openssl rand -hex 32)" > $@
+
+docker-smoke: docker/dinerdash.env
 	$(COMPOSE) up --build --abort-on-container-exit --exit-code-from trainer; \
 	status=$$?; $(COMPOSE) down; exit $$status
 

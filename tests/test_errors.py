@@ -130,12 +130,12 @@ def test_resource_exhausted(start_server) -> None:
 
 
 def test_unauthenticated(start_server) -> None:
-    server = start_server("--auth-token", "s3cret")
+    server = start_server("--auth-token", "s3cret-0123456789")
     with pytest.raises(Unauthenticated):
         DinerDashEnv(server.address)
     with pytest.raises(Unauthenticated):
         DinerDashEnv(server.address, token="wrong")
-    env = DinerDashEnv(server.address, token="s3cret")
+    env = DinerDashEnv(server.address, token="s3cret-0123456789")
     try:
         env.reset(seed=0)
         env.step(0)

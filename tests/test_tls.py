@@ -1,12 +1,15 @@
 """TLS end to end, with certificates made at test time: a private CA (``tls_ca=``,
 ``DINERDASH_TLS_CA``, ``--tls-ca`` of the CLI), a self-signed certificate that is its own CA
-(also for ``dinerdash-server health --tls-ca``), and the errors that say TLS when client and server
-disagree."""
+(also for ``dinerdash-server health --tls-ca``), the errors that say TLS when client and server
+disagree, and the web endpoint served over TLS with the same certificate (its ``Host`` check
+too)."""
 
 from __future__ import annotations
 
 import datetime
+import http.client
 import ipaddress
+import ssl
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -14,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dinerdash import DinerDashEnv, DinerDashVectorEnv, TLSMismatch
+from dinerdash import Connection, DinerDashEnv, DinerDashVectorEnv, TLSMismatch
+from dinerdash.watch import pages_url
 
 from .conftest import ServerProcess, server_binary, server_env
 
@@ -188,3 +192,49 @@ def test_server_health_with_tls_ca(which: str, pki: dict[str, Path], request) ->
     )
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.strip() == "SERVING"
+
+
+#: The web endpoint's test token (16 characters or more, no ``#``).
+_TOKEN = "web-endpoint-token-0123456789"
+
+
+def _get(conn: http.client.HTTPConnection, host: str | None = None) -> tuple[int, str]:
+    headers = {"Authorization": f"Bearer {_TOKEN}"}
+    if host is not None:
+        headers["Host"] = host
+    try:
+        conn.request("GET", "/api/sessions", headers=headers)
+        reply = conn.getresponse()
+        return reply.status, reply.read().decode()
+    finally:
+        conn.close()
+
+
+def test_the_web_endpoint_serves_tls_with_the_same_certificate(pki: dict[str, Path]) -> None:
+    server = ServerProcess(
+        "--tls-cert",
+        str(pki["server.pem"]),
+        "--tls-key",
+        str(pki["server.key"]),
+        "--http-port",
+        "0",
+        "--auth-token",
+        _TOKEN,
+    )
+    try:
+        with Connection(server.address, tls_ca=pki["ca.pem"], token=_TOKEN) as conn:
+            port = conn.server_info().http_port
+            # The client knows the pages are HTTPS, as its own channel is TLS.
+            assert pages_url(conn) == f"https://127.0.0.1:{port}/"
+        context = ssl.create_default_context(cafile=str(pki["ca.pem"]))
+        status, body = _get(http.client.HTTPSConnection("localhost", port, context=context))
+        assert status == 200 and '"sessions"' in body
+        # A host name the endpoint does not serve (a DNS name rebound to it): 421.
+        https = http.client.HTTPSConnection("localhost", port, context=context)
+        status, body = _get(https, host="rebound.example.com")
+        assert status == 421 and "--http-allowed-host" in body
+        # Plain HTTP gets no HTTP answer: the token never crosses the network in clear.
+        with pytest.raises((http.client.HTTPException, OSError)):
+            _get(http.client.HTTPConnection("127.0.0.1", port, timeout=30))
+    finally:
+        server.stop()

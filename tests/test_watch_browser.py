@@ -218,10 +218,11 @@ def test_a_wrong_token_and_an_unknown_session_are_refused(start_server, browser,
     from selenium.webdriver.common.by import By
 
     tokens = tmp_path / "tokens"
-    tokens.write_text("team-a aaa\nteam-b bbb\n")
+    token_a, token_b = "team-a-token-aaaa", "team-b-token-bbbb"
+    tokens.write_text(f"team-a {token_a}\nteam-b {token_b}\n")
     server = start_server("--http-port", "0", "--auth-tokens-file", str(tokens))
-    url = page_url(server, token="aaa")
-    with gym.make("dinerdash:DinerDash-v0", address=server.address, token="aaa") as env:
+    url = page_url(server, token=token_a)
+    with gym.make("dinerdash:DinerDash-v0", address=server.address, token=token_a) as env:
         env.reset(seed=2)
         session_id = env.unwrapped.session_id
         watch = env.unwrapped.watch_url()
@@ -242,7 +243,7 @@ def test_a_wrong_token_and_an_unknown_session_are_refused(start_server, browser,
         message = browser.find_element(By.ID, "token-message")
         wait_for("the refusal", lambda: form.is_displayed() and "refused" in message.text)
         assert not browser.find_elements(By.CSS_SELECTOR, "tr[data-id]")
-        enter("bbb")  # a token, but another tenant's: its list does not hold the session
+        enter(token_b)  # a token, but another tenant's: its list does not hold the session
         wait_for("team-b's empty list", lambda: browser.find_element(By.ID, "empty").is_displayed())
         assert not browser.find_elements(By.CSS_SELECTOR, "tr[data-id]")
 
@@ -255,7 +256,7 @@ def test_a_wrong_token_and_an_unknown_session_are_refused(start_server, browser,
 
         browser.execute_script("sessionStorage.clear()")
         browser.get(url)
-        enter("aaa")
+        enter(token_a)
         wait_for(
             "team-a's session",
             lambda: browser.find_elements(By.CSS_SELECTOR, f'tr[data-id="{session_id}"]'),

@@ -1,11 +1,12 @@
 """The server's web pages: where they are, and ``python -m dinerdash watch``.
 
 A server started with ``--http-port P`` serves its live sessions at ``http://HOST:P/`` and any
-environment playing at ``http://HOST:P/watch/{session_id}?env=K``. The server tells where in
-``ServerInfo`` (``http_port``, ``http_host``), so the client needs no second address: the pages'
-host is the one they listen on, or, when that is a wildcard (``--http-host 0.0.0.0``), the host the
-client reached the server by. A session ID is a capability: its watch URL lets whoever holds it
-watch (the page also asks for a token when the server has tokens).
+environment playing at ``http://HOST:P/watch/{session_id}?env=K`` (``https://`` when it serves
+TLS: the pages use the certificate of gRPC, so a client connected with TLS gets HTTPS URLs). The
+server tells where in ``ServerInfo`` (``http_port``, ``http_host``), so the client needs no second
+address: the pages' host is the one they listen on, or, when that is a wildcard (``--http-host
+0.0.0.0``), the host the client reached the server by. A session ID is a capability: its watch
+URL lets whoever holds it watch (the page also asks for a token when the server has tokens).
 
 ::
 
@@ -45,7 +46,9 @@ def pages_url(conn: Connection) -> str:
     host = info.http_host
     if host in _WILDCARDS:
         host = _split_host_port(conn.address)[0]
-    return f"http://{_join_host_port(host, info.http_port)}/"
+    # A server with a certificate serves its pages over TLS too, with the same certificate.
+    scheme = "https" if getattr(conn, "tls", False) else "http"
+    return f"{scheme}://{_join_host_port(host, info.http_port)}/"
 
 
 def watch_url(conn: Connection, session_id: str, env: int = 0) -> str:

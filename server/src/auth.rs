@@ -1,8 +1,11 @@
 //! Who may call: the bearer tokens and the tenants they stand for (`--auth-token`,
-//! `--auth-tokens-file` and its parsing), the constant-time comparison of a sent token, and the
-//! [`RequestGate`] in front of every RPC but health checks, which also turns calls away while
-//! the server drains or when their connection is over the connection limit.
+//! `--auth-tokens-file` and its parsing), the rules a token must meet ([`check_token`]), the
+//! [`Secret`] that keeps a token out of `Debug` output and logs, the constant-time comparison
+//! of a sent token, and the [`RequestGate`] in front of every RPC but health checks, which also
+//! turns calls away while the server drains or when their connection is over the connection
+//! limit.
 
+use std::fmt;
 use std::sync::Arc;
 
 use tonic::{Request, Status};
@@ -11,11 +14,89 @@ use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
 use crate::shutdown::{self, Shutdown};
 
+/// Fewest characters a token may have: 16 random characters are out of reach of guessing over
+/// the network, and shorter ones are usually words (`s3cret`).
+pub const MIN_TOKEN_CHARS: usize = 16;
+
+/// A secret (a bearer token) that never shows in `Debug` output, so that a logged or printed
+/// configuration (`{:?}` of [`Token`], [`TenantLine`], `ServeArgs`, `ServerConfig`) holds none.
+#[derive(Clone, Default, PartialEq, Eq)]
+pub struct Secret(String);
+
+impl Secret {
+    /// The secret itself, for comparing it with what a client sends.
+    pub fn expose(&self) -> &str {
+        &self.0
+    }
+
+    /// Whether it is the empty string (an empty `DINERDASH_AUTH_TOKEN` is no token).
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
+impl fmt::Debug for Secret {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("Secret(<redacted>)")
+    }
+}
+
+impl From<String> for Secret {
+    fn from(secret: String) -> Secret {
+        Secret(secret)
+    }
+}
+
+impl From<&str> for Secret {
+    fn from(secret: &str) -> Secret {
+        Secret(secret.to_owned())
+    }
+}
+
+/// Why a token is refused at start. The messages never repeat the token.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum TokenError {
+    /// Fewer than [`MIN_TOKEN_CHARS`] characters.
+    #[error(
+        "the token has {0} characters, fewer than {MIN_TOKEN_CHARS}: use a random one, e.g. \
+         `openssl rand -hex 32`"
+    )]
+    TooShort(usize),
+    /// A `#`, which a tenants file would read as the start of a comment.
+    #[error(
+        "the token contains `#`, which starts a comment in a tenants file: use a random one, \
+         e.g. `openssl rand -hex 32`"
+    )]
+    Hash,
+    /// A space, control or non-ASCII character, which an `authorization` header cannot carry
+    /// as it is.
+    #[error(
+        "the token contains a space, control or non-ASCII character: use visible ASCII only, \
+         e.g. `openssl rand -hex 32`"
+    )]
+    NotVisibleAscii,
+}
+
+/// Refuses a token that is short, holds a `#`, or a character other than visible ASCII: it is
+/// refused as a whole, never truncated.
+pub fn check_token(token: &str) -> Result<(), TokenError> {
+    if token.contains('#') {
+        return Err(TokenError::Hash);
+    }
+    if !token.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err(TokenError::NotVisibleAscii);
+    }
+    if token.len() < MIN_TOKEN_CHARS {
+        return Err(TokenError::TooShort(token.len()));
+    }
+    Ok(())
+}
+
 /// A token clients may send, and the tenant it stands for.
 #[derive(Debug, Clone)]
 pub struct Token {
     /// The secret, sent as `authorization: Bearer <token>`.
-    pub token: String,
+    pub token: Secret,
     /// Whose share its requests count against; `None`: each connection's own (`--auth-token`).
     pub tenant: Option<Arc<Tenant>>,
 }
@@ -26,18 +107,34 @@ pub struct TenantLine {
     /// The tenant's name, for messages and logs.
     pub name: String,
     /// Its bearer token.
-    pub token: String,
+    pub token: Secret,
     /// What it may hold.
     pub share: Share,
 }
 
+/// `line` without its comment: a `#` starts one at the start of the line or after whitespace
+/// only, so that a `#` inside a token stays in it (and [`check_token`] refuses the token)
+/// instead of silently cutting it short.
+fn without_comment(line: &str) -> &str {
+    let mut previous = None;
+    for (at, c) in line.char_indices() {
+        if c == '#' && previous.is_none_or(char::is_whitespace) {
+            return &line[..at];
+        }
+        previous = Some(c);
+    }
+    line
+}
+
 /// Reads `--auth-tokens-file`: one tenant a line, `NAME TOKEN [envs=N] [sessions=N]
-/// [rollouts=N]`; what a line does not give is `default`'s. Blank lines and `#` comments are
-/// skipped. Names and tokens must be unique.
+/// [rollouts=N]`; what a line does not give is `default`'s. Blank lines and comments are
+/// skipped: a comment starts with a `#` at the start of a line or after whitespace. Names and
+/// tokens must be unique, and every token must pass [`check_token`]. The errors name the line
+/// and the tenant, never the token.
 pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, String> {
     let mut tenants: Vec<TenantLine> = Vec::new();
     for (i, line) in text.lines().enumerate() {
-        let line = line.split('#').next().unwrap_or_default().trim();
+        let line = without_comment(line).trim();
         if line.is_empty() {
             continue;
         }
@@ -48,6 +145,7 @@ pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, Stri
                 "expected `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`".into(),
             ));
         };
+        check_token(token).map_err(|e| at(format!("tenant {name:?}: {e}")))?;
         let mut share = default;
         for word in words {
             let (key, value) = word
@@ -67,12 +165,15 @@ pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, Stri
                 }
             }
         }
-        if tenants.iter().any(|t| t.name == name || t.token == token) {
+        if tenants
+            .iter()
+            .any(|t| t.name == name || t.token.expose() == token)
+        {
             return Err(at(format!("tenant {name:?} or its token is given twice")));
         }
         tenants.push(TenantLine {
             name: name.to_owned(),
-            token: token.to_owned(),
+            token: token.into(),
             share,
         });
     }
@@ -101,11 +202,25 @@ pub fn tenant_tokens(text: &str, default: Share) -> Result<Vec<Token>, String> {
 type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
 
 /// The tokens a server accepts, as the `authorization` values that carry them, for the gRPC
-/// [`RequestGate`] and the web pages alike. Cloning is shallow.
-#[derive(Debug, Clone, Default)]
+/// [`RequestGate`] and the web pages alike. Cloning is shallow. Its `Debug` shows how many
+/// tokens there are and their tenants, never the tokens.
+#[derive(Clone, Default)]
 pub struct Tokens {
     /// Accepted `Bearer <token>` values and their tenants; empty: an open server.
     accepted: Arc<[Accepted]>,
+}
+
+impl fmt::Debug for Tokens {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let tenants: Vec<Option<&str>> = self
+            .accepted
+            .iter()
+            .map(|(_, tenant)| tenant.as_deref().map(Tenant::name))
+            .collect();
+        f.debug_struct("Tokens")
+            .field("tenants", &tenants)
+            .finish_non_exhaustive()
+    }
 }
 
 impl Tokens {
@@ -114,7 +229,7 @@ impl Tokens {
         let accepted = tokens
             .iter()
             .map(|t| {
-                let expected = format!("Bearer {}", t.token)
+                let expected = format!("Bearer {}", t.token.expose())
                     .into_bytes()
                     .into_boxed_slice();
                 (expected, t.tenant.clone())
@@ -209,18 +324,67 @@ mod tests {
 
     #[test]
     fn tenants_file_lines() {
-        let text = "# trainers\nteam-a s3cret envs=100 rollouts=1\n\nteam-b other # no quota\n";
+        let text = "# trainers\nteam-a 0123456789abcdef envs=100 rollouts=1\n\n\
+                    team-b fedcba9876543210fedc # no quota\n";
         let tenants = parse_tenants(text, Share::default()).unwrap();
         assert_eq!(tenants.len(), 2);
+        assert_eq!(tenants[0].token.expose(), "0123456789abcdef");
         assert_eq!(tenants[0].share.max_envs, 100);
         assert_eq!(tenants[0].share.max_rollouts, 1);
         assert_eq!(tenants[1].share, Share::default());
         assert_eq!(
-            parse_tenants("a t envs=x", Share::default()),
+            parse_tenants("a 0123456789abcdef envs=x", Share::default()),
             Err("line 1: envs must be a whole number, got \"x\"".into())
         );
-        assert!(parse_tenants("a t\nb t", Share::default()).is_err());
+        let twice = "a 0123456789abcdef\nb 0123456789abcdef";
+        assert!(parse_tenants(twice, Share::default()).is_err());
         assert!(parse_tenants("lonely", Share::default()).is_err());
+    }
+
+    #[test]
+    fn short_tokens_and_tokens_with_a_hash_are_refused_not_cut() {
+        assert_eq!(check_token("0123456789abcdef"), Ok(()));
+        assert_eq!(check_token("s3cret"), Err(TokenError::TooShort(6)));
+        assert_eq!(check_token("0123456789#abcdef"), Err(TokenError::Hash));
+        assert_eq!(
+            check_token("0123456789 abcdef"),
+            Err(TokenError::NotVisibleAscii)
+        );
+        assert_eq!(
+            check_token("0123456789abcdéf"),
+            Err(TokenError::NotVisibleAscii)
+        );
+        // In a tenants file, a `#` inside a word is part of the token, which is then refused;
+        // after whitespace or at the start of a line it starts a comment.
+        let hash = parse_tenants("team-a 01234567#89abcdefgh\n", Share::default()).unwrap_err();
+        assert!(hash.starts_with("line 1: tenant \"team-a\": "), "{hash}");
+        assert!(hash.contains('#') && !hash.contains("01234567"), "{hash}");
+        let short = parse_tenants("\nteam-b s3cret # old\n", Share::default()).unwrap_err();
+        assert!(short.starts_with("line 2: tenant \"team-b\": "), "{short}");
+        assert!(
+            !short.contains("s3cret"),
+            "the error repeats the token: {short}"
+        );
+        assert_eq!(without_comment("#all"), "");
+        assert_eq!(without_comment("a b\t# c"), "a b\t");
+        assert_eq!(without_comment("a b#c # d"), "a b#c ");
+    }
+
+    #[test]
+    fn debug_output_holds_no_token() {
+        let secret = "0123456789abcdef-top";
+        let tenants = tenant_tokens(&format!("team-a {secret}\n"), Share::default()).unwrap();
+        let lines = parse_tenants(&format!("team-a {secret}\n"), Share::default()).unwrap();
+        let tokens = Tokens::new(&tenants);
+        for shown in [
+            format!("{tenants:?}"),
+            format!("{lines:?}"),
+            format!("{tokens:?}"),
+            format!("{:?}", Secret::from(secret)),
+        ] {
+            assert!(!shown.contains(secret), "{shown}");
+        }
+        assert!(format!("{tokens:?}").contains("tenant team-a"));
     }
 
     #[test]

@@ -1,15 +1,19 @@
 //! What the `serve` command's flags decide, before anything is bound: [`ServeArgs`] (the flags
 //! themselves, parsed by the binary), and [`ServerConfig::from_args`], which reads the TLS and
 //! tenants files, turns the tenants into tokens, and refuses what the server must not start
-//! with ([`ServeArgs::validate`]). Library users (tests, embeddings) build a [`ServerConfig`]
-//! directly.
+//! with ([`ServeArgs::validate`]): a token too weak to be one, or a port open beyond this
+//! machine without a token (gRPC and the web endpoint) or without TLS (the web endpoint) unless
+//! `--insecure` says the network is trusted. Library users (tests, embeddings) build a
+//! [`ServerConfig`] directly. No `Debug` output of these types holds a token or a private key.
 
+use std::fmt;
+use std::net::IpAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use clap::ValueEnum;
 
-use crate::auth::{Token, tenant_tokens};
+use crate::auth::{Secret, Token, TokenError, check_token, tenant_tokens};
 use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
 use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
@@ -30,7 +34,8 @@ pub enum LogFormat {
 /// The server's flags (used when no subcommand is given).
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServeArgs {
-    /// Address to listen on.
+    /// Address to listen on. Any other than a loopback one (127.0.0.1, ::1, localhost) needs a
+    /// token (DINERDASH_AUTH_TOKEN or --auth-tokens-file), or --insecure.
     #[arg(long, default_value = "127.0.0.1")]
     pub host: String,
     /// Port to listen on; 0 picks a free one (printed on stdout).
@@ -76,17 +81,29 @@ pub struct ServeArgs {
     #[arg(long, alias = "metrics-port")]
     pub http_port: Option<u16>,
     /// Address of the HTTP endpoint: local only by default, whatever --host is. Any other
-    /// address needs --auth-token or --auth-tokens-file, whose tokens the pages then ask for
-    /// (--metrics-host is the same flag).
+    /// address needs a token (DINERDASH_AUTH_TOKEN or --auth-tokens-file), whose tokens the
+    /// pages then ask for, and --tls-cert/--tls-key (the endpoint serves HTTPS with them), or
+    /// --insecure (--metrics-host is the same flag).
     #[arg(long, alias = "metrics-host", default_value = "127.0.0.1")]
     pub http_host: String,
-    /// Require `authorization: Bearer <token>` on every RPC (health checks excepted).
+    /// A host name the web endpoint answers to besides its own address, IP literals,
+    /// localhost (when it listens on loopback or on every address) and the TLS certificate's
+    /// names; repeatable. Requests naming any other `Host` are refused 421 (DNS rebinding).
+    #[arg(long = "http-allowed-host", value_name = "NAME")]
+    pub http_allowed_hosts: Vec<String>,
+    /// Require `authorization: Bearer <token>` on every RPC (health checks excepted): at least
+    /// 16 visible ASCII characters, no `#`. Prefer the environment variable: flags show in `ps`.
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
-    pub auth_token: Option<String>,
-    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`. Each token is
-    /// accepted like --auth-token, and its requests count against its tenant's share.
+    pub auth_token: Option<Secret>,
+    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`; `#` starts a
+    /// comment at the start of a line or after whitespace. Each token is accepted like
+    /// --auth-token (and follows its rules), and its requests count against its tenant's share.
     #[arg(long)]
     pub auth_tokens_file: Option<PathBuf>,
+    /// Start even where a port is open beyond this machine without a token (--host), or the
+    /// web endpoint without a token or TLS (--http-host): say so only on a trusted network.
+    #[arg(long)]
+    pub insecure: bool,
     /// PEM certificate chain: serve TLS (needs --tls-key).
     #[arg(long, requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -129,26 +146,86 @@ pub enum ConfigError {
     },
     /// `--http-host` is not local and no token protects the pages and metrics.
     #[error(
-        "--http-host {0} publishes the sessions and metrics beyond this machine: give \
-         --auth-token or --auth-tokens-file too (the pages then ask for a token, and scrapers \
-         send it as a bearer token)"
+        "--http-host {0} publishes the sessions and metrics beyond this machine: give a token \
+         too, DINERDASH_AUTH_TOKEN=$(openssl rand -hex 32) in the environment (or \
+         --auth-token) or --auth-tokens-file (the pages then ask for it, and scrapers send it \
+         as a bearer token), or pass --insecure if the network is trusted"
     )]
     PublicHttp(String),
+    /// `--http-host` is not local and the endpoint would send its tokens in plain HTTP.
+    #[error(
+        "--http-host {0} serves the web pages and metrics beyond this machine in plain HTTP, \
+         where their bearer tokens would cross the network in clear: give --tls-cert and \
+         --tls-key (the endpoint then serves HTTPS with the certificate of gRPC), or pass \
+         --insecure if the network is trusted"
+    )]
+    PlaintextHttp(String),
+    /// `--host` is not local and no token says who may call.
+    #[error(
+        "--host {0} serves gRPC beyond this machine, where anyone who reaches the port could \
+         use it: give a token, DINERDASH_AUTH_TOKEN=$(openssl rand -hex 32) in the environment \
+         (clients send the same variable; --auth-token works too but shows in `ps`), or \
+         --auth-tokens-file with a token per tenant; or pass --insecure if the network is \
+         trusted"
+    )]
+    PublicGrpc(String),
+    /// `--auth-token` (or `DINERDASH_AUTH_TOKEN`) breaks a token rule.
+    #[error("--auth-token (or DINERDASH_AUTH_TOKEN): {0}")]
+    AuthToken(TokenError),
+}
+
+/// Whether `host` names this machine only: `localhost`, or a loopback address (`127.0.0.0/8`,
+/// `::1`, bracketed or not). Any other name, even one that resolves to a loopback address, and
+/// the wildcards `0.0.0.0` and `::`, count as beyond this machine.
+pub fn is_loopback(host: &str) -> bool {
+    let bare = host
+        .strip_prefix('[')
+        .and_then(|h| h.strip_suffix(']'))
+        .unwrap_or(host);
+    bare.eq_ignore_ascii_case("localhost")
+        || bare.parse::<IpAddr>().is_ok_and(|ip| ip.is_loopback())
 }
 
 impl ServeArgs {
-    /// Refuses flags the server must not start with: pages and metrics served beyond this
-    /// machine (an `--http-host` other than 127.0.0.1, ::1 or localhost) without `--auth-token` or
-    /// `--auth-tokens-file`, whose tokens the endpoint would ask for. (A tokens file counts as
-    /// a token: [`ServerConfig::from_args`] refuses one without a tenant.)
+    /// Refuses flags the server must not start with:
+    ///
+    /// - an `--auth-token` that breaks the token rules ([`check_token`]; an empty one is no
+    ///   token);
+    /// - gRPC served beyond this machine (a `--host` that is not [`is_loopback`]) without a
+    ///   token;
+    /// - pages and metrics served beyond this machine (`--http-host`) without a token, whose
+    ///   tokens the endpoint would ask for, or without TLS, which would carry them in clear.
+    ///
+    /// `--insecure` lifts the last two. (A tokens file counts as a token:
+    /// [`ServerConfig::from_args`] refuses one without a tenant, or with a bad token.)
     pub fn validate(&self) -> Result<(), ConfigError> {
+        if let Some(token) = self.auth_token.as_ref().filter(|t| !t.is_empty()) {
+            check_token(token.expose()).map_err(ConfigError::AuthToken)?;
+        }
+        match self.exposures().into_iter().next() {
+            Some(exposed) if !self.insecure => Err(exposed),
+            _ => Ok(()),
+        }
+    }
+
+    /// What this server would serve beyond this machine unprotected (the refusals `--insecure`
+    /// lifts), in the order [`ServeArgs::validate`] reports them; empty when nothing is.
+    pub fn exposures(&self) -> Vec<ConfigError> {
         let has_token = self.auth_token.as_ref().is_some_and(|t| !t.is_empty())
             || self.auth_tokens_file.is_some();
-        let local = matches!(self.http_host.as_str(), "127.0.0.1" | "::1" | "localhost");
-        if self.http_port.is_some() && !local && !has_token {
-            return Err(ConfigError::PublicHttp(self.http_host.clone()));
+        let mut exposed = Vec::new();
+        if !is_loopback(&self.host) && !has_token {
+            exposed.push(ConfigError::PublicGrpc(self.host.clone()));
         }
-        Ok(())
+        if self.http_port.is_some() && !is_loopback(&self.http_host) {
+            if !has_token {
+                exposed.push(ConfigError::PublicHttp(self.http_host.clone()));
+            }
+            if self.tls_cert.is_none() {
+                exposed.push(ConfigError::PlaintextHttp(self.http_host.clone()));
+            }
+        }
+        exposed
     }
 
     /// What each tenant (or connection) may hold: `--max-envs-per-tenant`,
@@ -239,13 +316,23 @@ pub fn parse_bytes(text: &str) -> Result<u64, String> {
     parse_scaled(text, UNITS, "bytes", "2GiB")
 }
 
-/// A PEM certificate chain and its private key.
-#[derive(Debug, Clone)]
+/// A PEM certificate chain and its private key. Its `Debug` shows neither (the key is a
+/// secret, the chain only long).
+#[derive(Clone)]
 pub struct TlsPem {
     /// The certificate chain, PEM.
     pub cert: Vec<u8>,
     /// The private key, PEM.
     pub key: Vec<u8>,
+}
+
+impl fmt::Debug for TlsPem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("TlsPem")
+            .field("cert_bytes", &self.cert.len())
+            .field("key", &"<redacted>")
+            .finish()
+    }
 }
 
 /// Everything the server (`server::run`) needs besides its listeners: values only, no socket.
@@ -255,7 +342,7 @@ pub struct ServerConfig {
     pub limits: Limits,
     /// The bearer token clients must send; `None` serves everyone (unless `tenants` is given).
     /// Each connection is then its own tenant.
-    pub auth_token: Option<String>,
+    pub auth_token: Option<Secret>,
     /// Tenant tokens (`--auth-tokens-file`): each token's requests count against its tenant's
     /// share. Given with `auth_token`, either token is accepted.
     pub tenants: Vec<Token>,
@@ -268,8 +355,13 @@ pub struct ServerConfig {
     pub connections: connections::Limits,
     /// What one Rollout request may do.
     pub rollout: rollout::Limits,
-    /// Serve TLS with this identity; `None` serves plaintext.
+    /// Serve TLS with this identity, gRPC and the web endpoint alike; `None` serves plaintext.
     pub tls: Option<TlsPem>,
+    /// Host names the web endpoint answers to besides its own address, IP literals, localhost
+    /// (on a loopback or wildcard address) and the certificate's names (`--http-allowed-host`):
+    /// a request naming another `Host` is refused, so that a DNS name rebound to this machine
+    /// cannot reach the pages from a browser.
+    pub http_allowed_hosts: Vec<String>,
     /// Most sessions stepped through shared memory at once; 0 (the default of a library
     /// embedding; the binary's is [`DEFAULT_MAX_SHM_SESSIONS`]) offers none.
     pub max_shm_sessions: usize,
@@ -327,6 +419,7 @@ impl ServerConfig {
                 ..connections::Limits::default()
             },
             tls,
+            http_allowed_hosts: args.http_allowed_hosts.clone(),
             max_shm_sessions: args.max_shm_sessions as usize,
         })
     }
@@ -418,8 +511,13 @@ mod tests {
             refused.to_string().contains("--auth-tokens-file"),
             "{refused}"
         );
-        let with_token = [&public[..], &["--auth-token", "s3cret"]].concat();
-        let config = ServerConfig::from_args(&flags(&with_token)).unwrap();
+        let token = ["--auth-token", "0123456789abcdef"];
+        let with_token = [&public[..], &token].concat();
+        let plaintext = ServerConfig::from_args(&flags(&with_token)).unwrap_err();
+        assert!(matches!(&plaintext, ConfigError::PlaintextHttp(host) if host == "0.0.0.0"));
+        assert!(plaintext.to_string().contains("--tls-cert"), "{plaintext}");
+        let trusted = [&with_token[..], &["--insecure"]].concat();
+        let config = ServerConfig::from_args(&flags(&trusted)).unwrap();
         assert!(config.has_tokens());
         assert_eq!(config.tokens().len(), 1);
         let local = ["--metrics-port", "9000", "--metrics-host", "localhost"];
@@ -438,7 +536,11 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("dinerdash-config-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let file = dir.join("tenants");
-        std::fs::write(&file, "team-a aaa envs=8\nteam-b bbb\n").unwrap();
+        std::fs::write(
+            &file,
+            "team-a aaaaaaaaaaaaaaaa envs=8\nteam-b bbbbbbbbbbbbbbbb\n",
+        )
+        .unwrap();
         let path = file.to_str().unwrap();
         let config =
             ServerConfig::from_args(&flags(&["--auth-tokens-file", path, "--max-sessions", "7"]))
@@ -448,8 +550,8 @@ mod tests {
         assert_eq!(tokens.len(), 2);
         let team_a = tokens[0].tenant.as_ref().unwrap();
         assert_eq!(
-            (tokens[0].token.as_str(), team_a.name()),
-            ("aaa", "tenant team-a")
+            (tokens[0].token.expose(), team_a.name()),
+            ("aaaaaaaaaaaaaaaa", "tenant team-a")
         );
         std::fs::write(&file, "team-a\n").unwrap();
         let bad = ServerConfig::from_args(&flags(&["--auth-tokens-file", path])).unwrap_err();
@@ -460,5 +562,101 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
         let missing = ServerConfig::from_args(&flags(&["--auth-tokens-file", path])).unwrap_err();
         assert!(matches!(missing, ConfigError::Read { .. }), "{missing}");
+    }
+
+    #[test]
+    fn grpc_beyond_this_machine_needs_a_token_or_insecure() {
+        for local in [
+            "127.0.0.1",
+            "127.0.0.2",
+            "::1",
+            "[::1]",
+            "localhost",
+            "LocalHost",
+        ] {
+            assert!(is_loopback(local), "{local}");
+            flags(&["--host", local]).validate().unwrap();
+        }
+        for public in [
+            "0.0.0.0",
+            "::",
+            "10.0.0.7",
+            "gpu-box",
+            "localhost.example.com",
+        ] {
+            assert!(!is_loopback(public), "{public}");
+            let refused = flags(&["--host", public]).validate().unwrap_err();
+            assert!(matches!(&refused, ConfigError::PublicGrpc(h) if h == public));
+            let message = refused.to_string();
+            for hint in ["DINERDASH_AUTH_TOKEN", "--auth-tokens-file", "--insecure"] {
+                assert!(message.contains(hint), "{message}");
+            }
+            flags(&["--host", public, "--insecure"]).validate().unwrap();
+            let token = ["--auth-token", "0123456789abcdef"];
+            flags(&[&["--host", public][..], &token].concat())
+                .validate()
+                .unwrap();
+            assert!(
+                flags(&["--host", public, "--auth-tokens-file", "t"])
+                    .exposures()
+                    .is_empty()
+            );
+        }
+        // An empty token is no token.
+        let empty = flags(&["--host", "0.0.0.0", "--auth-token", ""]);
+        assert!(matches!(empty.validate(), Err(ConfigError::PublicGrpc(_))));
+    }
+
+    #[test]
+    fn weak_tokens_are_refused_at_start() {
+        for (token, why) in [
+            ("s3cret", "fewer than 16"),
+            ("0123456789#abcdef", "`#`"),
+            ("0123456789 abcdef", "space"),
+        ] {
+            let refused = flags(&["--auth-token", token]).validate().unwrap_err();
+            let message = refused.to_string();
+            assert!(matches!(refused, ConfigError::AuthToken(_)), "{message}");
+            assert!(message.contains(why), "{message}");
+            assert!(
+                !message.contains(token),
+                "the error repeats the token: {message}"
+            );
+        }
+        flags(&["--auth-token", "0123456789abcdef"])
+            .validate()
+            .unwrap();
+    }
+
+    #[test]
+    fn debug_of_the_config_holds_no_secret() {
+        let secret = "0123456789abcdef-very-secret";
+        let dir = std::env::temp_dir().join(format!("dinerdash-debug-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("tenants");
+        std::fs::write(&file, format!("team-a {secret}-a\n")).unwrap();
+        let args = flags(&[
+            "--auth-token",
+            secret,
+            "--auth-tokens-file",
+            file.to_str().unwrap(),
+        ]);
+        let mut config = ServerConfig::from_args(&args).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        config.tls = Some(TlsPem {
+            cert: b"CERT".to_vec(),
+            key: b"-----BEGIN PRIVATE KEY----- key-bytes".to_vec(),
+        });
+        assert_eq!(config.tokens().len(), 2);
+        for shown in [
+            format!("{args:?}"),
+            format!("{args:#?}"),
+            format!("{config:?}"),
+            format!("{:?}", config.tokens()),
+            format!("{:?}", crate::auth::Tokens::new(&config.tokens())),
+        ] {
+            assert!(!shown.contains(secret), "{shown}");
+            assert!(!shown.contains("key-bytes"), "{shown}");
+        }
     }
 }

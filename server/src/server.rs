@@ -1,7 +1,7 @@
 //! Puts the server together: the `DinerDash` service behind the request gate, the standard
-//! `grpc.health.v1` service, server reflection, optional TLS, the idle-session sweeper and the
-//! HTTP endpoint (pages, feeds, metrics), served on the [`Listeners`] the caller bound until a
-//! shutdown future completes ([`run`]).
+//! `grpc.health.v1` service, server reflection, optional TLS (for gRPC and the HTTP endpoint
+//! alike), the idle-session sweeper and the HTTP endpoint (pages, feeds, metrics), served on the
+//! [`Listeners`] the caller bound until a shutdown future completes ([`run`]).
 //!
 //! The binary calls [`serve`], which binds `--host:--port` (and `--http-host:--http-port`) and
 //! runs it under [`crate::shutdown::serve_until_signal`] (the first SIGINT/SIGTERM starts the
@@ -20,7 +20,7 @@ pub use crate::config::{ServerConfig, TlsPem};
 use crate::auth::{RequestGate, Tokens};
 use crate::config::{ConfigError, ServeArgs};
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
-use crate::http::{self, Access, Site};
+use crate::http::{self, Access, Exposure, HttpTls, Site, TlsError};
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
@@ -44,6 +44,9 @@ pub enum ServerError {
     /// The flags describe no server that may start.
     #[error(transparent)]
     Config(#[from] ConfigError),
+    /// The TLS certificate or key cannot serve the HTTP endpoint.
+    #[error(transparent)]
+    HttpTls(#[from] TlsError),
     /// A listener could not be bound.
     #[error("cannot listen on {addr}{purpose}: {source}")]
     Listen {
@@ -79,6 +82,10 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
             })
     }
     let config = ServerConfig::from_args(args)?;
+    // What --insecure let through: said once, loudly, before anything is bound.
+    for exposed in args.exposures() {
+        tracing::warn!("--insecure: starting anyway, although {exposed}");
+    }
     // Room for connections: the accept loop caps --max-connections below this limit.
     connections::fd_limit::raise();
     let listeners = Listeners {
@@ -154,6 +161,15 @@ pub async fn run(
     config: ServerConfig,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServerError> {
+    // With a certificate, the endpoint speaks HTTPS only, with the same certificate as gRPC;
+    // made first, so that a certificate it cannot use stops the server before anything runs.
+    let exposure = Exposure {
+        tls: match (&config.tls, &listeners.http) {
+            (Some(tls), Some(_)) => Some(HttpTls::new(&tls.cert, &tls.key)?),
+            _ => None,
+        },
+        allowed_hosts: config.http_allowed_hosts.clone(),
+    };
     let metrics = Arc::new(Metrics::default());
     let store = Store::new(config.limits, Arc::clone(&metrics));
     let (trigger, stopping) = shutdown::channel();
@@ -181,10 +197,22 @@ pub async fn run(
     let http_addr = listeners.http.as_ref().and_then(|l| l.local_addr().ok());
     let http_task = listeners.http.map(|l| {
         if let Some(addr) = http_addr {
-            tracing::info!("sessions page on http://{addr}/, metrics on http://{addr}/metrics");
+            let scheme = if exposure.tls.is_some() {
+                "https"
+            } else {
+                "http"
+            };
+            tracing::info!(
+                "sessions page on {scheme}://{addr}/, metrics on {scheme}://{addr}/metrics"
+            );
         }
         let site = Site::new(store.clone(), Arc::clone(&metrics), Access::new(tokens));
-        tokio::spawn(http::serve(l, Arc::new(site), stopping.clone()))
+        tokio::spawn(http::serve_exposed(
+            l,
+            Arc::new(site),
+            stopping.clone(),
+            exposure,
+        ))
     });
     let service = DinerDashService::new(
         store,

@@ -132,7 +132,11 @@ async fn tokens_file_tenants_and_a_public_metrics_port() {
     let dir = std::env::temp_dir().join(format!("dinerdash-tenants-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let file = dir.join("tenants");
-    std::fs::write(&file, "# two trainers\nteam-a aaa envs=8\nteam-b bbb\n").unwrap();
+    std::fs::write(
+        &file,
+        "# two trainers\nteam-a team-a-token-aaaa envs=8\nteam-b team-b-token-bbbb\n",
+    )
+    .unwrap();
     let server = Process::start("", &format!("--auth-tokens-file '{}'", file.display()));
     let mut c = DinerDashClient::connect(format!("http://{}", server.addr))
         .await
@@ -146,12 +150,22 @@ async fn tokens_file_tenants_and_a_public_metrics_port() {
         request.metadata_mut().insert("authorization", value);
         request
     };
-    c.create_session(create("aaa", 8)).await.unwrap();
-    let over = c.create_session(create("aaa", 1)).await.unwrap_err();
+    c.create_session(create("team-a-token-aaaa", 8))
+        .await
+        .unwrap();
+    let over = c
+        .create_session(create("team-a-token-aaaa", 1))
+        .await
+        .unwrap_err();
     assert_eq!(over.code(), Code::ResourceExhausted);
     assert!(over.message().starts_with("tenant team-a"), "{over:?}");
-    c.create_session(create("bbb", 64)).await.unwrap();
-    let stranger = c.create_session(create("ccc", 1)).await.unwrap_err();
+    c.create_session(create("team-b-token-bbbb", 64))
+        .await
+        .unwrap();
+    let stranger = c
+        .create_session(create("stranger-token-cccc", 1))
+        .await
+        .unwrap_err();
     assert_eq!(stranger.code(), Code::Unauthenticated);
     server.signal("-TERM");
     let (status, _) = tokio::task::spawn_blocking(move || server.wait())

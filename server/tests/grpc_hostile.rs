@@ -143,11 +143,11 @@ async fn tenant_tokens_have_their_own_shares() {
     let config = ServerConfig {
         tenants: vec![
             Token {
-                token: "small-secret".into(),
+                token: "small-tenant-secret".into(),
                 tenant: tenant("small", 4),
             },
             Token {
-                token: "big-secret".into(),
+                token: "big-tenant-secret-1".into(),
                 tenant: tenant("big", 1000),
             },
         ],
@@ -161,8 +161,13 @@ async fn tenant_tokens_have_their_own_shares() {
         request.metadata_mut().insert("authorization", value);
         request
     };
-    c.create_session(with("small-secret", 3)).await.unwrap();
-    let refused = c.create_session(with("small-secret", 2)).await.unwrap_err();
+    c.create_session(with("small-tenant-secret", 3))
+        .await
+        .unwrap();
+    let refused = c
+        .create_session(with("small-tenant-secret", 2))
+        .await
+        .unwrap_err();
     assert_eq!(refused.code(), Code::ResourceExhausted);
     assert!(
         refused.message().starts_with("tenant small holds 3"),
@@ -170,7 +175,9 @@ async fn tenant_tokens_have_their_own_shares() {
         refused.message()
     );
     // The same connection, another tenant: its own share.
-    c.create_session(with("big-secret", 500)).await.unwrap();
+    c.create_session(with("big-tenant-secret-1", 500))
+        .await
+        .unwrap();
     let wrong = c.create_session(with("nope", 1)).await.unwrap_err();
     assert_eq!(wrong.code(), Code::Unauthenticated);
     let missing = c.create_session(big(1)).await.unwrap_err();
@@ -435,7 +442,7 @@ async fn get_metrics(addr: std::net::SocketAddr, header: &str) -> String {
 #[tokio::test]
 async fn metrics_ask_for_the_servers_token() {
     let config = ServerConfig {
-        auth_token: Some("s3cret".into()),
+        auth_token: Some("s3cret-0123456789".into()),
         ..ServerConfig::default()
     };
     let server = TestServer::start_with(config, true).await;
@@ -444,7 +451,7 @@ async fn metrics_ask_for_the_servers_token() {
     assert!(without.starts_with("HTTP/1.1 401"), "{without}");
     let wrong = get_metrics(addr, "Authorization: Bearer nope\r\n").await;
     assert!(wrong.starts_with("HTTP/1.1 401"), "{wrong}");
-    let with = get_metrics(addr, "authorization: Bearer s3cret\r\n").await;
+    let with = get_metrics(addr, "authorization: Bearer s3cret-0123456789\r\n").await;
     assert!(with.starts_with("HTTP/1.1 200 OK"), "{with}");
     assert_eq!(metric(&with, "dinerdash_live_sessions"), 0);
     server.stop().await;

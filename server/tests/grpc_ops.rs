@@ -182,7 +182,7 @@ async fn shutdown_drains_rpcs_in_flight() {
 #[tokio::test]
 async fn auth_token_is_required() {
     let config = ServerConfig {
-        auth_token: Some("s3cret".into()),
+        auth_token: Some("s3cret-0123456789".into()),
         ..ServerConfig::default()
     };
     let server = TestServer::start_with(config, false).await;
@@ -209,7 +209,12 @@ async fn auth_token_is_required() {
         status.message(),
         "missing authorization metadata: send `authorization: Bearer <token>`"
     );
-    for wrong in ["Bearer s3cre", "Bearer s3cret ", "s3cret", "Bearer S3CRET"] {
+    for wrong in [
+        "Bearer s3cre",
+        "Bearer s3cret-0123456789 ",
+        "s3cret-0123456789",
+        "Bearer S3CRET-0123456789",
+    ] {
         let status = with_token(wrong)
             .server_info(pb::ServerInfoRequest {})
             .await
@@ -229,7 +234,7 @@ async fn auth_token_is_required() {
         .unwrap_err();
     assert_eq!(status.code(), Code::Unauthenticated);
 
-    let mut good = with_token("Bearer s3cret");
+    let mut good = with_token("Bearer s3cret-0123456789");
     let id = good
         .create_session(create_request(1, pb::AutoresetMode::NextStep, Some(1)))
         .await

@@ -301,14 +301,14 @@ async fn pages_feeds_and_status_codes() {
 async fn tokens_show_each_tenant_its_own_sessions() {
     let tenant = |name: &str| Arc::new(Tenant::new(format!("tenant {name}"), Share::default()));
     let config = ServerConfig {
-        auth_token: Some("shared".into()),
+        auth_token: Some("shared-token-ssss".into()),
         tenants: vec![
             Token {
-                token: "aaa".into(),
+                token: "team-a-token-aaaa".into(),
                 tenant: Some(tenant("a")),
             },
             Token {
-                token: "bbb".into(),
+                token: "team-b-token-bbbb".into(),
                 tenant: Some(tenant("b")),
             },
         ],
@@ -317,7 +317,11 @@ async fn tokens_show_each_tenant_its_own_sessions() {
     let (server, addr) = http_server(config).await;
     let mut c = server.client().await;
     let mut created = Vec::new();
-    for token in ["aaa", "bbb", "shared"] {
+    for token in [
+        "team-a-token-aaaa",
+        "team-b-token-bbbb",
+        "shared-token-ssss",
+    ] {
         let mut request = tonic::Request::new(create_request(1, pb::AutoresetMode::NextStep, None));
         let value = format!("Bearer {token}").parse().unwrap();
         request.metadata_mut().insert("authorization", value);
@@ -344,7 +348,12 @@ async fn tokens_show_each_tenant_its_own_sessions() {
         assert!(head.contains("www-authenticate: bearer"), "{head}");
         assert_eq!(get(addr, path, Some("nope")).await.status, 401, "{path}");
     }
-    assert_eq!(get(addr, "/metrics", Some("bbb")).await.status, 200);
+    assert_eq!(
+        get(addr, "/metrics", Some("team-b-token-bbbb"))
+            .await
+            .status,
+        200
+    );
     let ids = |reply: Reply| -> Vec<String> {
         reply.json()["sessions"]
             .as_array()
@@ -354,18 +363,20 @@ async fn tokens_show_each_tenant_its_own_sessions() {
             .collect()
     };
     assert_eq!(
-        ids(get(addr, "/api/sessions", Some("aaa")).await),
+        ids(get(addr, "/api/sessions", Some("team-a-token-aaaa")).await),
         [a.as_str()]
     );
     assert_eq!(
-        ids(get(addr, "/api/sessions", Some("bbb")).await),
+        ids(get(addr, "/api/sessions", Some("team-b-token-bbbb")).await),
         [b.as_str()]
     );
     assert_eq!(
-        ids(get(addr, "/api/sessions", Some("shared")).await),
+        ids(get(addr, "/api/sessions", Some("shared-token-ssss")).await),
         [shared.as_str()]
     );
-    let listing = get(addr, "/api/sessions", Some("aaa")).await.json();
+    let listing = get(addr, "/api/sessions", Some("team-a-token-aaaa"))
+        .await
+        .json();
     assert_eq!(listing["sessions"][0]["tenant"], "tenant a");
     // Server totals are the server's, as /metrics gives them to any token holder.
     assert_eq!(listing["totals"]["sessions"], 3);
@@ -376,10 +387,10 @@ async fn tokens_show_each_tenant_its_own_sessions() {
         let token = token.to_owned();
         async move { get(addr, &path, Some(&token)).await.status }
     };
-    assert_eq!(watch(a, "aaa").await, 200);
-    assert_eq!(watch(a, "bbb").await, 404);
-    assert_eq!(watch(a, "shared").await, 404);
-    assert_eq!(watch(shared, "shared").await, 200);
+    assert_eq!(watch(a, "team-a-token-aaaa").await, 200);
+    assert_eq!(watch(a, "team-b-token-bbbb").await, 404);
+    assert_eq!(watch(a, "shared-token-ssss").await, 404);
+    assert_eq!(watch(shared, "shared-token-ssss").await, 200);
     assert_eq!(watch(b, "nope").await, 401);
     server.stop().await;
 }

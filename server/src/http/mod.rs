@@ -10,6 +10,11 @@
 //! The pages themselves hold no data and need no token; the feeds and `/metrics` ask for one of
 //! the server's tokens when it has any ([`access`]), as `Authorization: Bearer <token>`.
 //!
+//! How it faces the network ([`Exposure`]): with a certificate (`--tls-cert`) it speaks only
+//! HTTPS, with the certificate gRPC serves ([`tls`]), so that those tokens never cross the
+//! network in clear; and every request must name a `Host` the endpoint answers to ([`hosts`]),
+//! or it is answered 421 before any route sees it (DNS rebinding).
+//!
 //! Why hyper and axum: both are already in the build (tonic serves gRPC on hyper, and its router
 //! is axum's), so the endpoint adds no HTTP stack of its own: hyper parses requests (head size,
 //! read timeout, malformed requests answered 400), axum routes them and frames the event
@@ -25,22 +30,27 @@
 //! - [`feeds`]: the JSON of the sessions and of a watched environment, and their event streams.
 //! - [`assets`]: the pages, scripts and style, and the 404 pages.
 //! - [`deadline`]: the slow-viewer cut-off.
+//! - [`tls`]: the endpoint's TLS acceptor and its certificate's names.
+//! - [`hosts`]: the `Host` names a request may give.
 
 pub mod access;
 pub mod assets;
 pub mod deadline;
 pub mod feeds;
+pub mod hosts;
 pub mod routes;
+pub mod tls;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use axum::Router;
-use axum::http::{StatusCode, header};
+use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::io::{AsyncRead, AsyncWrite};
+use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 use tower::ServiceExt as _;
 
@@ -50,6 +60,8 @@ use crate::shutdown::Shutdown;
 
 pub use access::{Access, Refused, Viewer};
 pub use deadline::{WRITE_TIMEOUT, WriteDeadline};
+pub use hosts::Hosts;
+pub use tls::{HttpTls, TlsError};
 
 /// Largest HTTP request head read (hyper's smallest buffer); anything longer is answered 431.
 const MAX_REQUEST_BYTES: usize = 8 * 1024;
@@ -97,11 +109,45 @@ pub fn error(status: StatusCode, message: &str) -> Response {
     (status, json(body)).into_response()
 }
 
-/// Serves `listener` until `shutdown` fires; event streams end then too.
-pub async fn serve(listener: TcpListener, site: Arc<Site>, mut shutdown: Shutdown) {
+/// How the endpoint faces the network: TLS or not, and the host names it answers to besides
+/// its own address, IP literals and (on loopback or a wildcard address) localhost.
+#[derive(Debug, Clone, Default)]
+pub struct Exposure {
+    /// Serve HTTPS only, with this identity (the gRPC certificate); `None` serves plain HTTP.
+    pub tls: Option<HttpTls>,
+    /// More host names a request may give (`--http-allowed-host`).
+    pub allowed_hosts: Vec<String>,
+}
+
+/// Serves `listener` in plain HTTP until `shutdown` fires, answering to its own address, IP
+/// literals and localhost; event streams end then too.
+pub async fn serve(listener: TcpListener, site: Arc<Site>, shutdown: Shutdown) {
+    serve_exposed(listener, site, shutdown, Exposure::default()).await;
+}
+
+/// Serves `listener` as `exposure` says (TLS, allowed hosts) until `shutdown` fires.
+pub async fn serve_exposed(
+    listener: TcpListener,
+    site: Arc<Site>,
+    mut shutdown: Shutdown,
+    exposure: Exposure,
+) {
     let connections = Arc::new(Semaphore::new(MAX_CONNECTIONS));
     let pages = routes::router(site, shutdown.clone());
     let busy = routes::busy();
+    let bound = match listener.local_addr() {
+        Ok(bound) => bound,
+        Err(e) => {
+            tracing::warn!("http listener: {e}");
+            return;
+        }
+    };
+    let hosts = Arc::new(Hosts::new(
+        bound,
+        &exposure.allowed_hosts,
+        exposure.tls.clone(),
+    ));
+    let acceptor = exposure.tls.map(|tls| tls.acceptor);
     loop {
         let accepted = tokio::select! {
             () = shutdown.wait() => return,
@@ -114,8 +160,21 @@ pub async fn serve(listener: TcpListener, site: Arc<Site>, mut shutdown: Shutdow
                 let permit = Arc::clone(&connections).try_acquire_owned().ok();
                 let routes = if permit.is_some() { &pages } else { &busy };
                 let routes = routes.clone();
+                let (hosts, acceptor) = (Arc::clone(&hosts), acceptor.clone());
                 tokio::spawn(async move {
-                    if let Err(e) = connection(stream, routes).await {
+                    let served = match acceptor {
+                        None => connection(stream, routes, hosts).await,
+                        Some(acceptor) => {
+                            // The handshake gets the time the request head would.
+                            let handshake = acceptor.accept(stream);
+                            match tokio::time::timeout(REQUEST_TIMEOUT, handshake).await {
+                                Ok(Ok(stream)) => connection(stream, routes, hosts).await,
+                                Ok(Err(e)) => Err(format!("TLS handshake: {e}")),
+                                Err(_) => Err("no TLS handshake in time".into()),
+                            }
+                        }
+                    };
+                    if let Err(e) = served {
                         tracing::debug!("http connection failed: {e}");
                     }
                     drop(permit);
@@ -130,11 +189,30 @@ pub async fn serve(listener: TcpListener, site: Arc<Site>, mut shutdown: Shutdow
     }
 }
 
-/// Serves one connection with `routes`: one request, then the connection closes.
-async fn connection(stream: TcpStream, routes: Router) -> Result<(), hyper::Error> {
+/// Serves one connection (TCP, or TLS over it) with `routes`: one request, then the connection
+/// closes. A request naming a host `hosts` does not allow is answered 421 without routing.
+async fn connection<S>(stream: S, routes: Router, hosts: Arc<Hosts>) -> Result<(), String>
+where
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+{
     let io = TokioIo::new(WriteDeadline::new(stream, WRITE_TIMEOUT));
-    let service = hyper::service::service_fn(move |request| {
-        routes.clone().oneshot(request.map(axum::body::Body::new))
+    let service = hyper::service::service_fn(move |request: hyper::Request<_>| {
+        // An absolute URI's authority is the host (RFC 9112 3.2.2); else the Host header.
+        let host = match request.uri().authority() {
+            Some(authority) => Some(authority.as_str().rsplit('@').next().unwrap_or_default()),
+            None => request
+                .headers()
+                .get(header::HOST)
+                .and_then(|h| h.to_str().ok()),
+        };
+        let allowed = host.is_some_and(|host| hosts.allows(host));
+        let routes = routes.clone();
+        async move {
+            if !allowed {
+                return Ok(misdirected());
+            }
+            routes.oneshot(request.map(axum::body::Body::new)).await
+        }
     });
     http1::Builder::new()
         .timer(TokioTimer::new())
@@ -143,4 +221,22 @@ async fn connection(stream: TcpStream, routes: Router) -> Result<(), hyper::Erro
         .keep_alive(false)
         .serve_connection(io, service)
         .await
+        .map_err(|e| e.to_string())
+}
+
+/// The answer to a request naming a host the endpoint does not answer to: 421, never cached.
+fn misdirected() -> Response {
+    let mut response = error(
+        StatusCode::MISDIRECTED_REQUEST,
+        "this endpoint does not answer to the host this request names (a DNS name rebound to \
+         it?): reach it by its IP address, by localhost, by a name of its TLS certificate, or \
+         by a name the server was given with --http-allowed-host",
+    );
+    let headers = response.headers_mut();
+    headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    headers.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    response
 }
