@@ -275,6 +275,92 @@ mod tests {
         assert!(most.load(Ordering::SeqCst) <= 2);
     }
 
+    #[test]
+    fn small_sessions_step_on_their_callers_thread() {
+        let two = Stepping {
+            threads: 2,
+            ..Stepping::default()
+        };
+        let min = DEFAULT_PARALLEL_MIN_ENVS;
+        assert_eq!(two.chunks(1, false), 1);
+        assert_eq!(two.chunks(min - 1, false), 1);
+        assert_eq!(two.chunks(DEFAULT_PARALLEL_MIN_PLANNER_ENVS - 1, true), 1);
+        // One thread, or the serial settings: never parallel.
+        let one = Stepping { threads: 1, ..two };
+        assert_eq!(one.chunks(16_384, false), 1);
+        assert_eq!(one.chunks(16_384, true), 1);
+        assert_eq!(Stepping::SERIAL.chunks(usize::MAX, true), 1);
+    }
+
+    #[test]
+    fn large_sessions_are_cut_into_chunks_of_at_least_a_minimum() {
+        let two = Stepping {
+            threads: 2,
+            ..Stepping::default()
+        };
+        // From the threshold on, at least two chunks of at least MIN_CHUNK_ENVS when there are
+        // enough, at most CHUNKS_PER_THREAD a thread.
+        assert_eq!(two.chunks(DEFAULT_PARALLEL_MIN_ENVS, false), 4);
+        assert_eq!(two.chunks(4096, false), 8);
+        assert_eq!(two.chunks(16_384, false), 8);
+        let low = Stepping {
+            min_envs: 3,
+            ..two
+        };
+        assert_eq!(low.chunks(3, false), 2);
+        assert_eq!(low.chunks(300, false), 2);
+        // Planner labels: from their own threshold, chunks of one environment and up.
+        assert_eq!(two.chunks(DEFAULT_PARALLEL_MIN_PLANNER_ENVS, true), 4);
+        assert_eq!(two.chunks(256, true), 8);
+        let many = Stepping { threads: 16, ..two };
+        assert_eq!(many.chunks(256, true), 64);
+        assert_eq!(many.chunks(4096, false), 32);
+    }
+
+    #[test]
+    fn the_pool_returns_the_first_error_in_order_and_runs_every_piece() {
+        let pool = StepPool::new(Stepping {
+            threads: 2,
+            min_envs: 2,
+            min_planner_envs: 2,
+        });
+        let done = AtomicUsize::new(0);
+        let result = pool.run((0..16).collect(), |i: usize| {
+            done.fetch_add(1, Ordering::SeqCst);
+            if i % 5 == 3 { Err(i) } else { Ok(()) }
+        });
+        assert_eq!(result, Err(3));
+        assert_eq!(done.load(Ordering::SeqCst), 16);
+        assert_eq!(pool.run(vec![1, 2], |_: i32| Ok::<(), ()>(())), Ok(()));
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_async_worker_hands_its_tasks_over_while_the_pool_steps() {
+        let pool = Arc::new(StepPool::new(Stepping {
+            threads: 2,
+            min_envs: 2,
+            min_planner_envs: 2,
+        }));
+        // On a worker of a multi-threaded runtime and on a blocking thread alike.
+        let on_worker = {
+            let pool = Arc::clone(&pool);
+            tokio::spawn(async move { pool.run(vec![1, 2, 3], |_: i32| Ok::<(), ()>(())) })
+        };
+        assert_eq!(on_worker.await.unwrap(), Ok(()));
+        let blocking = tokio::task::spawn_blocking(move || pool.run(vec![1, 2], |_: i32| Err(7)));
+        assert_eq!(blocking.await.unwrap(), Err(7));
+    }
+
+    #[tokio::test]
+    async fn a_current_thread_runtime_just_waits_for_the_pool() {
+        let pool = StepPool::new(Stepping {
+            threads: 2,
+            min_envs: 2,
+            min_planner_envs: 2,
+        });
+        assert_eq!(pool.run(vec![1, 2], |_: i32| Ok::<(), ()>(())), Ok(()));
+    }
+
     #[tokio::test]
     async fn a_panic_is_an_error_and_frees_its_worker() {
         let pool = CpuPool::new(1);
