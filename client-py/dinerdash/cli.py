@@ -112,6 +112,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         sb3_envs=args.sb3_envs,
         sb3_steps=args.sb3_steps,
         compare_transports=not args.no_transports,
+        compare_scaling=not args.no_scaling,
         **connection_keywords(args),
     )
     return 0
@@ -214,6 +215,11 @@ def _parser() -> argparse.ArgumentParser:
         "--no-transports",
         action="store_true",
         help="skip the table of gRPC and shared memory beside the server's own rates",
+    )
+    p.add_argument(
+        "--no-scaling",
+        action="store_true",
+        help="skip the table of the server's rates by stepping threads beside this client's",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_bench)

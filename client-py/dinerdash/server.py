@@ -98,6 +98,11 @@ def _death_signal() -> list[str]:
     return [setpriv, "--pdeathsig", "TERM", "--"] if setpriv else []
 
 
+#: ``--max-envs-per-session`` of a local server unless its ``args`` set one: the most the flag
+#: allows, so that whatever ``num_envs`` a trainer asks of the server it started is admitted (the
+#: server is this client's alone; its memory budget still bounds the sessions).
+LOCAL_MAX_ENVS_PER_SESSION = 65_536
+
 #: Seconds between the SIGTERMs that stop a server: its first one starts a drain that serves the
 #: sessions left for up to ``--drain-timeout``; the next one, once that was handled, ends it.
 _SIGTERM_EVERY = 0.2
@@ -132,7 +137,8 @@ class LocalServer:
         binary: path of the binary (default: see :func:`find_server_binary`).
         host: interface to listen on.
         port: port to listen on; 0 lets the server pick a free one.
-        args: extra command-line arguments for the server (e.g. ``["--max-sessions", "8"]``).
+        args: extra command-line arguments for the server (e.g. ``["--max-sessions", "8"]``);
+            unless they set ``--max-envs-per-session``, it is :data:`LOCAL_MAX_ENVS_PER_SESSION`.
         startup_timeout: seconds to wait for the ``listening on`` line.
         stop_timeout: seconds between terminate and kill.
     """
@@ -171,6 +177,8 @@ class LocalServer:
         # stderr goes to a file: nobody drains a pipe, and its tail explains a failed start.
         self._stderr = tempfile.TemporaryFile(mode="w+b")
         cmd = [str(self.binary), "--host", self.host, "--port", str(self.port), *self.args]
+        if not any(a.split("=")[0] == "--max-envs-per-session" for a in self.args):
+            cmd += ["--max-envs-per-session", str(LOCAL_MAX_ENVS_PER_SESSION)]
         try:
             self.process = subprocess.Popen(
                 [*_death_signal(), *cmd],

@@ -16,6 +16,7 @@ use clap::ValueEnum;
 use crate::auth::{Secret, Token, TokenError, check_token, tenant_tokens};
 use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
 use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
+use crate::cpu::{DEFAULT_PARALLEL_MIN_ENVS, DEFAULT_PARALLEL_MIN_PLANNER_ENVS, Stepping};
 use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
 use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 
@@ -120,6 +121,18 @@ pub struct ServeArgs {
     /// none: every client steps over gRPC.
     #[arg(long, default_value_t = DEFAULT_MAX_SHM_SESSIONS)]
     pub max_shm_sessions: u32,
+    /// Threads that step one large session's environments in chunks at once (default: one per
+    /// core); 1 steps every session on the thread serving it.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub step_threads: Option<u32>,
+    /// Sessions of at least this many environments are stepped (and reset) in parallel on the
+    /// --step-threads; smaller ones on the thread serving them.
+    #[arg(long, default_value_t = DEFAULT_PARALLEL_MIN_ENVS as u32, value_parser = clap::value_parser!(u32).range(1..))]
+    pub parallel_min_envs: u32,
+    /// Sessions with planner expert actions are stepped in parallel from this many
+    /// environments (a planner decision costs as much as hundreds of plain steps).
+    #[arg(long, default_value_t = DEFAULT_PARALLEL_MIN_PLANNER_ENVS as u32, value_parser = clap::value_parser!(u32).range(1..))]
+    pub parallel_min_planner_envs: u32,
 }
 
 /// Why the flags describe no server that may start.
@@ -235,6 +248,17 @@ impl ServeArgs {
             max_envs: self.max_envs_per_tenant,
             max_sessions: u64::MAX,
             max_rollouts: self.max_rollouts_per_tenant,
+        }
+    }
+
+    /// When and on how many threads large sessions step in parallel: `--step-threads`,
+    /// `--parallel-min-envs`, `--parallel-min-planner-envs`.
+    pub fn stepping(&self) -> Stepping {
+        let default = Stepping::default();
+        Stepping {
+            threads: self.step_threads.map_or(default.threads, |t| t as usize),
+            min_envs: self.parallel_min_envs as usize,
+            min_planner_envs: self.parallel_min_planner_envs as usize,
         }
     }
 }
@@ -405,6 +429,7 @@ impl ServerConfig {
                 max_envs_per_session: args.max_envs_per_session as usize,
                 session_ttl: args.session_ttl,
                 max_memory: args.max_memory,
+                stepping: args.stepping(),
             },
             rollout: rollout::Limits {
                 max_work_steps: args.max_rollout_work_steps,
@@ -500,6 +525,30 @@ mod tests {
             flags(&["--drain-timeout", "0"]).drain_timeout,
             Duration::ZERO
         );
+    }
+
+    #[test]
+    fn stepping_flags_reach_the_limits() {
+        let defaults = ServerConfig::from_args(&flags(&[])).unwrap().limits.stepping;
+        assert_eq!(defaults, Stepping::default());
+        let args = [
+            "--step-threads",
+            "3",
+            "--parallel-min-envs",
+            "100",
+            "--parallel-min-planner-envs",
+            "2",
+        ];
+        let stepping = ServerConfig::from_args(&flags(&args))
+            .unwrap()
+            .limits
+            .stepping;
+        let expected = Stepping {
+            threads: 3,
+            min_envs: 100,
+            min_planner_envs: 2,
+        };
+        assert_eq!(stepping, expected);
     }
 
     #[test]

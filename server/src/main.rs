@@ -9,6 +9,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use dinerdash_server::ceiling::CeilingArgs;
 use dinerdash_server::config::{LogFormat, ServeArgs, parse_duration};
 use dinerdash_server::eval::evaluate;
 use dinerdash_server::health::{self, Probe};
@@ -32,44 +33,25 @@ enum Command {
     Eval(EvalArgs),
     /// Asks a running server's grpc.health.v1 service; exits 0 if it is SERVING.
     Health(HealthArgs),
-    /// Prints the server's own rates for a session of N (env-steps/s, in process and through a
-    /// Rust gRPC client): the ceiling of any client, for `python -m dinerdash bench`.
+    /// Prints the server's own rates for a session of N on each number of stepping threads
+    /// (env-steps/s, in process and through a Rust gRPC client): the ceiling of any client, for
+    /// `python -m dinerdash bench`.
     Ceiling(CeilingArgs),
 }
 
-#[derive(Debug, clap::Args)]
-struct CeilingArgs {
-    /// Environments in the session (one line per value).
-    #[arg(long, default_values_t = [1, 256, 1024])]
-    num_envs: Vec<usize>,
-    /// How long each measurement lasts (seconds, or with ms, s, m or h).
-    #[arg(long, default_value = "2", value_parser = parse_duration)]
-    time: Duration,
-}
-
-/// One line per N: `N in_process grpc` (env-steps/s).
+/// One line per (N, threads): `N threads labels in_process grpc` (env-steps/s).
 fn run_ceiling(args: &CeilingArgs) -> ExitCode {
-    let rt = match runtime() {
-        Ok(rt) => rt,
+    let printed = dinerdash_server::ceiling::run(args, |rate| {
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "{rate}").and_then(|()| out.flush());
+    });
+    match printed {
+        Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    for &n in &args.num_envs {
-        let local = dinerdash_server::ceiling::in_process(n, args.time);
-        let grpc = rt
-            .block_on(dinerdash_server::ceiling::grpc(n, args.time))
-            .map_err(|e| e.to_string());
-        match (local, grpc) {
-            (Ok(local), Ok(grpc)) => println!("{n} {local:.0} {grpc:.0}"),
-            (Err(e), _) | (_, Err(e)) => {
-                eprintln!("error: {e}");
-                return ExitCode::FAILURE;
-            }
+            ExitCode::FAILURE
         }
     }
-    ExitCode::SUCCESS
 }
 
 #[derive(Debug, clap::Args)]

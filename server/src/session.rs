@@ -29,6 +29,7 @@ pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions}
 pub use shm_secret::{SHM_SECRET_BYTES, ShmSecret};
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
+use crate::cpu::{StepPool, Stepping};
 use crate::metrics::Metrics;
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
@@ -95,8 +96,9 @@ impl From<BudgetError> for SessionError {
 /// Default most live sessions: an idle single-environment session costs ~3.5 KB, so 100,000
 /// fit in well under 1 GiB.
 pub const DEFAULT_MAX_SESSIONS: u32 = 100_000;
-/// Default most environments in one session.
-pub const DEFAULT_MAX_ENVS_PER_SESSION: u32 = 1024;
+/// Default most environments in one session: one trainer feeding an accelerator wants thousands
+/// (~3.5 KB each, so 16,384 hold ~57 MB of the memory budget).
+pub const DEFAULT_MAX_ENVS_PER_SESSION: u32 = 16_384;
 /// Default idle time after which a session is closed.
 pub const DEFAULT_SESSION_TTL: Duration = Duration::from_secs(300);
 /// What a session costs besides its environments: the `Session`, its `Arc`, its map entry.
@@ -118,6 +120,8 @@ pub struct Limits {
     pub session_ttl: Duration,
     /// Bytes sessions and Rollout streams may hold (the memory budget).
     pub max_memory: u64,
+    /// When a large session's Reset and Step run in chunks on several threads, and on how many.
+    pub stepping: Stepping,
 }
 
 impl Default for Limits {
@@ -127,6 +131,7 @@ impl Default for Limits {
             max_envs_per_session: DEFAULT_MAX_ENVS_PER_SESSION as usize,
             session_ttl: DEFAULT_SESSION_TTL,
             max_memory: DEFAULT_MAX_MEMORY,
+            stepping: Stepping::default(),
         }
     }
 }
@@ -295,6 +300,8 @@ pub struct FoundSession {
     session: Arc<Session>,
     /// The store's counters.
     metrics: Arc<Metrics>,
+    /// The threads that step large sessions in chunks.
+    pool: Arc<StepPool>,
 }
 
 impl FoundSession {
@@ -331,7 +338,7 @@ impl FoundSession {
     /// Resets every environment of the session.
     pub fn reset(&self, args: &ResetArgs) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
-        let batch = envs.reset(args)?;
+        let batch = envs.reset_on(args, &self.pool)?;
         self.session.was_reset(&envs, &batch);
         drop(envs);
         let m = &self.metrics;
@@ -343,7 +350,7 @@ impl FoundSession {
     /// Steps every environment of the session.
     pub fn step(&self, actions: &[u8]) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
-        let batch = envs.step(actions)?;
+        let batch = envs.step_on(actions, &self.pool)?;
         self.session.stepped(&envs, actions, &batch);
         drop(envs);
         let m = &self.metrics;
@@ -377,6 +384,8 @@ struct Shared {
     epoch: Instant,
     /// Counters for the metrics endpoint.
     metrics: Arc<Metrics>,
+    /// The threads that step large sessions in chunks (`limits.stepping`).
+    pool: Arc<StepPool>,
 }
 
 impl Store {
@@ -393,6 +402,7 @@ impl Store {
                 limits,
                 epoch: Instant::now(),
                 metrics,
+                pool: Arc::new(StepPool::new(limits.stepping)),
             }),
         }
     }
@@ -543,6 +553,7 @@ impl Store {
         Ok(FoundSession {
             session: self.get(owner, id)?,
             metrics: Arc::clone(&self.shared.metrics),
+            pool: Arc::clone(&self.shared.pool),
         })
     }
 

@@ -16,6 +16,9 @@ comparison.
   client over gRPC and over shared memory (``transport=``), beside the server's own rates on
   this machine (``dinerdash-server ceiling``: in process, and through a Rust gRPC client), the
   limit any client can reach.
+- **Scaling** (:func:`scaling`): the server's ceiling for N = 256 and N = 4096 (and N = 256 with
+  planner labels) on one stepping thread and on one per core (``ceiling --threads``), beside this
+  client's vector env of the same N over gRPC and shared memory on the local server.
 
 The lines above the transports table step with the ``transport`` the connection keywords give
 (gRPC unless told otherwise), so that they stay comparable with earlier runs.
@@ -34,7 +37,7 @@ import numpy as np
 
 from ..game import NUM_ACTIONS
 
-__all__ = ["ceiling", "run", "tcp_floor", "transports"]
+__all__ = ["ceiling", "ceiling_lines", "run", "scaling", "tcp_floor", "transports"]
 
 # The echo side of the TCP floor: a child process, so that the ping-pong crosses processes (and
 # cores) as a call to a server does; it prints its port, then echoes until the socket closes.
@@ -170,30 +173,48 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         envs.close()
 
 
-def ceiling(sizes: list[int], seconds: float = 2.0) -> dict[int, tuple[float, float]]:
-    """The server's own env-steps/s for a session of each N of ``sizes``, measured by its
-    binary on this machine: ``{N: (in process, Rust gRPC client)}``."""
+def ceiling_lines(
+    sizes: list[int],
+    seconds: float = 2.0,
+    threads: list[int] | None = None,
+    labels: str = "none",
+) -> list[tuple[int, int, str, float, float]]:
+    """The server's own env-steps/s for a session of each N of ``sizes`` with ``labels``
+    (``none``, ``expert`` or ``planner``) on each number of stepping ``threads`` (default: one
+    per core), measured by its binary on this machine: one ``(N, threads, labels, in process,
+    Rust gRPC client)`` per line of ``dinerdash-server ceiling``."""
     from ..server import find_server_binary
 
+    threads = list(threads or [])
     out = subprocess.run(
         [
             str(find_server_binary()),
             "ceiling",
             "--time",
             f"{int(seconds * 1000)}ms",
+            "--labels",
+            labels,
             *(f"--num-envs={n}" for n in sizes),
+            *(f"--threads={t}" for t in threads),
         ],
         capture_output=True,
         text=True,
         check=True,
-        timeout=60 + 4 * seconds * len(sizes),
+        timeout=60 + 4 * seconds * len(sizes) * max(1, len(threads)),
     )
-    rates = {}
+    lines = []
     for line in out.stdout.split("\n"):
         if line.strip():
-            n, local, grpc = line.split()
-            rates[int(n)] = (float(local), float(grpc))
-    return rates
+            n, t, label, local, grpc = line.split()
+            lines.append((int(n), int(t), label, float(local), float(grpc)))
+    return lines
+
+
+def ceiling(sizes: list[int], seconds: float = 2.0) -> dict[int, tuple[float, float]]:
+    """The server's own env-steps/s for a session of each N of ``sizes`` (no labels, one
+    stepping thread per core), measured by its binary on this machine: ``{N: (in process, Rust
+    gRPC client)}``."""
+    return {n: (local, grpc) for n, _, _, local, grpc in ceiling_lines(sizes, seconds)}
 
 
 _SEQPACKET_ECHO = """
@@ -292,6 +313,44 @@ def transports(
         )
 
 
+def scaling(
+    address: str | list[str],
+    vec_steps: int,
+    sizes: tuple[int, ...] = (256, 4096),
+    planner_sizes: tuple[int, ...] = (256,),
+) -> None:
+    """Prints the scaling table: the server's ceiling (in process, Rust gRPC client) for each N
+    on one stepping thread and on one per core, beside this client's vector env of that N over
+    gRPC and shared memory (the server at ``address``, stepping as it was started). Planner
+    labels cost ~0.1 ms a decision: those rows step a tenth as many times."""
+    first = address[0] if isinstance(address, list) else address
+    cores = os.cpu_count() or 1
+    threads = sorted({1, cores})
+    print(
+        "scaling            : server in process / Rust gRPC client by stepping threads "
+        f"({', '.join(map(str, threads))}), this client over gRPC / shm  (env-steps/s)"
+    )
+    rows = [("none", n) for n in sizes] + [("planner", n) for n in planner_sizes]
+    for labels, n in rows:
+        lines = ceiling_lines([n], seconds=1.0, threads=threads, labels=labels)
+        by_threads = {t: (local, rust) for _, t, _, local, rust in lines}
+        steps = max(10, vec_steps * 256 // n // (10 if labels == "planner" else 1))
+        expert = {"expert": "planner"} if labels == "planner" else {}
+        client = {
+            transport: _vector(first, n, steps, False, transport=transport, **expert)
+            for transport in ("grpc", "shm")
+        }
+        server = "  ".join(
+            f"{t} thr {by_threads[t][0]:11,.0f} {by_threads[t][1]:11,.0f}" for t in threads
+        )
+        label = f"N={n}" + (" planner" if labels == "planner" else "")
+        speedup = by_threads[threads[-1]][0] / by_threads[1][0] if len(threads) > 1 else 1.0
+        print(
+            f"  {label:<17}: {server}  ({speedup:.2f}x)   client {client['grpc']:11,.0f}"
+            f" {client['shm']:11,.0f}"
+        )
+
+
 def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
     """One uniformly random legal action per row of ``masks``."""
     return np.argmax(rng.random(masks.shape) * masks, axis=1)
@@ -341,6 +400,7 @@ def run(
     sb3_envs: int = 8,
     sb3_steps: int = 2_000,
     compare_transports: bool = True,
+    compare_scaling: bool = True,
     **connection: Any,
 ) -> None:
     """The ``bench`` command: prints one line per measurement. Without ``address`` (and
@@ -411,6 +471,8 @@ def run(
             )
         if compare_transports:
             transports(address, steps, vec_steps)
+        if compare_scaling and vec_steps > 0:
+            scaling(address, vec_steps)
         if sb3_steps > 0:
             try:
                 dummy, adapter = _sb3(address, sb3_envs, sb3_steps, **connection)

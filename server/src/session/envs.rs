@@ -8,6 +8,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::SessionError;
+use crate::cpu::{self, StepPool};
 use crate::policy::{Planner, expert_action};
 use crate::sim::{
     Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, StepOutcome, render,
@@ -204,6 +205,122 @@ impl Batch {
         }
     }
 
+    /// Every environment's rows, to be written in place (or cut into runs, one per chunk).
+    fn rows(&mut self) -> Rows<'_> {
+        Rows {
+            n: self.num_envs as usize,
+            observations: &mut self.observations,
+            rewards: &mut self.rewards,
+            terminated: &mut self.terminated,
+            truncated: &mut self.truncated,
+            scores: &mut self.scores,
+            lost: &mut self.lost,
+            ticks: &mut self.ticks,
+            action_masks: &mut self.action_masks,
+            expert_actions: &mut self.expert_actions,
+            reset: &mut self.reset,
+            seeds: &mut self.seeds,
+            stream_episodes: &mut self.stream_episodes,
+            final_observations: &mut self.final_observations,
+            final_scores: &mut self.final_scores,
+            final_lost: &mut self.final_lost,
+            final_ticks: &mut self.final_ticks,
+            final_action_masks: &mut self.final_action_masks,
+            final_expert_actions: &mut self.final_expert_actions,
+        }
+    }
+
+    /// How many environments were reset in this call.
+    pub fn resets(&self) -> u64 {
+        self.reset.iter().map(|&r| u64::from(r)).sum()
+    }
+}
+
+/// The rows of a [`Batch`] that a run of consecutive environments writes: each array's slice
+/// for them, indexed from the run's first environment. The runs of a parallel Step write
+/// disjoint memory, so each chunk is stepped on its own thread with no lock.
+struct Rows<'a> {
+    /// Environments in the run.
+    n: usize,
+    /// N x 40 int8.
+    observations: &'a mut [u8],
+    /// N x int32.
+    rewards: &'a mut [u8],
+    /// N x uint8.
+    terminated: &'a mut [u8],
+    /// N x uint8.
+    truncated: &'a mut [u8],
+    /// N x int32.
+    scores: &'a mut [u8],
+    /// N x uint32.
+    lost: &'a mut [u8],
+    /// N x uint32.
+    ticks: &'a mut [u8],
+    /// N x 57 uint8, or empty.
+    action_masks: &'a mut [u8],
+    /// N x uint8, or empty.
+    expert_actions: &'a mut [u8],
+    /// N x uint8.
+    reset: &'a mut [u8],
+    /// N.
+    seeds: &'a mut [u64],
+    /// N.
+    stream_episodes: &'a mut [u32],
+    /// N x 40 int8, or empty.
+    final_observations: &'a mut [u8],
+    /// N x int32, or empty.
+    final_scores: &'a mut [u8],
+    /// N x uint32, or empty.
+    final_lost: &'a mut [u8],
+    /// N x uint32, or empty.
+    final_ticks: &'a mut [u8],
+    /// N x 57 uint8, or empty.
+    final_action_masks: &'a mut [u8],
+    /// N x uint8, or empty.
+    final_expert_actions: &'a mut [u8],
+}
+
+/// `array`, rows of `array.len() / n` elements for `n` environments, cut after `k` of them.
+fn cut<T>(array: &mut [T], n: usize, k: usize) -> (&mut [T], &mut [T]) {
+    let width = array.len() / n.max(1);
+    array.split_at_mut(width * k)
+}
+
+impl<'a> Rows<'a> {
+    /// The first `k` environments' rows and the others'.
+    fn split_at(self, k: usize) -> (Rows<'a>, Rows<'a>) {
+        let n = self.n;
+        macro_rules! split {
+            ($($field:ident),*) => {{
+                $(let $field = cut(self.$field, n, k);)*
+                (
+                    Rows { n: k, $($field: $field.0,)* },
+                    Rows { n: n - k, $($field: $field.1,)* },
+                )
+            }};
+        }
+        split!(
+            observations,
+            rewards,
+            terminated,
+            truncated,
+            scores,
+            lost,
+            ticks,
+            action_masks,
+            expert_actions,
+            reset,
+            seeds,
+            stream_episodes,
+            final_observations,
+            final_scores,
+            final_lost,
+            final_ticks,
+            final_action_masks,
+            final_expert_actions
+        )
+    }
+
     /// Writes environment `i`'s row: what happened in this call, then the state it is in now.
     fn put(
         &mut self,
@@ -213,7 +330,7 @@ impl Batch {
         game: &Game,
         options: &SessionOptions,
     ) {
-        put(&mut self.rewards, i, to_i32(outcome.reward).to_le_bytes());
+        put(self.rewards, i, to_i32(outcome.reward).to_le_bytes());
         self.terminated[i] = u8::from(outcome.terminated);
         self.truncated[i] = u8::from(outcome.truncated);
         if let Some(info) = reset {
@@ -222,12 +339,12 @@ impl Batch {
             self.stream_episodes[i] = info.stream_episodes;
         }
         let now = StateRows {
-            observations: &mut self.observations,
-            scores: &mut self.scores,
-            lost: &mut self.lost,
-            ticks: &mut self.ticks,
-            action_masks: &mut self.action_masks,
-            expert_actions: &mut self.expert_actions,
+            observations: self.observations,
+            scores: self.scores,
+            lost: self.lost,
+            ticks: self.ticks,
+            action_masks: self.action_masks,
+            expert_actions: self.expert_actions,
         };
         now.put(i, game, options);
     }
@@ -252,19 +369,72 @@ impl Batch {
     /// Writes environment `i`'s ended episode (SAME_STEP); the rows of the others stay zero.
     fn put_final(&mut self, i: usize, ended: &Game, options: &SessionOptions) {
         let finals = StateRows {
-            observations: &mut self.final_observations,
-            scores: &mut self.final_scores,
-            lost: &mut self.final_lost,
-            ticks: &mut self.final_ticks,
-            action_masks: &mut self.final_action_masks,
-            expert_actions: &mut self.final_expert_actions,
+            observations: self.final_observations,
+            scores: self.final_scores,
+            lost: self.final_lost,
+            ticks: self.final_ticks,
+            action_masks: self.final_action_masks,
+            expert_actions: self.final_expert_actions,
         };
         finals.put(i, ended, options);
     }
+}
 
-    /// How many environments were reset in this call.
-    pub fn resets(&self) -> u64 {
-        self.reset.iter().map(|&r| u64::from(r)).sum()
+/// A run of consecutive environments with their rows and actions: what one chunk of a Reset or
+/// Step works on.
+struct Run<'a> {
+    /// Index in the session of the run's first environment.
+    first: usize,
+    /// The environments.
+    envs: &'a mut [Env],
+    /// Their rows of the Batch.
+    rows: Rows<'a>,
+    /// Their actions, 4 bytes each (a Step's; empty for a Reset).
+    actions: &'a [u8],
+}
+
+impl<'a> Run<'a> {
+    /// The whole session as one run.
+    fn whole(envs: &'a mut [Env], batch: &'a mut Batch, actions: &'a [u8]) -> Run<'a> {
+        Run {
+            first: 0,
+            envs,
+            rows: batch.rows(),
+            actions,
+        }
+    }
+
+    /// The run cut into `chunks` runs of sizes differing by at most one, in order.
+    fn cut(self, chunks: usize) -> Vec<Run<'a>> {
+        let n = self.envs.len();
+        let chunks = chunks.clamp(1, n.max(1));
+        let mut runs = Vec::with_capacity(chunks);
+        let mut rest = self;
+        for c in 0..chunks {
+            let k = n / chunks + usize::from(c < n % chunks);
+            let Run {
+                first,
+                envs,
+                rows,
+                actions,
+            } = rest;
+            let (envs, more_envs) = envs.split_at_mut(k);
+            let (rows, more_rows) = rows.split_at(k);
+            let (actions, more_actions) = actions.split_at((4 * k).min(actions.len()));
+            runs.push(Run {
+                first,
+                envs,
+                rows,
+                actions,
+            });
+            rest = Run {
+                first: first + k,
+                envs: more_envs,
+                rows: more_rows,
+                actions: more_actions,
+            };
+        }
+        runs
     }
 }
 
@@ -348,8 +518,15 @@ impl Envs {
             .map_or_else(Config::default, |e| *e.game.config())
     }
 
-    /// Resets every environment, or those of `reset_mask` (all of the request is checked first).
+    /// Resets every environment, or those of `reset_mask` (all of the request is checked first),
+    /// on the caller's thread.
     pub fn reset(&mut self, args: &ResetArgs) -> Result<Batch, SessionError> {
+        self.reset_on(args, &cpu::SERIAL)
+    }
+
+    /// [`Envs::reset`], in chunks on `pool`'s threads when the session is large enough for it:
+    /// the same Batch and the same environments after it as on one thread.
+    pub fn reset_on(&mut self, args: &ResetArgs, pool: &StepPool) -> Result<Batch, SessionError> {
         let n = self.envs.len();
         let invalid = |msg: String| Err(SessionError::InvalidArgument(msg));
         if args.seed.is_some() && !args.seeds.is_empty() {
@@ -404,38 +581,28 @@ impl Envs {
         } else {
             None
         });
-        let mut batch = Batch::zeroed(n, &self.options, false);
-        for (i, env) in self.envs.iter_mut().enumerate() {
-            if partial && !args.reset_mask[i] {
-                batch.put_unchanged(i, &env.game, &self.options);
-                continue;
-            }
-            if let Some(config) = args.config {
-                env.game.set_config(config).map_err(internal)?;
-            }
-            let seed = match args.seeds.get(i) {
-                Some(&s) => Some(s),
-                None => base.map(|s| s.wrapping_add(i as u64)),
-            };
-            // A game never seeded gets a fresh seed of its own, reported in the Batch.
-            let seed = seed.or_else(|| (!env.game.is_seeded()).then(entropy_seed));
-            let arrivals = match args.arrivals.len() {
-                0 => None,
-                1 => args.arrivals.first(),
-                _ => args.arrivals.get(i),
-            };
-            let info = env
-                .game
-                .reset(seed, arrivals.map(Vec::as_slice))
-                .map_err(internal)?;
-            env.autoreset_pending = false;
-            batch.put_reset(i, info, &env.game, &self.options);
+        let options = self.options;
+        let mut batch = Batch::zeroed(n, &options, false);
+        let whole = Run::whole(&mut self.envs, &mut batch, &[]);
+        let work = |run: Run<'_>| reset_run(run, args, base, &options);
+        let chunks = pool.chunks(n, options.expert_actions == ExpertActions::Planner);
+        if chunks <= 1 {
+            work(whole)?;
+        } else {
+            pool.run(whole.cut(chunks), work)?;
         }
         Ok(batch)
     }
 
-    /// One action per environment, as N little-endian int32 (all checked first).
+    /// One action per environment, as N little-endian int32 (all checked first), on the
+    /// caller's thread.
     pub fn step(&mut self, actions: &[u8]) -> Result<Batch, SessionError> {
+        self.step_on(actions, &cpu::SERIAL)
+    }
+
+    /// [`Envs::step`], in chunks on `pool`'s threads when the session is large enough for it:
+    /// the same Batch and the same environments after it as on one thread.
+    pub fn step_on(&mut self, actions: &[u8], pool: &StepPool) -> Result<Batch, SessionError> {
         let n = self.envs.len();
         if actions.len() != 4 * n {
             return Err(SessionError::InvalidArgument(format!(
@@ -464,33 +631,15 @@ impl Envs {
             }
         }
 
-        let mut batch = Batch::zeroed(n, &self.options, mode == Autoreset::SameStep);
-        for (i, (env, a)) in self
-            .envs
-            .iter_mut()
-            .zip(actions.chunks_exact(4))
-            .enumerate()
-        {
-            let action = i64::from(i32::from_le_bytes([a[0], a[1], a[2], a[3]]));
-            if env.autoreset_pending {
-                // NEXT_STEP: this Step resets the environment and ignores its action.
-                let info = env.game.reset(None, None).map_err(internal)?;
-                env.autoreset_pending = false;
-                batch.put_reset(i, info, &env.game, &self.options);
-                continue;
-            }
-            let outcome = env.game.step(action).map_err(internal)?;
-            let ended = outcome.terminated || outcome.truncated;
-            let mut reset = None;
-            match mode {
-                Autoreset::NextStep => env.autoreset_pending = ended,
-                Autoreset::SameStep if ended => {
-                    batch.put_final(i, &env.game, &self.options);
-                    reset = Some(env.game.reset(None, None).map_err(internal)?);
-                }
-                Autoreset::SameStep | Autoreset::Disabled => {}
-            }
-            batch.put(i, outcome, reset, &env.game, &self.options);
+        let options = self.options;
+        let mut batch = Batch::zeroed(n, &options, mode == Autoreset::SameStep);
+        let whole = Run::whole(&mut self.envs, &mut batch, actions);
+        let work = |run: Run<'_>| step_run(run, &options);
+        let chunks = pool.chunks(n, options.expert_actions == ExpertActions::Planner);
+        if chunks <= 1 {
+            work(whole)?;
+        } else {
+            pool.run(whole.cut(chunks), work)?;
         }
         Ok(batch)
     }
@@ -541,6 +690,85 @@ impl Envs {
         }
         Ok(envs)
     }
+}
+
+/// Resets the environments of `run` as `args` asks (`base`: the seed of the session's first
+/// environment, if any), writing their rows; the request was checked in full.
+fn reset_run(
+    run: Run<'_>,
+    args: &ResetArgs,
+    base: Option<u64>,
+    options: &SessionOptions,
+) -> Result<(), SessionError> {
+    let Run {
+        first,
+        envs,
+        mut rows,
+        ..
+    } = run;
+    let partial = !args.reset_mask.is_empty();
+    for (j, env) in envs.iter_mut().enumerate() {
+        let i = first + j;
+        if partial && !args.reset_mask[i] {
+            rows.put_unchanged(j, &env.game, options);
+            continue;
+        }
+        if let Some(config) = args.config {
+            env.game.set_config(config).map_err(internal)?;
+        }
+        let seed = match args.seeds.get(i) {
+            Some(&s) => Some(s),
+            None => base.map(|s| s.wrapping_add(i as u64)),
+        };
+        // A game never seeded gets a fresh seed of its own, reported in the Batch.
+        let seed = seed.or_else(|| (!env.game.is_seeded()).then(entropy_seed));
+        let arrivals = match args.arrivals.len() {
+            0 => None,
+            1 => args.arrivals.first(),
+            _ => args.arrivals.get(i),
+        };
+        let info = env
+            .game
+            .reset(seed, arrivals.map(Vec::as_slice))
+            .map_err(internal)?;
+        env.autoreset_pending = false;
+        rows.put_reset(j, info, &env.game, options);
+    }
+    Ok(())
+}
+
+/// Steps the environments of `run` with their actions (checked), writing their rows.
+fn step_run(run: Run<'_>, options: &SessionOptions) -> Result<(), SessionError> {
+    let Run {
+        envs,
+        mut rows,
+        actions,
+        ..
+    } = run;
+    let mode = options.autoreset;
+    for (i, (env, a)) in envs.iter_mut().zip(actions.chunks_exact(4)).enumerate() {
+        let action = i64::from(i32::from_le_bytes([a[0], a[1], a[2], a[3]]));
+        if env.autoreset_pending {
+            // NEXT_STEP: this Step resets the environment and ignores its action.
+            let info = env.game.reset(None, None).map_err(internal)?;
+            env.autoreset_pending = false;
+            rows.put_reset(i, info, &env.game, options);
+            continue;
+        }
+        let outcome = env.game.step(action).map_err(internal)?;
+        let ended = outcome.terminated || outcome.truncated;
+        let mut reset = None;
+        match mode {
+            Autoreset::NextStep => env.autoreset_pending = ended,
+            Autoreset::SameStep if ended => {
+                rows.put_final(i, &env.game, options);
+                reset = Some(env.game.reset(None, None).map_err(internal)?);
+            }
+            Autoreset::SameStep | Autoreset::Disabled => {}
+        }
+        rows.put(i, outcome, reset, &env.game, options);
+    }
+    Ok(())
 }
 
 /// A seed for a game that was never given one: 63 bits of system entropy. Drawn here, above
