@@ -22,9 +22,7 @@ use crate::config::parse_duration;
 use crate::cpu::Stepping;
 use crate::pb;
 use crate::server::{self, Listeners, ServerConfig, ServerError};
-use crate::session::{
-    Autoreset, Caller, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
-};
+use crate::session::{Autoreset, Caller, ExpertActions, Limits, ResetArgs, SessionOptions, Store};
 use crate::sim::{Config, NUM_ACTIONS};
 
 /// Which expert actions every Batch of the measured session carries.

@@ -573,6 +573,7 @@ impl Store {
         Ok(FoundSession {
             session,
             metrics: Arc::clone(&self.shared.metrics),
+            pool: Arc::clone(&self.shared.pool),
         })
     }
 
@@ -754,10 +755,14 @@ mod tests {
     fn a_wrong_shm_secret_is_an_unknown_session() {
         let store = Store::new(Limits::default(), Arc::default());
         let (id, spec) = store
-            .create(&tenant(), 1, Config::default(), options(), None)
+            .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
-        let (fork, forked) = store.fork(&tenant(), &id.to_string()).unwrap();
-        assert_ne!(spec.shm_secret, forked.shm_secret, "a fork draws its own secret");
+        let found = store.find(&Owner::Shared, &id.to_string()).unwrap();
+        let (fork, forked) = store.fork(&caller(), &found).unwrap();
+        assert_ne!(
+            spec.shm_secret, forked.shm_secret,
+            "a fork draws its own secret"
+        );
         let id = id.to_string();
         assert!(store.find_shm(&id, spec.shm_secret.expose()).is_ok());
         let refused = |id: &str, secret: &[u8]| store.find_shm(id, secret).err().unwrap();
@@ -771,7 +776,11 @@ mod tests {
             refused(&unknown, spec.shm_secret.expose()),
             SessionError::NotFound(unknown.clone())
         );
-        assert!(store.find_shm(&fork.to_string(), forked.shm_secret.expose()).is_ok());
+        assert!(
+            store
+                .find_shm(&fork.to_string(), forked.shm_secret.expose())
+                .is_ok()
+        );
     }
 
     #[test]
@@ -851,7 +860,11 @@ mod tests {
             .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
         let other_connection = Caller::shared(tenant());
-        assert!(store.find(&other_connection.owner, &shared.to_string()).is_ok());
+        assert!(
+            store
+                .find(&other_connection.owner, &shared.to_string())
+                .is_ok()
+        );
         assert!(store.find(&a.owner, &shared.to_string()).is_err());
         store.close(&Owner::Shared, &shared.to_string()).unwrap();
     }

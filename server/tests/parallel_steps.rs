@@ -8,7 +8,7 @@ use std::sync::Arc;
 use dinerdash_server::budget::{Share, Tenant};
 use dinerdash_server::cpu::{SERIAL, StepPool, Stepping};
 use dinerdash_server::session::{
-    Autoreset, Batch, Envs, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
+    Autoreset, Batch, Caller, Envs, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
 };
 use dinerdash_server::sim::{Config, NUM_ACTIONS};
 
@@ -104,14 +104,28 @@ fn compare(n: usize, expert: ExpertActions, autoreset: Autoreset, steps: usize, 
                 ..ResetArgs::default()
             };
             let one = serial.reset_on(&args, &SERIAL).unwrap();
-            assert!(one == parallel.reset_on(&args, &pool).unwrap(), "{what}: reset after step {t} differs");
+            assert!(
+                one == parallel.reset_on(&args, &pool).unwrap(),
+                "{what}: reset after step {t} differs"
+            );
         }
     }
-    assert_eq!(serial.snapshot(), parallel.snapshot(), "{what}: the environments differ");
-    assert!(episode_ends >= n, "{what}: only {episode_ends} episodes ended");
+    assert_eq!(
+        serial.snapshot(),
+        parallel.snapshot(),
+        "{what}: the environments differ"
+    );
+    assert!(
+        episode_ends >= n,
+        "{what}: only {episode_ends} episodes ended"
+    );
 }
 
-const MODES: [Autoreset; 3] = [Autoreset::NextStep, Autoreset::SameStep, Autoreset::Disabled];
+const MODES: [Autoreset; 3] = [
+    Autoreset::NextStep,
+    Autoreset::SameStep,
+    Autoreset::Disabled,
+];
 
 #[test]
 fn parallel_steps_equal_serial_steps_without_planner_labels() {
@@ -130,14 +144,23 @@ fn parallel_steps_equal_serial_steps_with_planner_labels() {
     // cut short enough that each environment still ends at least one.
     for (n, steps, time_limit) in [(1, 300, 120), (7, 300, 120), (256, 40, 15), (4096, 6, 3)] {
         for mode in MODES {
-            compare(n, ExpertActions::Planner, mode, steps, short_episodes(time_limit));
+            compare(
+                n,
+                ExpertActions::Planner,
+                mode,
+                steps,
+                short_episodes(time_limit),
+            );
         }
     }
 }
 
 #[test]
 fn a_parallel_sessions_tally_is_the_serial_ones() {
-    let tenant = Arc::new(Tenant::new("parallel-tally".into(), Share::default()));
+    let caller = Caller::shared(Arc::new(Tenant::new(
+        "parallel-tally".into(),
+        Share::default(),
+    )));
     let store = |stepping: Stepping| {
         Store::new(
             Limits {
@@ -157,9 +180,9 @@ fn a_parallel_sessions_tally_is_the_serial_ones() {
         .iter()
         .map(|s| {
             let (id, _) = s
-                .create(&tenant, 300, short_episodes(40), options, Some(3))
+                .create(&caller, 300, short_episodes(40), options, Some(3))
                 .unwrap();
-            s.find(&id.to_string()).unwrap()
+            s.find(&caller.owner, &id.to_string()).unwrap()
         })
         .collect();
     let mut actions = Actions(1);
@@ -175,7 +198,7 @@ fn a_parallel_sessions_tally_is_the_serial_ones() {
     }
     let tallies: Vec<_> = stores
         .iter()
-        .map(|s| s.summaries(|_| true, 10).rows.remove(0).tally)
+        .map(|s| s.summaries(&caller.owner, 10).rows.remove(0).tally)
         .collect();
     let (one, many) = (&tallies[0], &tallies[1]);
     assert_eq!(
