@@ -14,9 +14,7 @@ use std::time::{Duration, Instant};
 use crate::budget::{Share, Tenant};
 use crate::pb;
 use crate::server::{self, Listeners, ServerConfig, ServerError};
-use crate::session::{
-    Autoreset, Caller, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
-};
+use crate::session::{Autoreset, Caller, ExpertActions, Limits, ResetArgs, SessionOptions, Store};
 use crate::sim::{Config, NUM_ACTIONS};
 
 /// A fixed stream of random actions, packed as a Step carries them.
@@ -49,7 +47,9 @@ pub fn in_process(num_envs: usize, time: Duration) -> Result<f64, String> {
     let (id, _) = store
         .create(&caller, n, Config::default(), options, Some(0))
         .map_err(|e| e.to_string())?;
-    let session = store.find(&caller.owner, &id.to_string()).map_err(|e| e.to_string())?;
+    let session = store
+        .find(&caller.owner, &id.to_string())
+        .map_err(|e| e.to_string())?;
     session
         .reset(&ResetArgs::default())
         .map_err(|e| e.to_string())?;

@@ -801,7 +801,11 @@ mod tests {
             .create(&caller(), 1, Config::default(), options(), None)
             .unwrap();
         let other_connection = Caller::shared(tenant());
-        assert!(store.find(&other_connection.owner, &shared.to_string()).is_ok());
+        assert!(
+            store
+                .find(&other_connection.owner, &shared.to_string())
+                .is_ok()
+        );
         assert!(store.find(&a.owner, &shared.to_string()).is_err());
         store.close(&Owner::Shared, &shared.to_string()).unwrap();
     }

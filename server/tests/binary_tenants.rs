@@ -157,7 +157,11 @@ async fn answered_as_unknown(b: &mut Tenant, id: &str) {
     let foreign = b.every_call(id).await;
     let unknown = b.every_call(UNKNOWN).await;
     for ((what, on_id), (_, on_unknown)) in foreign.iter().zip(&unknown) {
-        assert_eq!(on_unknown.code(), tonic::Code::NotFound, "{what}: {on_unknown:?}");
+        assert_eq!(
+            on_unknown.code(),
+            tonic::Code::NotFound,
+            "{what}: {on_unknown:?}"
+        );
         assert_eq!(on_id.code(), on_unknown.code(), "{what}: {on_id:?}");
         assert_eq!(
             on_id.message().replace(id, UNKNOWN),

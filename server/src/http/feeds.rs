@@ -161,9 +161,7 @@ impl Sessions {
     /// The sessions and totals now, as JSON; rates are measured since the last snapshot (none
     /// in the first).
     pub fn snapshot(&mut self, site: &Site) -> String {
-        let listing = site
-            .store
-            .summaries(&self.viewer.owner(), MAX_ROWS);
+        let listing = site.store.summaries(&self.viewer.owner(), MAX_ROWS);
         let now = Instant::now();
         let env_steps = site.metrics.env_steps.load(Ordering::Relaxed);
         let rate = |now_count: u64, then_count: u64, since: Instant| {

@@ -204,7 +204,9 @@ const LOGGED_ID: usize = 8;
 
 /// The first [`LOGGED_ID`] characters of a session ID as a request gave it.
 fn short(id: &str) -> &str {
-    id.char_indices().nth(LOGGED_ID).map_or(id, |(i, _)| &id[..i])
+    id.char_indices()
+        .nth(LOGGED_ID)
+        .map_or(id, |(i, _)| &id[..i])
 }
 
 #[tonic::async_trait]

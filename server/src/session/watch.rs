@@ -443,11 +443,7 @@ mod tests {
         store.reset(&a.owner, &id, &ResetArgs::default()).unwrap();
         // Waiting only: the queue's patience runs out and the episodes end by losing a group.
         let mut steps = 0;
-        while store.summaries(&a.owner, 10).rows[0]
-            .tally
-            .episodes
-            < 2
-        {
+        while store.summaries(&a.owner, 10).rows[0].tally.episodes < 2 {
             store.step(&a.owner, &id, &actions(2, 0)).unwrap();
             steps += 2;
             assert!(steps < 100_000, "no episode ended");
@@ -477,7 +473,9 @@ mod tests {
             } else {
                 0
             };
-            batch = store.step(&b.owner, &same, &actions(1, i32::from(choice))).unwrap();
+            batch = store
+                .step(&b.owner, &same, &actions(1, i32::from(choice)))
+                .unwrap();
             played += 1;
             if batch.terminated[0] == 1 {
                 break i32::from_le_bytes(batch.final_scores[..4].try_into().unwrap());
