@@ -155,7 +155,10 @@ mod tests {
             drop(permit);
         });
         // Not while the only worker is held (however long this side waits)...
-        assert!(rx.recv_timeout(std::time::Duration::from_millis(50)).is_err());
+        assert!(
+            rx.recv_timeout(std::time::Duration::from_millis(50))
+                .is_err()
+        );
         drop(held);
         // ...and at once when it is free.
         rx.recv_timeout(std::time::Duration::from_secs(60)).unwrap();

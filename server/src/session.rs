@@ -653,7 +653,10 @@ mod tests {
             .create(&tenant(), 1, Config::default(), options(), None)
             .unwrap();
         let (fork, forked) = store.fork(&tenant(), &id.to_string()).unwrap();
-        assert_ne!(spec.shm_secret, forked.shm_secret, "a fork draws its own secret");
+        assert_ne!(
+            spec.shm_secret, forked.shm_secret,
+            "a fork draws its own secret"
+        );
         let id = id.to_string();
         assert!(store.find_shm(&id, spec.shm_secret.expose()).is_ok());
         let refused = |id: &str, secret: &[u8]| store.find_shm(id, secret).err().unwrap();
@@ -667,7 +670,11 @@ mod tests {
             refused(&unknown, spec.shm_secret.expose()),
             SessionError::NotFound(unknown.clone())
         );
-        assert!(store.find_shm(&fork.to_string(), forked.shm_secret.expose()).is_ok());
+        assert!(
+            store
+                .find_shm(&fork.to_string(), forked.shm_secret.expose())
+                .is_ok()
+        );
     }
 
     #[test]

@@ -55,7 +55,10 @@ fn silent(doorbell: &str) -> OwnedFd {
 /// Connects to `doorbell` and says hello for `session` with `secret`: the region, or the `E`
 /// message.
 fn connect(doorbell: &str, session: &str, secret: &[u8]) -> Result<ShmClient, Vec<u8>> {
-    hello(doorbell, &[b"H".as_slice(), session.as_bytes(), secret].concat())
+    hello(
+        doorbell,
+        &[b"H".as_slice(), session.as_bytes(), secret].concat(),
+    )
 }
 
 /// Connects to `doorbell` and sends `hello` as it is: the region, or the `E` message.
@@ -267,8 +270,7 @@ async fn bad_actions_and_unknown_sessions_are_refused_as_over_grpc() {
     assert_eq!(refusal(&e).0, tonic::Code::NotFound as i32);
 
     // --max-shm-sessions 2: a third region is refused, and given back when a client goes.
-    let other =
-        tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret)).unwrap();
+    let other = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret)).unwrap();
     let e = tokio::task::block_in_place(|| connect(&reply.shm_doorbell, &id, &secret))
         .err()
         .unwrap();
@@ -364,8 +366,8 @@ async fn a_wrong_secret_is_refused_exactly_as_an_unknown_id() {
     );
     // The session's own secret still opens it.
     reset(&mut client, &a.session_id, None).await;
-    let shm = tokio::task::block_in_place(|| connect(&doorbell, &a.session_id, &a.shm_secret))
-        .unwrap();
+    let shm =
+        tokio::task::block_in_place(|| connect(&doorbell, &a.session_id, &a.shm_secret)).unwrap();
     assert!(tokio::task::block_in_place(|| shm.step(&[0, 0])).is_ok());
     server.stop().await;
 }
@@ -464,7 +466,11 @@ async fn another_users_connection_is_closed_before_any_thread_starts() {
     let answer = String::from_utf8_lossy(&out.stdout);
     assert_eq!(answer.trim(), "", "another user was answered");
     assert_eq!(threads_named(pid, "shm-session"), 0);
-    assert!(threads(pid) <= before, "{} threads, {before} before", threads(pid));
+    assert!(
+        threads(pid) <= before,
+        "{} threads, {before} before",
+        threads(pid)
+    );
     // The owner gets in: its thread, and its region.
     let shm = tokio::task::block_in_place(|| {
         connect(&reply.shm_doorbell, &reply.session_id, &reply.shm_secret)
@@ -583,8 +589,8 @@ async fn another_tenant_knowing_the_id_but_not_the_secret_is_refused_as_unknown(
     assert_eq!(refused(&a.session_id, &b.shm_secret), as_unknown);
     assert_eq!(refused(&a.session_id, &[0; 32]), as_unknown);
     // A's session is untouched: its next Step over shared memory equals its twin's over gRPC.
-    let shm = tokio::task::block_in_place(|| connect(&doorbell, &a.session_id, &a.shm_secret))
-        .unwrap();
+    let shm =
+        tokio::task::block_in_place(|| connect(&doorbell, &a.session_id, &a.shm_secret)).unwrap();
     let step = pb::StepRequest {
         session_id: twin.session_id.clone(),
         actions: pack(&[0, 1]),

@@ -543,7 +543,11 @@ mod tests {
         assert_eq!((got.as_str(), secret), (id, [7u8; SHM_SECRET_BYTES]));
         // An old client's hello (no secret), a longer one, another letter: refused by length,
         // their bytes not repeated.
-        for bad in [&hello[..33], &[hello.as_slice(), b"x"].concat(), &hello[..0]] {
+        for bad in [
+            &hello[..33],
+            &[hello.as_slice(), b"x"].concat(),
+            &hello[..0],
+        ] {
             let e = parse_hello(bad).err().unwrap();
             let text = format!("{e} {e:?}");
             let text = format!("{text} {:?}", e.status());
