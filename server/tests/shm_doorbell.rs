@@ -66,7 +66,7 @@ fn hello(doorbell: &str, hello: &[u8]) -> Result<ShmClient, Vec<u8>> {
     let sock = silent(doorbell);
     rustix::net::sendmsg(
         &sock,
-        &[IoSlice::new(&hello)],
+        &[IoSlice::new(hello)],
         &mut SendAncillaryBuffer::default(),
         SendFlags::empty(),
     )
