@@ -7,8 +7,8 @@
 //! - `localhost` (or a name under `.localhost`), when the endpoint listens on a loopback or a
 //!   wildcard address;
 //! - a name the TLS certificate is valid for, when the endpoint serves TLS;
-//! - a name given with `--http-allowed-host` (compared case-insensitively, a trailing dot
-//!   ignored).
+//! - a name given with `--http-allowed-host` (compared case-insensitively, a trailing dot and
+//!   any port ignored).
 //!
 //! Any other host, or none, is answered 421 Misdirected Request, naming the flag.
 
@@ -21,7 +21,7 @@ use super::tls::HttpTls;
 pub struct Hosts {
     /// `localhost` is allowed: the endpoint listens on a loopback or a wildcard address.
     localhost: bool,
-    /// `--http-allowed-host`, lowercased, trailing dots removed.
+    /// `--http-allowed-host`, lowercased, without ports and trailing dots.
     allowed: Vec<String>,
     /// The certificate whose names are allowed, when the endpoint serves TLS.
     tls: Option<HttpTls>,
@@ -33,7 +33,8 @@ impl Hosts {
         let ip = bound.ip();
         Hosts {
             localhost: ip.is_loopback() || ip.is_unspecified(),
-            allowed: allowed.iter().map(|name| normal(name)).collect(),
+            // A port given with a name is not compared, as for requests.
+            allowed: allowed.iter().map(|name| normal(name_of(name))).collect(),
             tls,
         }
     }
@@ -96,7 +97,8 @@ mod tests {
         for refused in ["evil.example.com", "evil.example.com:8080", "", ":8080"] {
             assert!(!local.allows(refused), "{refused:?}");
         }
-        let wildcard = hosts("0.0.0.0:8080", &["Dinerdash.Example.com."]);
+        let wildcard = hosts("0.0.0.0:8080", &["Dinerdash.Example.com.", "gpu-box:8080"]);
+        assert!(wildcard.allows("gpu-box"));
         assert!(wildcard.allows("localhost:8080"));
         assert!(wildcard.allows("dinerdash.example.com:8080"));
         assert!(wildcard.allows("DINERDASH.example.com."));
