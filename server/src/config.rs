@@ -436,7 +436,10 @@ mod tests {
 
     #[test]
     fn stepping_flags_reach_the_limits() {
-        let defaults = ServerConfig::from_args(&flags(&[])).unwrap().limits.stepping;
+        let defaults = ServerConfig::from_args(&flags(&[]))
+            .unwrap()
+            .limits
+            .stepping;
         assert_eq!(defaults, Stepping::default());
         let args = [
             "--step-threads",

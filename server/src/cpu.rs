@@ -303,10 +303,7 @@ mod tests {
         assert_eq!(two.chunks(DEFAULT_PARALLEL_MIN_ENVS, false), 4);
         assert_eq!(two.chunks(4096, false), 8);
         assert_eq!(two.chunks(16_384, false), 8);
-        let low = Stepping {
-            min_envs: 3,
-            ..two
-        };
+        let low = Stepping { min_envs: 3, ..two };
         assert_eq!(low.chunks(3, false), 2);
         assert_eq!(low.chunks(300, false), 2);
         // Planner labels: from their own threshold, chunks of one environment and up.

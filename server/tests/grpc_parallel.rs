@@ -66,12 +66,19 @@ async fn small_steps_are_served_while_large_sessions_step_in_parallel() {
     // Every large client is stepping before the small one starts.
     let started = Instant::now();
     while large_steps.load(Ordering::SeqCst) < 2 * LARGE_CLIENTS as u64 {
-        assert!(started.elapsed() < PATIENCE, "the large sessions never stepped");
+        assert!(
+            started.elapsed() < PATIENCE,
+            "the large sessions never stepped"
+        );
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
 
     let mut c = server.client().await;
-    let id = create(&mut c, create_request(1, pb::AutoresetMode::NextStep, Some(9))).await;
+    let id = create(
+        &mut c,
+        create_request(1, pb::AutoresetMode::NextStep, Some(9)),
+    )
+    .await;
     reset(&mut c, &id, None).await;
     let mut actions = Actions::new(9);
     let mut latencies = Vec::with_capacity(SMALL_STEPS);
@@ -92,7 +99,10 @@ async fn small_steps_are_served_while_large_sessions_step_in_parallel() {
     stop.store(true, Ordering::SeqCst);
     for task in large {
         let steps = tokio::time::timeout(PATIENCE, task).await.unwrap().unwrap();
-        assert!(steps < MOST_LARGE_STEPS, "a large client stopped on its own");
+        assert!(
+            steps < MOST_LARGE_STEPS,
+            "a large client stopped on its own"
+        );
     }
     latencies.sort();
     eprintln!(

@@ -104,14 +104,28 @@ fn compare(n: usize, expert: ExpertActions, autoreset: Autoreset, steps: usize, 
                 ..ResetArgs::default()
             };
             let one = serial.reset_on(&args, &SERIAL).unwrap();
-            assert!(one == parallel.reset_on(&args, &pool).unwrap(), "{what}: reset after step {t} differs");
+            assert!(
+                one == parallel.reset_on(&args, &pool).unwrap(),
+                "{what}: reset after step {t} differs"
+            );
         }
     }
-    assert_eq!(serial.snapshot(), parallel.snapshot(), "{what}: the environments differ");
-    assert!(episode_ends >= n, "{what}: only {episode_ends} episodes ended");
+    assert_eq!(
+        serial.snapshot(),
+        parallel.snapshot(),
+        "{what}: the environments differ"
+    );
+    assert!(
+        episode_ends >= n,
+        "{what}: only {episode_ends} episodes ended"
+    );
 }
 
-const MODES: [Autoreset; 3] = [Autoreset::NextStep, Autoreset::SameStep, Autoreset::Disabled];
+const MODES: [Autoreset; 3] = [
+    Autoreset::NextStep,
+    Autoreset::SameStep,
+    Autoreset::Disabled,
+];
 
 #[test]
 fn parallel_steps_equal_serial_steps_without_planner_labels() {
@@ -130,7 +144,13 @@ fn parallel_steps_equal_serial_steps_with_planner_labels() {
     // cut short enough that each environment still ends at least one.
     for (n, steps, time_limit) in [(1, 300, 120), (7, 300, 120), (256, 40, 15), (4096, 6, 3)] {
         for mode in MODES {
-            compare(n, ExpertActions::Planner, mode, steps, short_episodes(time_limit));
+            compare(
+                n,
+                ExpertActions::Planner,
+                mode,
+                steps,
+                short_episodes(time_limit),
+            );
         }
     }
 }
