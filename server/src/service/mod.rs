@@ -218,9 +218,9 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::ResetRequest>,
     ) -> Result<Response<pb::Batch>, Status> {
-        let (id, args) = reset_from(request.into_inner()).map_err(|e| self.fail(e))?;
+        let (id, args) = reset_from(request.into_inner());
         let batch = self
-            .heavy_if_planner(&id, move |session| session.reset(&args))
+            .heavy_if_planner(&id, move |s| s.reset(&args.args(s.num_envs())?))
             .await?;
         Ok(Response::new(self.reply(batch)))
     }
