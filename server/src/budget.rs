@@ -3,7 +3,9 @@
 //! that a single buggy worker cannot take every session slot or every byte.
 //!
 //! Everything is charged before it is allocated: a session its environments' bytes, a Rollout
-//! stream the episodes it may buffer. A [`Charge`] gives its bytes and slots back when it is
+//! stream the episodes it may buffer; and, against a bound of their own beside `--max-memory`
+//! (a quarter of it, at least 64 MiB), a large request the bytes it costs while it is received
+//! and decoded (`codec::intake`). A [`Charge`] gives its bytes and slots back when it is
 //! dropped (the session closed or expired, the stream ended), so the counters can never drift
 //! from what is held. The live-session and memory counters are the metrics' gauges themselves:
 //! one counter each, not a copy kept in lockstep.
@@ -17,6 +19,12 @@ use crate::metrics::Metrics;
 /// 1.1x the accounted bytes plus ~20 MiB of runtime (docs/operations.md, "Memory budget"), so
 /// one server stays under ~2 GiB whatever clients do.
 pub const DEFAULT_MAX_MEMORY: u64 = 1 << 30;
+/// Requests being received and decoded may hold `--max-memory / INTAKE_SHARE` bytes besides
+/// `--max-memory` (`codec::intake`), and at least [`MIN_INTAKE_BYTES`].
+pub const INTAKE_SHARE: u64 = 4;
+/// Least bytes requests being received may hold: room for a few of the largest legitimate
+/// requests (a Restore of 1024 environments is charged ~34 MiB) whatever `--max-memory` is.
+pub const MIN_INTAKE_BYTES: u64 = 64 << 20;
 /// Default share of one tenant (or connection): environments it may hold at once.
 pub const DEFAULT_TENANT_ENVS: u64 = 65_536;
 /// Default share of one tenant (or connection): Rollout streams it may run at once.
@@ -155,6 +163,10 @@ pub struct Budget {
     max_sessions: u64,
     /// Holds the live-session and memory gauges this budget counts with.
     metrics: Arc<Metrics>,
+    /// Bytes held by requests being received and decoded: a bound of their own beside
+    /// `--max-memory` ([`Budget::max_intake_bytes`]), so that a burst of large requests never
+    /// refuses a session and a full budget never refuses a legitimate large request.
+    intake_used: AtomicU64,
 }
 
 /// What a [`Charge`] holds.
@@ -217,6 +229,7 @@ impl Budget {
             max_bytes,
             max_sessions,
             metrics,
+            intake_used: AtomicU64::new(0),
         }
     }
 
@@ -322,6 +335,65 @@ impl Budget {
             budget: Arc::clone(self),
             tenant: Arc::clone(tenant),
             holding: Holding::Rollout,
+            bytes,
+        })
+    }
+}
+
+/// Bytes held for one message being received and handled (`codec::intake`); given back when
+/// dropped.
+#[derive(Debug)]
+pub struct IntakeCharge {
+    /// Where the bytes are counted.
+    budget: Arc<Budget>,
+    /// Bytes counted.
+    bytes: u64,
+}
+
+impl Drop for IntakeCharge {
+    fn drop(&mut self) {
+        give(&self.budget.intake_used, self.bytes);
+    }
+}
+
+/// A message refused because the requests being received already hold their bound.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "requests being received hold {used} of the {max} bytes they may (a quarter of --max-memory, \
+     at least 64 MiB), and this one needs {needed}: retry later, send smaller requests or raise \
+     --max-memory"
+)]
+pub struct IntakeRefused {
+    /// Bytes the message needs.
+    pub needed: u64,
+    /// Bytes held by requests being received now.
+    pub used: u64,
+    /// Their bound.
+    pub max: u64,
+}
+
+impl Budget {
+    /// Bytes requests being received and decoded may hold: a quarter of `--max-memory`, at
+    /// least [`MIN_INTAKE_BYTES`].
+    pub fn max_intake_bytes(&self) -> u64 {
+        (self.max_bytes / INTAKE_SHARE).max(MIN_INTAKE_BYTES)
+    }
+
+    /// Bytes requests being received and decoded hold now.
+    pub fn intake_bytes(&self) -> u64 {
+        self.intake_used.load(Ordering::Relaxed)
+    }
+
+    /// Charges a message being received and handled with `bytes`, or refuses it.
+    pub fn charge_intake(self: &Arc<Self>, bytes: u64) -> Result<IntakeCharge, IntakeRefused> {
+        let max = self.max_intake_bytes();
+        take(&self.intake_used, bytes, max).map_err(|used| IntakeRefused {
+            needed: bytes,
+            used,
+            max,
+        })?;
+        Ok(IntakeCharge {
+            budget: Arc::clone(self),
             bytes,
         })
     }

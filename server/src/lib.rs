@@ -15,11 +15,12 @@
 //!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
 //!   stopping server answers.
 //! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
-//! - [`codec`]: protobuf decoding that answers undecodable requests `INVALID_ARGUMENT`.
 //! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
 //!   Rollouts).
 //! - [`rollout`]: the Rollout RPC's rules (what a request may ask, what its stream is charged)
 //!   and the recording of whole episodes of a server-side policy.
+//! - [`codec`]: protobuf decoding that measures each request on the wire before decoding it
+//!   and answers undecodable or oversized ones `INVALID_ARGUMENT`.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
 //! - [`connections`]: a folder, one job a file: the accept loop (backoff, limit), the table of

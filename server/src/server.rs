@@ -18,6 +18,7 @@ use tonic::transport::{Identity, Server, ServerTlsConfig};
 pub use crate::config::{ServerConfig, TlsPem};
 
 use crate::auth::{RequestGate, Tokens};
+use crate::codec::intake::IntakeLayer;
 use crate::config::{ConfigError, ServeArgs};
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
 use crate::http::{self, Access, Exposure, HttpTls, Site, TlsError};
@@ -214,6 +215,7 @@ pub async fn run(
             exposure,
         ))
     });
+    let budget = Arc::clone(store.budget());
     let service = DinerDashService::new(
         store,
         Arc::clone(&metrics),
@@ -231,6 +233,8 @@ pub async fn run(
     // timeout; dead ones do not, and are closed.
     let mut builder = Server::builder()
         .layer(connections::InFlightLayer)
+        // Large messages count against --max-memory while they are received and decoded.
+        .layer(IntakeLayer::new(Arc::clone(&budget)))
         .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
         .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT));

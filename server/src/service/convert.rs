@@ -112,25 +112,55 @@ fn flags(field: &str, bytes: &[u8]) -> Result<Vec<bool>, SessionError> {
     }
 }
 
-/// A Reset request as the session it names and what to do to it.
-pub(super) fn reset_from(r: pb::ResetRequest) -> Result<(String, ResetArgs), SessionError> {
-    let args = ResetArgs {
-        seed: r.seed,
-        seeds: r.seeds,
-        arrivals: r
-            .arrivals
-            .iter()
-            .map(|list| {
-                list.groups
-                    .iter()
-                    .map(|g| (g.customer_type, g.size))
-                    .collect()
-            })
-            .collect(),
-        config: r.config.as_ref().map(|c| config_from(Some(c))),
-        reset_mask: flags("reset_mask", &r.reset_mask)?,
-    };
-    Ok((r.session_id, args))
+/// A Reset request's arguments as they came, converted only once the session they name is
+/// found and its number of environments bounds them ([`PendingReset::args`]): an unknown
+/// session or an oversized list costs no conversion.
+#[derive(Debug)]
+pub(super) struct PendingReset(pb::ResetRequest);
+
+/// A Reset request as the session it names and its arguments, not yet converted.
+pub(super) fn reset_from(mut r: pb::ResetRequest) -> (String, PendingReset) {
+    (std::mem::take(&mut r.session_id), PendingReset(r))
+}
+
+impl PendingReset {
+    /// The arguments for a session of `n` environments. Seeds, arrival lists and reset flags
+    /// beyond `n` are refused before anything is converted (the session then checks the exact
+    /// counts, with the same messages).
+    pub(super) fn args(self, n: usize) -> Result<ResetArgs, SessionError> {
+        let r = self.0;
+        let over = |field: &str, allowed: String, got: usize| {
+            Err(SessionError::InvalidArgument(format!(
+                "{field} must hold {allowed}, got {got}"
+            )))
+        };
+        let each = format!("0 or {n} entries (one per environment)");
+        if r.seeds.len() > n {
+            return over("seeds", each, r.seeds.len());
+        }
+        if r.arrivals.len() > n {
+            return over("arrivals", format!("0, 1 or {n} lists"), r.arrivals.len());
+        }
+        if r.reset_mask.len() > n {
+            return over("reset_mask", each, r.reset_mask.len());
+        }
+        Ok(ResetArgs {
+            seed: r.seed,
+            seeds: r.seeds,
+            arrivals: r
+                .arrivals
+                .iter()
+                .map(|list| {
+                    list.groups
+                        .iter()
+                        .map(|g| (g.customer_type, g.size))
+                        .collect()
+                })
+                .collect(),
+            config: r.config.as_ref().map(|c| config_from(Some(c))),
+            reset_mask: flags("reset_mask", &r.reset_mask)?,
+        })
+    }
 }
 
 fn spec_to(spec: &SessionSpec) -> pb::Spec {

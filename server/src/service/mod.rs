@@ -255,9 +255,9 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         request: Request<pb::ResetRequest>,
     ) -> Result<Response<pb::Batch>, Status> {
         let owner = owner(&request);
-        let (id, args) = reset_from(request.into_inner()).map_err(|e| self.fail(e))?;
+        let (id, args) = reset_from(request.into_inner());
         let batch = self
-            .with_session(&owner, &id, move |session| session.reset(&args))
+            .with_session(&owner, &id, move |s| s.reset(&args.args(s.num_envs())?))
             .await?;
         Ok(Response::new(self.reply(batch)))
     }

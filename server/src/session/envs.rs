@@ -670,14 +670,15 @@ impl Envs {
     /// A session from [`Envs::snapshot`] bytes, checked: at most `max_envs` environments, every
     /// game a reachable state.
     pub fn restore(bytes: &[u8], max_envs: usize) -> Result<Envs, SessionError> {
-        let mut envs: Envs = snapshot::decode(SESSION_SNAPSHOT, bytes)
-            .map_err(|e| SessionError::InvalidArgument(format!("snapshot: {e}")))?;
-        let n = envs.envs.len();
-        if !(1..=max_envs).contains(&n) {
+        let corrupt = |e| SessionError::InvalidArgument(format!("snapshot: {e}"));
+        // The count (`envs` is the first field) is checked before any environment is decoded.
+        let n = snapshot::leading_count(SESSION_SNAPSHOT, bytes).map_err(corrupt)?;
+        if !(1..=max_envs as u64).contains(&n) {
             return Err(SessionError::InvalidArgument(format!(
                 "snapshot: the number of environments must be in 1..={max_envs}, got {n}"
             )));
         }
+        let mut envs: Envs = snapshot::decode(SESSION_SNAPSHOT, bytes).map_err(corrupt)?;
         for (i, env) in envs.envs.iter().enumerate() {
             env.game.check().map_err(|e| {
                 SessionError::InvalidArgument(format!("snapshot: environment {i}: {e}"))

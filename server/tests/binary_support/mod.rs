@@ -19,7 +19,11 @@ pub struct Process {
 impl Process {
     /// Starts `sh -c "<prefix> exec dinerdash-server --port 0 <args>"` and reads its port.
     pub fn start(prefix: &str, args: &str) -> Process {
-        let exe = env!("CARGO_BIN_EXE_dinerdash-server");
+        Process::start_exe(env!("CARGO_BIN_EXE_dinerdash-server"), prefix, args)
+    }
+
+    /// [`Process::start`] of the binary at `exe` (another build, to compare with).
+    pub fn start_exe(exe: &str, prefix: &str, args: &str) -> Process {
         let mut child = Command::new("sh")
             .arg("-c")
             .arg(format!("{prefix} exec '{exe}' --port 0 {args}"))
