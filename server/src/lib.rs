@@ -20,7 +20,8 @@
 //! - [`rollout`]: the Rollout RPC's rules (what a request may ask, what its stream is charged)
 //!   and the recording of whole episodes of a server-side policy.
 //! - [`codec`]: protobuf decoding that measures each request on the wire before decoding it
-//!   and answers undecodable or oversized ones `INVALID_ARGUMENT`.
+//!   and answers undecodable or oversized ones `INVALID_ARGUMENT`; `codec::intake`, the tower
+//!   layer that charges large messages while they are received and decoded.
 //! - [`session`]: the session store: IDs, limits, idle expiry, per-session locks, and what Reset,
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
 //! - [`connections`]: a folder, one job a file: the accept loop (backoff, limit), the table of
