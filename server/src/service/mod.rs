@@ -5,8 +5,9 @@
 //!   [`SessionError`] mapped once.
 //! - [`convert`]: the protocol's messages to the store's types and back.
 //! - [`step_stream`]: StepStream's replies, each request stepped exactly as the unary Step does.
-//! - [`step_path`]: a found session's Step or Reset, on the CPU pool for the planner, refusals
-//!   counted: the shared-memory data plane's path (the handlers' `heavy_if_planner` is the same).
+//! - [`step_path`]: the one path of a found session's work, whichever transport asked: on the CPU
+//!   pool for the planner, refusals counted. The handlers and the shared-memory data plane both
+//!   take it.
 //! - [`rollout_stream`]: the producer of a Rollout stream's episodes.
 //!
 //! Requests reach these handlers through the [`crate::auth::RequestGate`], which tags a tenant
@@ -38,6 +39,7 @@ use convert::{
     autoreset_from, batch_to, config_from, created, expert_actions_from, policy_from, reset_from,
 };
 use rollout_stream::Produce;
+use step_path::StepPath;
 
 use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
@@ -46,8 +48,7 @@ use crate::metrics::Metrics;
 use crate::pb;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{
-    Batch, Caller, ExpertActions, FoundSession, Owner, SessionError, SessionId, SessionOptions,
-    Store,
+    Batch, Caller, FoundSession, Owner, SessionError, SessionId, SessionOptions, Store,
 };
 use crate::shutdown::Shutdown;
 use crate::sim::{self, SNAPSHOT_VERSION};
@@ -64,10 +65,12 @@ pub struct DinerDashService {
     store: Store,
     /// Counts failed RPCs by code.
     metrics: Arc<Metrics>,
-    /// Where Rollout episodes are recorded, and Reset and Step of sessions whose expert actions
-    /// come from the planner: off the async workers and leaving them a core, so that neither can
-    /// starve the Step path of every other client.
+    /// Where Rollout episodes are recorded: off the async workers and leaving them a core, so
+    /// that they cannot starve the Step path of every other client.
     cpu: CpuPool,
+    /// The one step path both transports take: the planner's work on the same pool, refusals
+    /// counted ([`step_path`]).
+    path: StepPath,
     /// The tenant of requests that came neither with a tenant token nor on a connection this
     /// server accepted (an embedding that serves its own listener).
     unknown: Arc<Tenant>,
@@ -93,6 +96,7 @@ impl DinerDashService {
     ) -> DinerDashService {
         DinerDashService {
             store,
+            path: StepPath::new(CpuPool::beside_steps(), Arc::clone(&metrics)),
             metrics,
             cpu: CpuPool::beside_steps(),
             unknown: Arc::new(Tenant::new("an unknown connection".into(), share)),
@@ -136,16 +140,7 @@ impl DinerDashService {
         F: FnOnce(&FoundSession) -> Result<R, SessionError> + Send + 'static,
         R: Send + 'static,
     {
-        let session = self.store.find(owner, id).map_err(|e| self.fail(e))?;
-        let result = if session.expert_actions() == ExpertActions::Planner {
-            self.cpu
-                .run(move || job(&session))
-                .await
-                .unwrap_or_else(|e| Err(SessionError::Internal(e.to_string())))
-        } else {
-            job(&session)
-        };
-        result.map_err(|e| self.fail(e))
+        self.path.run(self.store.find(owner, id), job).await
     }
 
     /// One Step by `owner`, as the unary call and each message of a StepStream do it.
@@ -188,10 +183,7 @@ impl DinerDashService {
 
     /// The status for `e` (a session or Rollout refusal), counted.
     fn fail(&self, e: impl Into<Status>) -> Status {
-        let status = e.into();
-        self.metrics.count_error(status.code() as usize);
-        tracing::debug!(code = ?status.code(), message = status.message(), "request refused");
-        status
+        self.path.fail(e)
     }
 }
 

@@ -40,16 +40,18 @@ impl StepPath {
         session.expert_actions() == ExpertActions::Planner
     }
 
-    /// Runs `job` (the found session's Step or Reset) here, or on the pool's blocking threads
-    /// for a planner session; a refusal (the lookup's or the job's) is counted and returned as
-    /// its status.
-    pub async fn run<F>(
+    /// Runs `job` (the found session's Step or Reset, or its Render, Snapshot or Fork, which
+    /// wait for its lock) here, or on the pool's blocking threads for a planner session, whose
+    /// Step may hold that lock for long; a refusal (the lookup's or the job's) is counted and
+    /// returned as its status.
+    pub async fn run<F, R>(
         &self,
         found: Result<FoundSession, SessionError>,
         job: F,
-    ) -> Result<Batch, Status>
+    ) -> Result<R, Status>
     where
-        F: FnOnce(&FoundSession) -> Result<Batch, SessionError> + Send + 'static,
+        F: FnOnce(&FoundSession) -> Result<R, SessionError> + Send + 'static,
+        R: Send + 'static,
     {
         let session = found.map_err(|e| self.fail(e))?;
         let result = if Self::heavy(&session) {
