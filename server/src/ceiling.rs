@@ -165,11 +165,13 @@ fn stepping(threads: usize) -> Stepping {
     }
 }
 
-/// A fixed stream of random actions, packed as a Step carries them.
-struct Actions(u64);
+/// A fixed stream of random actions, packed as a Step carries them (a 64-bit LCG from `seed`);
+/// the parallel-stepping tests replay the same streams.
+pub struct Actions(pub u64);
 
 impl Actions {
-    fn next(&mut self, n: usize) -> Vec<u8> {
+    /// The next Step's actions for `n` environments.
+    pub fn next(&mut self, n: usize) -> Vec<u8> {
         (0..n)
             .flat_map(|_| {
                 self.0 = self

@@ -69,10 +69,7 @@ async fn a_public_host_without_a_token_is_refused_and_insecure_starts_it() {
         "--host 0.0.0.0 --insecure --drain-timeout 0 --max-shm-sessions 0",
     );
     assert!(server.addr.starts_with("0.0.0.0:"), "{}", server.addr);
-    server.signal("-TERM");
-    let (status, stderr) = tokio::task::spawn_blocking(move || server.wait())
-        .await
-        .unwrap();
+    let (status, stderr) = server.terminate().await;
     assert_eq!(status.code(), Some(0), "{stderr}");
     assert!(stderr.contains("--insecure: starting anyway"), "{stderr}");
 }
@@ -228,10 +225,7 @@ async fn the_web_endpoint_serves_tls_with_the_grpc_certificate_and_checks_the_ho
     assert!(!plain.contains("HTTP/1.1"), "{plain:?}");
     assert!(!plain.contains("sessions"), "{plain:?}");
 
-    server.signal("-TERM");
-    let (status, _) = tokio::task::spawn_blocking(move || server.wait())
-        .await
-        .unwrap();
+    let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -95,10 +95,7 @@ async fn at_the_open_file_limit_the_accept_loop_backs_off() {
     })
     .await;
     assert!(served.is_ok(), "the server did not recover");
-    server.signal("-TERM");
-    let (status, stderr) = tokio::task::spawn_blocking(move || server.wait())
-        .await
-        .unwrap();
+    let (status, stderr) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
     assert!(
         stderr.contains("cannot accept connections"),
@@ -167,10 +164,7 @@ async fn tokens_file_tenants_and_a_public_metrics_port() {
         .await
         .unwrap_err();
     assert_eq!(stranger.code(), Code::Unauthenticated);
-    server.signal("-TERM");
-    let (status, _) = tokio::task::spawn_blocking(move || server.wait())
-        .await
-        .unwrap();
+    let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
     std::fs::remove_dir_all(&dir).unwrap();
 }

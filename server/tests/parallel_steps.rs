@@ -6,11 +6,12 @@
 use std::sync::Arc;
 
 use dinerdash_server::budget::{Share, Tenant};
+use dinerdash_server::ceiling::Actions;
 use dinerdash_server::cpu::{SERIAL, StepPool, Stepping};
 use dinerdash_server::session::{
     Autoreset, Batch, Caller, Envs, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
 };
-use dinerdash_server::sim::{Config, NUM_ACTIONS};
+use dinerdash_server::sim::Config;
 
 /// Episodes that end within tens of steps: one life, little patience, and a time limit (so
 /// both terminations and truncations happen, at different steps in different environments).
@@ -21,23 +22,6 @@ fn short_episodes(time_limit: u32) -> Config {
         lives: 1,
         time_limit,
         ..Config::default()
-    }
-}
-
-/// A fixed stream of random actions.
-struct Actions(u64);
-
-impl Actions {
-    fn next(&mut self, n: usize) -> Vec<u8> {
-        (0..n)
-            .flat_map(|_| {
-                self.0 = self
-                    .0
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (((self.0 >> 33) % NUM_ACTIONS as u64) as i32).to_le_bytes()
-            })
-            .collect()
     }
 }
 

@@ -156,10 +156,7 @@ async fn at_the_file_limit_silent_connections_make_room_for_a_client() {
     );
 
     drop(silent);
-    server.signal("-TERM");
-    let (status, stderr) = tokio::task::spawn_blocking(move || server.wait())
-        .await
-        .unwrap();
+    let (status, stderr) = server.terminate().await;
     assert_eq!(status.code(), Some(0), "{stderr}");
     // The limit was capped and logged; accept never ran out of descriptors.
     assert!(

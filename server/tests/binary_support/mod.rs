@@ -72,6 +72,15 @@ impl Process {
         fields[11].parse::<u64>().unwrap() + fields[12].parse::<u64>().unwrap()
     }
 
+    /// Sends SIGTERM and waits (on a blocking thread) for the process to exit: its status and
+    /// stderr.
+    pub async fn terminate(self) -> (std::process::ExitStatus, String) {
+        self.signal("-TERM");
+        tokio::task::spawn_blocking(move || self.wait())
+            .await
+            .unwrap()
+    }
+
     /// Waits for the process to exit and returns its stderr.
     pub fn wait(mut self) -> (std::process::ExitStatus, String) {
         let started = Instant::now();
