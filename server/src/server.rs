@@ -112,13 +112,19 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
         session_ttl_s = config.limits.session_ttl.as_secs_f64(),
         "serving"
     );
+    // Both signals are listened for before the line below says the server is up, so that a
+    // SIGTERM sent as soon as it is read drains the server rather than killing it.
+    let signals = shutdown::Signals::new();
     // The one line on stdout: clients that started this process read the port from it.
     let mut stdout = std::io::stdout().lock();
     let _ = writeln!(stdout, "dinerdash-server listening on {addr}");
     let _ = stdout.flush();
     drop(stdout);
 
-    shutdown::serve_until_signal(config.drain_timeout, |stop| run(listeners, config, stop)).await
+    shutdown::serve_until_signal(signals, config.drain_timeout, |stop| {
+        run(listeners, config, stop)
+    })
+    .await
 }
 
 /// Starts the shared-memory doorbell ([`crate::shm`]) for up to `max` sessions and returns its

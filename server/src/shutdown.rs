@@ -29,18 +29,19 @@ pub const DEFAULT_DRAIN_TIMEOUT: Duration = Duration::from_secs(30);
 /// How often a draining server looks whether its last session has gone.
 const DRAIN_POLL: Duration = Duration::from_millis(50);
 
-/// Runs `serve` with a future that completes on the first SIGINT/SIGTERM (the start of the
-/// drain), and returns what it returns; returns `Ok` anyway, ending the process, on a second
-/// signal or once `drain_timeout` and then [`DRAIN_DEADLINE`] have passed since the first.
+/// Runs `serve` with a future that completes on the first of `signals` (the start of the drain),
+/// and returns what it returns; returns `Ok` anyway, ending the process, on a second signal or
+/// once `drain_timeout` and then [`DRAIN_DEADLINE`] have passed since the first. The caller
+/// makes `signals` before it tells anyone the server is up, so that a signal sent at once is
+/// a drain, not the default action that kills the process.
 pub async fn serve_until_signal<F, E>(
+    mut signals: Signals,
     drain_timeout: Duration,
     serve: impl FnOnce(std::pin::Pin<Box<dyn Future<Output = ()> + Send>>) -> F,
 ) -> Result<(), E>
 where
     F: Future<Output = Result<(), E>>,
 {
-    // Both signals are listened for from the start, so that none is missed between the two.
-    let mut signals = Signals::new();
     let (signalled, first) = tokio::sync::oneshot::channel();
     let stop = Box::pin(async move {
         if first.await.is_err() {
