@@ -12,7 +12,7 @@ import gymnasium
 import numpy as np
 import pytest
 from dinerdash import Connection, ServerDraining, ServiceTransportError
-from dinerdash._decode import drain_remaining_ms
+from dinerdash._batch import drain_remaining_ms
 from dinerdash._proto import pb
 
 #: Far beyond any test's length: the server drains for the whole test.

@@ -16,7 +16,9 @@ Layout:
     _core         the session core: one batched session on one server (create, reset, step,
                   reconnect), shared by both environments
     _caller       the caller thread that makes a core's Steps for step_async / step_wait
-    _decode       reply decoding: Batch fields to numpy observations and Gymnasium infos
+    _batch        Batch: a reply's arrays, whatever transport carried them, decoded once; its
+                  operations (slice, join, splice, hand-over) and the Gymnasium observations
+                  and infos made of it
     _failover     moving a lost server's environments to the servers left (failover_after)
     env           DinerDashEnv, the Gymnasium Env
     vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)

@@ -23,8 +23,8 @@ from gymnasium.vector import AutoresetMode
 
 from . import _shm
 from ._arguments import config_dict
+from ._batch import Batch, interrupt
 from ._caller import Caller
-from ._decode import copy_of
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection
@@ -161,11 +161,12 @@ class SessionCore:
         #: The session on the server, ``None`` before :meth:`create` and after :meth:`close`.
         self.session_id: str | None = None
         self.spec: pb.Spec | None = None
-        #: The last Batch received, kept for render(), action_masks() and a lost server.
-        self.last: pb.Batch | None = None
+        #: The last Batch received, kept for render(), action_masks() and a lost server (over
+        #: shared memory, views of the region: valid until the next Step is sent).
+        self.last: Batch | None = None
         #: NEXT_STEP after a reconnect: the new session's first Batch, handed out at the next
         #: step as that step's autoreset (Gymnasium's NEXT_STEP semantics).
-        self.pending: pb.Batch | None = None
+        self.pending: Batch | None = None
         #: The server was lost and the session reopened during the current step.
         self.reconnected = False
         #: The thread that makes the Step calls of ``start_step``, started at the first one.
@@ -230,9 +231,9 @@ class SessionCore:
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up
 
-    def note(self, batch: pb.Batch) -> pb.Batch:
+    def note(self, batch: Batch) -> Batch:
         """Records what a Batch from the server says of the server (draining)."""
-        self.drain_ms = getattr(batch, "drain_remaining_ms", 0)
+        self.drain_ms = batch.drain_ms
         return batch
 
     # -- the session ----------------------------------------------------------------------------
@@ -366,14 +367,14 @@ class SessionCore:
                 r.arrivals.extend(arrivals[self.start : self.stop])
         return r
 
-    def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> pb.Batch:
+    def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> Batch:
         """The reply to ``request`` (started as ``future``, or called now). After a lost server
         (``reconnect=True``) the new session is reset whole, as a new session must be."""
         try:
             if future is None:
-                batch = self.conn.call("Reset", request)
+                batch = Batch.from_pb(self.conn.call("Reset", request))
             else:
-                batch = self.conn.result("Reset", request, future)
+                batch = Batch.from_pb(self.conn.result("Reset", request, future))
         except ServiceError as e:
             # A call cancelled because its server was given up (silent) is lost too.
             if not self.settings.reconnect or not (isinstance(e, LOST) or self.given_up()):
@@ -381,13 +382,13 @@ class SessionCore:
             self.reopen(e)
             request.session_id = self.session_id
             request.ClearField("reset_mask")
-            batch = self.conn.call("Reset", request)
+            batch = Batch.from_pb(self.conn.call("Reset", request))
         self.last, self.pending = self.note(batch), None
         return batch
 
     # -- Step -----------------------------------------------------------------------------------
 
-    def step(self, actions: bytes) -> pb.Batch:
+    def step(self, actions: bytes) -> Batch:
         """One Step of this core's environments (their ``actions`` as packed int32), blocking."""
         if self.pending is not None:
             batch, self.pending = self.pending, None
@@ -419,48 +420,25 @@ class SessionCore:
         (a :func:`time.monotonic` time; ``None``: waits for it)."""
         return self.caller.wait(deadline)
 
-    def finish_step(self) -> pb.Batch:
+    def finish_step(self) -> Batch:
         """The Batch of the Step begun by :meth:`start_step`, once it has arrived."""
         return self.caller.result()
 
-    def recover_step(self, error: ServiceError) -> pb.Batch:
+    def recover_step(self, error: ServiceError) -> Batch:
         """A Batch that reports the interrupted episodes as truncated, after opening a new
         session for them (``reconnect=True``); raises ``error`` otherwise."""
         if not self.settings.reconnect or self.last is None:
             raise self.fail(error) from None
-        last = _shm.as_pb(self.last)
+        last = self.last
         self.reopen(error)
-        first = self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id))
+        first = Batch.from_pb(self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id)))
         return self.interrupt(last, first)
 
-    def interrupt(self, last: pb.Batch, first: pb.Batch) -> pb.Batch:
+    def interrupt(self, last: Batch, first: Batch) -> Batch:
         """The Batch of a step that interrupts this core's episodes, whose ``last`` Batch came
-        from a lost session, and starts the new session's, whose Reset replied ``first``: the
-        old episodes end truncated (reward 0), and ``info["reconnected"]`` will say so."""
-        n = self.size
-        if self.settings.autoreset_mode != AutoresetMode.SAME_STEP:
-            # This step ends the episodes (last state, truncated). NEXT_STEP: the next step
-            # hands out the new session's first observations as the autoreset. DISABLED: the
-            # caller resets them; the new session's episodes have already started.
-            out = copy_of(last)
-            out.reset = bytes(n)
-            del out.seeds[:]
-            out.seeds.extend([0] * n)
-            if self.settings.autoreset_mode == AutoresetMode.NEXT_STEP:
-                self.pending = first
-        else:
-            # SAME_STEP: the new episodes start in this very step; the old ones are final_*.
-            out = copy_of(first)
-            out.final_observations = last.observations
-            out.final_scores = last.scores
-            out.final_lost = last.lost
-            out.final_ticks = last.ticks
-            out.final_action_masks = last.action_masks
-            out.final_expert_actions = last.expert_actions
-        out.rewards = bytes(4 * n)
-        out.terminated = bytes(n)
-        out.truncated = b"\x01" * n
-        out.ClearField("stream_episodes")
+        from a lost session, and starts the new session's, whose Reset replied ``first``
+        (:func:`~dinerdash._batch.interrupt`); ``info["reconnected"]`` will say so."""
+        out, self.pending = interrupt(last, first, self.settings.autoreset_mode)
         self.reconnected = True
         return out
 

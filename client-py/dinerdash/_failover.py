@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from ._batch import Batch
 from ._core import SessionCore
-from ._proto import pb
 from .errors import (
     NoServerLeft,
     ResourceExhausted,
@@ -34,7 +34,7 @@ PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
 
 #: ``start(lost_core, new_core)``: the new core's session is created; this resets it and returns
 #: the Batch that the env reports for the new core's environments.
-Start = Callable[[SessionCore, SessionCore], pb.Batch]
+Start = Callable[[SessionCore, SessionCore], Batch]
 
 
 def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:

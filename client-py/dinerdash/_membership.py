@@ -8,9 +8,6 @@ appear and drain (``reconnect=True`` with ``failover_after``).
 - :class:`Membership` checks the given-up servers' health and a DNS-name address's new
   replicas (resolved again every ``resolve_every`` seconds) at the env's step boundaries,
   without blocking; the env takes the servers it found (:meth:`Membership.found`).
-- :func:`handover` builds the Batch of environments that move to another server at their
-  episode end (rebalancing onto a server taken in, or leaving a draining server), so that no
-  episode is cut; or, when a draining server's deadline is about to pass, cut as a failover's.
 """
 
 from __future__ import annotations
@@ -22,17 +19,13 @@ import time
 from collections.abc import Callable, Sequence
 
 import grpc
-import numpy as np
-from gymnasium.vector import AutoresetMode
 
 from . import connection
-from ._decode import copy_of
 from ._endpoint import Endpoint
-from ._proto import pb
 from .connection import Connection, ConnectOptions, _split_host_port
 from .errors import ServiceError
 
-__all__ = ["Membership", "await_replies", "boundary", "handover", "has_name", "splice"]
+__all__ = ["Membership", "await_replies", "has_name"]
 
 log = logging.getLogger("dinerdash")
 
@@ -191,103 +184,3 @@ class Membership:
         for _, conn, _ in self._probes.values():
             conn.close()
         self._probes = {}
-
-
-def boundary(batch: pb.Batch, mode: AutoresetMode) -> np.ndarray:
-    """Which environments of ``batch`` (a step's) are at an episode end, where one may move
-    without cutting its episode: NEXT_STEP, the episode ended in this step (its next step is
-    the autoreset); SAME_STEP, the next episode began in this step and has not been played."""
-    if mode == AutoresetMode.SAME_STEP:
-        return np.frombuffer(batch.reset, np.bool_) if batch.reset else np.zeros(0, np.bool_)
-    done = np.frombuffer(batch.terminated, np.bool_) | np.frombuffer(batch.truncated, np.bool_)
-    return done
-
-
-def handover(ended: pb.Batch, first: pb.Batch, mode: AutoresetMode, cut: bool) -> tuple:
-    """The Batch that environments moving to a new session report for the step just made,
-    and the Batch their next step reports (NEXT_STEP's autoreset; else ``None``).
-
-    ``ended`` is their part of the step's Batch on the old server, ``first`` the new session's
-    Reset reply. Not ``cut`` (they are at an episode end, :func:`boundary`): NEXT_STEP reports
-    ``ended`` as it is and the next step hands out ``first`` as the autoreset; SAME_STEP reports
-    ``first`` as the new episode, with the ended one's last state and infos as ``final_*``, so
-    that the new episode is the new server's. ``cut`` (a drain deadline about to pass): their
-    episodes end truncated in this step, as a failover's do, keeping this step's rewards."""
-    n = ended.num_envs or len(ended.rewards) // 4
-    if mode != AutoresetMode.SAME_STEP:
-        out = copy_of(ended)
-        if cut:
-            terminated = np.frombuffer(ended.terminated, np.bool_)
-            out.truncated = (~terminated).astype(np.uint8).tobytes()
-        return out, first
-    out = copy_of(first)
-    out.rewards = ended.rewards
-    out.terminated = ended.terminated
-    if cut:
-        out.final_observations = ended.observations
-        out.final_scores = ended.scores
-        out.final_lost = ended.lost
-        out.final_ticks = ended.ticks
-        out.final_action_masks = ended.action_masks
-        out.final_expert_actions = ended.expert_actions
-        terminated = np.frombuffer(ended.terminated, np.bool_)
-        out.truncated = (~terminated).astype(np.uint8).tobytes()
-    else:
-        out.truncated = ended.truncated
-        out.final_observations = ended.final_observations
-        out.final_scores = ended.final_scores
-        out.final_lost = ended.final_lost
-        out.final_ticks = ended.final_ticks
-        out.final_action_masks = ended.final_action_masks
-        out.final_expert_actions = ended.final_expert_actions
-    out.reset = b"\x01" * n
-    out.ClearField("stream_episodes")
-    return out, None
-
-
-#: What a step reports of an episode's outcome (the rest is the environment's state).
-OUTCOME = ("rewards", "terminated", "truncated")
-FINAL = (
-    "final_observations",
-    "final_scores",
-    "final_lost",
-    "final_ticks",
-    "final_action_masks",
-    "final_expert_actions",
-)
-
-
-def splice(base: pb.Batch, other: pb.Batch, mask: np.ndarray, fields=None) -> pb.Batch:
-    """``base`` with the environments of ``mask`` taken from ``other`` (a Batch of the same
-    environments) for ``fields`` (default: every field ``other`` has but the episode outcome
-    and ``final_*``); a field missing on one side counts as zeros."""
-    n = len(mask)
-    out = copy_of(base)
-    if fields is None:
-        fields = [
-            d.name
-            for d, _ in other.ListFields()
-            if d.name not in OUTCOME + FINAL and d.name not in ("num_envs", "stream_episodes")
-        ]
-    for name in fields:
-        if name == "seeds":
-            mine = list(base.seeds) or [0] * n
-            theirs = list(other.seeds) or [0] * n
-            del out.seeds[:]
-            out.seeds.extend(t if m else b for b, t, m in zip(mine, theirs, mask, strict=True))
-            continue
-        a, b = getattr(base, name), getattr(other, name)
-        if not a and not b:
-            continue
-        width = max(len(a), len(b)) // n
-        joined = _rows(a, n, width).copy()
-        joined[mask] = _rows(b, n, width)[mask]
-        setattr(out, name, joined.tobytes())
-    return out
-
-
-def _rows(data: bytes, n: int, width: int) -> np.ndarray:
-    """A packed field as one row of bytes per environment (zeros when absent)."""
-    if not data:
-        return np.zeros((n, width), np.uint8)
-    return np.frombuffer(data, np.uint8).reshape(n, width)

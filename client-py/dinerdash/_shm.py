@@ -11,8 +11,9 @@ then does it say hello with the session ID and secret, and receive the session's
 memfd it maps. Whenever shared memory is not used, the reason is logged at debug level
 (logger ``dinerdash``). Each Step then writes the actions into the region, sends one byte and
 waits for one byte back; the reply's arrays are in the region at fixed offsets (the layout of
-``server/src/shm/layout.rs``), copied out in one piece per step and handed to the decoders as a
-:class:`RegionBatch`, which reads like a ``pb.Batch`` without building anything per environment.
+``server/src/shm/layout.rs``), handed out as a :class:`~dinerdash._batch.Batch` whose arrays are
+views of the region (made once per layout, not per Step): valid until the session's next Step
+is sent, and copied by the environments exactly where they return them.
 
 The server checks the actions exactly as its gRPC Step does and refuses them with the same code,
 message and details, which become the same typed exception here. A doorbell that closes under a
@@ -44,6 +45,8 @@ from typing import Any
 import grpc
 import numpy as np
 
+from ._batch import FIELDS as _SHAPES
+from ._batch import Batch
 from ._proto import pb
 from .connection import Connection, _split_host_port
 from .errors import (
@@ -54,7 +57,7 @@ from .errors import (
     error_for_status,
 )
 
-__all__ = ["Channel", "Offer", "RegionBatch", "as_pb", "attach", "detach", "offer", "step"]
+__all__ = ["Channel", "Offer", "attach", "detach", "offer", "step"]
 
 #: "DDsh" and the layout version this client reads.
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
@@ -91,8 +94,6 @@ _TICK = 0.25
 #: whose CPU went idle costs tens of microseconds, more than a small session's Step. The
 #: server's session thread does the same for the next Step (``server/src/shm/mod.rs``, ``SPIN``).
 _SPIN = 100e-6
-#: The integer arrays that a ``pb.Batch`` holds as repeated fields.
-_REPEATED = {"seeds": "<u8", "stream_episodes": "<u4"}
 
 log = logging.getLogger("dinerdash")
 
@@ -180,54 +181,6 @@ def _check_peer(sock: socket.socket, offer: Offer) -> None:
         )
 
 
-class RegionBatch:
-    """One Step's reply read from the region: the arrays of a ``pb.Batch`` by the same names
-    (``bytes``-like views of one private copy; ``seeds`` and ``stream_episodes`` as numpy
-    arrays), absent ones empty. :meth:`to_pb` makes a real ``pb.Batch`` where one is needed.
-
-    The present arrays are plain instance attributes (set once, read as fast as any), the absent
-    ones the class's empty defaults below."""
-
-    def __init__(
-        self,
-        data: bytes,
-        spans: dict[str, tuple[int, int]],
-        num_envs: int,
-        drain_remaining_ms: int = 0,
-    ) -> None:
-        view = memoryview(data)
-        fields = self.__dict__
-        for name, (lo, hi) in spans.items():
-            fields[name] = view[lo:hi]
-        for name, dtype in _REPEATED.items():
-            if name in spans:
-                fields[name] = np.frombuffer(fields[name], dtype=dtype)
-        self._spans = spans
-        self.num_envs = num_envs
-        self.drain_remaining_ms = drain_remaining_ms
-
-    def to_pb(self) -> pb.Batch:
-        out = pb.Batch(num_envs=self.num_envs, drain_remaining_ms=self.drain_remaining_ms)
-        for name in self._spans:
-            value = getattr(self, name)
-            if name in _REPEATED:
-                getattr(out, name).extend(value.tolist())
-            else:
-                setattr(out, name, bytes(value))
-        return out
-
-    def ListFields(self):
-        return self.to_pb().ListFields()
-
-
-for _name in FIELDS:
-    setattr(
-        RegionBatch,
-        _name,
-        np.zeros(0, dtype=_REPEATED[_name]) if _name in _REPEATED else b"",
-    )
-
-
 class Channel:
     """One session's doorbell socket and mapped region."""
 
@@ -293,9 +246,9 @@ class Channel:
             struct.unpack_from("<I", self.mm, _TABLE + 8 * i)[0] for i in range(len(FIELDS))
         ]
         self._lengths = np.frombuffer(self.mm, dtype="<u4", count=len(FIELDS), offset=_LENGTHS)
-        #: The lengths of the last reply, and the spans and end they gave (a session's replies
-        #: mostly repeat them).
-        self._known: tuple[bytes, dict[str, tuple[int, int]], int] = (b"", {}, _ARRAYS)
+        #: The lengths of the last reply, and the views of the region they gave (a session's
+        #: replies mostly repeat them).
+        self._known: tuple[bytes, dict[str, np.ndarray]] = (b"", {})
         #: Whether the last reply came within _SPIN: then the next one is polled for.
         self._quick = False
 
@@ -317,9 +270,10 @@ class Channel:
             message = f"{method}: {message}"
         return error_for_status(code, message, self.address, bytes(reply[9 + size :]) or None)
 
-    def step(self, actions: bytes) -> RegionBatch | None:
-        """One Step: the reply, the server's typed refusal raised, or ``None`` when the doorbell
-        closed (the Step is then to be made over gRPC)."""
+    def step(self, actions: bytes) -> Batch | None:
+        """One Step: the reply (views of the region, valid until the next Step is sent), the
+        server's typed refusal raised, or ``None`` when the doorbell closed (the Step is then to
+        be made over gRPC)."""
         offset = self._offsets[0]
         self.mm[offset : offset + len(actions)] = actions
         try:
@@ -358,16 +312,29 @@ class Channel:
                 return None
             raise self._refusal("Step", reply)
         lengths = self._lengths.tobytes()
-        known, spans, end = self._known
+        known, views = self._known
         if lengths != known:
-            spans, end = {}, _ARRAYS
-            for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
-                if size and name != "actions":
-                    spans[name] = (lo - _ARRAYS, lo - _ARRAYS + size)
-                    end = max(end, lo + size)
-            self._known = (lengths, spans, end)
+            views = self._views()
+            self._known = (lengths, views)
         (drain,) = _DRAIN.unpack_from(self.mm, _DRAIN_AT)
-        return RegionBatch(self.mm[_ARRAYS:end], spans, self.num_envs, drain)
+        return Batch.of_arrays(self.num_envs, views, drain)
+
+    def _views(self) -> dict[str, np.ndarray]:
+        """The reply's arrays as read-only views of the region, shaped as :class:`Batch` holds
+        them, for the lengths the last reply wrote (the next Step's reply overwrites them)."""
+        views = {}
+        for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
+            if not size or name == "actions":
+                continue
+            dtype, width = _SHAPES[name]
+            view = np.frombuffer(
+                self.mm, dtype=dtype, count=size // np.dtype(dtype).itemsize, offset=lo
+            )
+            if width > 1:
+                view = view.reshape(-1, width)
+            view.flags.writeable = False
+            views[name] = view
+        return views
 
     def _poll(self, sent: float) -> bytes | None:
         """The reply if it comes within _SPIN of ``sent``, polled for without sleeping; ``None``
@@ -384,16 +351,12 @@ class Channel:
 
     def close(self) -> None:
         self.sock.close()
-        self._lengths = None  # the one view of the mapping this side keeps
+        self._lengths = None  # the views of the mapping this side keeps
+        self._known = (b"", {})
         try:
             self.mm.close()
         except BufferError:  # a view still exported: the mapping goes with it
             pass
-
-
-def as_pb(batch: Any) -> Any:
-    """``batch`` as a ``pb.Batch`` (a :class:`RegionBatch` converted, anything else as is)."""
-    return batch.to_pb() if isinstance(batch, RegionBatch) else batch
 
 
 def offer(core: Any, reply: Any) -> None:
@@ -462,6 +425,8 @@ def detach(core: Any) -> None:
     """Closes ``core``'s channel, if any (its session closed or replaced)."""
     channel = _CHANNELS.pop(core, None)
     if channel is not None:
+        if core.last is not None:  # kept (a failover reads it): no longer a view of the region
+            core.last = core.last.copy()
         channel.close()
 
 
@@ -474,6 +439,9 @@ def step(core: Any, actions: bytes) -> Any:
         channel = _CHANNELS.get(core)
     if channel is not None:
         if channel.session_id == core.session_id:
+            if core.settings.reconnect and core.last is not None:
+                # A lost server's episodes end in their last state: kept past this Step.
+                core.last = core.last.copy()
             try:
                 batch = channel.step(actions)
             except (ServiceTimeout, EnvClosed):
@@ -482,9 +450,5 @@ def step(core: Any, actions: bytes) -> Any:
             if batch is not None:
                 return batch
         detach(core)
-    try:
-        return core.conn.call("Step", pb.StepRequest(session_id=core.session_id, actions=actions))
-    except ServiceError:
-        # A lost server's recovery (and a failover's slice of it) copies the last Batch.
-        core.last = as_pb(core.last)
-        raise
+    request = pb.StepRequest(session_id=core.session_id, actions=actions)
+    return Batch.from_pb(core.conn.call("Step", request))

@@ -25,8 +25,8 @@ from ._arguments import (
     make_arrivals,
     make_config,
 )
+from ._batch import decode_one
 from ._core import SessionCore, SessionOwner, Settings, check_actions
-from ._decode import decode_one
 from ._endpoint import Endpoint
 from ._proto import pb
 from .connection import Connection, ConnectOptions
@@ -252,7 +252,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         request = self._core.reset_request(seed=seed, arrivals=arrivals, config=config)
         batch = self._core.reset(request)
         obs, info = decode_one(batch, self.expert)
-        info["seed"] = batch.seeds[0]
+        info["seed"] = int(batch["seeds"][0])
         self._last_obs, self._last_info = obs, info
         return obs.copy(), dict(info)
 
@@ -272,8 +272,9 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         obs, info = decode_one(batch, self.expert)
         info["seed"] = self._last_info["seed"]  # every step's info has reset's keys
         self._last_obs, self._last_info = obs, info
-        reward = float(int.from_bytes(batch.rewards, "little", signed=True))
-        return obs.copy(), reward, batch.terminated[0] != 0, batch.truncated[0] != 0, dict(info)
+        f = batch.fields
+        reward = float(f["rewards"][0])
+        return obs.copy(), reward, bool(f["terminated"][0]), bool(f["truncated"][0]), dict(info)
 
     def action_masks(self) -> np.ndarray:
         """The 57 actions that have an effect in the current state, as a ``bool`` array: what

@@ -44,6 +44,7 @@ from ._arguments import (
     make_arrivals,
     make_config,
 )
+from ._batch import FINAL, OUTCOME, Batch, boundary, decode, handover, join
 from ._core import (
     ServerLost,
     SessionCore,
@@ -51,19 +52,9 @@ from ._core import (
     Settings,
     check_actions,
 )
-from ._decode import decode, join, seeds, slice_batch
 from ._endpoint import Endpoint
 from ._failover import fail_over, pieces
-from ._membership import (
-    FINAL,
-    OUTCOME,
-    Membership,
-    await_replies,
-    boundary,
-    handover,
-    has_name,
-    splice,
-)
+from ._membership import Membership, await_replies, has_name
 from ._proto import pb
 from .connection import ConnectOptions
 from .errors import (
@@ -289,13 +280,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         out.sort(key=lambda p: p[0])
         return out
 
-    def _batches(self) -> list[pb.Batch]:
+    def _batches(self) -> list[Batch]:
         """The cores' last Batches cut to the environments each holds, in environment order."""
         cores = self._cores
         if all(c.owned is None for c in cores):
             return [c.last for c in cores]
         return [
-            c.last if c.owned is None else slice_batch(c.last, lo - c.start, hi - c.start)
+            c.last if c.owned is None else c.last.slice(lo - c.start, hi - c.start)
             for lo, hi, c in self._pieces()
         ]
 
@@ -391,8 +382,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._take_in()
 
         # The moved environments' new sessions are reset whole, as after a reconnect.
-        def start(old: SessionCore, new: SessionCore) -> pb.Batch:
-            return new.conn.call("Reset", new.reset_request(**given))
+        def start(old: SessionCore, new: SessionCore) -> Batch:
+            return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
 
         for core in self._cores:
             core.entering = set()
@@ -427,14 +418,14 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 lost.append(core)
         if lost:
             self._cores = fail_over(self._cores, lost, start)
-        batches = self._batches()
-        reset = [
-            bytes(hi - lo) if id(c) in kept else c.last.reset[lo - c.start : hi - c.start]
-            for lo, hi, c in self._pieces()
-        ]
-        obs, info = decode(batches, self.num_envs, self.expert)
-        info["seed"] = seeds(batches).astype(np.int64)  # as SyncVectorEnv; torch has no uint64
-        info["_seed"] = np.frombuffer(b"".join(reset), dtype=np.bool_).copy()
+        batch = join(self._batches())
+        obs, info = decode(batch, self.expert)
+        info["seed"] = batch["seeds"].astype(np.int64)  # as SyncVectorEnv; torch has no uint64
+        reset = batch["reset"].copy()
+        for lo, hi, c in self._pieces():
+            if id(c) in kept:
+                reset[lo:hi] = False
+        info["_seed"] = reset
         self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
         self._last_finish = time.monotonic()  # the time between steps, for a drain's margin
         return obs, info
@@ -541,7 +532,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._pending = True
         self._sent = time.monotonic()
 
-    def _finish(self) -> list[pb.Batch]:
+    def _finish(self) -> list[Batch]:
         """Every core's Batch of the pending step. Every reply is awaited (and every core
         updated) before the first error, if any, is raised: no server's step goes unrecorded. An
         interrupted wait (Ctrl-C) leaves the step pending, to be collected by ``step_wait()``.
@@ -739,7 +730,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 return
             covered.update(range(lo, hi))
 
-    def _session_on(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, pb.Batch] | None:
+    def _session_on(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, Batch] | None:
         """A new session on server ``dest`` for environments ``lo:hi``, created and reset
         (unseeded: the new server draws the episodes' seeds, as an autoreset does), with its
         first Batch; None when ``dest`` cannot take it now (it drains, is full or unreachable:
@@ -747,8 +738,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         new = SessionCore(self._endpoint, dest, lo, hi, self._settings)
         try:
             new.create(self._quick())
-            first = new.conn.call(
-                "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
+            first = Batch.from_pb(
+                new.conn.call(
+                    "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
+                )
             )
         except ServiceError as e:
             new.close()
@@ -786,23 +779,18 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         mask[[i - new.start for i in envs]] = True
         request = pb.ResetRequest(session_id=new.session_id, reset_mask=mask.tobytes())
         try:
-            first = new.note(new.conn.call("Reset", request, timeout=self._quick()))
+            reply = new.conn.call("Reset", request, timeout=self._quick())
+            first = new.note(Batch.from_pb(reply))
         except ServiceError:
             return  # its server is going: the transfer is dropped at the next failover
-        batch = splice(new.last, first, mask)
+        batch = new.last.splice(first, mask)
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            old = slice_batch(
-                new.source.last, new.start - new.source.start, new.stop - new.source.start
-            )
-            batch = splice(batch, old, mask, OUTCOME + FINAL)
+            old = new.source.last.slice(new.start - new.source.start, new.stop - new.source.start)
+            batch = batch.splice(old, mask, OUTCOME + FINAL)
         else:
-            zeros = pb.Batch(
-                rewards=bytes(4 * new.size),
-                terminated=bytes(new.size),
-                truncated=bytes(new.size),
-            )
-            batch = splice(batch, zeros, mask, OUTCOME)
-        batch = splice(batch, pb.Batch(reset=b"\x01" * new.size), mask, ("reset",))
+            batch = batch.splice(Batch(new.size, {}), mask, OUTCOME)
+        ones = Batch(new.size, {"reset": np.ones(new.size, np.bool_)})
+        batch = batch.splice(ones, mask, ("reset",))
         new.last = batch
         for i in envs:
             new.source.disown(i, i + 1)
@@ -844,7 +832,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         if opened is None:
             return False
         new, first = opened
-        ended = slice_batch(core.last, i - core.start, i - core.start + 1)
+        ended = core.last.slice(i - core.start, i - core.start + 1)
         new.last, new.pending = handover(ended, first, self.autoreset_mode, cut)
         new.reconnected = cut
         core.disown(i, i + 1)
@@ -859,25 +847,28 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_idle("action_masks()")
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
-        masks = np.frombuffer(join(self._batches(), "action_masks"), np.bool_)
-        return masks.reshape(self.num_envs, -1).copy()
+        return join(self._batches())["action_masks"].copy()
 
-    def _decode_step(self, batches: list[pb.Batch]):
+    def _decode_step(self, batches: list[Batch]):
         n = self.num_envs
-        obs, info = decode(batches, n, self.expert)
-        rewards = np.frombuffer(join(batches, "rewards"), dtype="<i4").astype(np.float64)
-        terminated = np.frombuffer(join(batches, "terminated"), dtype=np.bool_).copy()
-        truncated = np.frombuffer(join(batches, "truncated"), dtype=np.bool_).copy()
-        reset = np.frombuffer(join(batches, "reset"), dtype=np.bool_)
+        batch = join(batches)
+        f = batch.fields
+        obs, info = decode(batch, self.expert)
+        rewards = f["rewards"].astype(np.float64)
+        terminated = f["terminated"].copy()
+        truncated = f["truncated"].copy()
+        reset = f.get("reset")
+        resets = reset is not None and reset.any()
         # Every step's info has reset's keys (TorchRL reads them once): each environment's
         # episode seed, as a SyncVectorEnv of DinerDashEnv reports it.
         ended_seeds = self._seeds
-        if reset.any():
-            self._seeds = np.where(reset, seeds(batches).astype(np.int64), self._seeds)
+        if resets:
+            self._seeds = np.where(reset, batch["seeds"].astype(np.int64), self._seeds)
         info["seed"], info["_seed"] = self._seeds.copy(), np.ones(n, np.bool_)
-        if reset.any():
+        if resets:
+            reset = reset.copy()
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
-                final, final_info = decode(batches, n, self.expert, "final_", reset)
+                final, final_info = decode(batch, self.expert, "final_", reset)
                 final_info["seed"] = np.where(reset, ended_seeds, 0)
                 final_info["_seed"] = reset.copy()
                 final_obs = np.full(n, None, dtype=object)
@@ -914,7 +905,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             )
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")
-        obs, info = decode(self._batches(), self.num_envs, self.expert)
+        obs, info = decode(join(self._batches()), self.expert)
         lives = self.spec_proto.config.lives
         return tuple(
             _render.draw(
@@ -956,11 +947,11 @@ def _ready(future):
     return ready
 
 
-def _interrupted(old: SessionCore, new: SessionCore) -> pb.Batch:
+def _interrupted(old: SessionCore, new: SessionCore) -> Batch:
     """A moved core's Batch for the step in which its server was given up: its environments'
     episodes end truncated in their last state (``old.last``), and the new session's first
     Batch (an unseeded Reset: the new server draws each episode's seed) is the autoreset, as
     after a reconnect."""
-    first = new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id))
-    last = slice_batch(old.last, new.start - old.start, new.stop - old.start)
+    first = Batch.from_pb(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
+    last = old.last.slice(new.start - old.start, new.stop - old.start)
     return new.interrupt(last, first)

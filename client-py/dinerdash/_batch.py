@@ -1,0 +1,302 @@
+"""The Batch: one Reset's or Step's reply for the environments of one session (or of a whole
+env), as numpy arrays, whatever transport carried it; and what the environments make of it
+(:func:`decode`, :func:`decode_one`). This is the one module that names the reply's fields.
+
+A Batch is decoded once: from a gRPC reply (:meth:`Batch.from_pb`, arrays that read the
+message's bytes without copying them) or from a shared-memory region (:meth:`Batch.of_arrays`,
+arrays that *are* views of the region: :mod:`dinerdash._shm`). A view of the region is valid
+until the session's next Step is sent; the session core copies its last Batch
+(:meth:`Batch.copy`) before that only when it may need it afterwards (``reconnect=True``: a lost
+server's episodes end in their last state). What the environments return to their caller is
+always the caller's own (:func:`decode` copies exactly there, as Gymnasium's contract asks: an
+observation returned must not change under the caller at the next step).
+
+The operations the client needs are here too: cut (:meth:`Batch.slice`), :func:`join`,
+:meth:`Batch.splice` (some environments' fields taken from another Batch), and the Batches of
+environments that move between servers (:func:`handover`, :func:`interrupt`) or sit at an
+episode end (:func:`boundary`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from ._proto import pb
+from .game import NUM_ACTIONS, OBSERVATION_SIZE
+
+__all__ = [
+    "FINAL",
+    "OUTCOME",
+    "Batch",
+    "boundary",
+    "decode",
+    "decode_one",
+    "drain_remaining_ms",
+    "handover",
+    "interrupt",
+    "join",
+]
+
+#: Every per-environment field: its dtype and its width per environment (the wire's layout,
+#: ``proto/dinerdash/v1/dinerdash.proto``). The flags (0/1 bytes) read as bools.
+FIELDS: dict[str, tuple[str, int]] = {
+    "observations": ("i1", OBSERVATION_SIZE),
+    "rewards": ("<i4", 1),
+    "terminated": ("?", 1),
+    "truncated": ("?", 1),
+    "scores": ("<i4", 1),
+    "lost": ("<u4", 1),
+    "ticks": ("<u4", 1),
+    "action_masks": ("?", NUM_ACTIONS),
+    "expert_actions": ("u1", 1),
+    "reset": ("?", 1),
+    "seeds": ("<u8", 1),
+    "final_observations": ("i1", OBSERVATION_SIZE),
+    "final_scores": ("<i4", 1),
+    "final_lost": ("<u4", 1),
+    "final_ticks": ("<u4", 1),
+    "stream_episodes": ("<u4", 1),
+    "final_action_masks": ("?", NUM_ACTIONS),
+    "final_expert_actions": ("u1", 1),
+}
+#: The fields a ``pb.Batch`` holds as repeated integers rather than packed bytes.
+REPEATED = ("seeds", "stream_episodes")
+#: An environment's state (what ``final_*`` repeats for an episode that ended in a step).
+STATE = ("observations", "scores", "lost", "ticks", "action_masks", "expert_actions")
+#: What a step reports of an episode's outcome (the rest is the environment's state).
+OUTCOME = ("rewards", "terminated", "truncated")
+FINAL = tuple("final_" + name for name in STATE)
+
+
+def _empty(name: str, n: int) -> np.ndarray:
+    dtype, width = FIELDS[name]
+    return np.zeros((n, width) if width > 1 else n, dtype=dtype)
+
+
+class Batch:
+    """One reply for ``num_envs`` environments: ``fields`` maps each field the reply has to an
+    array of ``num_envs`` rows (``(N, width)`` for observations and masks, ``(N,)`` for the
+    rest); a field the reply lacks is absent (``batch[name]`` reads it as zeros).
+    ``drain_ms``: the server's ``drain_remaining_ms`` (0: it is not draining).
+
+    The arrays may be read-only views (of a protobuf message's bytes, or of a shared-memory
+    region until the session's next Step): a Batch is never modified in place, every
+    operation returns a new one."""
+
+    __slots__ = ("drain_ms", "fields", "num_envs")
+
+    def __init__(self, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> None:
+        self.num_envs = num_envs
+        self.fields = fields
+        self.drain_ms = drain_ms
+
+    @classmethod
+    def from_pb(cls, msg: pb.Batch) -> Batch:
+        """The Batch of a gRPC reply (arrays reading the message's bytes, not copies)."""
+        n = msg.num_envs
+        fields = {}
+        for desc, value in msg.ListFields():
+            name = desc.name
+            spec = FIELDS.get(name)
+            if spec is None:
+                continue
+            dtype, width = spec
+            if name in REPEATED:
+                fields[name] = np.array(value, dtype=dtype)
+            elif width == 1:
+                fields[name] = np.frombuffer(value, dtype=dtype)
+            else:
+                fields[name] = np.frombuffer(value, dtype=dtype).reshape(-1, width)
+        if not n and "rewards" in fields:
+            n = len(fields["rewards"])
+        return cls(n, fields, msg.drain_remaining_ms)
+
+    @classmethod
+    def of_arrays(cls, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> Batch:
+        """A Batch of arrays already shaped (a shared-memory reply's views of its region)."""
+        return cls(num_envs, fields, drain_ms)
+
+    def to_pb(self) -> pb.Batch:
+        """The ``pb.Batch`` this Batch is the decoding of (for the wire, and the benchmark)."""
+        out = pb.Batch(num_envs=self.num_envs, drain_remaining_ms=self.drain_ms)
+        for name, value in self.fields.items():
+            if name in REPEATED:
+                getattr(out, name).extend(value.tolist())
+            else:
+                setattr(out, name, np.ascontiguousarray(value).tobytes())
+        return out
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        value = self.fields.get(name)
+        return _empty(name, self.num_envs) if value is None else value
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.fields
+
+    def copy(self) -> Batch:
+        """A Batch of arrays of its own (valid whatever happens to the region it was read from)."""
+        return Batch(self.num_envs, {k: v.copy() for k, v in self.fields.items()}, self.drain_ms)
+
+    def replace(self, **changes: np.ndarray | None) -> Batch:
+        """This Batch with some fields replaced (``None``: removed)."""
+        fields = dict(self.fields)
+        for name, value in changes.items():
+            if value is None:
+                fields.pop(name, None)
+            else:
+                fields[name] = value
+        return Batch(self.num_envs, fields, self.drain_ms)
+
+    def slice(self, lo: int, hi: int) -> Batch:
+        """Environments ``lo:hi`` (views)."""
+        if lo == 0 and hi == self.num_envs:
+            return self
+        return Batch(hi - lo, {k: v[lo:hi] for k, v in self.fields.items()}, self.drain_ms)
+
+    def splice(self, other: Batch, mask: np.ndarray, names=None) -> Batch:
+        """This Batch with the environments of ``mask`` taken from ``other`` (a Batch of the same
+        environments) for the fields ``names`` (default: the state, the reset flags and seeds
+        ``other`` has, not the outcome nor ``final_*``); a field missing on one side counts as
+        zeros."""
+        if names is None:
+            names = [k for k in other.fields if k not in OUTCOME + FINAL and k != "stream_episodes"]
+        fields = dict(self.fields)
+        for name in names:
+            if name not in self.fields and name not in other.fields:
+                continue
+            joined = self[name].copy()
+            joined[mask] = other[name][mask]
+            fields[name] = joined
+        return Batch(self.num_envs, fields, self.drain_ms)
+
+    def finals_from(self, ended: Batch, prefix: str = "") -> dict[str, np.ndarray]:
+        """The ``final_*`` fields that make ``ended``'s state (``prefix="final_"``: its own
+        ``final_*``) the last state of episodes that end in this Batch."""
+        return {"final_" + k: ended.fields[prefix + k] for k in STATE if prefix + k in ended}
+
+
+def join(batches: list[Batch]) -> Batch:
+    """The Batches of consecutive environments as one, in environment order (one Batch: itself,
+    no copy). A field some of them lack is zeros there."""
+    if len(batches) == 1:
+        return batches[0]
+    names = dict.fromkeys(k for b in batches for k in b.fields)
+    fields = {k: np.concatenate([b[k] for b in batches]) for k in names}
+    return Batch(sum(b.num_envs for b in batches), fields, max(b.drain_ms for b in batches))
+
+
+def drain_remaining_ms(batch: Batch | pb.Batch | None) -> int:
+    """Milliseconds left before the server that sent ``batch`` ends its session, when that server
+    is draining before a restart (it got SIGTERM: it serves its sessions for up to its
+    ``--drain-timeout`` and takes no new ones); 0 when it is not draining, or when there is no
+    Batch yet. Each server's Batch says it for that server."""
+    if batch is None:
+        return 0
+    if isinstance(batch, Batch):
+        return batch.drain_ms
+    return batch.drain_remaining_ms
+
+
+def boundary(batch: Batch, mode: AutoresetMode) -> np.ndarray:
+    """Which environments of ``batch`` (a step's) are at an episode end, where one may move
+    without cutting its episode: NEXT_STEP, the episode ended in this step (its next step is
+    the autoreset); SAME_STEP, the next episode began in this step and has not been played."""
+    if mode == AutoresetMode.SAME_STEP:
+        return batch["reset"]
+    return batch["terminated"] | batch["truncated"]
+
+
+def handover(ended: Batch, first: Batch, mode: AutoresetMode, cut: bool) -> tuple:
+    """The Batch that environments moving to a new session report for the step just made,
+    and the Batch their next step reports (NEXT_STEP's autoreset; else ``None``).
+
+    ``ended`` is their part of the step's Batch on the old server, ``first`` the new session's
+    Reset reply. Not ``cut`` (they are at an episode end, :func:`boundary`): NEXT_STEP reports
+    ``ended`` as it is and the next step hands out ``first`` as the autoreset; SAME_STEP reports
+    ``first`` as the new episode, with the ended one's last state and infos as ``final_*``, so
+    that the new episode is the new server's. ``cut`` (a drain deadline about to pass): their
+    episodes end truncated in this step, as a failover's do, keeping this step's rewards."""
+    n = ended.num_envs
+    truncated = ~ended["terminated"] if cut else ended["truncated"]
+    if mode != AutoresetMode.SAME_STEP:
+        return ended.copy().replace(truncated=truncated.copy()), first
+    finals = ended.finals_from(ended, "" if cut else "final_")
+    out = first.replace(
+        rewards=ended["rewards"].copy(),
+        terminated=ended["terminated"].copy(),
+        truncated=truncated.copy(),
+        reset=np.ones(n, np.bool_),
+        stream_episodes=None,
+        **{k: v.copy() for k, v in finals.items()},
+    )
+    return out, None
+
+
+def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
+    """The Batch of a step that interrupts episodes whose ``last`` Batch came from a lost
+    session and starts the new session's, whose Reset replied ``first``: the old episodes end
+    truncated (reward 0); and the Batch the next step hands out (NEXT_STEP: ``first`` as the
+    autoreset; else ``None``). NEXT_STEP and DISABLED: this step ends the episodes in their last
+    state (DISABLED: the caller resets them; the new session's episodes have already started).
+    SAME_STEP: the new episodes start in this very step, the old ones are ``final_*``."""
+    n = last.num_envs
+    outcome = {
+        "rewards": np.zeros(n, "<i4"),
+        "terminated": np.zeros(n, np.bool_),
+        "truncated": np.ones(n, np.bool_),
+        "stream_episodes": None,
+    }
+    if mode != AutoresetMode.SAME_STEP:
+        out = last.copy().replace(
+            reset=np.zeros(n, np.bool_), seeds=np.zeros(n, np.uint64), **outcome
+        )
+        return out, first if mode == AutoresetMode.NEXT_STEP else None
+    finals = {k: v.copy() for k, v in first.finals_from(last).items()}
+    return first.replace(**finals, **outcome), None
+
+
+def decode(
+    batch: Batch, expert: bool, prefix: str = "", present: np.ndarray | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Observations ``(N, 40) float32`` and infos of the state ``batch`` returns, or with
+    ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
+    Gymnasium ``_key`` mask (default: all). Every array returned is the caller's own."""
+    f = batch.fields
+    n = batch.num_envs
+    if present is None:
+        present = np.ones(n, dtype=np.bool_)
+
+    def field(name: str) -> np.ndarray:
+        value = f.get(prefix + name)
+        return _empty(name, n) if value is None else value
+
+    obs = field("observations").astype(np.float32)
+    info: dict[str, Any] = {
+        "action_mask": field("action_masks").copy(),
+        "score": field("scores").astype(np.int64),
+        "lost": field("lost").astype(np.int64),
+        "tick": field("ticks").astype(np.int64),
+    }
+    if expert:
+        info["expert_action"] = field("expert_actions").astype(np.int64)
+    for key in list(info):
+        info[f"_{key}"] = present.copy()
+    return obs, info
+
+
+def decode_one(batch: Batch, expert: bool) -> tuple[np.ndarray, dict[str, Any]]:
+    """The observation ``(40,)`` and info of a one-environment Batch: :func:`decode` without the
+    batch axis, with plain ``int`` values (cheaper than numpy for one environment)."""
+    f = batch.fields
+    info: dict[str, Any] = {
+        "action_mask": f["action_masks"][0].copy(),
+        "score": int(f["scores"][0]),
+        "lost": int(f["lost"][0]),
+        "tick": int(f["ticks"][0]),
+    }
+    if expert:
+        info["expert_action"] = int(f["expert_actions"][0])
+    return f["observations"][0].astype(np.float32), info
