@@ -101,11 +101,10 @@ def test_shm_away_from_the_server_says_why_and_auto_falls_back(start_server) -> 
         assert regions(bare.pid) == 0
         # What a client on another machine meets: a doorbell name not bound on its host.
         with pytest.raises(ServiceTransportError, match="not on this machine"):
-            env._core.endpoint.options = ConnectOptions(bare.address, transport="shm")
-            _shm._OFFERS[env._core] = _shm.Offer(
+            offer = _shm.Offer(
                 env._core.session_id, "dinerdash-0-on-another-host", b"s" * 32, bare.pid
             )
-            _shm.attach(env._core)
+            _shm.attach(offer, env._core.conn, "shm")
     finally:
         env.close()
     with pytest.raises(ValueError, match="transport"):
@@ -244,20 +243,25 @@ def test_closing_envs_unmaps_their_regions(server) -> None:
 
 
 class _Core:
-    """What :func:`dinerdash._shm.attach` reads of a session core, for a server at ``address``
-    that is never called."""
+    """What :func:`dinerdash._shm.attach` is given for a session, for a server at ``address``
+    that is never called; ``attach()`` as the session core calls it, ``channel`` its result."""
 
     def __init__(self, address: str, transport: str) -> None:
         self.conn = SimpleNamespace(address=address, timeout=5.0, _closed=False)
-        self.endpoint = SimpleNamespace(options=SimpleNamespace(transport=transport))
+        self.transport = transport
         self.session_id = "ab" * 16
+        self.offer = None
+        self.channel = None
+
+    def attach(self) -> None:
+        self.channel = _shm.attach(self.offer, self.conn, self.transport)
 
 
 def _offered(core: _Core, doorbell: str, secret: bytes, pid: int) -> None:
     reply = pb.CreateSessionResponse(
         session_id=core.session_id, shm_doorbell=doorbell, shm_secret=secret, shm_server_pid=pid
     )
-    _shm.offer(core, reply)
+    core.offer = _shm.Offer.of(reply)
 
 
 def _this_hosts_address() -> str | None:
@@ -287,11 +291,11 @@ def test_only_a_server_on_this_host_is_offered_shared_memory(monkeypatch, caplog
     remote = _Core("192.0.2.1:50051", "shm")
     _offered(remote, "dinerdash-1-remote", b"s" * 32, 1)
     with pytest.raises(ServiceTransportError, match="not on this machine"):
-        _shm.attach(remote)
-    remote.endpoint.options.transport = "auto"
+        remote.attach()
+    remote.transport = "auto"
     with caplog.at_level(logging.DEBUG, logger="dinerdash"):
-        _shm.attach(remote)
-    assert remote not in _shm._CHANNELS
+        remote.attach()
+    assert remote.channel is None
     assert "steps over gRPC: the server at 192.0.2.1:50051 is not on this machine" in caplog.text
 
 
@@ -302,8 +306,8 @@ def test_a_server_that_sends_no_secret_or_pid_gets_grpc(monkeypatch, caplog) -> 
         _offered(old, "dinerdash-1-old", secret, pid)
         caplog.clear()
         with caplog.at_level(logging.DEBUG, logger="dinerdash"):
-            _shm.attach(old)
-        assert old not in _shm._CHANNELS
+            old.attach()
+        assert old.channel is None
         assert "no session secret or pid" in caplog.text
 
 
@@ -329,14 +333,14 @@ def test_a_doorbell_answered_by_another_process_is_told_nothing(
         assert core in _shm._CHANNELS
         # The server's announced pid, but another process answers under the doorbell's name
         # (this test's: as a process that took the name of a server gone would).
-        _shm._OFFERS[core] = dataclasses.replace(_shm._OFFERS[core], doorbell=name)
+        core.offer = dataclasses.replace(core.offer, doorbell=name)
         caplog.clear()
         with caplog.at_level(logging.DEBUG, logger="dinerdash"):
             if transport == "shm":
                 with pytest.raises(ServiceTransportError, match="not the server's pid"):
-                    _shm.attach(core)
+                    core.attach()
             else:
-                _shm.attach(core)
+                core.attach()
         assert core not in _shm._CHANNELS
         if transport == "auto":
             assert (
@@ -404,9 +408,9 @@ def test_a_doorbell_of_another_user_is_told_nothing(server, caplog) -> None:
         env.reset(seed=0)
         core = env._core
         # Its pid is the one announced: only the uid tells it from the server.
-        _shm._OFFERS[core] = dataclasses.replace(_shm._OFFERS[core], doorbell=name, pid=fake.pid)
+        core.offer = dataclasses.replace(core.offer, doorbell=name, pid=fake.pid)
         with caplog.at_level(logging.DEBUG, logger="dinerdash"):
-            _shm.attach(core)
+            core.attach()
         assert core not in _shm._CHANNELS
         assert f"is answered by uid 65534, not this user (uid {os.geteuid()})" in caplog.text
         assert fake.stdout.readline().strip() == b"nothing"
@@ -424,8 +428,8 @@ def test_a_forked_session_attaches_with_its_own_secret(server) -> None:
     try:
         env.reset(seed=3)
         child = env.fork()
-        offer = _shm._OFFERS[child._core]
-        assert len(offer.secret) == 32 and offer.secret != _shm._OFFERS[env._core].secret
+        offer = child._core.offer
+        assert len(offer.secret) == 32 and offer.secret != env._core.offer.secret
         assert repr(offer.secret) not in repr(offer)
         for _ in range(3):
             (obs, reward, *_), (twin, twin_reward, *_) = env.step(1), child.step(1)

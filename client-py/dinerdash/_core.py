@@ -21,7 +21,7 @@ import grpc
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from . import _shm
+from . import _shm, _transport
 from ._arguments import config_dict
 from ._batch import Batch, interrupt
 from ._caller import Caller
@@ -139,6 +139,7 @@ class SessionCore:
         "entering",
         "index",
         "last",
+        "offer",
         "owned",
         "pending",
         "reconnected",
@@ -148,6 +149,8 @@ class SessionCore:
         "spec",
         "start",
         "stop",
+        "transport",
+        "was",
     )
 
     def __init__(
@@ -182,6 +185,13 @@ class SessionCore:
         #: played here at the next step.
         self.source: SessionCore | None = None
         self.entering: set[int] = set()
+        #: What the reply that made the session offered of shared memory, and the transport its
+        #: Steps take (``None`` until the first Step of a session forked or restored).
+        self.offer: _shm.Offer | None = None
+        self.transport: _transport.Transport | None = None
+        #: The transport of the session's last Steps (kept across a reopened session): a
+        #: change is an event (:meth:`Endpoint.transport_changed`).
+        self.was: str | None = None
 
     @property
     def conn(self) -> Connection:
@@ -255,15 +265,45 @@ class SessionCore:
         except ServiceError as e:
             raise self.fail(e) from None
         self.adopt(reply)
-        _shm.attach(self)
+        self.attach()
         return reply.spec
 
     def adopt(self, reply: pb.CreateSessionResponse) -> None:
         """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's,
         with what it offers of shared memory."""
+        self.detach()
         self.session_id, self.spec = reply.session_id, reply.spec
         self.last = self.pending = None
-        _shm.offer(self, reply)
+        self.offer = _shm.Offer.of(reply)
+
+    def attach(self) -> None:
+        """Chooses the session's transport (:func:`dinerdash._transport.open_for`): shared
+        memory when the ``transport`` option allows it and it opens, else gRPC."""
+        self.detach()
+        option = self.endpoint.options.transport
+        # gRPC if the choice raises (``transport="shm"`` that cannot be had): said, not silent.
+        self.transport = _transport.GrpcTransport(self.conn, str(self.session_id))
+        self.transport = transport = _transport.open_for(self.offer, self.conn, option)
+        why = "the session was reopened on a server that offers it shared memory"
+        if transport.name == "grpc":
+            why = "the reopened session could not attach shared memory (see the debug log)"
+        self.changed(transport.name, why)
+
+    def detach(self) -> None:
+        """Closes the session's transport (its session closed or replaced)."""
+        transport, self.transport = self.transport, None
+        if transport is not None:
+            if transport.views and self.last is not None:
+                self.last = self.last.copy()  # kept (a failover reads it), not the region's
+            transport.close()
+
+    def changed(self, name: str, why: str) -> None:
+        """The session's Steps go over ``name`` from now on: an event of the endpoint."""
+        if self.was is not None and self.was != name:
+            self.endpoint.transport_changed(
+                self.conn.address, str(self.session_id), self.was, name, why
+            )
+        self.was = name
 
     def reopen(self, error: ServiceError) -> None:
         """Waits for the lost server and opens a new session there (``reconnect=True``).
@@ -306,7 +346,7 @@ class SessionCore:
             ) from None
 
     def close(self) -> None:
-        _shm.detach(self)
+        self.detach()
         if self.caller is not None:
             self.caller.close()
             self.caller = None
@@ -398,8 +438,7 @@ class SessionCore:
             batch = self.recover_step(gone)
         else:
             try:
-                # Shared memory when it applies, else gRPC.
-                batch = self.note(_shm.step(self, actions))
+                batch = self.note(self.step_on(actions))
             except ServiceError as e:
                 # A call cancelled because its server was given up (silent) is lost too.
                 if not (isinstance(e, LOST) or self.given_up()):
@@ -407,6 +446,26 @@ class SessionCore:
                 batch = self.recover_step(e)
         self.last = batch
         return batch
+
+    def step_on(self, actions: bytes) -> Batch:
+        """One Step on the session's transport; shared memory lost under it (:class:`Detached
+        <dinerdash._transport.Detached>`) changes to gRPC (an event), where the Step is made
+        unless it was abandoned (its error raised)."""
+        transport = self.transport
+        if transport is None:  # a session forked or restored: attached at its first Step
+            self.attach()
+            transport = self.transport
+        if transport.views and self.last is not None and self.settings.reconnect:
+            self.last = self.last.copy()  # a lost server's episodes end in their last state
+        try:
+            return transport.step(actions)
+        except _transport.Detached as gone:
+            self.detach()
+            self.transport = _transport.GrpcTransport(self.conn, self.session_id)
+            self.changed("grpc", gone.reason)
+            if gone.error is not None:
+                raise gone.error from None
+            return self.transport.step(actions)
 
     def start_step(self, actions: bytes) -> None:
         """Hands a Step to this core's :class:`Caller` thread and returns at once;

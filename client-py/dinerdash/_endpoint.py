@@ -77,6 +77,8 @@ class Endpoint:
         #: Servers given up for a failure (not drained), taken back or added, since the open.
         self.failovers = 0
         self.rejoins = 0
+        #: Sessions whose transport changed (shared memory lost, or taken up again).
+        self.transport_changes = 0
         try:
             for a in addresses:
                 self.connections.append(self.options.connect(a))
@@ -141,6 +143,20 @@ class Endpoint:
             else:
                 self.failovers += 1
                 log.warning("dinerdash: gave up %s: %s", self.addresses[index], why)
+
+    def transport_changed(self, address: str, session: str, old: str, new: str, why: str) -> None:
+        """A session's Steps changed transport (``old`` to ``new``: ``"shm"``, ``"grpc"``):
+        counted in :attr:`transport_changes` and logged once, as a warning, with ``why``; a
+        user who measured shared memory's rate must not train at gRPC's without knowing."""
+        self.transport_changes += 1
+        log.warning(
+            "dinerdash: session %s on %s steps over %s instead of %s from now on: %s",
+            session,
+            address,
+            "shared memory" if new == "shm" else "gRPC",
+            "shared memory" if old == "shm" else "gRPC",
+            why,
+        )
 
     def take_back(self, index: int, conn: Connection) -> None:
         """Server ``index``, given up, answered its health check again: ``conn`` is its channel

@@ -9,17 +9,19 @@ address is this host's (loopback, or one of its own addresses), connects, and be
 anything checks who answered (``SO_PEERCRED``: this user's uid and the server's pid); only
 then does it say hello with the session ID and secret, and receive the session's region, a
 memfd it maps. Whenever shared memory is not used, the reason is logged at debug level
-(logger ``dinerdash``). Each Step then writes the actions into the region, sends one byte and
-waits for one byte back; the reply's arrays are in the region at fixed offsets (the layout of
+(logger ``dinerdash``); the session then steps over gRPC (:mod:`dinerdash._transport`). Each
+Step then writes the actions into the region, sends one byte and waits for one byte back; the
+reply's arrays are in the region at fixed offsets (the layout of
 ``server/src/shm/layout.rs``), handed out as a :class:`~dinerdash._batch.Batch` whose arrays are
 views of the region (made once per layout, not per Step): valid until the session's next Step
 is sent, and copied by the environments exactly where they return them.
 
 The server checks the actions exactly as its gRPC Step does and refuses them with the same code,
 message and details, which become the same typed exception here. A doorbell that closes under a
-Step (the server died, drained, or forgot the session) makes that Step go over gRPC, whose answer
-(``UNAVAILABLE``, ``NOT_FOUND``, or the Batch) is the one the gRPC path would have given; the
-session steps over gRPC from then on.
+Step (the server died, drained, or forgot the session) is the shared-memory transport's end: the
+session core changes to gRPC (a counted event, logged as a warning: :mod:`dinerdash._transport`)
+and makes that Step there, whose answer (``UNAVAILABLE``, ``NOT_FOUND``, or the Batch) is the
+one the gRPC path would have given.
 
 ``transport`` (:class:`~dinerdash.ConnectOptions`): ``"auto"`` uses shared memory whenever
 :func:`attach` succeeds and gRPC otherwise; ``"shm"`` raises
@@ -39,7 +41,6 @@ import socket
 import struct
 import sys
 import time
-import weakref
 from typing import Any
 
 import grpc
@@ -47,7 +48,6 @@ import numpy as np
 
 from ._batch import FIELDS as _SHAPES
 from ._batch import Batch
-from ._proto import pb
 from .connection import Connection, _split_host_port
 from .errors import (
     EnvClosed,
@@ -57,7 +57,7 @@ from .errors import (
     error_for_status,
 )
 
-__all__ = ["Channel", "Offer", "attach", "detach", "offer", "step"]
+__all__ = ["Channel", "Offer", "attach"]
 
 #: "DDsh" and the layout version this client reads.
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
@@ -100,14 +100,6 @@ log = logging.getLogger("dinerdash")
 #: SO_PEERCRED's ``struct ucred``: pid (signed), uid and gid (unsigned).
 _UCRED = struct.Struct("iII")
 
-#: The channel of each core (by the core, weakly: a dropped env takes its channel along), and
-#: the shared-memory offer of the session each core last created, forked or restored.
-_CHANNELS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_OFFERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-#: The session each core last tried to attach, so that a session stepping over gRPC (refused,
-#: or forked without a CreateSession) tries once, not at every Step.
-_TRIED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
 
 @dataclasses.dataclass(frozen=True)
 class Offer:
@@ -124,6 +116,7 @@ class Offer:
 
     @classmethod
     def of(cls, reply: Any) -> Offer:
+        """What ``reply`` (CreateSession's, Fork's or Restore's) offers."""
         return cls(
             reply.session_id,
             reply.shm_doorbell,
@@ -359,35 +352,22 @@ class Channel:
             pass
 
 
-def offer(core: Any, reply: Any) -> None:
-    """Records what ``reply`` (CreateSession's, Fork's or Restore's, for the session ``core``
-    adopts) offers of shared memory; :func:`attach` uses it."""
-    _OFFERS[core] = Offer.of(reply)
-
-
-def attach(core: Any, reply: Any = None) -> None:
-    """Opens the shared-memory channel of ``core``'s session when its transport allows it;
-    ``reply``: the CreateSession reply that made the session (else what :func:`offer` recorded,
-    for a forked or restored one). ``transport="shm"`` raises when it cannot be used; whenever
-    the session steps over gRPC instead, the reason is logged at debug level."""
-    if reply is not None:
-        offer(core, reply)
-    conn = core.conn
-    transport = core.endpoint.options.transport
-    detach(core)
-    _TRIED[core] = core.session_id
-    if transport == "grpc" or core.session_id is None:
-        return
-    made = _OFFERS.get(core)
+def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | None:
+    """The shared-memory channel of the session ``offer`` describes (what its CreateSession,
+    Fork or Restore reply offered), on the server of ``conn``, when ``transport`` allows it and
+    it can be opened; else ``None``, the reason logged at debug level, or, for
+    ``transport="shm"``, raised as a :class:`~dinerdash.errors.ServiceTransportError`."""
+    if transport == "grpc" or offer is None:
+        return None
     why = None
     if sys.platform != "linux":
         why = "shared memory needs Linux"
-    elif made is None or made.session_id != core.session_id or not made.doorbell:
+    elif not offer.doorbell:
         why = (
             f"the server at {conn.address} offers no shared memory (--max-shm-sessions 0, not "
             "on Linux, or a server older than the shared-memory data plane)"
         )
-    elif not made.secret or not made.pid:
+    elif not offer.secret or not offer.pid:
         why = (
             f"the server at {conn.address} names a doorbell but no session secret or pid (a "
             "server older than the doorbell's peer check): shared memory is not trusted there"
@@ -399,8 +379,7 @@ def attach(core: Any, reply: Any = None) -> None:
         )
     else:
         try:
-            _CHANNELS[core] = Channel(made, conn)
-            return
+            return Channel(offer, conn)
         except (ConnectionRefusedError, FileNotFoundError):
             why = (
                 f"the server at {conn.address} is not on this machine (or runs in another "
@@ -413,42 +392,28 @@ def attach(core: Any, reply: Any = None) -> None:
             why = f"the server refused shared memory: {e.details}"
         except OSError as e:
             why = f"the doorbell failed: {e}"
-    log.debug("session %s steps over gRPC: %s", core.session_id, why)
+    log.debug("session %s steps over gRPC: %s", offer.session_id, why)
     if transport == "shm":
         raise ServiceTransportError(
             f"transport='shm': {why}; use transport='auto' to fall back to gRPC",
             address=conn.address,
         )
+    return None
 
 
-def detach(core: Any) -> None:
-    """Closes ``core``'s channel, if any (its session closed or replaced)."""
-    channel = _CHANNELS.pop(core, None)
-    if channel is not None:
-        if core.last is not None:  # kept (a failover reads it): no longer a view of the region
-            core.last = core.last.copy()
-        channel.close()
+class _ChannelOf:
+    """``_CHANNELS[core]``: the shared-memory channel a session core's transport steps through
+    (``KeyError`` when it steps over gRPC). It keeps nothing: the channel is the core's
+    transport's; tests and a debugger read it here."""
+
+    def __getitem__(self, core: Any) -> Channel:
+        channel = getattr(core.transport, "channel", None)
+        if channel is None:
+            raise KeyError(core)
+        return channel
+
+    def __contains__(self, core: Any) -> bool:
+        return getattr(core.transport, "channel", None) is not None
 
 
-def step(core: Any, actions: bytes) -> Any:
-    """``core``'s Step over shared memory when its session has a channel, else over gRPC (also
-    when the doorbell closed under this Step: gRPC then answers as it would have)."""
-    channel = _CHANNELS.get(core)
-    if channel is None and _TRIED.get(core) != core.session_id:
-        attach(core)  # a session forked or restored: no CreateSession named the doorbell
-        channel = _CHANNELS.get(core)
-    if channel is not None:
-        if channel.session_id == core.session_id:
-            if core.settings.reconnect and core.last is not None:
-                # A lost server's episodes end in their last state: kept past this Step.
-                core.last = core.last.copy()
-            try:
-                batch = channel.step(actions)
-            except (ServiceTimeout, EnvClosed):
-                detach(core)  # its late reply must not answer the next Step: gRPC from now on
-                raise
-            if batch is not None:
-                return batch
-        detach(core)
-    request = pb.StepRequest(session_id=core.session_id, actions=actions)
-    return Batch.from_pb(core.conn.call("Step", request))
+_CHANNELS = _ChannelOf()

@@ -221,6 +221,19 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return self._core.session_id
 
     @property
+    def transports(self) -> dict[str, str]:
+        """The transport the session steps over now: ``{address: "shm" | "grpc"}`` (as
+        :attr:`DinerDashVectorEnv.transports <dinerdash.DinerDashVectorEnv.transports>`; a
+        session forked or restored chooses at its first step)."""
+        core = self._core
+        return {core.conn.address: core.transport.name if core.transport else "grpc"}
+
+    @property
+    def transport_changes(self) -> int:
+        """Times the session's Steps changed transport (each logged as a warning)."""
+        return self._core.endpoint.transport_changes
+
+    @property
     def _conn(self) -> Connection:
         return self._core.conn
 

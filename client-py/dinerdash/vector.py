@@ -263,6 +263,26 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return self._endpoint.rejoins
 
     @property
+    def transports(self) -> dict[str, str]:
+        """The transport each server's session steps over now (``{address: "shm" | "grpc"}``,
+        in the order of the first environments they hold; ``"shm,grpc"`` for a server whose
+        sessions differ). A change is logged as a warning and counted in
+        :attr:`transport_changes`: nothing falls back to gRPC silently."""
+        out: dict[str, list[str]] = {}
+        for _, _, core in self._pieces():
+            name = core.transport.name if core.transport is not None else "grpc"
+            names = out.setdefault(core.conn.address, [])
+            if name not in names:
+                names.append(name)
+        return {address: ",".join(names) for address, names in out.items()}
+
+    @property
+    def transport_changes(self) -> int:
+        """Sessions whose Steps changed transport since the env's sessions were opened (shared
+        memory lost, or taken up again by a session reopened after a reconnect)."""
+        return self._endpoint.transport_changes
+
+    @property
     def moves(self) -> int:
         """Environments moved to another server at their episode end (onto a server taken in,
         or off a draining one), or, a draining server's deadline about to pass, cut."""

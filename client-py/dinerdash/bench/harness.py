@@ -15,7 +15,8 @@ comparison.
 - **Transports** (:func:`transports`): the single env, N = 256 and N = 1024 stepped by this
   client over gRPC and over shared memory (``transport=``), beside the server's own rates on
   this machine (``dinerdash-server ceiling``: in process, and through a Rust gRPC client), the
-  limit any client can reach.
+  limit any client can reach; with ``--pipeline`` two vector envs of N = 256 pipelined on each
+  transport; and the client's decode time of one N = 256 reply on each.
 - **Scaling** (:func:`scaling`): the server's ceiling for N = 256 and N = 4096 (and N = 256 with
   planner labels) on one stepping thread and on one per core (``ceiling --threads``), beside this
   client's vector env of the same N over gRPC and shared memory on the local server.
@@ -274,11 +275,15 @@ def transports(
     vec_steps: int,
     sizes: tuple[int, ...] = (256, 1024),
     rounds: int = 3,
+    pipeline: bool = False,
 ) -> None:
     """Prints the transports table: this client over gRPC and over shared memory, and the
-    server's ceiling, for the single env and a vector env of each N of ``sizes``. Each figure is
-    the best of ``rounds`` rounds that take turns, so that a burst of load elsewhere on the
-    machine during one measurement does not decide the comparison."""
+    server's ceiling, for the single env and a vector env of each N of ``sizes``; with
+    ``pipeline``, two vector envs of the first N stepped alternately (``step_async`` /
+    ``step_wait``) on each transport, beside one; and the time the client spends decoding one
+    reply of the first N on each transport. Each figure is the best of ``rounds`` rounds that
+    take turns, so that a burst of load elsewhere on the machine during one measurement does not
+    decide the comparison."""
     first = address[0] if isinstance(address, list) else address
     rows = [1] if steps > 0 else []
     rows += list(sizes) if vec_steps > 0 else []
@@ -305,10 +310,13 @@ def transports(
                         cpu_micros = min(cpu_micros, used)
                 else:
                     rate = _vector(first, n, vec_steps, False, transport=transport)
+                    if pipeline and n == sizes[0]:
+                        two = _vector(first, n, vec_steps, True, transport=transport)
+                        keep((transport, -n), two)
                 keep((transport, n), rate)
     print(
         "transports         :     gRPC          shm      server in process  Rust gRPC client"
-        "   shm / Rust gRPC   (env-steps/s, best of "
+        "   shm / Rust gRPC   shm / in process   (env-steps/s, best of "
         f"{rounds})"
     )
     for n in rows:
@@ -316,7 +324,21 @@ def transports(
         grpc, shm, local, rust = (best[(k, n)] for k in ("grpc", "shm", "local", "rust"))
         print(
             f"  {label:<17}: {grpc:10,.0f} {shm:12,.0f} {local:16,.0f} {rust:17,.0f}"
-            f" {shm / rust:14.0%}"
+            f" {shm / rust:14.0%} {shm / local:17.0%}"
+        )
+    if pipeline and vec_steps > 0:
+        n = sizes[0]
+        grpc, shm = best[("grpc", -n)], best[("shm", -n)]
+        print(
+            f"  pipelined 2xN={n:<3}: {grpc:10,.0f} {shm:12,.0f}   (two vector envs, one step on "
+            f"the wire: {grpc / best[('grpc', n)]:.2f}x / {shm / best[('shm', n)]:.2f}x one env)"
+        )
+    if vec_steps > 0:
+        n = sizes[0]
+        grpc, shm = (_decode(first, n, transport=t) for t in ("grpc", "shm"))
+        print(
+            f"  decode N={n:<8}: {grpc:10,.1f} {shm:12,.1f}   us/step (gRPC: parse the message, "
+            "read it into a Batch, build the arrays and infos; shm: the same from the region)"
         )
     if cpu_micros < float("inf"):
         print(
@@ -482,7 +504,7 @@ def run(
                 f"on the wire; {times(rate)})"
             )
         if compare_transports:
-            transports(address, steps, vec_steps)
+            transports(address, steps, vec_steps, pipeline=pipeline)
         if compare_scaling and vec_steps > 0:
             scaling(address, vec_steps)
         if sb3_steps > 0:
