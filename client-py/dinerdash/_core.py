@@ -66,18 +66,18 @@ class Settings:
     split: bool = field(default=False)
 
 
-class ServerLost(ServiceTransportError):
+class ServerLost(Exception):
     """Raised by a core whose server stayed unreachable past ``failover_after`` (or was given
     up already) while the env has other servers: the env moves the core's environments to them
-    (:func:`dinerdash._failover.move`) and never lets this escape."""
+    (:func:`dinerdash._failover.move`) and never lets this escape. A private signal, not one of
+    the public errors: no ``except ServiceError`` of a caller can mistake it for a failure."""
 
     def __init__(self, core: SessionCore, error: ServiceError) -> None:
         super().__init__(
-            f"gave up {core.conn.address} (environments {core.start}..{core.stop - 1}): {error}",
-            code=error.code,
-            address=core.conn.address,
+            f"gave up {core.conn.address} (environments {core.start}..{core.stop - 1}): {error}"
         )
         self.core = core
+        self.error = error
 
 
 def check_actions(actions: Any, num_envs: int) -> np.ndarray:

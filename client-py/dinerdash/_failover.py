@@ -18,15 +18,17 @@ from collections.abc import Callable
 
 from ._batch import Batch
 from ._core import SessionCore
+from ._placement import pieces
 from .errors import (
     NoServerLeft,
     ResourceExhausted,
+    ServerDraining,
     ServiceError,
     ServiceTransportError,
     SessionNotFound,
 )
 
-__all__ = ["fail_over", "pieces"]
+__all__ = ["fail_over", "move"]
 
 #: A server that refuses a new session for one of these is passed over, not given up: the
 #: environments go to the other servers left.
@@ -35,22 +37,6 @@ PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
 #: ``start(lost_core, new_core)``: the new core's session is created; this resets it and returns
 #: the Batch that the env reports for the new core's environments.
 Start = Callable[[SessionCore, SessionCore], Batch]
-
-
-def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
-    """Environments ``start:stop`` cut into one contiguous piece per server of ``loads``
-    (server index -> environments it holds), as ``(start, stop, server)``: the sizes differ by
-    at most one, the larger ones go to the servers holding fewest environments (ties: the lower
-    index), and empty pieces are left out."""
-    order = sorted(loads, key=lambda i: (loads[i], i))
-    m, k = stop - start, len(order)
-    out = []
-    for j, server in enumerate(order):
-        size = m // k + (j < m % k)
-        if size:
-            out.append((start, start + size, server))
-            start += size
-    return out
 
 
 def move(
@@ -95,7 +81,7 @@ def move(
                     raise new.fail(e) from None
             return made
         except PASSED_OVER as e:
-            if getattr(e, "reason", None) == "DRAINING":
+            if isinstance(e, ServerDraining):
                 endpoint.drain(target, None)
             candidates.remove(target)
             for new in made:

@@ -53,13 +53,15 @@ from ._core import (
     check_actions,
 )
 from ._endpoint import Endpoint
-from ._failover import fail_over, pieces
+from ._failover import fail_over
 from ._membership import Membership, await_replies, has_name
+from ._placement import SessionView, plan
 from ._proto import pb
 from .connection import ConnectOptions
 from .errors import (
     EnvClosed,
     InvalidArgument,
+    ServerDraining,
     ServiceError,
     ServiceTimeout,
     ServiceTransportError,
@@ -314,7 +316,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """Server ``dest`` could not take environments moving to it: one that drains is marked
         so, one that does not answer is given up (no step of the env would notice: it holds
         none of its environments), one that refuses otherwise (full) is not asked for a while."""
-        if error.reason == "DRAINING":
+        if isinstance(error, ServerDraining):
             self._endpoint.drain(dest, None)
         elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
             self._endpoint.give_up(dest, f"could not open a session there: {error}")
@@ -693,62 +695,36 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     def _plan(self, targets: list[int]) -> None:
         """Opens the transfers that, once done, leave no environment on a draining server and
-        loads that differ by at most one: each a session on a server of ``targets`` for a run
-        of another server's environments, the run a whole session's when one fits."""
+        loads that differ by at most one (:func:`dinerdash._placement.plan`, from a view of the
+        sessions): each a session on a server of ``targets`` for a run of another server's
+        environments. A destination that refuses stops the balancing (the next planning sees
+        why); a draining server's other pieces are still tried."""
         endpoint = self._endpoint
+        cores = list(self._cores)
         covered = {
             i
-            for c in self._cores
+            for c in cores
             if c.source is not None
             for i in range(c.start, c.stop)
             if c.source.holds(i)
         }
-
-        def runs(core: SessionCore) -> list[tuple[int, int]]:
-            out = []
-            for lo, hi in core.runs():
-                i = lo
-                while i < hi:
-                    if i in covered:
-                        i += 1
-                        continue
-                    j = i
-                    while j < hi and j not in covered:
-                        j += 1
-                    out.append((i, j))
-                    i = j
-            return out
-
-        for core in [c for c in self._cores if c.index in endpoint.draining]:
-            for lo, hi in runs(core):
-                loads = {j: self._load(j) for j in targets}
-                for a, b, dest in pieces(lo, hi, loads):
-                    if self._transfer(core, a, b, dest):
-                        covered.update(range(a, b))
-        for _ in range(4 * len(self._cores) + 4):
-            loads = {j: self._load(j) for j in targets}
-            dest = min(targets, key=lambda j: (loads[j], j))
-            most = max(loads.values())
-            k = (most - loads[dest]) // 2
-            if k < 1:
-                return
-            choices = [
-                (core, lo, hi)
-                for core in self._cores
-                if core.index in targets and loads[core.index] == most and core.source is None
-                for lo, hi in runs(core)
-            ]
-            whole = [x for x in choices if x[2] - x[1] <= k and x[2] - x[1] == x[0].load]
-            if whole:
-                core, lo, hi = max(whole, key=lambda x: (x[2] - x[1], -x[1]))
-            elif choices:
-                core, lo, hi = max(choices, key=lambda x: (x[2] - x[1], -x[1]))
-                lo = max(lo, hi - k)
-            else:
-                return
-            if not self._transfer(core, lo, hi, dest):
-                return
-            covered.update(range(lo, hi))
+        views = [
+            SessionView(
+                key=k,
+                server=c.index,
+                runs=tuple((lo, hi) for a, b in c.runs() for lo, hi in _uncovered(a, b, covered)),
+                load=c.load,
+                busy=c.source is not None,
+            )
+            for k, c in enumerate(cores)
+        ]
+        servers = {c.index for c in cores} | set(targets)
+        loads = {j: self._load(j) for j in servers}
+        draining = set(endpoint.draining)
+        for move in plan(views, loads, targets, draining):
+            if not self._transfer(cores[move.source], move.start, move.stop, move.dest):
+                if move.origin not in draining:
+                    return
 
     def _session_on(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, Batch] | None:
         """A new session on server ``dest`` for environments ``lo:hi``, created and reset
@@ -965,6 +941,19 @@ def _ready(future):
         return True
 
     return ready
+
+
+def _uncovered(lo: int, hi: int, covered: set[int]) -> list[tuple[int, int]]:
+    """The contiguous runs of ``lo:hi`` outside ``covered``."""
+    out, start = [], None
+    for i in range(lo, hi + 1):
+        free = i < hi and i not in covered
+        if free and start is None:
+            start = i
+        elif not free and start is not None:
+            out.append((start, i))
+            start = None
+    return out
 
 
 def _interrupted(old: SessionCore, new: SessionCore) -> Batch:
