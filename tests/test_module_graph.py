@@ -157,3 +157,74 @@ def test_the_reader_sees_every_kind_of_import(tmp_path: Path) -> None:
     assert cycles(graph) == [["pkg.a", "pkg.b"], ["pkg.sub.d", "pkg.sub.e"]]
     # The package's __init__ imports a, which does not import it: no cycle through pkg.
     assert "pkg" not in graph["pkg.a"]
+
+
+#: The client's layers, lowest first: a module may import the client's modules of its own layer
+#: or a lower one, never a higher one. ``_batch`` (the reply's arrays) and ``_placement`` (a
+#: pure plan) know nothing of connections or sessions; the transports know no environment.
+LAYERS = [
+    {"dinerdash._proto", "dinerdash.game", "dinerdash._placement", "dinerdash._grpc_settings"},
+    {"dinerdash._batch", "dinerdash.errors", "dinerdash._version"},
+    {"dinerdash.connection", "dinerdash.server", "dinerdash._arguments"},
+    {"dinerdash._shm", "dinerdash._transport", "dinerdash._endpoint", "dinerdash._step_thread"},
+    {"dinerdash._session", "dinerdash._membership"},
+    {"dinerdash._failover"},
+    {"dinerdash.env", "dinerdash.vector"},
+]
+
+
+def test_the_client_layers_point_down() -> None:
+    graph = graph_of("dinerdash", PACKAGES["dinerdash"])
+    layer = {m: i for i, ms in enumerate(LAYERS) for m in ms}
+    for m in layer:
+        assert m in graph or m == "dinerdash._proto", f"{m} is no module of the client"
+    upward = [
+        f"{m} -> {t}"
+        for m in sorted(layer)
+        for t in sorted(graph.get(m, ()))
+        if t in layer and layer[t] > layer[m]
+    ]
+    assert not upward, "imports up the layers: " + "; ".join(upward)
+    pure = graph["dinerdash._placement"]
+    assert not pure, f"_placement imports {sorted(pure)}: it must stay a pure function"
+
+
+def _private_writes(path: Path) -> list[str]:
+    """``x._attr = ...`` (and ``+=``, annotated) where ``x`` is not ``self`` or ``cls``, unless
+    ``x`` is made in the same module by a class of that module or as a copy of ``self`` (the
+    ``child`` of a fork)."""
+    tree = ast.parse(path.read_text(), str(path))
+    classes = {n.name for n in ast.walk(tree) if isinstance(n, ast.ClassDef)}
+    made_here: set[str] = set()
+    for node in ast.walk(tree):
+        # ``child = Own(...)`` / ``child = copy.copy(self)``: an object of this module's class.
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
+            names = {n.id for n in ast.walk(node.value) if isinstance(n, ast.Name)}
+            if names & (classes | {"self"}):
+                made_here.update(t.id for t in node.targets if isinstance(t, ast.Name))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign):
+            targets = node.targets
+        elif isinstance(node, (ast.AugAssign, ast.AnnAssign)):
+            targets = [node.target]
+        else:
+            continue
+        for target in targets:
+            for sub in ast.walk(target):
+                if not (isinstance(sub, ast.Attribute) and sub.attr.startswith("_")):
+                    continue
+                if not sub.attr.startswith("__") and not (
+                    isinstance(sub.value, ast.Name) and sub.value.id in {"self", "cls", *made_here}
+                ):
+                    out.append(f"{path.name}:{node.lineno}: {ast.unparse(sub)}")
+    return out
+
+
+@pytest.mark.parametrize("package", sorted(PACKAGES))
+def test_no_module_writes_another_objects_private_state(package: str) -> None:
+    """Read with :mod:`ast`: no assignment to a private attribute (``_name``) of an object other
+    than ``self``/``cls`` or one the same module's class just made (a fork's ``child``)."""
+    paths = [p for p in sorted(PACKAGES[package].rglob("*.py")) if "_proto" not in p.parts]
+    found = [w for path in paths for w in _private_writes(path)]
+    assert not found, "private state written from outside: " + "; ".join(found)

@@ -25,7 +25,7 @@ import sys
 from collections.abc import Sequence
 
 from dinerdash import ConnectOptions
-from dinerdash.command_line import add_connection_arguments, connection_keywords, run_command
+from dinerdash.cli import add_connection_arguments, connection_keywords, run_command
 
 __all__ = ["main"]
 

@@ -13,13 +13,18 @@ Layout:
     errors        the exception hierarchy (mapped from the server's structured error details)
     _arguments    the envs' Python arguments checked and turned into protocol messages
     _endpoint     Endpoint: the connections to the server(s), or the local server, reconnecting
-    _core         the session core: one batched session on one server (create, reset, step,
-                  reconnect), shared by both environments
-    _caller       the caller thread that makes a core's Steps for step_async / step_wait
+    _session      the session core: one batched session on one server (create, reset, step,
+                  reconnect, its transport and the changes of it), shared by both environments
+    _transport    Transport: how a session's Steps travel (gRPC, or shared memory: _shm)
+    _shm          the shared-memory channel: doorbell, peer check, the region's views
+    _step_thread  the thread that makes a core's Steps for step_async / step_wait
     _batch        Batch: a reply's arrays, whatever transport carried them, decoded once; its
                   operations (slice, join, splice, hand-over) and the Gymnasium observations
                   and infos made of it
     _failover     moving a lost server's environments to the servers left (failover_after)
+    _membership   the liveness watch of calls in flight, and the discovery of servers to take in
+    _placement    plan(): which environments move where, a pure function of a view of the fleet
+    _grpc_settings  gRPC process settings applied before grpc is first imported
     env           DinerDashEnv, the Gymnasium Env
     vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)
     server        LocalServer, the embedded default: a dinerdash-server subprocess
@@ -27,10 +32,10 @@ Layout:
     render        the rgb_array picture, drawn with numpy
     rollout       rollout(): server-side expert/random/planner episodes, streamed
     evaluation    seeded play, evaluate, collect demonstrations, print results, progress bar
-    command_line  what every ``python -m`` command shares: connection arguments, run_command
-    cli           ``python -m dinerdash`` (evaluate, collect, bench): a shell over the above
-    bench/        the bench command (harness) and pysim, the plain-Python rules it measures
-                  against
+    cli           ``python -m dinerdash`` (evaluate, collect, bench, watch), and what every
+                  ``python -m`` command shares (connection arguments, run_command)
+    bench/        the bench command (harness) and reference, the plain-Python rules it
+                  measures against
     sb3           make_vec_env(): a stable-baselines3 VecEnv over one batched session (extra [sb3])
 """
 
@@ -38,7 +43,7 @@ from __future__ import annotations
 
 import gymnasium
 
-from . import _tuning  # noqa: F401  (first: gRPC settings must precede the first import of grpc)
+from . import _grpc_settings  # noqa: F401  (first: gRPC settings must precede the first import of grpc)
 from ._version import ServerVersionWarning
 from ._version import __version__ as __version__
 from .connection import Connection, ConnectOptions

@@ -8,7 +8,7 @@ environments cut into contiguous pieces of sizes differing by at most one, the l
 the servers that hold the fewest environments. Environment ``i`` keeps index ``i``: the env's
 cores stay ordered by their first environment. The cores of the servers that stayed up are not
 touched. When a core raises :class:`ServerLost` is :meth:`SessionCore.reopen
-<dinerdash._core.SessionCore.reopen>`'s decision; what the moved environments report (their
+<dinerdash._session.SessionCore.reopen>`'s decision; what the moved environments report (their
 episodes truncated, or the reset asked for) is the caller's ``start``.
 """
 
@@ -17,8 +17,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from ._batch import Batch
-from ._core import SessionCore
 from ._placement import pieces
+from ._session import SessionCore
 from .errors import (
     NoServerLeft,
     ResourceExhausted,

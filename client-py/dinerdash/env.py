@@ -26,9 +26,9 @@ from ._arguments import (
     make_config,
 )
 from ._batch import decode_one
-from ._core import SessionCore, SessionOwner, Settings, check_actions
 from ._endpoint import Endpoint
 from ._proto import pb
+from ._session import SessionCore, SessionOwner, Settings, check_actions
 from .connection import Connection, ConnectOptions
 from .errors import EnvClosed, SessionNotFound
 from .game import NUM_ACTIONS, observation_space

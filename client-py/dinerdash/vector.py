@@ -45,18 +45,18 @@ from ._arguments import (
     make_config,
 )
 from ._batch import FINAL, OUTCOME, Batch, boundary, decode, handover, join
-from ._core import (
+from ._endpoint import Endpoint
+from ._failover import fail_over
+from ._membership import Membership, await_replies, has_name
+from ._placement import SessionView, plan
+from ._proto import pb
+from ._session import (
     ServerLost,
     SessionCore,
     SessionOwner,
     Settings,
     check_actions,
 )
-from ._endpoint import Endpoint
-from ._failover import fail_over
-from ._membership import Membership, await_replies, has_name
-from ._placement import SessionView, plan
-from ._proto import pb
 from .connection import ConnectOptions
 from .errors import (
     EnvClosed,

@@ -4,7 +4,7 @@ comparison.
 
 - **Loopback TCP floor**: a one-byte ping-pong between this process and a child Python process
   (``TCP_NODELAY``), the least any request/reply between two processes costs here.
-- **Reference**: :mod:`dinerdash.bench.pysim`, the rules in plain Python, stepped with uniformly
+- **Reference**: :mod:`dinerdash.bench.reference`, the rules in plain Python, stepped with uniformly
   random actions in this process: the benchmark's own way of running the game, and the unit of
   every ``x`` below.
 - **gRPC round trip** (a bare ``ServerInfo``), a **single env**, a **vector env** of N stepped with
@@ -457,11 +457,11 @@ def run(
     floor = tcp_floor()
     print(f"loopback TCP floor : {floor:12,.1f} us/round trip  (1 byte each way, two processes)")
     if reference_steps > 0:
-        from .pysim import random_steps_per_second
+        from .reference import random_steps_per_second
 
         reference = random_steps_per_second(reference_steps)
         print(
-            f"reference          : {reference:12,.0f} steps/s       (dinerdash.bench.pysim in "
+            f"reference          : {reference:12,.0f} steps/s       (dinerdash.bench.reference in "
             "process, random actions)"
         )
     started = []

@@ -8,7 +8,7 @@ rules of ``docs/rules.md`` (a port of the Rust simulator in ``server/src/sim/``)
 straightforward Python game is written: objects for groups and tables, lists for the queue,
 counters, hands and pending orders, ``random.Random`` (CPython's MT19937, which the rules seed
 exactly like ``random.seed(S)``), no numpy and no tricks, neither tuned nor slowed down, so that
-its speed is that of a Python simulator of this game. ``tests/test_pysim.py`` replays every
+its speed is that of a Python simulator of this game. ``tests/test_reference.py`` replays every
 recorded reference trajectory (``tests/data/conformance/``) through it and matches every step,
 including the expert's choices.
 
@@ -16,7 +16,7 @@ The Gymnasium environments never use it: they step the Rust simulator through th
 
 ::
 
-    from dinerdash.bench.pysim import Game, random_steps_per_second
+    from dinerdash.bench.reference import Game, random_steps_per_second
 
     game = Game()
     obs = game.reset(seed=0)           # 40 ints (docs/rules.md §6)

@@ -2,14 +2,15 @@
 server, and everything both environments do with such a session; and :class:`SessionOwner`, what
 the two environments share (their endpoint and the server's Spec).
 
-It creates the session, resets and steps it (blocking, or handed to its :mod:`caller thread
-<dinerdash._caller>` and collected later), checks actions, and, with ``reconnect=True``, waits for a
-lost server and reopens the session there; or, when the env has other servers and the lost one
-stays away past ``failover_after``, raises :class:`ServerLost` for the env to move the core's
+It creates the session, chooses its transport (:mod:`dinerdash._transport`; a change is an event),
+resets and steps it (blocking, or handed to its :mod:`step thread <dinerdash._step_thread>` and
+collected later), checks actions, and, with ``reconnect=True``, waits for a lost server and reopens
+the session there; or, when the env has other servers and the lost one stays away past
+``failover_after``, raises :class:`ServerLost` (a private signal) for the env to move the core's
 environments (:mod:`dinerdash._failover`). :class:`~dinerdash.DinerDashEnv` is one core of one
-environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Errors are the
-server's typed errors; a core of a vector env that is split over several servers reports an
-environment by its index in the vector env (from the error's structured ``env_index``).
+environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Errors are the server's
+typed errors; a core of a vector env that is split over several servers reports an environment by
+its index in the vector env (from the error's structured ``env_index``).
 """
 
 from __future__ import annotations
@@ -24,9 +25,9 @@ from gymnasium.vector import AutoresetMode
 from . import _shm, _transport
 from ._arguments import config_dict
 from ._batch import Batch, interrupt
-from ._caller import Caller
 from ._endpoint import Endpoint
 from ._proto import pb
+from ._step_thread import Caller
 from .connection import Connection
 from .errors import (
     InvalidArgument,

@@ -1,17 +1,17 @@
-"""The plain-Python simulator (``dinerdash.bench.pysim``, the baseline of ``bench``) replays every
-trajectory recorded from the reference (tests/data/conformance) exactly, expert included. No
-server is needed."""
+"""The plain-Python simulator (``dinerdash.bench.reference``, the baseline of ``bench``) replays
+every trajectory recorded from the reference (tests/data/conformance) exactly, expert included.
+No server is needed."""
 
 from __future__ import annotations
 
 import pytest
-from dinerdash.bench.pysim import Config, Game, random_steps_per_second
+from dinerdash.bench.reference import Config, Game, random_steps_per_second
 from dinerdash.game import NUM_ACTIONS, WAIT
 
 from .test_conformance import load
 
 
-def test_every_recorded_episode_replays_through_pysim(conformance_files) -> None:
+def test_every_recorded_episode_replays_through_the_reference(conformance_files) -> None:
     replayed = 0
     for where, ep in load(conformance_files):
         game = Game()
