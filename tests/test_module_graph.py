@@ -169,6 +169,7 @@ LAYERS = [
     {"dinerdash._shm", "dinerdash._transport", "dinerdash._endpoint", "dinerdash._step_thread"},
     {"dinerdash._session", "dinerdash._membership"},
     {"dinerdash._failover"},
+    {"dinerdash._fleet"},
     {"dinerdash.env", "dinerdash.vector"},
 ]
 

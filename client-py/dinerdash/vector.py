@@ -17,6 +17,9 @@ they keep their indices, and the other servers' sessions are not touched. Member
 (:mod:`dinerdash._membership`): a given-up server that answers again, or a DNS name's new
 replica, is taken in, and environments move onto it at their own episode ends until the loads
 differ by at most one; a draining server's environments move off it at their episode ends.
+
+This module is the Gymnasium adapter (arguments, autoreset modes, infos, the ``VectorEnv``
+API); the servers and sessions are the :class:`~dinerdash._fleet.Fleet`'s.
 """
 
 from __future__ import annotations
@@ -26,7 +29,6 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-import grpc
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
@@ -44,14 +46,11 @@ from ._arguments import (
     make_arrivals,
     make_config,
 )
-from ._batch import FINAL, OUTCOME, Batch, boundary, decode, handover, join
+from ._batch import Batch, decode, join
 from ._endpoint import Endpoint
-from ._failover import fail_over
-from ._membership import Membership, await_replies, has_name
-from ._placement import SessionView, plan
+from ._fleet import Fleet
 from ._proto import pb
 from ._session import (
-    ServerLost,
     SessionCore,
     SessionOwner,
     Settings,
@@ -61,17 +60,10 @@ from .connection import ConnectOptions
 from .errors import (
     EnvClosed,
     InvalidArgument,
-    ServerDraining,
-    ServiceError,
-    ServiceTimeout,
-    ServiceTransportError,
 )
 from .game import observation_space
 
 __all__ = ["DinerDashVectorEnv"]
-
-#: Seconds a server that refused a session for moving environments (full) is not asked again.
-REST = 10.0
 
 
 class DinerDashVectorEnv(SessionOwner, VectorEnv):
@@ -170,15 +162,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._options = ConnectOptions.merged(
             connect, "DinerDashVectorEnv", address=address, **connection
         )
-        self._membership: Membership | None = None
-        #: Environments moved to another server at their episode end (before a close()).
-        self._moves = 0
-        #: Servers that refused a session of moving environments (full): until when they rest.
-        self._resting: dict[int, float] = {}
-        #: What the last planning saw, and the servers and sessions of the last step after
-        #: which nothing was under way (:meth:`_settle`).
-        self._planned: tuple = ()
-        self._quiet: tuple | None = None
         self.reconnect = self._options.reconnect
         self.reconnect_timeout = self._options.reconnect_timeout
         self.failover_after = self._options.failover_after
@@ -210,30 +193,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     # -- sessions -------------------------------------------------------------------------------
 
     def _open(self) -> None:
-        """Connects and creates one session per server (at construction, and at a reset after
-        close): the environments split into contiguous slices, one per server."""
-        self._endpoint = Endpoint(self._options, max_servers=max(1, self.num_envs))
-        self._moves = 0
-        self._last_finish = time.monotonic()
-        k = len(self._endpoint.connections)
-        self._settings.split = k > 1
-        sizes = [self.num_envs // k + (j < self.num_envs % k) for j in range(k)]
-        self._cores: list[SessionCore] = []
-        start = 0
-        for j, size in enumerate(sizes):
-            self._cores.append(SessionCore(self._endpoint, j, start, start + size, self._settings))
-            start += size
-        try:
-            for core in self._cores:
-                self.spec_proto: pb.Spec = core.create()
-        except BaseException:
-            self._close_sessions()
-            self._endpoint.close()
-            raise
-        # Membership for several servers, or a DNS name that may come to name several.
-        if self._failover_on() and self._endpoint.server is None:
-            if len(self._endpoint.connections) > 1 or has_name(self._options.address):
-                self._membership = Membership(self._endpoint, self._options)
+        """Opens the fleet: connects and creates one session per server (at construction, and
+        at a reset after close)."""
+        self._fleet = Fleet(self._options, self._settings)
+        self.spec_proto: pb.Spec = self._fleet.spec
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
         self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
@@ -241,10 +204,23 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
     @property
+    def _cores(self) -> list[SessionCore]:
+        """The fleet's sessions, in environment order."""
+        return self._fleet.cores
+
+    @_cores.setter
+    def _cores(self, cores: list[SessionCore]) -> None:
+        self._fleet.cores = cores
+
+    @property
+    def _endpoint(self) -> Endpoint:
+        return self._fleet.endpoint
+
+    @property
     def addresses(self) -> list[str]:
         """The servers serving now, in the order of the first environments they hold (after a
         failover a server may hold several slices; the servers given up are left out)."""
-        return list(dict.fromkeys(c.conn.address for _, _, c in self._pieces()))
+        return list(dict.fromkeys(c.conn.address for _, _, c in self._fleet.pieces()))
 
     @property
     def lost_addresses(self) -> list[str]:
@@ -271,7 +247,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         sessions differ). A change is logged as a warning and counted in
         :attr:`transport_changes`: nothing falls back to gRPC silently."""
         out: dict[str, list[str]] = {}
-        for _, _, core in self._pieces():
+        for _, _, core in self._fleet.pieces():
             name = core.transport.name if core.transport is not None else "grpc"
             names = out.setdefault(core.conn.address, [])
             if name not in names:
@@ -288,57 +264,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def moves(self) -> int:
         """Environments moved to another server at their episode end (onto a server taken in,
         or off a draining one), or, a draining server's deadline about to pass, cut."""
-        return self._moves
+        return self._fleet.moves
 
     @property
     def env_slices(self) -> list[tuple[str, slice]]:
         """Which server holds which environments: one entry per contiguous run of a session's
         environments, in environment order (after a failover a server holds several)."""
-        return [(c.conn.address, slice(lo, hi)) for lo, hi, c in self._pieces()]
-
-    def _pieces(self) -> list[tuple[int, int, SessionCore]]:
-        """``(start, stop, core)``: which core holds which environments, in environment order."""
-        out = [(lo, hi, c) for c in self._cores for lo, hi in c.runs()]
-        out.sort(key=lambda p: p[0])
-        return out
-
-    def _batches(self) -> list[Batch]:
-        """The cores' last Batches cut to the environments each holds, in environment order."""
-        cores = self._cores
-        if all(c.owned is None for c in cores):
-            return [c.last for c in cores]
-        return [
-            c.last if c.owned is None else c.last.slice(lo - c.start, hi - c.start)
-            for lo, hi, c in self._pieces()
-        ]
-
-    def _refused(self, dest: int, error: ServiceError) -> None:
-        """Server ``dest`` could not take environments moving to it: one that drains is marked
-        so, one that does not answer is given up (no step of the env would notice: it holds
-        none of its environments), one that refuses otherwise (full) is not asked for a while."""
-        if isinstance(error, ServerDraining):
-            self._endpoint.drain(dest, None)
-        elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
-            self._endpoint.give_up(dest, f"could not open a session there: {error}")
-        else:
-            self._resting[dest] = time.monotonic() + REST
-
-    def _targets(self) -> list[int]:
-        """The servers environments may move to now: open to new sessions, and not resting
-        after refusing one."""
-        now = time.monotonic()
-        for j in [j for j, until in self._resting.items() if until <= now]:
-            del self._resting[j]
-        return [j for j in self._endpoint.open_to_new() if j not in self._resting]
-
-    def _quick(self) -> float:
-        """The deadline of the calls that move environments between servers: a server that
-        does not answer within ``failover_after`` is passed over (the env's watch gives it up
-        at the next step), not waited for the whole ``timeout``."""
-        return min(self._options.timeout, self.failover_after)
-
-    def _failover_on(self) -> bool:
-        return self.reconnect and self.failover_after is not None
+        return [(c.conn.address, slice(lo, hi)) for lo, hi, c in self._fleet.pieces()]
 
     @property
     def session_ids(self) -> list[str | None]:
@@ -352,7 +284,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_open("watch_url()")
         if not 0 <= index < self.num_envs:
             raise IndexError(f"index must be in 0..{self.num_envs - 1}, got {index}")
-        core = next(c for lo, hi, c in self._pieces() if lo <= index < hi)
+        core = next(c for lo, hi, c in self._fleet.pieces() if lo <= index < hi)
         return watch_url(core.conn, core.session_id, index - core.start)
 
     def _check_open(self, what: str) -> None:
@@ -400,56 +332,16 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             "arrivals": arrivals,
             "config": config,
         }
-        given_up, endpoint = self._endpoint.given_up, self._endpoint
-        self._take_in()
-
-        # The moved environments' new sessions are reset whole, as after a reconnect.
-        def start(old: SessionCore, new: SessionCore) -> Batch:
-            return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
-
-        for core in self._cores:
-            core.entering = set()
-        if mask is None:
-            self._complete_transfers()
-        if mask is None and self._failover_on():
-            # A full reset ends every episode: the environments of a draining server move now.
-            drained = [c for c in self._cores if c.index in endpoint.draining]
-            if drained:
-                self._moves += sum(c.load for c in drained)
-                self._cores = fail_over(self._cores, drained, start, why=None)
-        calls, kept = [], set()
-        for core in self._cores:
-            if mask is not None and not any(mask[lo:hi].any() for lo, hi in core.runs()):
-                kept.add(id(core))
-                continue
-            req = core.reset_request(**given, mask=mask)
-            calls.append(
-                (core, req, None if core.index in given_up else core.conn.future("Reset", req))
-            )
-        if self._failover_on() and len(endpoint.live()) > 1:
-            waiting = [(c.index, _ready(f)) for c, _, f in calls if f is not None]
-            await_replies(waiting, endpoint, self.failover_after, time.monotonic())
-        lost = []
-        for core, req, future in calls:
-            try:
-                if future is None:
-                    lost.append(core)  # its server was given up at a step: it moves now
-                else:
-                    core.reset(req, future)
-            except ServerLost:
-                lost.append(core)
-        if lost:
-            self._cores = fail_over(self._cores, lost, start)
-        batch = join(self._batches())
+        kept = self._fleet.reset(given, mask)
+        batch = join(self._fleet.batches())
         obs, info = decode(batch, self.expert)
         info["seed"] = batch["seeds"].astype(np.int64)  # as SyncVectorEnv; torch has no uint64
         reset = batch["reset"].copy()
-        for lo, hi, c in self._pieces():
+        for lo, hi, c in self._fleet.pieces():
             if id(c) in kept:
                 reset[lo:hi] = False
         info["_seed"] = reset
         self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
-        self._last_finish = time.monotonic()  # the time between steps, for a drain's margin
         return obs, info
 
     def _reset_mask(self, reset_mask: Any, config: Any) -> np.ndarray | None:
@@ -487,19 +379,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         wire = check_actions(actions, self.num_envs)
         self._check_idle("step()")
         self._check_open("step()")
-        cores = self._cores
-        if len(cores) == 1 and not (self._failover_on() and len(self._endpoint.live()) > 1):
-            # One blocking call: cheaper than a future (no hand-off to gRPC's completion thread).
-            try:
-                batches = [cores[0].step(wire.tobytes())]
-            except ServerLost as e:
-                self._cores = fail_over(cores, [e.core], _interrupted)
-                batches = self._batches()
-            if self._membership is not None:
-                self._take_in()
-                self._settle()
-                batches = self._batches()
-            return self._decode_step(batches)
+        if self._fleet.blocking():
+            return self._decode_step(self._fleet.step(wire))
         self._start(wire)
         return self._decode_step(self._finish())
 
@@ -547,295 +428,16 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             )
 
     def _start(self, wire: np.ndarray) -> None:
-        """Every server's Step is sent (by its core's thread) before any reply is awaited: the
-        servers work in parallel, and with the caller."""
-        for core in self._cores:
-            core.start_step(wire[core.start : core.stop].tobytes())
+        self._fleet.start(wire)
         self._pending = True
-        self._sent = time.monotonic()
 
     def _finish(self) -> list[Batch]:
-        """Every core's Batch of the pending step. Every reply is awaited (and every core
-        updated) before the first error, if any, is raised: no server's step goes unrecorded. An
-        interrupted wait (Ctrl-C) leaves the step pending, to be collected by ``step_wait()``.
-
-        The environments of a core whose server was lost past ``failover_after`` move to the
-        servers left first, and report this step as interrupted (:func:`_interrupted`). A server
-        that answers nothing (the step nor a health check) for ``failover_after`` is given up
-        first (:func:`~dinerdash._membership.await_replies`). Then the servers found are taken
-        in and environments at their episode ends move (:meth:`_settle`)."""
-        endpoint = self._endpoint
-        if self._failover_on() and len(endpoint.live()) > 1:
-            waiting = [(c.index, c.step_ready) for c in self._cores]
-            await_replies(waiting, endpoint, self.failover_after, self._sent)
-        else:
-            for core in self._cores:
-                core.step_ready()
+        """Every core's Batch of the pending step (:meth:`Fleet.finish
+        <dinerdash._fleet.Fleet.finish>`); an interrupted wait (Ctrl-C) leaves the step pending,
+        to be collected by ``step_wait()``."""
+        self._fleet.wait()
         self._pending = False
-        error, lost = None, []
-        for core in self._cores:
-            try:
-                core.finish_step()  # its Batch is core.last
-            except ServerLost as e:
-                lost.append(e.core)
-            except BaseException as e:
-                if error is None:
-                    error = e
-        if lost:
-            self._cores = fail_over(self._cores, lost, _interrupted)
-        if error is not None:
-            raise error
-        if self._failover_on():
-            self._take_in()
-            self._settle()
-        return self._batches()
-
-    def _take_in(self) -> None:
-        """The servers the membership thread found: given-up ones that answer again are taken
-        back, new replicas added (no more servers than environments)."""
-        if self._membership is None:
-            return
-        endpoint = self._endpoint
-        for index, conn in self._membership.found():
-            if index is not None and index in endpoint.given_up:
-                endpoint.take_back(index, conn)
-            elif index is None and conn.address not in endpoint.addresses:
-                if len(endpoint.live()) < self.num_envs:
-                    endpoint.add(conn)
-                else:
-                    conn.close()
-            else:
-                conn.close()
-
-    def _settle(self) -> None:
-        """After a step: notes which servers drain, then moves environments between servers at
-        their own episode ends (:func:`~dinerdash._membership.boundary`): off draining servers,
-        and from the most loaded servers onto the least loaded until the loads differ by at
-        most one. A move is a transfer (:meth:`_plan`): a session on the new server for a
-        contiguous run of environments, each of which enters it at its episode end
-        (:meth:`_enter`). The environments of a server whose drain deadline is about to pass
-        move at once, their episodes cut (truncated, ``info["reconnected"]``). Not in DISABLED
-        mode, where the caller resets finished environments: they move at a full reset."""
-        endpoint = self._endpoint
-        now = time.monotonic()
-        interval, self._last_finish = now - self._last_finish, now
-        if self._shape() == self._quiet and not any(
-            c.drain_ms or c.source is not None for c in self._cores
-        ):
-            return  # nothing changed and nothing under way: the common step
-        for core in self._cores:
-            if core.drain_ms > 0:
-                endpoint.drain(core.index, core.drain_ms / 1000)
-        if self.autoreset_mode == AutoresetMode.DISABLED:
-            return
-        # NEXT_STEP: the environments whose episode ended at the last step autoreset here.
-        for new in [c for c in self._cores if c.entering]:
-            self._enter(new, sorted(new.entering))
-            new.entering = set()
-        for new in self._cores:
-            if new.source is not None and new.index in endpoint.draining:
-                new.source, new.entering = None, set()  # no more environments go to it
-        targets = self._targets()
-        # Planning is asked again only when the servers or the sessions changed.
-        key = (len(self._cores), tuple(targets), tuple(endpoint.draining), tuple(endpoint.given_up))
-        if targets and key != self._planned:
-            self._plan(targets)
-            self._planned = key
-        # A drain deadline closer than a few steps (and two seconds): move now, cut.
-        margin = max(2.0, 3 * interval)
-        late = {i for i, t in endpoint.draining.items() if t - now < margin}
-        for new in [c for c in self._cores if c.source is not None]:
-            source = new.source
-            ended = boundary(source.last, self.autoreset_mode)
-            due = [
-                i
-                for i in range(new.start, new.stop)
-                if source.holds(i) and ended[i - source.start] and not new.holds(i)
-            ]
-            if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-                new.entering.update(due)
-            elif due:
-                self._enter(new, due)
-        for core in [c for c in self._cores if c.index in late and c.load]:
-            targets = [j for j in self._targets() if j != core.index]
-            for lo, hi in core.runs():
-                for i in range(lo, hi):
-                    if targets and i not in self._entering():
-                        dest = min(targets, key=lambda j: (self._load(j), j))
-                        self._hand_over(core, i, dest, cut=True)
-        self._tidy()
-        for i in list(endpoint.draining):
-            if not any(c.index == i for c in self._cores):
-                endpoint.give_up(i)  # drained: probed, and taken back once it serves again
-        settled = not (endpoint.draining or self._resting) and all(
-            c.source is None for c in self._cores
-        )
-        self._quiet = self._shape() if settled else None
-
-    def _shape(self) -> tuple:
-        """The sessions and servers as :meth:`_settle` compares them from one step to the next:
-        a step whose shape is the last quiet one's has nothing to settle."""
-        endpoint = self._endpoint
-        return (len(self._cores), len(endpoint.connections), tuple(endpoint.given_up))
-
-    def _entering(self) -> set[int]:
-        return {i for c in self._cores for i in c.entering}
-
-    def _load(self, server: int) -> int:
-        """Environments server ``server`` holds, or will once its transfers are done."""
-        load = 0
-        for c in self._cores:
-            if c.index == server:
-                load += c.load
-            if c.source is not None:
-                pending = sum(c.source.holds(i) and not c.holds(i) for i in range(c.start, c.stop))
-                load += pending if c.index == server else 0
-                load -= pending if c.source.index == server else 0
-        return load
-
-    def _plan(self, targets: list[int]) -> None:
-        """Opens the transfers that, once done, leave no environment on a draining server and
-        loads that differ by at most one (:func:`dinerdash._placement.plan`, from a view of the
-        sessions): each a session on a server of ``targets`` for a run of another server's
-        environments. A destination that refuses stops the balancing (the next planning sees
-        why); a draining server's other pieces are still tried."""
-        endpoint = self._endpoint
-        cores = list(self._cores)
-        covered = {
-            i
-            for c in cores
-            if c.source is not None
-            for i in range(c.start, c.stop)
-            if c.source.holds(i)
-        }
-        views = [
-            SessionView(
-                key=k,
-                server=c.index,
-                runs=tuple((lo, hi) for a, b in c.runs() for lo, hi in _uncovered(a, b, covered)),
-                load=c.load,
-                busy=c.source is not None,
-            )
-            for k, c in enumerate(cores)
-        ]
-        servers = {c.index for c in cores} | set(targets)
-        loads = {j: self._load(j) for j in servers}
-        draining = set(endpoint.draining)
-        for move in plan(views, loads, targets, draining):
-            if not self._transfer(cores[move.source], move.start, move.stop, move.dest):
-                if move.origin not in draining:
-                    return
-
-    def _session_on(self, dest: int, lo: int, hi: int) -> tuple[SessionCore, Batch] | None:
-        """A new session on server ``dest`` for environments ``lo:hi``, created and reset
-        (unseeded: the new server draws the episodes' seeds, as an autoreset does), with its
-        first Batch; None when ``dest`` cannot take it now (it drains, is full or unreachable:
-        :meth:`_refused` notes why)."""
-        new = SessionCore(self._endpoint, dest, lo, hi, self._settings)
-        try:
-            new.create(self._quick())
-            first = Batch.from_pb(
-                new.conn.call(
-                    "Reset", pb.ResetRequest(session_id=new.session_id), timeout=self._quick()
-                )
-            )
-        except ServiceError as e:
-            new.close()
-            self._refused(dest, e)
-            return None
-        except BaseException:
-            new.close()
-            raise
-        return new, first
-
-    def _transfer(self, source: SessionCore, lo: int, hi: int, dest: int) -> bool:
-        """Opens a session on server ``dest`` for environments ``lo:hi`` of ``source``, each to
-        enter it at its episode end; until then its slots are stepped, their results unused.
-        False when ``dest`` cannot take it now (it drains, is full or unreachable)."""
-        opened = self._session_on(dest, lo, hi)
-        if opened is None:
-            return False
-        new, first = opened
-        new.last = new.note(first)
-        new.owned = np.zeros(new.size, dtype=np.bool_)
-        new.source = source
-        self._cores.append(new)
-        self._cores.sort(key=lambda c: c.start)
-        return True
-
-    def _enter(self, new: SessionCore, envs: list[int]) -> None:
-        """Environments ``envs`` of ``new.source`` enter ``new`` at their episode end: their
-        slots are reset (unseeded: the new server draws the seeds, as an autoreset does) and
-        their report of this step is the new episode's start (NEXT_STEP: this step is their
-        autoreset; SAME_STEP: the ended episode's outcome and ``final_*`` from the old server)."""
-        envs = [i for i in envs if new.source.holds(i)]
-        if not envs:
-            return
-        mask = np.zeros(new.size, dtype=np.bool_)
-        mask[[i - new.start for i in envs]] = True
-        request = pb.ResetRequest(session_id=new.session_id, reset_mask=mask.tobytes())
-        try:
-            reply = new.conn.call("Reset", request, timeout=self._quick())
-            first = new.note(Batch.from_pb(reply))
-        except ServiceError:
-            return  # its server is going: the transfer is dropped at the next failover
-        batch = new.last.splice(first, mask)
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            old = new.source.last.slice(new.start - new.source.start, new.stop - new.source.start)
-            batch = batch.splice(old, mask, OUTCOME + FINAL)
-        else:
-            batch = batch.splice(Batch(new.size, {}), mask, OUTCOME)
-        ones = Batch(new.size, {"reset": np.ones(new.size, np.bool_)})
-        batch = batch.splice(ones, mask, ("reset",))
-        new.last = batch
-        for i in envs:
-            new.source.disown(i, i + 1)
-        new.own(envs)
-        self._moves += len(envs)
-
-    def _tidy(self) -> None:
-        """Closes the sessions whose environments have all moved, and ends the transfers that
-        are done or whose source is gone (a failover)."""
-        for core in list(self._cores):
-            if core.source is not None:
-                if core.owned is None:
-                    core.source = None
-                elif core.source not in self._cores or not any(
-                    core.source.holds(i) for i in range(core.start, core.stop)
-                ):
-                    core.source, core.entering = None, set()
-            if core.load == 0 and core.source is None:
-                core.close()
-                self._cores.remove(core)
-        self._cores.sort(key=lambda c: c.start)  # what _batches' common case relies on
-
-    def _complete_transfers(self) -> None:
-        """A full reset starts every episode: the transfers in progress are done at once."""
-        for new in [c for c in self._cores if c.source is not None]:
-            envs = [i for i in range(new.start, new.stop) if new.source.holds(i)]
-            for i in envs:
-                new.source.disown(i, i + 1)
-            new.own(envs)
-            new.entering = set()
-        self._tidy()
-
-    def _hand_over(self, core: SessionCore, i: int, dest: int, cut: bool) -> bool:
-        """Environment ``i`` of ``core`` moves to a new session on server ``dest`` (created
-        and reset now; unseeded: the new server draws the episode's seed, as an autoreset
-        does): its Batch of this step becomes the new core's (:func:`handover`). False when
-        ``dest`` cannot take it now (it drains, is full or unreachable): it stays, for now."""
-        opened = self._session_on(dest, i, i + 1)
-        if opened is None:
-            return False
-        new, first = opened
-        ended = core.last.slice(i - core.start, i - core.start + 1)
-        new.last, new.pending = handover(ended, first, self.autoreset_mode, cut)
-        new.reconnected = cut
-        core.disown(i, i + 1)
-        self._cores.append(new)
-        self._cores.sort(key=lambda c: c.start)
-        self._moves += 1
-        return True
+        return self._fleet.finish()
 
     def action_masks(self) -> np.ndarray:
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
@@ -843,7 +445,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_idle("action_masks()")
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
-        return join(self._batches())["action_masks"].copy()
+        return join(self._fleet.batches())["action_masks"].copy()
 
     def _decode_step(self, batches: list[Batch]):
         n = self.num_envs
@@ -896,12 +498,12 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._check_open("render()")
             return tuple(
                 core.render_text(i - core.start, self.ansi_color)
-                for lo, hi, core in self._pieces()
+                for lo, hi, core in self._fleet.pieces()
                 for i in range(lo, hi)
             )
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")
-        obs, info = decode(join(self._batches()), self.expert)
+        obs, info = decode(join(self._fleet.batches()), self.expert)
         lives = self.spec_proto.config.lives
         return tuple(
             _render.draw(
@@ -910,57 +512,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             for i in range(self.num_envs)
         )
 
-    def _close_sessions(self) -> None:
-        for core in self._cores:
-            core.close()
-
     def close_extras(self, **kwargs: Any) -> None:
         """Closes the sessions (and the local server, if this env started one). A later full
         ``reset()`` opens new sessions; other calls raise :class:`~dinerdash.EnvClosed`."""
         if not self._closed:
             self._pending = False  # the cores' threads end as the sessions close
-            if self._membership is not None:
-                self._membership.close()
-                self._membership = None
-            self._close_sessions()
-            self._endpoint.close()
+            self._fleet.close()
             self._closed = True
-
-
-def _ready(future):
-    """``ready(deadline)`` of a grpc future: True once it has its outcome."""
-
-    def ready(deadline: float | None) -> bool:
-        timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
-        try:
-            future.exception(timeout=timeout)
-        except grpc.FutureTimeoutError:
-            return False
-        except grpc.FutureCancelledError:
-            pass
-        return True
-
-    return ready
-
-
-def _uncovered(lo: int, hi: int, covered: set[int]) -> list[tuple[int, int]]:
-    """The contiguous runs of ``lo:hi`` outside ``covered``."""
-    out, start = [], None
-    for i in range(lo, hi + 1):
-        free = i < hi and i not in covered
-        if free and start is None:
-            start = i
-        elif not free and start is not None:
-            out.append((start, i))
-            start = None
-    return out
-
-
-def _interrupted(old: SessionCore, new: SessionCore) -> Batch:
-    """A moved core's Batch for the step in which its server was given up: its environments'
-    episodes end truncated in their last state (``old.last``), and the new session's first
-    Batch (an unseeded Reset: the new server draws each episode's seed) is the autoreset, as
-    after a reconnect."""
-    first = Batch.from_pb(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
-    last = old.last.slice(new.start - old.start, new.stop - old.start)
-    return new.interrupt(last, first)
