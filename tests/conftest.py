@@ -177,3 +177,41 @@ def conformance_files() -> list[Path]:
     if not files:
         pytest.fail(f"no conformance trajectories (*.jsonl) in {CONFORMANCE_DIR}", pytrace=False)
     return files
+
+
+@pytest.fixture(params=["grpc", "shm"])
+def each_transport(request, monkeypatch) -> Iterator[str]:
+    """Runs a test once over each transport: every environment the test makes without a
+    ``transport=`` of its own steps over ``request.param``; afterwards, every session those
+    environments opened must have chosen that transport (which one served is asserted, not
+    assumed: a shared-memory run that fell back to gRPC at its start fails here). Environments
+    given their own transport (a test through a TCP proxy is gRPC's) are left as they are."""
+    from dinerdash import connection
+    from dinerdash._session import SessionCore
+
+    transport = request.param
+    merged = connection.ConnectOptions.merged.__func__
+    injected: list = []  # the options made here, compared by identity
+    chosen: list[str] = []
+
+    def with_transport(cls, connect, caller, **keywords):
+        if "transport" in keywords or (connect is not None and connect.transport != "auto"):
+            return merged(cls, connect, caller, **keywords)
+        options = merged(cls, connect, caller, transport=transport, **keywords)
+        injected.append(options)
+        return options
+
+    attach = SessionCore.attach
+
+    def recorded(core: SessionCore) -> None:
+        attach(core)
+        if any(core.endpoint.options is o for o in injected):
+            chosen.append(core.transport.name)
+
+    monkeypatch.setattr(connection.ConnectOptions, "merged", classmethod(with_transport))
+    monkeypatch.setattr(SessionCore, "attach", recorded)
+    yield transport
+    assert set(chosen) <= {transport}, f"sessions chose {sorted(set(chosen))}, not {transport}"
+    request.node.user_properties.append(("transport", transport))
+    if injected and any(o.address is not None for o in injected):
+        assert chosen, f"environments made over {transport} opened no session"

@@ -36,6 +36,7 @@ def _drain(server, conn: Connection) -> ServerDraining:
         time.sleep(0.01)
 
 
+@pytest.mark.usefixtures("each_transport")
 def test_a_draining_server_refuses_new_sessions_with_server_draining(start_server) -> None:
     server = start_server("--drain-timeout", str(DRAIN_TIMEOUT_S))
     env = gymnasium.make("dinerdash:DinerDash-v0", address=server.address)

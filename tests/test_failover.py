@@ -37,7 +37,7 @@ CONFIG = {"lives": 2, "time_limit": 40}
 
 
 #: dinerdash_cluster: three servers (dinerdash.testing's pytest plugin).
-pytestmark = pytest.mark.dinerdash_cluster(3)
+pytestmark = [pytest.mark.dinerdash_cluster(3), pytest.mark.usefixtures("each_transport")]
 
 
 def record(result: tuple, i: int) -> dict:
