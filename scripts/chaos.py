@@ -60,8 +60,9 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 FAULTS = ("kill", "hang", "blackhole", "drain", "restart")
-#: Seconds a restarted or drained server may take to exit before it is killed.
-EXIT_TIMEOUT = 60.0
+#: Seconds a restarted or drained server may take to exit before it is killed: past any
+#: ``--drain-timeout`` the runs use.
+EXIT_TIMEOUT = 120.0
 
 
 # --- the servers and the monkey: a child process ------------------------------------------------
@@ -562,8 +563,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--drain-timeout",
         type=float,
-        default=10.0,
-        help="the servers' --drain-timeout, if they have it",
+        default=60.0,
+        help="the servers' --drain-timeout, if they have it: longer than an episode lasts on a "
+        "loaded machine, since a drain that ends before an episode does must cut it",
     )
     parser.add_argument("--eval-episodes", type=int, default=64)
     parser.add_argument("--eval-seed", type=int, default=10_000)
@@ -582,6 +584,8 @@ def main(argv: list[str] | None = None) -> int:
         help="also train the same seed, as many iterations, without the monkey",
     )
     args = parser.parse_args(argv)
+    if not 0 <= args.drain_timeout < EXIT_TIMEOUT:
+        parser.error(f"--drain-timeout must be in [0, {EXIT_TIMEOUT:g}) s")
     if not Path(args.server).is_file():
         parser.error(f"--server {args.server}: no such binary (make build-server)")
     if args.snapshots < 1 or args.snapshot_every < 1:

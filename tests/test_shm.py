@@ -8,18 +8,24 @@ session steps over gRPC, the reason logged at debug level."""
 
 from __future__ import annotations
 
+import array
 import dataclasses
+import fcntl
 import logging
 import os
+import select
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
+import termios
 import textwrap
 import time
 from types import SimpleNamespace
 
+import grpc
 import numpy as np
 import pytest
 from dinerdash import (
@@ -30,7 +36,7 @@ from dinerdash import (
     ServiceTransportError,
     _shm,
 )
-from dinerdash._proto import pb
+from dinerdash._proto import pb, pb_grpc
 from gymnasium.vector import AutoresetMode
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="shared memory needs Linux")
@@ -118,7 +124,8 @@ _CLIENT = textwrap.dedent(
     from dinerdash import DinerDashVectorEnv
     env = DinerDashVectorEnv(64, sys.argv[1], transport="shm")
     env.reset(seed=0)
-    print("stepping", flush=True)
+    env.step(np.zeros(64, dtype=np.int64))
+    print("stepping", flush=True)  # in the loop from here on: killed while it steps
     while True:
         env.step(np.zeros(64, dtype=np.int64))
     """
@@ -139,8 +146,8 @@ def test_a_killed_client_leaves_nothing_and_others_step_on(start_server) -> None
                 stderr=subprocess.DEVNULL,
             )
             try:
+                # It has stepped through its region and steps on without a pause.
                 assert client.stdout.readline().strip() == b"stepping"
-                time.sleep(0.2)  # mid-step, most likely
                 assert regions(server.pid) == 2
             finally:
                 client.send_signal(signal.SIGKILL)
@@ -175,32 +182,64 @@ def test_a_killed_server_gives_the_same_typed_error(start_server, transport: str
         env.close()
 
 
+def _unread(sock: socket.socket) -> int:
+    """Bytes of the next message waiting in ``sock`` (a ``SOCK_SEQPACKET``), 0 when none."""
+    return struct.unpack("i", fcntl.ioctl(sock, termios.FIONREAD, b"\0\0\0\0"))[0]
+
+
+def _hung_up(sock: socket.socket) -> bool:
+    poller = select.poll()
+    poller.register(sock, select.POLLHUP)
+    return bool(poller.poll(0))
+
+
 def test_a_client_that_stops_reading_stalls_nobody(start_server) -> None:
+    """A client that rings the doorbell and never reads its replies: the server steps it and
+    queues the replies without waiting for it (a full queue makes it hang up), and another
+    client's Steps are answered all the while. The stuck client speaks the wire protocol
+    itself (docs/shm.md): a session over gRPC, the hello, then ``S`` after ``S``."""
     server = start_server()
-    stuck = DinerDashVectorEnv(8, server.address, transport="shm")
     other = DinerDashVectorEnv(8, server.address, transport="shm")
+    channel = grpc.insecure_channel(server.address)
+    stub = pb_grpc.DinerDashStub(channel)
+    stuck = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
     try:
-        stuck.reset(seed=0)
         other.reset(seed=1)
-        channel = _shm._CHANNELS[stuck._cores[0]]
-        # Ring the doorbell without ever reading a reply, until the server gives the socket up
-        # (its replies fill this side's queue: it hangs up rather than wait).
-        channel.sock.setblocking(False)
+        created = stub.CreateSession(pb.CreateSessionRequest(num_envs=8), timeout=PATIENCE)
+        stub.Reset(pb.ResetRequest(session_id=created.session_id, seed=0), timeout=PATIENCE)
+        stuck.settimeout(PATIENCE)
+        stuck.connect("\0" + created.shm_doorbell)
+        stuck.sendall(b"H" + created.session_id.encode() + created.shm_secret)
+        reply, ancillary, _, _ = stuck.recvmsg(16, socket.CMSG_SPACE(4))
+        assert reply == b"R"
+        for _, _, data in ancillary:
+            for fd in array.array("i", data):
+                os.close(fd)  # the region: not needed to ring the doorbell
+        wait_until(lambda: regions(server.pid) == 2, "the stuck client's region made")
+
+        # One ring a round, never a read; the other client steps each round. A round counts
+        # when, after the other's Step, the stuck client's replies wait unread and the server
+        # has not hung up on it: that Step was served while the stuck one was stuck.
+        served_while_stuck = 0
         deadline = time.monotonic() + PATIENCE
-        while True:
+        while not _hung_up(stuck):
+            assert time.monotonic() < deadline, "the server never hung up on the stuck client"
             try:
-                channel.sock.send(b"S")
+                stuck.send(b"S", socket.MSG_DONTWAIT)
             except BlockingIOError:
-                assert time.monotonic() < deadline, "the server never hung up"
-                time.sleep(0.001)
+                pass  # its side is full too: ring again next round
             except (BrokenPipeError, ConnectionResetError):
                 break
-        # The other session steps all along, and the stuck one's region is given up.
-        for _ in range(50):
             other.step(np.zeros(8, dtype=np.int64))
+            served_while_stuck += _unread(stuck) > 0 and not _hung_up(stuck)
+        assert served_while_stuck >= 2, served_while_stuck
+        # The stuck one's region is given up; the other steps on.
         wait_until(lambda: regions(server.pid) == 1, "the unread session's region freed")
+        for _ in range(20):
+            other.step(np.zeros(8, dtype=np.int64))
     finally:
         stuck.close()
+        channel.close()
         other.close()
 
 

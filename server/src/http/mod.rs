@@ -22,7 +22,7 @@
 //! `axum::serve`). The accept loop ([`serve`]) stays ours, because the endpoint's two limits
 //! are per connection, which a router cannot see: at most [`MAX_CONNECTIONS`] at once (more
 //! are answered 503), and a client that does not read is cut off after [`WRITE_TIMEOUT`]
-//! ([`deadline`]). Each connection serves one request and closes, as browsers' event streams
+//! ([`deadline`]; its socket's send buffer is [`SEND_BUFFER`], so that a write blocks soon). Each connection serves one request and closes, as browsers' event streams
 //! hold their own connection anyway.
 //!
 //! - [`routes`]: the URLs, the GET/HEAD rule, the headers every response carries.
@@ -72,6 +72,12 @@ const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// descriptors [`crate::connections::fd_limit`] keeps beside the gRPC connections, so there are
 /// few.
 pub const MAX_CONNECTIONS: usize = 32;
+/// The kernel's send buffer of each web connection. Left alone, Linux lets a socket's buffer
+/// grow to `net.ipv4.tcp_wmem`'s maximum (4 MiB by default): a viewer that stops reading would
+/// hold that much kernel memory, and a watch stream (~30 frames, ~30 KB a second) would take
+/// minutes to fill it before a write could block and [`WRITE_TIMEOUT`] start counting. Fixed,
+/// the buffer is full within seconds; the largest page or frame still goes in one write.
+pub const SEND_BUFFER: usize = 128 * 1024;
 
 /// What the endpoint serves from. Shared by every connection.
 #[derive(Debug)]
@@ -155,6 +161,9 @@ pub async fn serve_exposed(
         };
         match accepted {
             Ok((stream, _)) => {
+                if let Err(e) = socket2::SockRef::from(&stream).set_send_buffer_size(SEND_BUFFER) {
+                    tracing::debug!("http connection's send buffer: {e}");
+                }
                 // Over the limit, the connection is still read (hyper needs the request to
                 // answer it), but only to be told 503 within the request timeout.
                 let permit = Arc::clone(&connections).try_acquire_owned().ok();
