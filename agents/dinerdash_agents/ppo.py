@@ -1,4 +1,12 @@
-"""PPO, in the spirit of CleanRL's single-file PPO, against batched server sessions.
+"""PPO against batched server sessions: the model, the update and the :class:`Trainer`.
+
+Not a CleanRL-style single file: the algorithm is a class, as Stable-Baselines3's are.
+:class:`Trainer` holds one iteration (collect, then update) and four hooks its variants
+override: :meth:`~Trainer.rewards_of` (GAIL's discriminator reward), :meth:`~Trainer.update_coefs`
+with :func:`make_update`'s ``combine`` (kick-starting's pull toward a teacher),
+:meth:`~Trainer.record_info` (the teacher's actions kept with each step) and
+:meth:`~Trainer.view` (a learner with memory sees its observations' features). The run around it
+(servers, checkpoints, curve, resume) is :mod:`~dinerdash_agents.train_rl`.
 
 ``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, address=..., autoreset_mode=SAME_STEP)``
 feeds a jitted actor-critic: per step one jitted call acts for the environments of a vector env;
@@ -404,10 +412,10 @@ class Trainer:
     """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
     one iteration: collect ``num_steps`` steps of every environment, then update.
 
-    GAIL subclasses it and replaces :meth:`rewards_of`; kick-starting adds a loss term through
-    :meth:`update_coefs` and :func:`make_update`'s ``combine``, and keeps the teacher's actions
-    through :meth:`record_info`, and a learner with memory sees its observations through
-    :meth:`view`.
+    Its variants subclass it and override its four hooks: GAIL replaces :meth:`rewards_of`;
+    kick-starting adds a loss term through :meth:`update_coefs` and :func:`make_update`'s
+    ``combine``, and keeps the teacher's actions through :meth:`record_info`; a learner with
+    memory sees its observations through :meth:`view`.
     """
 
     def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
@@ -651,6 +659,6 @@ class Trainer:
         return float(np.mean(self.recent_scores)) if self.recent_scores else float("nan")
 
 
-# The masked and the unmasked policy are the same model; the name says which was trained.
-for _name in ("ppo", "ppo-masked"):
-    checkpoint.register(_name, module=__name__, config_from_json=config_from_json, init=init)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo`` or ``ppo-masked``
+#: checkpoint (the same model; the name says which was trained).
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init)
