@@ -351,7 +351,7 @@ def test_an_iteration_crosses_host_and_device_only_where_it_says(server_address:
 def test_more_environments_keep_the_minibatch_and_the_updates_per_sample():
     base = ppo.PPOConfig()
     assert base.for_num_envs(8) == ppo.PPOConfig(num_envs=8)  # at or below 256: only N
-    for n, steps, minibatches in [(512, 32, 4), (1024, 16, 4), (4096, 16, 16), (16384, 16, 64)]:
+    for n, steps, minibatches in [(512, 32, 4), (1024, 32, 8), (4096, 32, 32), (16384, 32, 128)]:
         c = base.for_num_envs(n)
         assert (c.num_envs, c.num_steps, c.num_minibatches) == (n, steps, minibatches)
         samples = c.num_envs * c.num_steps
