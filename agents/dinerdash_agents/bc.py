@@ -107,4 +107,5 @@ def config_from_json(values: dict) -> BCConfig:
     return BCConfig(**values)
 
 
-checkpoint.register("bc", module=__name__, config_from_json=config_from_json, init=init)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``bc`` checkpoint.
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init)

@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
+
 from . import ppo
 from .connect import ConnectOptions, options, served
 from .errors import AgentsError
@@ -61,8 +63,8 @@ def bench_ppo(
     # A local server, if any, starts before any JAX work.
     with served(connect) as (connect, server):
         config = ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
-        if num_envs is not None:
-            config = dataclasses.replace(config, num_envs=num_envs)
+        if num_envs is not None:  # as train: the rollout and minibatches adapted
+            config = config.for_num_envs(num_envs)
         envs = make_envs(config, connect, pipeline)
         try:
             high = envs[0].single_observation_space.high
@@ -100,6 +102,10 @@ def bench_ppo(
         "pipeline": len(envs),
         "iterations": iterations,
         "samples_per_iteration": per_iteration,
+        "num_steps": config.num_steps,
+        "update_epochs": config.update_epochs,
+        "minibatches": config.num_minibatches,
+        "device": str(jax.devices()[0].platform),
         "seconds": wall,
         "env_steps_per_s": iterations * per_iteration / wall,
         # The fastest and the median iteration: on a shared machine the fastest is the one
@@ -127,7 +133,7 @@ def print_bench(r: dict[str, Any]) -> None:
         "env": "env (waiting for the server's step + client decoding)",
         "bootstrap": "bootstrap values (truncations, last step)",
         "rollout_other": "rollout bookkeeping (buffers, episodes)",
-        "update": "update (GAE + 2 epochs x 4 minibatches)",
+        "update": f"update (GAE + {r['update_epochs']} epochs x {r['minibatches']} minibatches)",
         "other": "other",
     }
     print(f"  per iteration {total:8.1f} ms")

@@ -1,12 +1,15 @@
 """Checkpoints: a directory with the parameters (``model.eqx``) and a JSON description
 (``checkpoint.json``: algorithm, the module that defines it, format version, sizes, data used,
-training time); the :class:`Policy` that :func:`load` returns; and the registry of algorithms.
+training time); the policies :func:`load` returns (:class:`BasePolicy`, the one shape every
+agent of the package answers to); and the table of algorithms.
 
-Each algorithm module adds itself to the registry when it is imported
-(``checkpoint.register("bc", module=__name__, config_from_json=..., init=...)``), and
-:func:`save` writes that module's name into ``checkpoint.json`` (``"module"``), so :func:`load`
-imports only the algorithm a checkpoint needs: this module imports none of them. Checkpoints
-written before the field existed name no module; :data:`LEGACY_MODULES` maps their algorithms.
+:data:`ALGORITHMS` is the one list of the algorithms a checkpoint may hold: name -> the module
+of this package that defines it. That module holds the algorithm's :class:`Hooks` as its
+``CHECKPOINT`` attribute (its model's skeleton, its config, what its policy does beyond the
+greedy choice); :func:`load` imports only the module a checkpoint's algorithm needs, and this
+module imports none of them. Every checkpoint loads through the table: those written with a
+``"module"`` field (which :func:`save` still writes, for a reader of the file) and those
+written before the field existed (all those under ``docs/results/checkpoints``).
 
 A checkpoint is written into a hidden sibling directory and renamed into place only when complete,
 so a failed run leaves no half-written directory (and an older checkpoint of the same name stays
@@ -35,14 +38,16 @@ from .errors import CheckpointError
 from .supervised import masked_logits
 
 __all__ = [
+    "ALGORITHMS",
     "FORMAT",
     "FORMAT_VERSION",
     "Algorithm",
+    "BasePolicy",
+    "Hooks",
     "Policy",
     "load",
     "lookup",
     "read_description",
-    "register",
     "save",
 ]
 
@@ -51,31 +56,28 @@ FORMAT_VERSION = 1
 DESCRIPTION = "checkpoint.json"
 PARAMETERS = "model.eqx"
 
-#: The package whose modules a checkpoint's ``"module"`` may name: loading a checkpoint imports
-#: that module, so a file cannot make it import anything else. An algorithm defined elsewhere is
-#: loaded once its own module has been imported (and so has registered it).
+#: The package whose modules :data:`ALGORITHMS` names.
 PACKAGE = __name__.rpartition(".")[0]
-#: Checkpoints written before ``"module"`` was recorded: their algorithm -> the module to import.
-LEGACY_MODULES = {
-    "bc": f"{PACKAGE}.bc",
-    "dpgm": f"{PACKAGE}.dpgm",
-    "ppo": f"{PACKAGE}.ppo",
-    "ppo-masked": f"{PACKAGE}.ppo",
-    "gail": f"{PACKAGE}.gail",
-    "ppo-kickstart": f"{PACKAGE}.kickstart",
-    "dagger": f"{PACKAGE}.dagger",
-    "dagger-recurrent": f"{PACKAGE}.recurrent",
+#: Every algorithm a checkpoint may hold -> the module of :data:`PACKAGE` that defines it (and
+#: holds its :class:`Hooks` as ``CHECKPOINT``). The one source of truth: :func:`save` writes the
+#: module into ``checkpoint.json``, :func:`load` imports it.
+ALGORITHMS = {
+    "bc": "bc",
+    "dpgm": "dpgm",
+    "ppo": "ppo",
+    "ppo-masked": "ppo",
+    "gail": "gail",
+    "ppo-kickstart": "kickstart",
+    "dagger": "dagger",
+    "dagger-recurrent": "recurrent",
 }
 
 
 @dataclass(frozen=True)
-class Algorithm:
-    """What :func:`load` needs of an algorithm: its model's skeleton and config, and what a
-    :class:`Policy` of it does beyond the greedy choice."""
+class Hooks:
+    """What :func:`load` needs of an algorithm, held by its module as ``CHECKPOINT``: its model's
+    skeleton and config, and what a policy of it does beyond the greedy choice."""
 
-    name: str
-    #: The module that registered it: written into ``checkpoint.json`` as ``"module"``.
-    module: str
     #: The checkpoint's ``"config"`` (JSON) -> the algorithm's config value.
     config_from_json: Callable[[dict], Any]
     #: ``init(config, seed)``: a model of the config's shape (the skeleton parameters load into).
@@ -83,96 +85,144 @@ class Algorithm:
     #: ``check(config)``: why a checkpoint of this config cannot be loaded by this version, or
     #: ``None`` (e.g. DPGM's factor layout).
     check: Callable[[Any], str | None] | None = None
-    #: ``view(config)``: a fresh, stateful ``obs -> model input`` for one policy (a learner with
-    #: memory sees its episode's history), or ``None``: the observation itself.
+    #: ``view(config)``: a fresh, stateful ``obs -> model input`` for one batch of environments
+    #: (a learner with memory sees its episode's history), or ``None``: the observation itself.
     view: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
     #: ``policy(model, description)``: the policy :func:`load` returns instead of a
     #: :class:`Policy`, for a model that is not a batch -> logits function (a recurrent learner
-    #: keeps one state per environment).
+    #: carries a state per environment).
     policy: Callable[[Any, dict[str, Any]], Any] | None = None
 
 
-_REGISTRY: dict[str, Algorithm] = {}
+@dataclass(frozen=True)
+class Algorithm:
+    """An entry of :data:`ALGORITHMS` with its module's :class:`Hooks`."""
+
+    name: str
+    #: The module that defines it: written into ``checkpoint.json`` as ``"module"``.
+    module: str
+    hooks: Hooks
+
+    def __getattr__(self, attribute: str) -> Any:  # entry.init, entry.config_from_json, ...
+        return getattr(self.hooks, attribute)
 
 
-def register(
-    name: str,
-    *,
-    module: str,
-    config_from_json: Callable[[dict], Any],
-    init: Callable[[Any, int], Any],
-    check: Callable[[Any], str | None] | None = None,
-    view: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None,
-    policy: Callable[[Any, dict[str, Any]], Any] | None = None,
-) -> Algorithm:
-    """Adds an algorithm (called by its module when imported, ``module=__name__``)."""
-    entry = Algorithm(name, module, config_from_json, init, check, view, policy)
-    _REGISTRY[name] = entry
-    return entry
+def module_of(name: str) -> str:
+    """The full name of the module that defines algorithm ``name`` (a key of
+    :data:`ALGORITHMS`)."""
+    return f"{PACKAGE}.{ALGORITHMS[name]}"
 
 
-def lookup(name: Any, path: Path | None = None, module: str | None = None) -> Algorithm:
-    """The registered algorithm ``name``; if it is not registered yet, ``module`` (a checkpoint's
-    ``"module"``) and then its :data:`LEGACY_MODULES` entry are imported for it to register. A
-    :class:`CheckpointError` (naming ``path``) if none defines it."""
+def lookup(name: Any, path: Path | None = None) -> Algorithm:
+    """Algorithm ``name`` of :data:`ALGORITHMS`, its module imported; a
+    :class:`CheckpointError` (naming ``path``) if the table has no such algorithm."""
     where = f"{path}: " if path is not None else ""
-    legacy = LEGACY_MODULES.get(name) if isinstance(name, str) else None
-    for candidate in (module, legacy):
-        if name in _REGISTRY or candidate is None:
-            continue
-        if not isinstance(candidate, str) or candidate.partition(".")[0] != PACKAGE:
-            raise CheckpointError(
-                f"{where}field 'module' is {candidate!r}, not a module of {PACKAGE}: import it "
-                "yourself before loading the checkpoint"
-            )
-        try:
-            importlib.import_module(candidate)
-        except ImportError as e:
-            raise CheckpointError(f"{where}field 'module' {candidate!r}: {e}") from e
-    if name not in _REGISTRY:
-        known = ", ".join(sorted(set(_REGISTRY) | set(LEGACY_MODULES)))
+    if not isinstance(name, str) or name not in ALGORITHMS:
+        known = ", ".join(sorted(ALGORITHMS))
         raise CheckpointError(f"{where}field 'algorithm' is {name!r}; known: {known}")
-    return _REGISTRY[name]
+    module = importlib.import_module(module_of(name))
+    return Algorithm(name, module.__name__, module.CHECKPOINT)
 
 
-class Policy:
-    """A trained agent: greedy over the legal actions of each state of a batch.
+class BasePolicy:
+    """The one shape of every agent :func:`load` returns (Stable-Baselines3's):
+    ``predict(obs, state, episode_start, action_masks=...) -> (actions, state)``.
 
-    ``act(obs, action_mask)`` takes ``obs`` (B, 40) and ``action_mask`` (B, 57) as a Gymnasium
-    vector env returns them (``info["action_mask"]``) and returns (B,) int64 actions; with
-    ``action_mask=None`` the greedy choice runs over all 57 actions.
+    ``obs`` is a batch (B, 40) (or one observation), ``state`` what the policy carries from one
+    step of that batch to the next (``None`` to start: a feed-forward policy's stays ``None``; a
+    recurrent one's holds each environment's hidden state), ``episode_start`` (B,) the
+    environments whose episode begins at ``obs`` (their state is reset), ``action_masks``
+    (B, 57) ``info["action_mask"]``: the greedy choice runs over the legal actions (``None``:
+    over all 57). Every rollout of the package (DAgger's play, evaluation) calls this, whatever
+    the policy.
+
+    ``act(obs, action_mask, episode_start=None)`` is the same with the state kept in the policy
+    (:meth:`reset` forgets it): what ``evaluate`` and a notebook call.
+    """
+
+    name: str
+    algorithm: str
+    description: dict[str, Any]
+
+    def __init__(self) -> None:
+        self.state: Any = None
+
+    def predict(
+        self,
+        obs: Any,
+        state: Any = None,
+        episode_start: Any = None,
+        deterministic: bool = True,
+        action_masks: Any = None,
+    ) -> tuple[np.ndarray, Any]:
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        self.state = None
+
+    def act(
+        self, obs: Any, action_mask: Any | None = None, episode_start: Any | None = None
+    ) -> np.ndarray:
+        actions, self.state = self.predict(obs, self.state, episode_start, action_masks=action_mask)
+        return actions
+
+    __call__ = act
+
+
+def batch_of(obs: Any, action_masks: Any) -> tuple[np.ndarray, np.ndarray, bool, bool]:
+    """``obs`` as a (B, 40) float32 batch, its masks (B, 57) (all legal without), whether a mask
+    was given and whether ``obs`` was a single observation."""
+    obs = np.asarray(obs, dtype=np.float32)
+    single = obs.ndim == 1
+    if single:
+        obs = obs[None]
+    if obs.ndim != 2 or obs.shape[1] != OBSERVATION_SIZE:
+        raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
+    use_mask = action_masks is not None
+    if use_mask:
+        mask = np.asarray(action_masks, dtype=np.bool_).reshape(obs.shape[0], NUM_ACTIONS)
+    else:
+        mask = np.ones((obs.shape[0], NUM_ACTIONS), dtype=np.bool_)
+    return obs, mask, use_mask, single
+
+
+class Policy(BasePolicy):
+    """A feed-forward agent: greedy over the legal actions of each state of a batch.
+
+    Its state is ``None``, or, for a learner with memory (a DAgger one with ``memory``), the
+    view that computes the memory features of the batch's environments from their observations
+    (one memory per environment; a batch of another size starts afresh).
     """
 
     def __init__(self, model: Any, description: dict[str, Any]) -> None:
+        super().__init__()
         self.model = model
         self.description = description
         self.algorithm: str = description["algorithm"]
         self.name: str = description.get("name", self.algorithm)
-        # A learner with memory (a DAgger one) sees its observations' history: such a policy is
-        # stateful, one memory per environment of the batches it is given.
-        self._view = None
-        entry = _REGISTRY.get(self.algorithm)
+        self._config = None
+        self._make_view = None
+        entry = lookup(self.algorithm) if self.algorithm in ALGORITHMS else None
         if entry is not None and entry.view is not None and description.get("config"):
-            self._view = entry.view(entry.config_from_json(description["config"]))
+            config = entry.config_from_json(description["config"])
+            if entry.view(config) is not None:  # a learner with memory
+                self._config, self._make_view = config, entry.view
 
-    def act(self, obs: Any, action_mask: Any | None = None) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float32)
-        single = obs.ndim == 1
-        if single:
-            obs = obs[None]
-        if obs.ndim != 2 or obs.shape[1] != OBSERVATION_SIZE:
-            raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
-        use_mask = action_mask is not None
-        if use_mask:
-            mask = np.asarray(action_mask, dtype=np.bool_).reshape(obs.shape[0], NUM_ACTIONS)
-        else:
-            mask = np.ones((obs.shape[0], NUM_ACTIONS), dtype=np.bool_)
-        if self._view is not None:
-            obs = self._view(obs)
+    def predict(
+        self,
+        obs: Any,
+        state: Any = None,
+        episode_start: Any = None,
+        deterministic: bool = True,
+        action_masks: Any = None,
+    ) -> tuple[np.ndarray, Any]:
+        obs, mask, use_mask, single = batch_of(obs, action_masks)
+        if self._make_view is not None:
+            if state is None:
+                state = self._make_view(self._config)
+            obs = state(obs)  # the memory restarts where an observation starts an episode
         actions = np.asarray(_greedy(self.model, obs, mask, use_mask), dtype=np.int64)
-        return actions[0] if single else actions
-
-    __call__ = act
+        return (actions[0] if single else actions), state
 
 
 @eqx.filter_jit
@@ -192,8 +242,8 @@ def save(
     ``extra(tmp)`` writes further files into the directory before it is renamed into place."""
     directory = Path(directory)
     directory.parent.mkdir(parents=True, exist_ok=True)
-    entry = _REGISTRY.get(description.get("algorithm"))
-    module = {"module": entry.module} if entry is not None else {}
+    algorithm = description.get("algorithm")
+    module = {"module": module_of(algorithm)} if algorithm in ALGORITHMS else {}
     description = {"format": FORMAT, "format_version": FORMAT_VERSION, **module, **description}
     tmp = Path(tempfile.mkdtemp(prefix=f".{directory.name}.", dir=directory.parent))
     try:
@@ -245,7 +295,7 @@ def load(directory: str | Path, algorithm: str | None = None) -> Policy:
     description = read_description(directory)
     path = directory / DESCRIPTION
     found = description.get("algorithm")
-    entry = lookup(found, path, description.get("module"))
+    entry = lookup(found, path)
     if algorithm is not None and found != algorithm:
         raise CheckpointError(f"{path}: field 'algorithm' is {found!r}, expected {algorithm!r}")
     try:

@@ -141,7 +141,7 @@ def _cmd_train_recurrent(args: argparse.Namespace) -> int:
     import dataclasses
 
     from .recurrent import RecurrentConfig
-    from .train_recurrent import train_recurrent
+    from .train_dagger import train_dagger
 
     given = {
         "teacher": args.teacher,
@@ -160,7 +160,7 @@ def _cmd_train_recurrent(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_recurrent(args.out, config, connect=_connect(args), seed=args.seed)
+    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger-recurrent ({config.kind}, teacher {config.teacher}), "

@@ -354,6 +354,8 @@ class Aggregate:
         self._masks: list[np.ndarray] = []
         self._labels: list[np.ndarray] = []
         self._rounds: list[np.ndarray] = []
+        #: The episodes added by :meth:`extend`, whole (a sequence learner trains on them).
+        self.episodes: list[Episode] = []
         self.steps = 0
 
     def add(self, obs: np.ndarray, masks: np.ndarray, labels: np.ndarray, round_: int) -> None:
@@ -370,6 +372,12 @@ class Aggregate:
         self._labels.append(labels.copy())
         self._rounds.append(np.full(len(labels), round_, np.int32))
         self.steps += len(labels)
+
+    def extend(self, episodes: list[Episode], round_: int) -> None:
+        """Adds the recorded episodes of round ``round_`` (:attr:`RoundPlay.episodes`)."""
+        self.episodes.extend(episodes)
+        for e in episodes:
+            self.add(e.obs, e.mask, e.action, round_)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The whole aggregate: ``obs`` (T, 40), ``mask`` (T, 57), ``action`` (T,), ``round``."""
@@ -388,10 +396,54 @@ class Aggregate:
         }
 
 
+def episode_starts(obs: np.ndarray, last: np.ndarray | None) -> np.ndarray:
+    """Which rows of a batch ``obs`` (B, 40) start an episode, given each environment's previous
+    observation ``last`` (None: all do): the observation looks like an episode's first
+    (:func:`is_episode_start`, vectorised) and differs from ``last``."""
+    obs = np.asarray(obs)[:, :OBSERVATION_SIZE]
+    if last is None:
+        return np.ones(len(obs), np.bool_)
+    last = np.asarray(last)[:, :OBSERVATION_SIZE]
+    tables_free = (obs[:, 0 : 3 * NUM_TABLES : 3] == 0).all(axis=1)
+    empty = (obs[:, 18:24] == 0).all(axis=1) & (obs[:, 38:40] == 0).all(axis=1)
+    sizes, levels = obs[:, 25:39:2], obs[:, 24:38:2]
+    waiting = sizes > 0
+    one = waiting.sum(axis=1) == 1
+    first_level = np.where(waiting, levels, -1).max(axis=1)
+    looks = tables_free & empty & one & (first_level >= 3)
+    return looks & (obs != last).any(axis=1)
+
+
+def sequence_starts(obs: np.ndarray) -> np.ndarray:
+    """The start flags of one recorded episode's observations (T, 40): its first step, and any
+    later step that :func:`episode_starts` would mark in play."""
+    first = np.zeros(len(obs), np.bool_)
+    if len(obs):
+        first[0] = True
+        first[1:] = episode_starts(obs[1:], obs[:-1])
+    return first
+
+
+@dataclass
+class Episode:
+    """One recorded episode: observations (T, 40, or wider with memory features), masks
+    (T, 57), the teacher's actions (T,), start flags (T,) as :func:`sequence_starts`."""
+
+    obs: np.ndarray
+    mask: np.ndarray
+    action: np.ndarray
+    first: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.action)
+
+
 @dataclass
 class RoundPlay:
-    """What one round's episodes gave: final scores, lengths, states added, teacher's share."""
+    """What one round's episodes gave: the recorded episodes (in the order of the seeds), their
+    final scores and lengths, the states recorded, how many of them the teacher acted in."""
 
+    episodes: list[Episode]
     scores: np.ndarray
     lengths: np.ndarray
     states: int
@@ -435,48 +487,66 @@ class SeedQueue:
 
 def play_round(
     envs: Any,
-    learner: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    learner: checkpoint.BasePolicy | None,
     beta: float,
     seeds: list[int],
-    aggregate: Aggregate,
-    round_: int,
     rng: np.random.Generator,
     memory: MemoryFeatures | None = None,
 ) -> RoundPlay:
-    """Plays one episode per seed of ``seeds`` with the mixture policy on ``envs`` (a vector env
-    whose infos carry ``expert_action`` and ``action_mask``; an environment that ends is reset
-    with the next seed through ``options={"reset_mask": ...}``) and adds every state visited in
-    those episodes, labelled with ``info["expert_action"]``, to ``aggregate``.
+    """Plays one episode per seed of ``seeds`` with the mixture ``β·teacher + (1 − β)·learner``
+    on ``envs`` (a vector env whose infos carry ``expert_action`` and ``action_mask``; an
+    environment that ends is reset with the next seed through ``options={"reset_mask": ...}``)
+    and records every state visited in those episodes, labelled with ``info["expert_action"]``.
 
-    ``learner(obs, mask)`` gives the learner's actions of the batch; it is not called when
-    ``beta`` is 1. Environments left without a seed at the end play on unrecorded. With
-    ``memory``, every observation is first extended by its :class:`MemoryFeatures` (for the
-    learner and the aggregate alike)."""
-    episodes = SeedQueue(seeds, envs.num_envs)
+    The one play loop of DAgger, whatever the learner: ``learner`` answers the package's
+    policy shape, ``predict(obs, state, episode_start, action_masks=...)``
+    (:class:`~dinerdash_agents.checkpoint.BasePolicy`), a feed-forward learner's state staying
+    ``None`` and a recurrent one's stepping on every observation of every environment, whoever
+    acts; it is not called at all when ``beta`` is 1 (``None`` is then allowed). Per step and
+    environment, with probability ``beta`` the teacher's action is executed, else the learner's
+    (:func:`mix_actions`, one draw per environment and step). Environments left without a seed
+    at the end play on unrecorded. With ``memory``, the recorded observations are extended by
+    its :class:`MemoryFeatures` (as a learner with memory computes its own)."""
+    n = envs.num_envs
+    episodes = SeedQueue(seeds, n)
     slot, active = episodes.slot, episodes.active
     obs, info = envs.reset(seed=episodes.padded)
+    record: list[dict[str, list]] = [{"obs": [], "mask": [], "action": []} for _ in seeds]
     lengths = np.zeros(len(seeds), np.int64)
     states = teacher_steps = 0
+    state, restart = None, np.ones(n, np.bool_)
     while active.any():
-        if memory is not None:
-            obs = memory.augment(obs)
         teacher = np.asarray(info["expert_action"], np.int64)
         mask = np.asarray(info["action_mask"], np.bool_)
-        aggregate.add(obs[active], mask[active], teacher[active], round_)
-        states += int(active.sum())
-        learner_actions = teacher if beta >= 1.0 else np.asarray(learner(obs, mask), np.int64)
-        actions, from_teacher = mix_actions(teacher, learner_actions, beta, rng)
-        teacher_steps += int((from_teacher & active).sum())
-        obs, _, terminated, truncated, info = envs.step(actions)
+        seen = obs if memory is None else memory.augment(obs)
         for i in np.flatnonzero(active):
+            r = record[slot[i]]
+            r["obs"].append(np.asarray(seen[i], np.float32))
+            r["mask"].append(mask[i])
+            r["action"].append(teacher[i])
             lengths[slot[i]] += 1
+        states += int(active.sum())
+        if beta >= 1.0 or learner is None:
+            learned = teacher
+        else:
+            learned, state = learner.predict(obs, state, restart, action_masks=mask)
+        actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
+        teacher_steps += int((from_teacher & active).sum())
+        restart = np.zeros(n, np.bool_)
+        obs, _, terminated, truncated, info = envs.step(actions)
         ended = (np.asarray(terminated) | np.asarray(truncated)) & active
         if not ended.any():
             continue
         reset, new_seeds = episodes.end(ended, info["score"])
         if reset.any():
             obs, info = envs.reset(seed=new_seeds, options={"reset_mask": reset})
-    return RoundPlay(episodes.scores, lengths, states, teacher_steps)
+            restart = reset
+    recorded = []
+    for r in record:
+        o = np.stack(r["obs"])
+        a = np.asarray(r["action"], np.int32)
+        recorded.append(Episode(o, np.stack(r["mask"]), a, sequence_starts(o)))
+    return RoundPlay(recorded, episodes.scores, lengths, states, teacher_steps)
 
 
 def seat_weights(actions: np.ndarray, seat_weight: float) -> np.ndarray:
@@ -524,6 +594,5 @@ def _view(config: DaggerConfig) -> Callable[[np.ndarray], np.ndarray] | None:
     return MemoryFeatures().augment if config.memory else None
 
 
-checkpoint.register(
-    "dagger", module=__name__, config_from_json=config_from_json, init=init, view=_view
-)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``dagger`` checkpoint.
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init, view=_view)

@@ -361,6 +361,5 @@ def check(config: DPGMConfig) -> str | None:
     )
 
 
-checkpoint.register(
-    "dpgm", module=__name__, config_from_json=config_from_json, init=init, check=check
-)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``dpgm`` checkpoint.
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init, check=check)

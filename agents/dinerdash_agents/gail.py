@@ -18,7 +18,7 @@ import numpy as np
 import optax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from . import checkpoint, ppo
+from . import ppo
 from .demos import Demos
 from .ppo import PPOConfig, Rollout, Trainer, observation_scale
 
@@ -161,4 +161,5 @@ class GAILTrainer(Trainer):
 
 
 # GAIL's policy is PPO's model (the discriminator stays in the trainer's state).
-checkpoint.register("gail", module=__name__, config_from_json=ppo.config_from_json, init=ppo.init)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``gail`` checkpoint: PPO's model.
+CHECKPOINT = ppo.CHECKPOINT

@@ -262,6 +262,5 @@ def _view(config: KickstartConfig):
     return dagger.MemoryFeatures().augment if config.memory else None
 
 
-checkpoint.register(
-    "ppo-kickstart", module=__name__, config_from_json=config_from_json, init=init, view=_view
-)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo-kickstart`` checkpoint.
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init, view=_view)

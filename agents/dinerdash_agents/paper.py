@@ -544,19 +544,15 @@ def _train_taught(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]
     :data:`DAGGER_SETTINGS`, a recurrent or frame-stacked one with :data:`RECURRENT_SETTINGS`),
     or only loads a checkpoint of it that already stands (the planner's rounds take minutes)."""
     from .recurrent import RecurrentConfig
-    from .train_recurrent import train_recurrent
 
     directory = agent.directory(job.out, k)
     if not _standing(directory):
-        train, config = (
-            (train_dagger, DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name]))
+        config = (
+            DaggerConfig(teacher=agent.teacher, **DAGGER_SETTINGS[agent.name])
             if agent.name in DAGGER_SETTINGS
-            else (
-                train_recurrent,
-                RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name]),
-            )
+            else RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name])
         )
-        train(directory, config, connect=job.connect, seed=job.seed + k, name=directory.name)
+        train_dagger(directory, config, connect=job.connect, seed=job.seed + k, name=directory.name)
     return _loaded(directory)
 
 

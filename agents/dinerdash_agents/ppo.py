@@ -1,4 +1,12 @@
-"""PPO, in the spirit of CleanRL's single-file PPO, against batched server sessions.
+"""PPO against batched server sessions: the model, the update and the :class:`Trainer`.
+
+Not a CleanRL-style single file: the algorithm is a class, as Stable-Baselines3's are.
+:class:`Trainer` holds one iteration (collect, then update) and four hooks its variants
+override: :meth:`~Trainer.rewards_of` (GAIL's discriminator reward), :meth:`~Trainer.update_coefs`
+with :func:`make_update`'s ``combine`` (kick-starting's pull toward a teacher),
+:meth:`~Trainer.record_info` (the teacher's actions kept with each step) and
+:meth:`~Trainer.view` (a learner with memory sees its observations' features). The run around it
+(servers, checkpoints, curve, resume) is :mod:`~dinerdash_agents.train_rl`.
 
 ``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, address=..., autoreset_mode=SAME_STEP)``
 feeds a jitted actor-critic: per step one jitted call acts for the environments of a vector env;
@@ -33,7 +41,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -88,6 +96,29 @@ class PPOConfig:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+    def for_num_envs(self, num_envs: int) -> PPOConfig:
+        """This config for ``num_envs`` environments, adapted above :data:`BASE_ENVS` so that
+        learning per environment step stays the same: the rollout shortened (``num_steps`` =
+        64 · 256 / N, at least :data:`MIN_STEPS`) and the minibatches kept at the base's size
+        (4,096 samples) by counting more of them, so the gradient steps per sample, their
+        batch size and so the learning rate stay the base's. At 4,096 environments: 32 steps
+        an iteration (131,072 samples), 32 minibatches. At or below :data:`BASE_ENVS` only
+        ``num_envs`` changes."""
+        if num_envs <= BASE_ENVS:
+            return replace(self, num_envs=num_envs)
+        minibatch = BASE_ENVS * self.num_steps // self.num_minibatches
+        steps = max(MIN_STEPS, self.num_steps * BASE_ENVS // num_envs)
+        minibatches = max(1, num_envs * steps // minibatch)
+        return replace(self, num_envs=num_envs, num_steps=steps, num_minibatches=minibatches)
+
+
+#: The environment count the default hyper-parameters were chosen at (256 × 64 steps, 4
+#: minibatches of 4,096 samples); :meth:`PPOConfig.for_num_envs` adapts them above it.
+BASE_ENVS = 256
+#: The shortest rollout :meth:`PPOConfig.for_num_envs` gives: at 4,096 environments 16 steps
+#: scored 3 % below the default at the same env steps, 32 the same (docs/agents.md).
+MIN_STEPS = 32
 
 
 def config_from_json(values: dict) -> PPOConfig:
@@ -183,10 +214,11 @@ def gae(
 
 def sample_actions(logits: jax.Array, u: jax.Array) -> tuple[jax.Array, jax.Array]:
     """One action per row of ``logits`` by inverse transform sampling with ``u`` (one uniform
-    number in [0, 1) per row, drawn on the host: far cheaper on a CPU than drawing 57 per row
-    with JAX's generator), and its log-probability. An action of probability 0 (an illegal one,
-    masked) is never picked: the pick is the first action whose cumulative probability exceeds
-    ``u`` times the total, and an action of probability 0 adds nothing to it."""
+    number in [0, 1) per row, drawn on the device by the acting call: far cheaper on a CPU than
+    the 57 Gumbel draws per row of ``jax.random.categorical``), and its log-probability. An
+    action of probability 0 (an illegal one, masked) is never picked: the pick is the first
+    action whose cumulative probability exceeds ``u`` times the total, and an action of
+    probability 0 adds nothing to it."""
     logp = jax.nn.log_softmax(logits)
     cdf = jnp.cumsum(jnp.exp(logp), axis=-1)
     target = u[:, None] * cdf[:, -1:]
@@ -204,35 +236,67 @@ def entropy(logits: jax.Array, mask: jax.Array | None) -> jax.Array:
 
 
 def make_act(masked: bool, asynchronous: bool = False) -> Callable[..., jax.Array]:
-    """The jitted acting call: ``act(leaves, u, obs, mask, treedef=...)``.
+    """The jitted acting call: ``act(leaves, key, t, obs, mask, treedef=..., rows=..., total=...)``.
+
+    Everything happens on the device: the uniform numbers of step ``t`` are drawn there for all
+    ``total`` environments of the trainer from the iteration's ``key`` (``fold_in(key, t)``) and
+    the vector env's ``rows = (start, stop)`` taken, so a split into pipelined vector envs draws
+    what one vector env would; then the policy's actions, their log-probabilities and the
+    critic's values. The observations and masks (host arrays) cross to the device once, as the
+    call's arguments (jit's own transfer: ~10x cheaper per call on a CPU than an explicit
+    ``jax.device_put``), and come back as outputs, the device's copies, which the update takes
+    (:func:`_assemble`); the caller copies the ``(3, B)`` result to the host once
+    (``jax.device_get``). Returns ``(result, obs, mask)``.
 
     ``asynchronous``: the same computation inside a loop whose trip count (1) is an argument,
-    ``act(leaves, u, obs, mask, np.int32(1), treedef=...)``. XLA's CPU client runs a small
+    ``act(leaves, key, t, obs, mask, np.int32(1), ...)``. XLA's CPU client runs a small
     loop-free program inline in the calling thread but hands one with a loop to its own
     threads: the call then returns at once, and the trainer decodes another vector env's step
-    while the other core computes the actions (the results are bit for bit the same)."""
+    while the other core computes the actions (the results are bit for bit the same). On an
+    accelerator every call is asynchronous anyway."""
 
-    def compute(model: ActorCritic, u: jax.Array, obs: jax.Array, mask: jax.Array) -> jax.Array:
+    def compute(model, key, t, obs, mask, rows, total) -> jax.Array:
+        u = jax.random.uniform(jax.random.fold_in(key, t), (total,))[rows[0] : rows[1]]
         logits = masked_logits(model(obs), mask if masked else None)
         actions, logp = sample_actions(logits, u)
         return jnp.stack([actions.astype(jnp.float32), logp, model.value(obs)])
 
-    @partial(jax.jit, static_argnames="treedef")
-    def act(leaves: list[jax.Array], u: jax.Array, obs: jax.Array, mask: jax.Array, *, treedef):
+    @partial(jax.jit, static_argnames=("treedef", "rows", "total"))
+    def act(leaves, key, t, obs, mask, *, treedef, rows, total):
         """For the model ``jax.tree.unflatten(treedef, leaves)`` (its arrays passed as a list:
-        cheaper to hand over than the module): sampled actions for ``obs`` (``u``: a uniform
-        number per row), their log-probabilities and the critic's values of ``obs``, stacked
-        in one ``(3, B)`` array so that one copy brings them to the host (an action index is
-        exact in float32)."""
-        return compute(jax.tree.unflatten(treedef, leaves), u, obs, mask)
+        cheaper to hand over than the module): sampled actions for ``obs``, their
+        log-probabilities and the critic's values of ``obs``, stacked in one ``(3, B)`` array
+        so that one copy brings them to the host (an action index is exact in float32)."""
+        model = jax.tree.unflatten(treedef, leaves)
+        return compute(model, key, t, obs, mask, rows, total), obs, mask
 
-    @partial(jax.jit, static_argnames="treedef")
-    def act_async(leaves, u, obs, mask, once: jax.Array, *, treedef):
+    @partial(jax.jit, static_argnames=("treedef", "rows", "total"))
+    def act_async(leaves, key, t, obs, mask, once, *, treedef, rows, total):
         model = jax.tree.unflatten(treedef, leaves)
         out = jnp.zeros((3, obs.shape[0]), jnp.float32)
-        return jax.lax.fori_loop(0, once, lambda _, __: compute(model, u, obs, mask), out)
+        step = lambda _, __: compute(model, key, t, obs, mask, rows, total)  # noqa: E731
+        return jax.lax.fori_loop(0, once, step, out), obs, mask
 
     return act_async if asynchronous else act
+
+
+@jax.jit
+def _assemble(steps: list[list[tuple[jax.Array, ...]]]) -> dict[str, jax.Array]:
+    """The device's copies of an iteration's steps (per step, per vector env: observations,
+    masks, the acting call's ``(3, B)`` output) as time-major ``(T, N, ...)`` arrays, on the
+    device: one call, no copy through the host."""
+
+    def joined(k: int, axis: int = 0) -> jax.Array:
+        return jnp.stack([jnp.concatenate([g[k] for g in step], axis=axis) for step in steps])
+
+    out = joined(2, axis=1)  # (T, 3, N)
+    return {
+        "obs": joined(0),
+        "mask": joined(1),
+        "actions": out[:, 0].astype(jnp.int32),
+        "logp": out[:, 1],
+        "values": out[:, 2],
+    }
 
 
 @jax.jit
@@ -357,6 +421,10 @@ class Rollout:
         self.rewards = np.zeros((steps, envs), np.float32)
         self.terminated = np.zeros((steps, envs), np.float32)
         self.done = np.zeros((steps, envs), np.float32)
+        #: The same ``obs``, ``mask``, ``actions``, ``logp`` and ``values`` as the device holds
+        #: them (:func:`_assemble`), set by :meth:`Trainer.collect`: the update takes these, so
+        #: the observations cross to the device once, when acted on.
+        self.device: dict[str, jax.Array] | None = None
 
     def batch(self, rewards: np.ndarray) -> dict[str, Any]:
         """The iteration's arrays, time-major, as the update takes them (it computes the
@@ -375,6 +443,8 @@ class Rollout:
         }
         if self.expert_actions is not None:
             batch["expert_actions"] = self.expert_actions
+        if self.device is not None:
+            batch.update(self.device)
         return batch
 
 
@@ -404,10 +474,10 @@ class Trainer:
     """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
     one iteration: collect ``num_steps`` steps of every environment, then update.
 
-    GAIL subclasses it and replaces :meth:`rewards_of`; kick-starting adds a loss term through
-    :meth:`update_coefs` and :func:`make_update`'s ``combine``, and keeps the teacher's actions
-    through :meth:`record_info`, and a learner with memory sees its observations through
-    :meth:`view`.
+    Its variants subclass it and override its four hooks: GAIL replaces :meth:`rewards_of`;
+    kick-starting adds a loss term through :meth:`update_coefs` and :func:`make_update`'s
+    ``combine``, and keeps the teacher's actions through :meth:`record_info`; a learner with
+    memory sees its observations through :meth:`view`.
     """
 
     def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
@@ -421,6 +491,8 @@ class Trainer:
         self.optimizer = optimizer_for(config, self.iterations)
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self.key = jax.random.PRNGKey(seed + 1)
+        #: What each iteration's acting key is folded from (:meth:`_iteration_key`).
+        self._acting_key = jax.random.PRNGKey(seed + 2)
         #: Environment steps and iterations done, episodes ended.
         self.steps = 0
         self.iteration = 0
@@ -445,6 +517,9 @@ class Trainer:
         self._groups: list[_Group] = []
         #: The truncated episodes of this iteration: (step, environment, last observation).
         self._truncations: list[tuple[int, int, np.ndarray]] = []
+        #: Per step and vector env of the iteration: the device's observations, masks and acting
+        #: output, which the update takes (:func:`_assemble`).
+        self._on_device: list[list[Any]] = []
 
     # --- the environments ------------------------------------------------------------------
 
@@ -484,44 +559,63 @@ class Trainer:
         turn, then step 1, ...; a vector env's step is received just before the next one's
         actions are sent."""
         began = time.perf_counter()
-        # The iteration's own stream, so that a resumed run draws what the original would have.
-        uniform = np.random.default_rng([self.seed, self.iteration])
+        # The iteration's own stream, so that a resumed run draws what the original would have;
+        # on the device, as the acting calls draw from it.
+        key = self._iteration_key()
         self._leaves, self._treedef = jax.tree.flatten(self.model)
         groups, steps = self._groups, self.config.num_steps
         self._truncations = []
+        self._on_device = [[None] * len(groups) for _ in range(steps)]
         if len(groups) == 1:
             (group,) = groups
             for t in range(steps):
-                u = uniform.random(self.config.num_envs, dtype=np.float32)
                 began_act = time.perf_counter()
-                acting = self._act(*self._inputs(group, u), treedef=self._treedef)
+                acting = self._act(*self._inputs(group, key, t), **self._static(group))
                 self.timings["act"] += time.perf_counter() - began_act
                 self._send(group, t, acting)
                 self._receive(group, t)
         else:
             turns = [(t, group) for t in range(steps) for group in groups]
-            u = uniform.random(self.config.num_envs, dtype=np.float32)
-            acting = self._act_async(*self._inputs(groups[0], u), self._once, treedef=self._treedef)
+            inputs = self._inputs(groups[0], key, 0)
+            acting = self._act_async(*inputs, self._once, **self._static(groups[0]))
             for k, (t, group) in enumerate(turns):
-                following = turns[k + 1][1] if k + 1 < len(turns) else None
-                if following is not None and following.sent is not None:
-                    self._receive(following, following.step)
+                following = turns[k + 1] if k + 1 < len(turns) else None
+                if following is not None and following[1].sent is not None:
+                    self._receive(following[1], following[1].step)
                 self._send(group, t, acting)
                 if following is not None:
-                    if following is groups[0]:  # the next step begins
-                        u = uniform.random(self.config.num_envs, dtype=np.float32)
                     began_act = time.perf_counter()
-                    inputs = self._inputs(following, u)
-                    acting = self._act_async(*inputs, self._once, treedef=self._treedef)
+                    inputs = self._inputs(following[1], key, following[0])
+                    acting = self._act_async(*inputs, self._once, **self._static(following[1]))
                     self.timings["act"] += time.perf_counter() - began_act
             for group in groups:
                 self._receive(group, steps - 1)
         self._bootstrap()
+        self._buffers.device = _assemble(self._on_device)
         self.timings["collect"] += time.perf_counter() - began
         return self._buffers
 
-    def _inputs(self, group: _Group, u: np.ndarray) -> tuple[Any, ...]:
-        return self._leaves, u[group.rows], group.obs, group.mask
+    def _iteration_key(self) -> jax.Array:
+        """The key the acting calls of this iteration draw from (on the device)."""
+        iteration = jax.device_put(np.uint32(self.iteration))  # one explicit copy an iteration
+        return jax.random.fold_in(self._acting_key, iteration)
+
+    def _inputs(self, group: _Group, key: jax.Array, t: int) -> tuple[Any, ...]:
+        """The acting call's inputs for ``group``'s step ``t``: its observations and masks,
+        written into the rollout's buffers first, which the call copies to the device (and
+        returns there, for the update). The buffers, not the vector env's arrays: on a CPU the
+        device's copy may be the host's memory itself, and the buffers are not written again
+        before the update that reads them has run."""
+        b, rows = self._buffers, group.rows
+        b.obs[t, rows], b.mask[t, rows] = group.obs, group.mask
+        return self._leaves, key, np.int32(t), b.obs[t, rows], b.mask[t, rows]
+
+    def _static(self, group: _Group) -> dict[str, Any]:
+        return {
+            "treedef": self._treedef,
+            "rows": (group.rows.start, group.rows.stop),
+            "total": self.config.num_envs,
+        }
 
     def _send(self, group: _Group, t: int, acting: jax.Array) -> None:
         """Records ``group``'s step ``t`` (its observations, the actions of ``acting``, their
@@ -529,11 +623,12 @@ class Trainer:
         env, else ``step_async``."""
         b, rows, timings = self._buffers, group.rows, self.timings
         began = time.perf_counter()
-        a_logp_v = np.asarray(acting)
+        result, obs, mask = acting
+        a_logp_v = jax.device_get(result)  # the step's one copy to the host
         sent = time.perf_counter()
         timings["act"] += sent - began
+        self._on_device[t][self._groups.index(group)] = (obs, mask, result)
         a = a_logp_v[0].astype(np.int32)
-        b.obs[t, rows], b.mask[t, rows] = group.obs, group.mask
         b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
         self.record_info(t, rows, group.info)
         group.step = t
@@ -595,7 +690,7 @@ class Trainer:
         padded[:n] = current
         if finals:  # the observations alone (the critic reads only those columns)
             padded[n : n + len(finals), :OBSERVATION_SIZE] = finals
-        values = np.asarray(_values(self.model, padded))
+        values = jax.device_get(_values(self.model, padded))
         b.next_values[-1] = values[:n]
         for k, (t, i, _) in enumerate(self._truncations):
             b.next_values[t, i] = values[n + k]
@@ -614,14 +709,14 @@ class Trainer:
         """One iteration: collect, then update; returns the update's statistics."""
         rollout = self.collect()
         began = time.perf_counter()
+        # What only the host has (rewards, episode ends, next values; the coefficients of a
+        # variant's loss) crosses in one copy; the rest of the batch is on the device already.
+        batch = rollout.batch(self.rewards_of(rollout))
+        batch, coefs = jax.device_put((batch, self.update_coefs()))
         self.model, self.opt_state, stats = self._update(
-            self.model,
-            self.opt_state,
-            rollout.batch(self.rewards_of(rollout)),
-            self._next_key(),
-            self.update_coefs(),
+            self.model, self.opt_state, batch, self._next_key(), coefs
         )
-        stats = {k: float(v) for k, v in stats.items()}
+        stats = {k: float(v) for k, v in jax.device_get(stats).items()}
         self.timings["update"] += time.perf_counter() - began
         self.steps += self.per_iteration
         self.iteration += 1
@@ -651,6 +746,6 @@ class Trainer:
         return float(np.mean(self.recent_scores)) if self.recent_scores else float("nan")
 
 
-# The masked and the unmasked policy are the same model; the name says which was trained.
-for _name in ("ppo", "ppo-masked"):
-    checkpoint.register(_name, module=__name__, config_from_json=config_from_json, init=init)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo`` or ``ppo-masked``
+#: checkpoint (the same model; the name says which was trained).
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init)

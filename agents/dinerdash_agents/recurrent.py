@@ -49,23 +49,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, NUM_TABLES, OBSERVATION_HIGH, OBSERVATION_SIZE
+from dinerdash.game import FIRST_SEAT, NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
 from . import checkpoint
-from .dagger import MEMORY_SIZE, MemoryFeatures
+from .dagger import MEMORY_SIZE, Episode, MemoryFeatures, episode_starts
 from .errors import AgentsError
 from .supervised import masked_logits
 
 __all__ = [
     "ALGORITHM",
-    "Episode",
     "GruNet",
     "RecurrentConfig",
     "RecurrentPolicy",
     "StackNet",
     "chunk_starts",
     "config_from_json",
-    "episode_starts",
     "fit_round",
     "init",
     "make_policy",
@@ -139,34 +137,6 @@ def config_from_json(values: dict) -> RecurrentConfig:
 def betas(config: RecurrentConfig) -> list[float]:
     """β_1..β_R: 1, then p^(i-1)."""
     return [float(config.p**i) for i in range(config.rounds)]
-
-
-def episode_starts(obs: np.ndarray, last: np.ndarray | None) -> np.ndarray:
-    """Which rows of a batch ``obs`` (B, 40) start an episode, given each environment's previous
-    observation ``last`` (None: all do): the observation looks like an episode's first
-    (:func:`~dinerdash_agents.dagger.is_episode_start`, vectorised) and differs from ``last``."""
-    obs = np.asarray(obs)[:, :OBSERVATION_SIZE]
-    if last is None:
-        return np.ones(len(obs), np.bool_)
-    last = np.asarray(last)[:, :OBSERVATION_SIZE]
-    tables_free = (obs[:, 0 : 3 * NUM_TABLES : 3] == 0).all(axis=1)
-    empty = (obs[:, 18:24] == 0).all(axis=1) & (obs[:, 38:40] == 0).all(axis=1)
-    sizes, levels = obs[:, 25:39:2], obs[:, 24:38:2]
-    waiting = sizes > 0
-    one = waiting.sum(axis=1) == 1
-    first_level = np.where(waiting, levels, -1).max(axis=1)
-    looks = tables_free & empty & one & (first_level >= 3)
-    return looks & (obs != last).any(axis=1)
-
-
-def sequence_starts(obs: np.ndarray) -> np.ndarray:
-    """The start flags of one recorded episode's observations (T, 40): its first step, and any
-    later step that :func:`episode_starts` would mark in play."""
-    first = np.zeros(len(obs), np.bool_)
-    if len(obs):
-        first[0] = True
-        first[1:] = episode_starts(obs[1:], obs[:-1])
-    return first
 
 
 def input_size(config: RecurrentConfig) -> int:
@@ -275,77 +245,62 @@ def _act(model, state, obs, mask, first, use_mask):
     return actions, state
 
 
-class RecurrentPolicy:
-    """A recurrent (or frame-stacked) learner as a policy over batches: one state per
-    environment of the batch, reset where :func:`episode_starts` marks a row and everywhere when
-    the batch's size changes (a new vector env). ``act(obs, action_mask)`` as
-    :class:`~dinerdash_agents.checkpoint.Policy`; ``episode_start`` (B,) marks further resets a
-    caller knows of; :meth:`reset` forgets every environment."""
+@dataclass
+class RecurrentState:
+    """What a :class:`RecurrentPolicy` carries from one step of a batch to the next: the model's
+    state per environment (the GRU's ``h``, the stack's window), each environment's last
+    observation (for :func:`episode_starts`) and, with ``memory``, its memory features."""
+
+    model: jax.Array
+    last: np.ndarray
+    memory: MemoryFeatures | None
+
+
+class RecurrentPolicy(checkpoint.BasePolicy):
+    """A recurrent (or frame-stacked) learner as a policy over batches (the package's shape,
+    :class:`~dinerdash_agents.checkpoint.BasePolicy`): its state is a :class:`RecurrentState`,
+    one per environment of the batch, reset where :func:`episode_starts` or ``episode_start``
+    marks a row and everywhere when the batch's size changes (a new vector env)."""
 
     def __init__(self, model: Any, description: dict[str, Any]) -> None:
+        super().__init__()
         self.model = model
         self.description = description
         self.algorithm: str = description["algorithm"]
         self.name: str = description.get("name", self.algorithm)
-        self.state: jax.Array | None = None
-        self._last: np.ndarray | None = None
         config = description.get("config") or {}
         self._with_memory = bool(config.get("memory", False))
-        self._memory = MemoryFeatures() if self._with_memory else None
 
-    def reset(self) -> None:
-        self.state, self._last = None, None
-        self._memory = MemoryFeatures() if self._with_memory else None
-
-    def act(
-        self, obs: Any, action_mask: Any | None = None, episode_start: Any | None = None
-    ) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float32)
-        single = obs.ndim == 1
-        if single:
-            obs = obs[None]
-        if obs.ndim != 2 or obs.shape[1] != OBSERVATION_SIZE:
-            raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
+    def predict(
+        self,
+        obs: Any,
+        state: RecurrentState | None = None,
+        episode_start: Any = None,
+        deterministic: bool = True,
+        action_masks: Any = None,
+    ) -> tuple[np.ndarray, RecurrentState]:
+        obs, mask, use_mask, single = checkpoint.batch_of(obs, action_masks)
         n = len(obs)
-        use_mask = action_mask is not None
-        mask = (
-            np.asarray(action_mask, dtype=np.bool_).reshape(n, NUM_ACTIONS)
-            if use_mask
-            else np.ones((n, NUM_ACTIONS), np.bool_)
-        )
-        if self.state is None or self.state.shape[0] != n:
-            self.reset()
-            self.state = self.model.initial_state(n)
-        first = episode_starts(obs, self._last)
+        if state is None or state.model.shape[0] != n:
+            memory = MemoryFeatures() if self._with_memory else None
+            first = np.ones(n, np.bool_)
+            carried = self.model.initial_state(n)
+        else:
+            memory, carried = state.memory, state.model
+            first = episode_starts(obs, state.last)
         if episode_start is not None:
             first |= np.asarray(episode_start, np.bool_).reshape(n)
-        self._last = obs.copy()
-        if self._memory is not None:
-            obs = self._memory.augment(obs)
-        actions, self.state = _act(self.model, self.state, obs, mask, first, use_mask)
+        last = obs.copy()
+        if memory is not None:
+            obs = memory.augment(obs)
+        actions, carried = _act(self.model, carried, obs, mask, first, use_mask)
         actions = np.asarray(actions, dtype=np.int64)
-        return actions[0] if single else actions
-
-    __call__ = act
+        return (actions[0] if single else actions), RecurrentState(carried, last, memory)
 
 
 def make_policy(model: Any, description: dict[str, Any]) -> RecurrentPolicy:
     """The checkpoint loader's hook: the stateful policy of a ``dagger-recurrent`` checkpoint."""
     return RecurrentPolicy(model, description)
-
-
-@dataclass
-class Episode:
-    """One recorded episode: observations (T, 40), masks (T, 57), the teacher's actions (T,),
-    start flags (T,) as :func:`sequence_starts`."""
-
-    obs: np.ndarray
-    mask: np.ndarray
-    action: np.ndarray
-    first: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.action)
 
 
 def sequence_batches(
@@ -463,10 +418,5 @@ def fit_round(
     return eqx.combine(params, static), history
 
 
-checkpoint.register(
-    ALGORITHM,
-    module=__name__,
-    config_from_json=config_from_json,
-    init=init,
-    policy=make_policy,
-)
+#: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``dagger-recurrent`` checkpoint.
+CHECKPOINT = checkpoint.Hooks(config_from_json=config_from_json, init=init, policy=make_policy)

@@ -1,20 +1,24 @@
-"""One DAgger run (``train dagger --teacher planner|expert``): the sessions on the server with
-the teacher labelling every state, :data:`~dinerdash_agents.dagger.DaggerConfig`'s rounds of
-play and retraining (:mod:`~dinerdash_agents.dagger`, the algorithm), validation of each round's
-learner on seeds 2000.., the curve (``curve.csv``, ``curve.png``: one row per round) and the
-checkpoint of the best round."""
+"""The one DAgger run, whatever the learner (``train dagger --teacher planner|expert`` with a
+feed-forward learner, :mod:`~dinerdash_agents.dagger`; ``train dagger-recurrent --kind
+gru|stack`` with a sequence learner, :mod:`~dinerdash_agents.recurrent`): a session per round on
+the server with the teacher labelling every state, the rounds of play
+(:func:`~dinerdash_agents.dagger.play_round`, the one play loop) and retraining, validation of
+each round's learner on seeds 2000.., the curve (``curve.csv``, ``curve.png``: one row per round)
+and the checkpoint of the best round. What differs between the learners is a row of
+:data:`LEARNERS`, not a branch."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import gymnasium
 import numpy as np
 
-from . import checkpoint, dagger
+from . import checkpoint, dagger, recurrent
 from ._version import __version__
 from .connect import ConnectOptions, options, served
 from .curves import read_curve, write_curve
@@ -23,20 +27,16 @@ from .dagger import (
     VALIDATION_SEED,
     Aggregate,
     DaggerConfig,
-    DaggerNet,
     MemoryFeatures,
-    betas,
-    greedy_actions,
-    init,
-    input_size,
     play_round,
     training_seeds,
 )
 from .evaluate import evaluate_policy
+from .recurrent import RecurrentConfig
 
-__all__ = ["CURVE_COLUMNS", "iter_rows", "save_run", "train_dagger"]
+__all__ = ["CURVE_COLUMNS", "LEARNERS", "Learner", "iter_rows", "save_run", "train_dagger"]
 
-#: The columns of a DAgger run's ``curve.csv``.
+#: The columns of a DAgger run's ``curve.csv``, one row per round.
 CURVE_COLUMNS = (
     "round",
     "beta",
@@ -49,13 +49,59 @@ CURVE_COLUMNS = (
     "validation_mean_score",
     "validation_sd",
     "final_loss",
+    "play_seconds",
+    "fit_seconds",
     "round_seconds",
 )
 
 
+@dataclass(frozen=True)
+class Learner:
+    """What a DAgger run needs of a kind of learner."""
+
+    #: The checkpoint's algorithm (:data:`~dinerdash_agents.checkpoint.ALGORITHMS`).
+    algorithm: str
+    init: Callable[[Any, int], Any]
+    #: β_1..β_R of a config.
+    betas: Callable[[Any], list[float]]
+    #: The aggregate's width: the observation and, with ``memory``, its features.
+    input_size: Callable[[Any], int]
+    #: ``fit(model, aggregate, config, seed) -> (model, losses)``: one round's training.
+    fit: Callable[..., tuple[Any, list[float]]]
+    #: ``policy(model, description)``: the learner as a policy of the package's shape.
+    policy: Callable[[Any, dict[str, Any]], checkpoint.BasePolicy]
+    #: What the progress line and the curve's title call it.
+    label: Callable[[Any], str]
+
+
+#: The learners, by their config's type.
+LEARNERS: dict[type, Learner] = {
+    DaggerConfig: Learner(
+        "dagger",
+        dagger.init,
+        dagger.betas,
+        dagger.input_size,
+        dagger.fit_round,
+        checkpoint.Policy,
+        lambda config: f"DAgger, teacher {config.teacher}",
+    ),
+    RecurrentConfig: Learner(
+        recurrent.ALGORITHM,
+        recurrent.init,
+        recurrent.betas,
+        recurrent.input_size,
+        lambda model, aggregate, config, seed: recurrent.fit_round(
+            model, aggregate.episodes, config, seed
+        ),
+        recurrent.RecurrentPolicy,
+        lambda config: f"sequence DAgger ({config.kind}), teacher {config.teacher}",
+    ),
+}
+
+
 def train_dagger(
     out: str | Path,
-    config: DaggerConfig,
+    config: DaggerConfig | RecurrentConfig,
     *,
     address: str | list[str] | None = None,
     connect: ConnectOptions | None = None,
@@ -63,11 +109,11 @@ def train_dagger(
     name: str | None = None,
     progress: bool = True,
     **connection: Any,
-) -> tuple[checkpoint.Policy, dict]:
-    """Runs ``config.rounds`` DAgger rounds against the server(s) of ``connect`` (with
-    ``address`` and the connection keywords put in; none named: ``DINERDASH_ADDRESS``, else a
-    local server started here) and writes the best round's learner to ``out``; returns its
-    :class:`~dinerdash_agents.checkpoint.Policy` and description."""
+) -> tuple[checkpoint.BasePolicy, dict]:
+    """Runs ``config.rounds`` DAgger rounds (the learner of :data:`LEARNERS` for the config's
+    type) against the server(s) of ``connect`` (with ``address`` and the connection keywords put
+    in; none named: ``DINERDASH_ADDRESS``, else a local server started here) and writes the best
+    round's learner to ``out``; returns its policy and description."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
     connect = options(connect, "train_dagger", address, **connection)
@@ -77,91 +123,95 @@ def train_dagger(
 
 
 def _train(
-    out: Path, config: DaggerConfig, connect: ConnectOptions, seed: int, name, progress: bool
-) -> tuple[checkpoint.Policy, dict]:
+    out: Path, config: Any, connect: ConnectOptions, seed: int, name, progress: bool
+) -> tuple[checkpoint.BasePolicy, dict]:
+    learner = LEARNERS[type(config)]
     start, cpu_start = time.monotonic(), time.process_time()
     rng = np.random.default_rng(seed)
-    model = init(config, seed)
-    aggregate = Aggregate(input_size(config))
+    model = learner.init(config, seed)
+    stub = {"algorithm": learner.algorithm, "name": name or out.name, "config": config.to_json()}
+    aggregate = Aggregate(learner.input_size(config))
     seeds = training_seeds(config.seed_start, config.rounds * config.episodes_per_round)
-    schedule = betas(config)
     rows: list[dict[str, Any]] = []
-    best: tuple[float, int, DaggerNet] | None = None
-    environment_steps = 0
-    losses: list[float] = []
+    best: tuple[float, int, Any] | None = None
+    losses: list[float] = [float("nan")]
     n = max(1, min(config.num_envs, config.episodes_per_round))
-    envs = gymnasium.make_vec(
-        "dinerdash:DinerDash-v0",
-        num_envs=n,
-        connect=connect,
-        expert=TEACHERS[config.teacher],
-        max_episode_steps=config.max_episode_steps,
-    )
-    try:
-        for r, beta in enumerate(schedule, start=1):
-            began = time.monotonic()
-            round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
+    for r, beta in enumerate(learner.betas(config), start=1):
+        began = time.monotonic()
+        round_seeds = seeds[(r - 1) * config.episodes_per_round : r * config.episodes_per_round]
+        # A session per round: the server expires a session left idle while the learner trains
+        # (minutes on a loaded machine).
+        envs = gymnasium.make_vec(
+            "dinerdash:DinerDash-v0",
+            num_envs=n,
+            connect=connect,
+            expert=TEACHERS[config.teacher],
+            max_episode_steps=config.max_episode_steps,
+        )
+        try:
             played = play_round(
                 envs,
-                lambda obs, mask, m=model: greedy_actions(m, obs, mask),
+                learner.policy(model, stub),
                 beta,
                 round_seeds,
-                aggregate,
-                r,
                 rng,
                 MemoryFeatures() if config.memory else None,
             )
-            environment_steps += played.states
-            model, losses = dagger.fit_round(model, aggregate, config, seed + r)
-            view = MemoryFeatures().augment if config.memory else (lambda obs: obs)
-            val_scores, _ = evaluate_policy(
-                lambda obs, mask, m=model, view=view: greedy_actions(m, view(obs), mask),
-                config.validation_episodes,
-                seed=VALIDATION_SEED,
-                connect=connect,
-                num_envs=config.validation_episodes,
-                max_steps=config.max_episode_steps,
+        finally:
+            envs.close()
+        aggregate.extend(played.episodes, r)
+        playing = time.monotonic() - began
+        model, losses = learner.fit(model, aggregate, config, seed + r)
+        fitting = time.monotonic() - began - playing
+        val_scores, _ = evaluate_policy(
+            learner.policy(model, stub).act,
+            config.validation_episodes,
+            seed=VALIDATION_SEED,
+            connect=connect,
+            num_envs=config.validation_episodes,
+            max_steps=config.max_episode_steps,
+        )
+        val = float(np.mean(val_scores))
+        if best is None or val > best[0]:
+            best = (val, r, model)
+        rows.append(
+            {
+                "round": r,
+                "beta": round(beta, 6),
+                "episodes": len(round_seeds),
+                "seeds": f"{round_seeds[0]}..{round_seeds[-1]}",
+                "dataset_steps": aggregate.steps,
+                "teacher_share": round(played.teacher_steps / max(played.states, 1), 4),
+                "rollout_mean_score": round(float(np.mean(played.scores)), 1),
+                "rollout_mean_length": round(float(np.mean(played.lengths)), 1),
+                "validation_mean_score": round(val, 1),
+                "validation_sd": round(float(np.std(val_scores)), 1),
+                "final_loss": round(losses[-1], 5),
+                "play_seconds": round(playing, 1),
+                "fit_seconds": round(fitting, 1),
+                "round_seconds": round(time.monotonic() - began, 1),
+            }
+        )
+        if progress:
+            row = rows[-1]
+            print(
+                f"{learner.label(config)} round {r}/{config.rounds} β={beta:.3g}: "
+                f"mixture {row['rollout_mean_score']:,.0f}, learner on seeds "
+                f"{VALIDATION_SEED}.. {val:,.0f}, {aggregate.steps:,} states, loss "
+                f"{row['final_loss']:.4f}, play {playing:.0f} s, fit {fitting:.0f} s, "
+                f"{row['round_seconds']:.0f} s",
+                flush=True,
             )
-            val = float(np.mean(val_scores))
-            if best is None or val > best[0]:
-                best = (val, r, model)
-            rows.append(
-                {
-                    "round": r,
-                    "beta": round(beta, 6),
-                    "episodes": len(round_seeds),
-                    "seeds": f"{round_seeds[0]}..{round_seeds[-1]}",
-                    "dataset_steps": aggregate.steps,
-                    "teacher_share": round(played.teacher_steps / max(played.states, 1), 4),
-                    "rollout_mean_score": round(float(np.mean(played.scores)), 1),
-                    "rollout_mean_length": round(float(np.mean(played.lengths)), 1),
-                    "validation_mean_score": round(val, 1),
-                    "validation_sd": round(float(np.std(val_scores)), 1),
-                    "final_loss": round(losses[-1], 5),
-                    "round_seconds": round(time.monotonic() - began, 1),
-                }
-            )
-            if progress:
-                row = rows[-1]
-                print(
-                    f"dagger {config.teacher} round {r}/{config.rounds} β={beta:.3g}: "
-                    f"mixture {row['rollout_mean_score']:,.0f}, learner on seeds "
-                    f"{VALIDATION_SEED}.. {val:,.0f}, {aggregate.steps:,} states, "
-                    f"{row['round_seconds']:.0f} s",
-                    flush=True,
-                )
-    finally:
-        envs.close()
     assert best is not None
     seconds, cpu_seconds = time.monotonic() - start, time.process_time() - cpu_start
-    out = Path(out)
+    states = aggregate.steps
     description = save_run(
         out,
         name=name,
-        algorithm="dagger",
+        algorithm=learner.algorithm,
         config=config,
         seeds=seeds,
-        data={"steps": aggregate.steps, "environment_steps": environment_steps},
+        data={"steps": states, "environment_steps": states},
         seed=seed,
         best=best,
         seconds=seconds,
@@ -169,9 +219,10 @@ def _train(
         final_loss=losses[-1],
         rows=rows,
         columns=CURVE_COLUMNS,
-        title=f"DAgger, teacher {config.teacher}: {out.name}",
+        title=f"{learner.label(config)}: {out.name}",
+        training={"labelled_states_per_second": round(states / seconds, 1)},
     )
-    return checkpoint.Policy(best[2], checkpoint.read_description(out)), description
+    return learner.policy(best[2], checkpoint.read_description(out)), description
 
 
 def save_run(

@@ -311,8 +311,8 @@ def _prepare(
     if steps is None:
         raise AgentsError("--steps is needed (or --resume DIR)")
     config = config or RL[algorithm].config(masked=RL[algorithm].masked)
-    if num_envs is not None:
-        config = dataclasses.replace(config, num_envs=num_envs)
+    if num_envs is not None:  # the rollout and minibatches adapted (PPOConfig.for_num_envs)
+        config = config.for_num_envs(num_envs)
     return None, _Spent(), config, demo_data
 
 

@@ -191,6 +191,41 @@ def test_checkpoint_round_trip_gives_the_same_actions(tmp_path: Path, algorithm:
     assert all(mask[i, a] for i, a in enumerate(loaded.act(obs, mask)))
 
 
+def test_the_algorithm_table_is_the_one_source_of_every_checkpoint() -> None:
+    """``checkpoint.ALGORITHMS`` names every algorithm once, with the module that holds its
+    hooks; every committed checkpoint's algorithm is in it, and a checkpoint that records its
+    module (``"module"``) records the table's. Policies answer the one shape, ``predict``."""
+    import importlib
+
+    for name in checkpoint.ALGORITHMS:
+        entry = checkpoint.lookup(name)
+        assert isinstance(importlib.import_module(entry.module).CHECKPOINT, checkpoint.Hooks)
+        assert entry.module == checkpoint.module_of(name)
+    committed = Path(__file__).resolve().parents[2] / "docs" / "results" / "checkpoints"
+    descriptions = [checkpoint.read_description(d) for d in sorted(committed.iterdir())]
+    assert len(descriptions) >= 74
+    for d in descriptions:
+        assert d["algorithm"] in checkpoint.ALGORITHMS
+        assert d.get("module", checkpoint.module_of(d["algorithm"])) == checkpoint.module_of(
+            d["algorithm"]
+        )
+    with pytest.raises(CheckpointError, match="known: bc, dagger"):
+        checkpoint.lookup("sac")
+
+
+def test_a_policy_predicts_with_its_state_as_sb3s_do(tmp_path: Path) -> None:
+    config = default_config("bc")
+    model = checkpoint.lookup("bc").init(config, 0)
+    policy = checkpoint.Policy(model, {"algorithm": "bc", "config": config.to_json()})
+    rng = np.random.default_rng(2)
+    obs = rng.integers(0, 5, size=(8, 40)).astype(np.float32)
+    mask = rng.random((8, 57)) < 0.3
+    mask[:, 0] = True
+    actions, state = policy.predict(obs, None, np.ones(8, bool), action_masks=mask)
+    assert state is None  # feed-forward
+    assert np.array_equal(actions, policy.act(obs, mask))
+
+
 def test_checkpoint_of_another_algorithm_or_version_is_refused(tmp_path: Path) -> None:
     demos = write_demos(tmp_path / "d.npz", [30])
     out = tmp_path / "bc"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 
-from dinerdash_agents import dagger, load, train_dagger
+from dinerdash_agents import checkpoint, dagger, load, train_dagger
 from dinerdash_agents.cli import main
 from dinerdash_agents.errors import AgentsError
 from dinerdash_agents.evaluate import evaluate_policy
@@ -68,9 +68,11 @@ class ScriptedVectorEnv:
         return obs, np.zeros(self.num_envs), terminated, np.zeros(self.num_envs, np.bool_), info
 
 
-def learner_picks_t_plus_1(obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+class LearnerPicksTPlus1(checkpoint.BasePolicy):
     """A learner that always takes action ``t + 1`` (legal in the scripted env)."""
-    return obs[:, 1].astype(np.int64) + 1
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True, action_masks=None):
+        return obs[:, 1].astype(np.int64) + 1, state
 
 
 @pytest.mark.parametrize("beta", [1.0, 0.0])
@@ -79,9 +81,8 @@ def test_a_round_adds_every_visited_state_labelled_by_the_teacher(beta: float) -
     envs = ScriptedVectorEnv(3)
     aggregate = dagger.Aggregate()
     aggregate.add(np.ones((2, 40)), np.ones((2, 57), bool), [1, 2], round_=1)  # an earlier round
-    played = dagger.play_round(
-        envs, learner_picks_t_plus_1, beta, seeds, aggregate, 2, np.random.default_rng(0)
-    )
+    played = dagger.play_round(envs, LearnerPicksTPlus1(), beta, seeds, np.random.default_rng(0))
+    aggregate.extend(played.episodes, 2)
     lengths = [ScriptedVectorEnv.length(s) for s in seeds]
     assert played.states == sum(lengths)
     assert list(played.lengths) == lengths

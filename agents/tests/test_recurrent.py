@@ -15,10 +15,10 @@ import pytest
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
 from test_dagger import ScriptedVectorEnv
 
-from dinerdash_agents import checkpoint, load
+from dinerdash_agents import checkpoint, dagger, load
 from dinerdash_agents import recurrent as rec
 from dinerdash_agents.cli import main
-from dinerdash_agents.train_recurrent import play_round
+from dinerdash_agents.dagger import play_round
 
 KINDS = ["gru", "stack"]
 
@@ -61,9 +61,9 @@ def test_episode_starts_marks_first_observations_that_changed() -> None:
     last = np.stack([busy, s, s, busy])
     # A start after a busy state: yes; the same start again (the agent waited): no; a busy
     # state: no; a lone group below its starting level: no.
-    assert rec.episode_starts(batch, last).tolist() == [True, False, False, False]
-    assert rec.episode_starts(batch, None).all()
-    assert rec.sequence_starts(np.stack([s, s, busy, s])).tolist() == [True, False, False, True]
+    assert dagger.episode_starts(batch, last).tolist() == [True, False, False, False]
+    assert dagger.episode_starts(batch, None).all()
+    assert dagger.sequence_starts(np.stack([s, s, busy, s])).tolist() == [True, False, False, True]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -73,22 +73,23 @@ def test_state_resets_at_an_episode_start(kind: str) -> None:
     policy = rec.RecurrentPolicy(model, {"algorithm": rec.ALGORITHM})
     for _ in range(12):  # a busy history, then a new episode (as an autoreset brings it)
         policy.act(np.stack([busy_obs(rng), busy_obs(rng)]))
-    assert not np.allclose(policy.state, 0)
+    assert not np.allclose(policy.state.model, 0)
     policy.act(np.stack([start_obs(), busy_obs(rng)]))
     fresh = rec.RecurrentPolicy(model, {"algorithm": rec.ALGORITHM})
     fresh.act(start_obs()[None])
-    np.testing.assert_allclose(policy.state[0], fresh.state[0], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(policy.state.model[0], fresh.state.model[0], rtol=1e-6, atol=1e-6)
     # Environment 1 went on: its state is not the fresh one.
-    assert not np.allclose(policy.state[1], fresh.state[0])
+    assert not np.allclose(policy.state.model[1], fresh.state.model[0])
     # A batch of another size starts every environment afresh; so does episode_start.
     policy.act(np.stack([start_obs()] * 3))
-    np.testing.assert_allclose(policy.state, np.repeat(fresh.state, 3, axis=0), atol=1e-6)
+    repeated = np.repeat(fresh.state.model, 3, axis=0)
+    np.testing.assert_allclose(policy.state.model, repeated, atol=1e-6)
     policy.act(np.stack([busy_obs(rng)] * 3), episode_start=[False, True, False])
     fresh.reset()
     b = busy_obs(rng)
     policy.act(np.stack([b] * 3), episode_start=[False, True, False])
     fresh.act(b[None])
-    np.testing.assert_allclose(policy.state[1], fresh.state[0], atol=1e-6)
+    np.testing.assert_allclose(policy.state.model[1], fresh.state.model[0], atol=1e-6)
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -101,11 +102,11 @@ def test_policy_actions_equal_a_replay_of_the_scan(kind: str) -> None:
     masks[..., 0] = True
     policy = rec.RecurrentPolicy(model, {"algorithm": rec.ALGORITHM})
     stepped = np.stack([policy.act(obs[t], masks[t]) for t in range(steps)])
-    first = np.stack([rec.sequence_starts(obs[:, b]) for b in range(envs)], axis=1)
+    first = np.stack([dagger.sequence_starts(obs[:, b]) for b in range(envs)], axis=1)
     logits, last = model.unroll(model.initial_state(envs), jnp.asarray(obs), jnp.asarray(first))
     scanned = np.argmax(np.where(masks, np.asarray(logits), -np.inf), axis=-1)
     np.testing.assert_array_equal(stepped, scanned)
-    np.testing.assert_allclose(policy.state, last, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(policy.state.model, last, rtol=1e-5, atol=1e-5)
     assert first.sum() >= 2 * envs  # the sequences did hold episode starts
 
 
@@ -119,7 +120,7 @@ def test_chunks_start_from_the_lane_state_of_one_forward_pass(kind: str) -> None
         o[0] = start_obs()
         m = np.ones((length, NUM_ACTIONS), np.bool_)
         a = rng.integers(0, NUM_ACTIONS, length).astype(np.int32)
-        episodes.append(rec.Episode(o, m, a, rec.sequence_starts(o)))
+        episodes.append(rec.Episode(o, m, a, dagger.sequence_starts(o)))
     data = rec.sequence_batches(episodes, chunk=8, seat_weight=4.0, lanes=3)
     lanes, per_lane, chunk = data["action"].shape
     assert (lanes, chunk) == (3, 8) and lanes * per_lane * chunk >= 181
@@ -164,7 +165,8 @@ def test_a_round_records_each_episode_in_seed_order() -> None:
     envs = ScriptedVectorEnv(3)
     model = rec.init(config("gru"), 0)
     learner = rec.RecurrentPolicy(model, {"algorithm": rec.ALGORITHM})
-    episodes, scores = play_round(envs, learner, 0.5, seeds, np.random.default_rng(0))
+    played = play_round(envs, learner, 0.5, seeds, np.random.default_rng(0))
+    episodes, scores = played.episodes, played.scores
     assert [len(e) for e in episodes] == [ScriptedVectorEnv.length(s) for s in seeds]
     for seed, e in zip(seeds, episodes, strict=True):
         assert (e.obs[:, 0] == seed).all() and e.obs[:, 1].tolist() == list(range(len(e)))

@@ -310,3 +310,52 @@ def test_bench_ppo_reports_the_rate_and_where_the_time_goes(server_address: str,
     assert parts["act"] > 0 and parts["env"] > 0 and parts["update"] > 0
     assert agents_main([*argv, "--pipeline", "0"]) == 1
     assert "--pipeline must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("split", [1, 2])
+def test_an_iteration_crosses_host_and_device_only_where_it_says(server_address: str, split: int):
+    """Under ``jax.transfer_guard_device_to_host("disallow")`` an implicit copy from the device
+    to the host (a hidden sync) raises: a whole iteration (acting, bootstrap, update; one vector
+    env or two pipelined) brings results back only by its explicit ``jax.device_get``s (per
+    step the sampled actions, drawn on the device, once). The update's observations, masks,
+    actions, log-probabilities and values are the device's copies made when acting, equal to
+    the host's buffers."""
+    config = ppo.PPOConfig(num_envs=8, num_steps=16, max_episode_steps=40)
+    envs = [
+        gymnasium.make_vec(
+            "dinerdash:DinerDash-v0",
+            num_envs=8 // split,
+            address=server_address,
+            autoreset_mode=AutoresetMode.SAME_STEP,
+            max_episode_steps=config.max_episode_steps,
+        )
+        for _ in range(split)
+    ]
+    trainer = ppo.Trainer(config, 3 * 8 * 16, seed=5)
+    try:
+        trainer.attach(envs if split > 1 else envs[0])
+        trainer.step()  # compiles (a first compilation copies constants)
+        with jax.transfer_guard_device_to_host("disallow"):
+            trainer.step()
+            rollout = trainer.collect()
+        assert rollout.device is not None
+        for name in ("obs", "mask", "actions", "logp", "values"):
+            np.testing.assert_array_equal(
+                np.asarray(rollout.device[name]), getattr(rollout, name), err_msg=name
+            )
+    finally:
+        for e in envs:
+            e.close()
+
+
+def test_more_environments_keep_the_minibatch_and_the_updates_per_sample():
+    base = ppo.PPOConfig()
+    assert base.for_num_envs(8) == ppo.PPOConfig(num_envs=8)  # at or below 256: only N
+    for n, steps, minibatches in [(512, 32, 4), (1024, 32, 8), (4096, 32, 32), (16384, 32, 128)]:
+        c = base.for_num_envs(n)
+        assert (c.num_envs, c.num_steps, c.num_minibatches) == (n, steps, minibatches)
+        samples = c.num_envs * c.num_steps
+        assert samples // c.num_minibatches == 4096  # the base's minibatch: 256 * 64 / 4
+        # gradient steps per sample and the learning rate: the base's
+        assert c.update_epochs * c.num_minibatches / samples == 2 * 4 / (256 * 64)
+        assert c.learning_rate == base.learning_rate
