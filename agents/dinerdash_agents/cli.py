@@ -11,7 +11,7 @@ experiment end to end.
 Every command that talks to a server takes ``--address host:port`` (several separated by
 commas); without it (and without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started
 and stopped, as in ``python -m dinerdash``; and ``--tls``, ``--tls-ca PATH`` and ``--timeout``
-as there (:mod:`dinerdash.command_line`, which both programs share).
+as there (:mod:`dinerdash.cli`, which both programs share).
 
 The commands are shells over :mod:`~dinerdash_agents.train_imitation`,
 :mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate`,
