@@ -29,8 +29,8 @@ pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions}
 pub use shm_secret::{SHM_SECRET_BYTES, ShmSecret};
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
-use crate::cpu::{StepPool, Stepping};
 use crate::metrics::Metrics;
+use crate::pools::{StepPool, Stepping};
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
 

@@ -43,9 +43,9 @@ use step_path::StepPath;
 
 use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
-use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
 use crate::pb;
+use crate::pools::CpuPool;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{
     Batch, Caller, FoundSession, Owner, SessionError, SessionId, SessionOptions, Store,

@@ -16,8 +16,8 @@ use std::sync::Arc;
 
 use tonic::Status;
 
-use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
+use crate::pools::CpuPool;
 use crate::session::{Batch, ExpertActions, FoundSession, SessionError};
 
 /// Where Steps run and where their refusals are counted. Cloning is shallow.
