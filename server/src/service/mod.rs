@@ -165,7 +165,7 @@ impl DinerDashService {
     fn admit(&self) -> Result<(), Status> {
         self.stopping.admit().map_err(|e| {
             let status = draining(e);
-            self.metrics.count_error(status.code() as usize);
+            self.metrics.count_error(status.code());
             status
         })
     }

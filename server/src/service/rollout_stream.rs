@@ -117,9 +117,7 @@ impl Produce {
                 }
                 Next::Episode(rec) => {
                     work_left -= u64::from(rec.steps);
-                    self.metrics
-                        .rollout_episodes
-                        .fetch_add(1, Ordering::Relaxed);
+                    self.metrics.rollout_episodes.inc();
                     slot.send(Ok(episode_to(rec)));
                 }
                 Next::Gone => return,

@@ -96,7 +96,7 @@ impl StepPath {
     /// The status for `e`, counted and logged as the gRPC handlers do.
     pub fn fail(&self, e: impl Into<Status>) -> Status {
         let status = e.into();
-        self.metrics.count_error(status.code() as usize);
+        self.metrics.count_error(status.code());
         tracing::debug!(code = ?status.code(), message = status.message(), "request refused");
         status
     }
