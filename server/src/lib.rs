@@ -9,7 +9,8 @@
 //!   look-ahead planner over sampled futures, which never reads what arrives next
 //!   ([`policy::planner`]); one episode of a policy from a seed ([`policy::run_episode`]).
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
-//! - [`metrics`]: the counters and their Prometheus text.
+//! - [`metrics`]: every metric, one entry each, as `prometheus-client` counters, gauges and a
+//!   family labelled by gRPC code, and their Prometheus text.
 //! - [`shutdown`]: SIGINT/SIGTERM, the drain of a planned restart (its phases, its refusal of
 //!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
 //!   stopping server answers.
