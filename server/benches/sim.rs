@@ -7,8 +7,8 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use dinerdash_server::eval::{evaluate, run_episode};
-use dinerdash_server::policy::{Planner, PolicyKind, expert_action};
+use dinerdash_server::cmd::eval::evaluate;
+use dinerdash_server::policy::{Planner, PolicyKind, expert_action, run_episode};
 use dinerdash_server::sim::{Config, Game, NUM_ACTIONS, Restaurant};
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 

@@ -203,15 +203,15 @@ impl Charge {
 impl Drop for Charge {
     fn drop(&mut self) {
         let m = &self.budget.metrics;
-        give(&m.memory_used_bytes, self.bytes);
+        give(m.memory_used_bytes.inner(), self.bytes);
         match self.holding {
             Holding::Session { envs } => {
-                give(&m.live_sessions, 1);
+                give(m.live_sessions.inner(), 1);
                 give(&self.tenant.sessions, 1);
                 give(&self.tenant.envs, envs);
             }
             Holding::Rollout => {
-                give(&m.live_rollouts, 1);
+                give(m.live_rollouts.inner(), 1);
                 give(&self.tenant.rollouts, 1);
             }
             Holding::Region => {}
@@ -222,9 +222,7 @@ impl Drop for Charge {
 impl Budget {
     /// A budget of `max_bytes` and `max_sessions`, counted in `metrics`' gauges.
     pub fn new(max_bytes: u64, max_sessions: u64, metrics: Arc<Metrics>) -> Budget {
-        metrics
-            .memory_budget_bytes
-            .store(max_bytes, Ordering::Relaxed);
+        metrics.memory_budget_bytes.set(max_bytes);
         Budget {
             max_bytes,
             max_sessions,
@@ -240,21 +238,24 @@ impl Budget {
 
     /// Bytes held now.
     pub fn used_bytes(&self) -> u64 {
-        self.metrics.memory_used_bytes.load(Ordering::Relaxed)
+        self.metrics.memory_used_bytes.get()
     }
 
     /// Live sessions.
     pub fn live_sessions(&self) -> u64 {
-        self.metrics.live_sessions.load(Ordering::Relaxed)
+        self.metrics.live_sessions.get()
     }
 
     fn take_bytes(&self, bytes: u64) -> Result<(), BudgetError> {
-        take(&self.metrics.memory_used_bytes, bytes, self.max_bytes).map_err(|used| {
-            BudgetError::Memory {
-                needed: bytes,
-                used,
-                max: self.max_bytes,
-            }
+        take(
+            self.metrics.memory_used_bytes.inner(),
+            bytes,
+            self.max_bytes,
+        )
+        .map_err(|used| BudgetError::Memory {
+            needed: bytes,
+            used,
+            max: self.max_bytes,
         })
     }
 
@@ -266,17 +267,17 @@ impl Budget {
         bytes: u64,
     ) -> Result<Charge, BudgetError> {
         let (share, m) = (tenant.share, &self.metrics);
-        take(&m.live_sessions, 1, self.max_sessions)
+        take(m.live_sessions.inner(), 1, self.max_sessions)
             .map_err(|_| BudgetError::Sessions(self.max_sessions))?;
         if take(&tenant.sessions, 1, share.max_sessions).is_err() {
-            give(&m.live_sessions, 1);
+            give(m.live_sessions.inner(), 1);
             return Err(BudgetError::TenantSessions {
                 tenant: tenant.name.clone(),
                 max: share.max_sessions,
             });
         }
         if let Err(held) = take(&tenant.envs, envs, share.max_envs) {
-            give(&m.live_sessions, 1);
+            give(m.live_sessions.inner(), 1);
             give(&tenant.sessions, 1);
             return Err(BudgetError::TenantEnvs {
                 tenant: tenant.name.clone(),
@@ -286,7 +287,7 @@ impl Budget {
             });
         }
         if let Err(e) = self.take_bytes(bytes) {
-            give(&m.live_sessions, 1);
+            give(m.live_sessions.inner(), 1);
             give(&tenant.sessions, 1);
             give(&tenant.envs, envs);
             return Err(e);
@@ -330,7 +331,10 @@ impl Budget {
             give(&tenant.rollouts, 1);
             return Err(e);
         }
-        self.metrics.live_rollouts.fetch_add(1, Ordering::AcqRel);
+        self.metrics
+            .live_rollouts
+            .inner()
+            .fetch_add(1, Ordering::AcqRel);
         Ok(Charge {
             budget: Arc::clone(self),
             tenant: Arc::clone(tenant),
@@ -451,6 +455,6 @@ mod tests {
         drop((a, r));
         assert_eq!((budget.used_bytes(), budget.live_sessions()), (0, 0));
         assert_eq!(tenant.envs(), 0);
-        assert_eq!(metrics.live_rollouts.load(Ordering::Relaxed), 0);
+        assert_eq!(metrics.live_rollouts.get(), 0);
     }
 }

@@ -16,7 +16,7 @@ use clap::ValueEnum;
 use crate::auth::{Secret, Token, TokenError, check_token, tenant_tokens};
 use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
 use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
-use crate::cpu::{DEFAULT_PARALLEL_MIN_ENVS, DEFAULT_PARALLEL_MIN_PLANNER_ENVS, Stepping};
+use crate::pools::{DEFAULT_PARALLEL_MIN_ENVS, DEFAULT_PARALLEL_MIN_PLANNER_ENVS, Stepping};
 use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
 use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 

@@ -7,14 +7,17 @@
 //! - [`policy`]: [`policy::Policy`] and [`policy::PolicyKind`], the names that choose one; the
 //!   reference heuristic ([`policy::expert`]), random actions ([`policy::random`]), and the
 //!   look-ahead planner over sampled futures, which never reads what arrives next
-//!   ([`policy::planner`]).
-//! - [`eval`]: runs a policy over many episodes and summarises scores (the `eval` command).
+//!   ([`policy::planner`]); one episode of a policy from a seed ([`policy::run_episode`]).
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
-//! - [`metrics`]: the counters and their Prometheus text.
+//! - [`metrics`]: every metric, one entry each, as `prometheus-client` counters, gauges and a
+//!   family labelled by gRPC code, and their Prometheus text.
 //! - [`shutdown`]: SIGINT/SIGTERM, the drain of a planned restart (its phases, its refusal of
 //!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
 //!   stopping server answers.
-//! - [`cpu`]: the bounded pool of blocking workers for CPU-heavy work (Rollout, planners).
+//! - [`pools`]: the two thread pools for CPU-heavy work: [`pools::CpuPool`], the bounded
+//!   blocking workers that run Rollout episodes and every planner-labelled session's Reset,
+//!   Step, Render, Snapshot and Fork (one per process, shared by gRPC and shared memory), and
+//!   [`pools::StepPool`], the threads that step one large Step's environments in chunks.
 //! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
 //!   Rollouts).
 //! - [`rollout`]: the Rollout RPC's rules (what a request may ask, what its stream is charged)
@@ -40,22 +43,20 @@
 //! - [`config`]: the `serve` flags and what they decide ([`config::ServerConfig::from_args`]).
 //! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and HTTP together
 //!   on a listener until a shutdown future completes; [`server::serve`] is the binary's.
-//! - [`health`]: the `health` command's grpc.health.v1 client.
-//! - [`ceiling`]: the `ceiling` command: the server's own batch rate, in process and through a
-//!   Rust gRPC client, that `python -m dinerdash bench` prints beside the Python client's.
+//! - [`cmd`]: the binary's commands, one file each, and the command line that dispatches to
+//!   them: `serve` (the default), `eval`, `health` (the grpc.health.v1 client) and `ceiling`
+//!   (the server's own batch rate). The top layer: it may use every module above, none uses it.
 
 pub mod auth;
 pub mod budget;
-pub mod ceiling;
+pub mod cmd;
 pub mod codec;
 pub mod config;
 pub mod connections;
-pub mod cpu;
-pub mod eval;
-pub mod health;
 pub mod http;
 pub mod metrics;
 pub mod policy;
+pub mod pools;
 pub mod rollout;
 pub mod server;
 pub mod service;

@@ -1,239 +1,167 @@
-//! Counters of what the server did, and their Prometheus text format ([`Metrics::render`]);
-//! [`crate::http`] serves them at `/metrics`.
+//! What the server did, as `prometheus-client` metrics, and their Prometheus text format
+//! ([`Metrics::render`]); [`crate::http`] serves them at `/metrics`.
 //!
-//! Counters are plain atomics bumped on the hot path (relaxed: they are statistics, not
-//! synchronisation); nothing here allocates per step. Some double as the memory budget's
-//! accounting, which takes from them with compare-and-swap ([`crate::budget`]), so they stay
-//! atomics of our own: at a scrape, one reading of them is handed to a `prometheus-client`
-//! registry as a collector, and the crate writes the exposition format.
+//! Each metric is declared once, in the `metrics!` list below: its field, its type, its
+//! Prometheus name and help. The list makes the struct and registers every field's handle with
+//! the registry [`Metrics::render`] encodes, in the order listed (the order of `/metrics`). The
+//! handles are `prometheus-client`'s own types: [`Counter`], [`Gauge`] and a [`Family`] of
+//! counters labelled by gRPC status code ([`CodeLabel`]). Cloning a handle shares its atomic,
+//! so what the registry reads is what the server bumped: there is no second copy.
+//!
+//! Counters and gauges are single atomics bumped on the hot path (relaxed: statistics, not
+//! synchronisation); nothing here allocates per step. The memory budget counts with the
+//! gauges themselves ([`crate::budget`]): it takes from `live_sessions` and `memory_used_bytes`
+//! with compare-and-swap on the gauge's own atomic ([`Gauge::inner`]) and keeps
+//! `live_rollouts`, which is why the gauges ([`Level`]) are `u64` over an [`AtomicU64`]; the
+//! connections count `open_connections` and `over_limit_connections` the same way.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 
-use prometheus_client::collector::Collector;
 use prometheus_client::encoding::prometheus_text;
-use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
-use prometheus_client::metrics::MetricType;
-use prometheus_client::metrics::counter::ConstCounter;
-use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::encoding::{EncodeLabelSet, EncodeLabelValue, LabelValueEncoder};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::registry::Registry;
 
 /// The `Content-Type` of [`Metrics::render`]'s text: Prometheus' text format, version 0.0.4.
 pub const CONTENT_TYPE: &str = prometheus_text::CONTENT_TYPE;
 
-/// gRPC status code names, indexed by code number, for the error counter's label.
-const CODE_NAMES: [&str; 17] = [
-    "OK",
-    "CANCELLED",
-    "UNKNOWN",
-    "INVALID_ARGUMENT",
-    "DEADLINE_EXCEEDED",
-    "NOT_FOUND",
-    "ALREADY_EXISTS",
-    "PERMISSION_DENIED",
-    "RESOURCE_EXHAUSTED",
-    "FAILED_PRECONDITION",
-    "ABORTED",
-    "OUT_OF_RANGE",
-    "UNIMPLEMENTED",
-    "INTERNAL",
-    "UNAVAILABLE",
-    "DATA_LOSS",
-    "UNAUTHENTICATED",
-];
+/// A level that goes up and down, never below zero: what the budget takes from and gives back.
+pub type Level = Gauge<u64, AtomicU64>;
 
-/// The server's counters. Shared by the session store, the service and the responder.
-#[derive(Debug, Default)]
-pub struct Metrics {
-    /// Sessions created by CreateSession, Fork and Restore.
-    pub sessions_created: AtomicU64,
-    /// Sessions closed by CloseSession.
-    pub sessions_closed: AtomicU64,
-    /// Sessions evicted for being idle longer than the TTL.
-    pub sessions_expired: AtomicU64,
-    /// Live sessions right now: the one counter the session limit is checked against
-    /// (the memory budget keeps it).
-    pub live_sessions: AtomicU64,
-    /// Bytes sessions and Rollout streams hold now, as the memory budget counts them.
-    pub memory_used_bytes: AtomicU64,
-    /// The memory budget, `--max-memory`.
-    pub memory_budget_bytes: AtomicU64,
-    /// Rollout streams running now.
-    pub live_rollouts: AtomicU64,
-    /// Connections open now.
-    pub open_connections: AtomicU64,
-    /// Connections accepted over the connection limit, open now (answered RESOURCE_EXHAUSTED).
-    pub over_limit_connections: AtomicU64,
-    /// Connections closed at the connection limit to admit a new one (shed).
-    pub connections_shed: AtomicU64,
-    /// Connections closed for not sending the HTTP/2 preface in time.
-    pub connections_without_preface: AtomicU64,
-    /// Connections closed for being silent longer than `--idle-timeout`.
-    pub connections_idle_closed: AtomicU64,
-    /// Step RPCs that succeeded.
-    pub step_calls: AtomicU64,
-    /// Environment steps: a Step of N environments counts N.
-    pub env_steps: AtomicU64,
-    /// Environment resets, by Reset and by autoreset.
-    pub env_resets: AtomicU64,
-    /// Episodes recorded by Rollout.
-    pub rollout_episodes: AtomicU64,
-    /// RPCs that failed, by gRPC status code.
-    pub rpc_errors: [AtomicU64; 17],
+/// The label of [`Metrics::rpc_errors`]: `code="NOT_FOUND"`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, EncodeLabelSet)]
+pub struct CodeLabel {
+    /// The gRPC status code the RPC failed with.
+    pub code: GrpcCode,
+}
+
+/// A gRPC status code as a label value: its name in the gRPC specification (`NOT_FOUND`), as
+/// `grpc-status` documents it and clients print it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct GrpcCode(pub tonic::Code);
+
+impl GrpcCode {
+    /// The code's name in the gRPC specification. tonic spells its variants in Rust's case; the
+    /// match is exhaustive, so a code tonic added would not compile until it is named here.
+    pub fn name(self) -> &'static str {
+        use tonic::Code;
+        match self.0 {
+            Code::Ok => "OK",
+            Code::Cancelled => "CANCELLED",
+            Code::Unknown => "UNKNOWN",
+            Code::InvalidArgument => "INVALID_ARGUMENT",
+            Code::DeadlineExceeded => "DEADLINE_EXCEEDED",
+            Code::NotFound => "NOT_FOUND",
+            Code::AlreadyExists => "ALREADY_EXISTS",
+            Code::PermissionDenied => "PERMISSION_DENIED",
+            Code::ResourceExhausted => "RESOURCE_EXHAUSTED",
+            Code::FailedPrecondition => "FAILED_PRECONDITION",
+            Code::Aborted => "ABORTED",
+            Code::OutOfRange => "OUT_OF_RANGE",
+            Code::Unimplemented => "UNIMPLEMENTED",
+            Code::Internal => "INTERNAL",
+            Code::Unavailable => "UNAVAILABLE",
+            Code::DataLoss => "DATA_LOSS",
+            Code::Unauthenticated => "UNAUTHENTICATED",
+        }
+    }
+}
+
+impl EncodeLabelValue for GrpcCode {
+    fn encode(&self, encoder: &mut LabelValueEncoder) -> Result<(), std::fmt::Error> {
+        std::fmt::Write::write_str(encoder, self.name())
+    }
+}
+
+/// Declares [`Metrics`]: one line per metric, `field: Type = "prometheus_name", "Help"`. The
+/// help is also the field's documentation; `prometheus-client` appends the full stop to it, and
+/// `_total` to a counter's name.
+macro_rules! metrics {
+    ($($field:ident: $ty:ty = $name:literal, $help:literal;)*) => {
+        /// The server's metrics. Shared by the session store, the budget, the service, the
+        /// connections and the HTTP endpoint; each field is a `prometheus-client` handle.
+        #[derive(Debug)]
+        pub struct Metrics {
+            $(
+                #[doc = concat!($help, ".")]
+                pub $field: $ty,
+            )*
+            /// Every field's handle, registered under its name, for [`Metrics::render`].
+            registry: Registry,
+        }
+
+        impl Default for Metrics {
+            fn default() -> Metrics {
+                let mut registry = Registry::default();
+                $(
+                    let $field = <$ty>::default();
+                    registry.register($name, $help, $field.clone());
+                )*
+                Metrics { $($field,)* registry }
+            }
+        }
+    };
+}
+
+metrics! {
+    sessions_created: Counter = "dinerdash_sessions_created",
+        "Sessions created by CreateSession, Fork and Restore";
+    sessions_closed: Counter = "dinerdash_sessions_closed",
+        "Sessions closed by CloseSession";
+    sessions_expired: Counter = "dinerdash_sessions_expired",
+        "Sessions evicted after being idle longer than the TTL";
+    step_calls: Counter = "dinerdash_step_calls",
+        "Step RPCs that succeeded";
+    env_steps: Counter = "dinerdash_env_steps",
+        "Environment steps (a Step of N environments counts N)";
+    env_resets: Counter = "dinerdash_env_resets",
+        "Environment resets, by Reset and by autoreset";
+    rollout_episodes: Counter = "dinerdash_rollout_episodes",
+        "Episodes recorded by Rollout";
+    connections_shed: Counter = "dinerdash_connections_shed",
+        "Connections closed at the connection limit to admit a new one";
+    connections_without_preface: Counter = "dinerdash_connections_without_preface",
+        "Connections closed for not sending the HTTP/2 preface in time";
+    connections_idle_closed: Counter = "dinerdash_connections_idle_closed",
+        "Connections closed for being silent longer than --idle-timeout";
+    live_sessions: Level = "dinerdash_live_sessions",
+        "Sessions alive now";
+    memory_used_bytes: Level = "dinerdash_memory_used_bytes",
+        "Bytes sessions and Rollout streams hold now, as the memory budget counts them";
+    memory_budget_bytes: Level = "dinerdash_memory_budget_bytes",
+        "The memory budget (--max-memory)";
+    live_rollouts: Level = "dinerdash_live_rollouts",
+        "Rollout streams running now";
+    open_connections: Level = "dinerdash_open_connections",
+        "Client connections open now";
+    over_limit_connections: Level = "dinerdash_over_limit_connections",
+        "Connections over the connection limit open now, answered RESOURCE_EXHAUSTED";
+    rpc_errors: Family<CodeLabel, Counter> = "dinerdash_rpc_errors",
+        "RPCs that failed, by gRPC status code";
 }
 
 impl Metrics {
-    /// Counts one failed RPC with gRPC status code `code` (0..=16; others count as UNKNOWN).
-    pub fn count_error(&self, code: usize) {
-        let code = if code < CODE_NAMES.len() { code } else { 2 };
-        self.rpc_errors[code].fetch_add(1, Ordering::Relaxed);
+    /// Counts one RPC that failed with `code`.
+    pub fn count_error(&self, code: tonic::Code) {
+        self.rpc_errors
+            .get_or_create(&CodeLabel {
+                code: GrpcCode(code),
+            })
+            .inc();
     }
 
-    /// The counters in Prometheus' text exposition format (version 0.0.4, [`CONTENT_TYPE`]),
-    /// encoded by `prometheus-client` from one reading of every counter.
+    /// The metrics in Prometheus' text exposition format (version 0.0.4, [`CONTENT_TYPE`]),
+    /// encoded by `prometheus-client` from the registry. A code that never failed has no line
+    /// of `dinerdash_rpc_errors_total`, and until one has, the family has none at all (the
+    /// registry leaves an empty family out, HELP and TYPE included); the codes that failed
+    /// come in no particular order.
     pub fn render(&self) -> String {
-        let mut registry = Registry::default();
-        registry.register_collector(Box::new(self.reading()));
         let mut out = String::with_capacity(4096);
         // Writing to a String cannot fail.
-        let _ = prometheus_text::encode(&mut out, &registry);
+        let _ = prometheus_text::encode(&mut out, &self.registry);
         out
-    }
-
-    /// Every counter's value now.
-    fn reading(&self) -> Reading {
-        let read = |(name, help, value): (&'static str, &'static str, &AtomicU64)| {
-            (name, help, value.load(Ordering::Relaxed))
-        };
-        let counters = [
-            (
-                "dinerdash_sessions_created",
-                "Sessions created by CreateSession, Fork and Restore.",
-                &self.sessions_created,
-            ),
-            (
-                "dinerdash_sessions_closed",
-                "Sessions closed by CloseSession.",
-                &self.sessions_closed,
-            ),
-            (
-                "dinerdash_sessions_expired",
-                "Sessions evicted after being idle longer than the TTL.",
-                &self.sessions_expired,
-            ),
-            (
-                "dinerdash_step_calls",
-                "Step RPCs that succeeded.",
-                &self.step_calls,
-            ),
-            (
-                "dinerdash_env_steps",
-                "Environment steps (a Step of N environments counts N).",
-                &self.env_steps,
-            ),
-            (
-                "dinerdash_env_resets",
-                "Environment resets, by Reset and by autoreset.",
-                &self.env_resets,
-            ),
-            (
-                "dinerdash_rollout_episodes",
-                "Episodes recorded by Rollout.",
-                &self.rollout_episodes,
-            ),
-            (
-                "dinerdash_connections_shed",
-                "Connections closed at the connection limit to admit a new one.",
-                &self.connections_shed,
-            ),
-            (
-                "dinerdash_connections_without_preface",
-                "Connections closed for not sending the HTTP/2 preface in time.",
-                &self.connections_without_preface,
-            ),
-            (
-                "dinerdash_connections_idle_closed",
-                "Connections closed for being silent longer than --idle-timeout.",
-                &self.connections_idle_closed,
-            ),
-        ]
-        .map(read);
-        let gauges = [
-            (
-                "dinerdash_live_sessions",
-                "Sessions alive now.",
-                &self.live_sessions,
-            ),
-            (
-                "dinerdash_memory_used_bytes",
-                "Bytes sessions and Rollout streams hold now, as the memory budget counts them.",
-                &self.memory_used_bytes,
-            ),
-            (
-                "dinerdash_memory_budget_bytes",
-                "The memory budget (--max-memory).",
-                &self.memory_budget_bytes,
-            ),
-            (
-                "dinerdash_live_rollouts",
-                "Rollout streams running now.",
-                &self.live_rollouts,
-            ),
-            (
-                "dinerdash_open_connections",
-                "Client connections open now.",
-                &self.open_connections,
-            ),
-            (
-                "dinerdash_over_limit_connections",
-                "Connections over the connection limit open now, answered RESOURCE_EXHAUSTED.",
-                &self.over_limit_connections,
-            ),
-        ]
-        .map(read);
-        Reading {
-            counters,
-            gauges,
-            rpc_errors: std::array::from_fn(|code| self.rpc_errors[code].load(Ordering::Relaxed)),
-        }
-    }
-}
-
-/// One reading of every counter: name (counters without their `_total`, which the encoder
-/// adds), help, value. What the registry encodes at a scrape.
-#[derive(Debug)]
-struct Reading {
-    /// The counters.
-    counters: [(&'static str, &'static str, u64); 10],
-    /// The gauges.
-    gauges: [(&'static str, &'static str, u64); 6],
-    /// Failed RPCs by status code.
-    rpc_errors: [u64; 17],
-}
-
-impl Collector for Reading {
-    fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
-        for &(name, help, value) in &self.counters {
-            let metric = encoder.encode_descriptor(name, help, None, MetricType::Counter)?;
-            ConstCounter::new(value).encode(metric)?;
-        }
-        for &(name, help, value) in &self.gauges {
-            let metric = encoder.encode_descriptor(name, help, None, MetricType::Gauge)?;
-            ConstGauge::new(value).encode(metric)?;
-        }
-        let mut family = encoder.encode_descriptor(
-            "dinerdash_rpc_errors",
-            "RPCs that failed, by gRPC status code.",
-            None,
-            MetricType::Counter,
-        )?;
-        // Codes that never failed are left out, as a labelled counter that was never touched.
-        for (name, &value) in CODE_NAMES.iter().zip(&self.rpc_errors) {
-            if value > 0 {
-                let labels = [("code", *name)];
-                ConstCounter::new(value).encode(family.encode_family(&labels)?)?;
-            }
-        }
-        Ok(())
     }
 }
 
@@ -244,11 +172,14 @@ mod tests {
     #[test]
     fn the_scrape_keeps_the_names_types_and_labels() {
         let metrics = Metrics::default();
-        metrics.env_steps.fetch_add(7, Ordering::Relaxed);
-        metrics.live_sessions.fetch_add(2, Ordering::Relaxed);
-        metrics.count_error(5);
-        metrics.count_error(5);
-        metrics.count_error(99);
+        let fresh = metrics.render();
+        assert_eq!(fresh.matches("# TYPE ").count(), 16, "{fresh}");
+        assert!(!fresh.contains("dinerdash_rpc_errors_total"), "{fresh}");
+        metrics.env_steps.inc_by(7);
+        metrics.live_sessions.inc_by(2);
+        metrics.count_error(tonic::Code::NotFound);
+        metrics.count_error(tonic::Code::NotFound);
+        metrics.count_error(tonic::Code::Unknown);
         let text = metrics.render();
         for line in [
             "# HELP dinerdash_env_steps_total Environment steps (a Step of N environments counts N).",
@@ -265,5 +196,18 @@ mod tests {
         }
         assert!(!text.contains("code=\"OK\""), "{text}");
         assert_eq!(text.matches("# TYPE ").count(), 17);
+    }
+
+    #[test]
+    fn every_code_has_its_specification_name() {
+        // tonic's codes are numbered as the specification's; the names follow them in order.
+        let names: Vec<&str> = (0..17)
+            .map(|n| GrpcCode(tonic::Code::from_i32(n)).name())
+            .collect();
+        assert_eq!(names[0], "OK");
+        assert_eq!(names[5], "NOT_FOUND");
+        assert_eq!(names[16], "UNAUTHENTICATED");
+        let distinct: std::collections::BTreeSet<&str> = names.iter().copied().collect();
+        assert_eq!(distinct.len(), 17);
     }
 }

@@ -232,7 +232,7 @@ pub fn record_until(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::run_episode;
+    use crate::policy::run_episode;
 
     #[test]
     fn recordings_agree_with_eval() {

@@ -29,8 +29,8 @@ pub use envs::{Autoreset, Batch, Envs, ExpertActions, ResetArgs, SessionOptions}
 pub use shm_secret::{SHM_SECRET_BYTES, ShmSecret};
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
-use crate::cpu::{StepPool, Stepping};
 use crate::metrics::Metrics;
+use crate::pools::{StepPool, Stepping};
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
 
@@ -342,8 +342,7 @@ impl FoundSession {
         self.session.was_reset(&envs, &batch);
         drop(envs);
         let m = &self.metrics;
-        m.env_resets
-            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
+        m.env_resets.inc_by(u64::from(batch.num_envs));
         Ok(batch)
     }
 
@@ -354,12 +353,11 @@ impl FoundSession {
         self.session.stepped(&envs, actions, &batch);
         drop(envs);
         let m = &self.metrics;
-        m.step_calls.fetch_add(1, Ordering::Relaxed);
-        m.env_steps
-            .fetch_add(u64::from(batch.num_envs), Ordering::Relaxed);
+        m.step_calls.inc();
+        m.env_steps.inc_by(u64::from(batch.num_envs));
         let resets = batch.resets();
         if resets > 0 {
-            m.env_resets.fetch_add(resets, Ordering::Relaxed);
+            m.env_resets.inc_by(resets);
         }
         Ok(batch)
     }
@@ -496,10 +494,7 @@ impl Store {
                 break id;
             }
         };
-        self.shared
-            .metrics
-            .sessions_created
-            .fetch_add(1, Ordering::Relaxed);
+        self.shared.metrics.sessions_created.inc();
         tracing::debug!(session = %id, num_envs = spec.num_envs, "session created");
         Ok((id, spec))
     }
@@ -538,10 +533,7 @@ impl Store {
         drop(shard);
         // Freed (if no request still holds it) outside the shard lock.
         removed.ok_or_else(|| SessionError::NotFound(id.to_owned()))?;
-        self.shared
-            .metrics
-            .sessions_closed
-            .fetch_add(1, Ordering::Relaxed);
+        self.shared.metrics.sessions_closed.inc();
         tracing::debug!(session = %key, "session closed");
         Ok(())
     }
@@ -637,10 +629,7 @@ impl Store {
             });
         }
         if evicted > 0 {
-            self.shared
-                .metrics
-                .sessions_expired
-                .fetch_add(evicted as u64, Ordering::Relaxed);
+            self.shared.metrics.sessions_expired.inc_by(evicted as u64);
             tracing::info!(evicted, "closed idle sessions");
         }
         evicted
@@ -743,8 +732,8 @@ mod tests {
         store.close(&Owner::Shared, &id.to_string()).unwrap();
         let batch = found.step(&[0; 8]).unwrap();
         assert_eq!(batch.expert_actions.len(), 2);
-        assert_eq!(metrics.step_calls.load(Ordering::Relaxed), 1);
-        assert_eq!(metrics.env_steps.load(Ordering::Relaxed), 2);
+        assert_eq!(metrics.step_calls.get(), 1);
+        assert_eq!(metrics.env_steps.get(), 2);
         assert!(matches!(
             store.find(&Owner::Shared, &id.to_string()),
             Err(SessionError::NotFound(_))

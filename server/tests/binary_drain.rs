@@ -10,7 +10,7 @@ mod grpc_support;
 use std::time::{Duration, Instant};
 
 use binary_support::Process;
-use dinerdash_server::health::{self, Probe, ServingStatus};
+use dinerdash_server::cmd::health::{self, Probe, ServingStatus};
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::server::LIVENESS_SERVICE;
 use dinerdash_server::service::ERROR_DOMAIN;

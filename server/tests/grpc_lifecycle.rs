@@ -5,9 +5,8 @@
 mod grpc_support;
 mod recorded;
 
-use dinerdash_server::eval::run_episode;
 use dinerdash_server::pb;
-use dinerdash_server::policy::{PolicyKind, expert_action};
+use dinerdash_server::policy::{PolicyKind, expert_action, run_episode};
 use dinerdash_server::sim::{self, Config, Game};
 use grpc_support::*;
 use tonic::Code;

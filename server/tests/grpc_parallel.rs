@@ -9,8 +9,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use dinerdash_server::cpu::Stepping;
 use dinerdash_server::pb;
+use dinerdash_server::pools::Stepping;
 use dinerdash_server::server::ServerConfig;
 use dinerdash_server::session::Limits;
 use grpc_support::*;

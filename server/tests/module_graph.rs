@@ -1,6 +1,8 @@
 //! The crate's modules form no cycle: reading every `crate::…` (and `super::…` that reaches the
 //! crate root) in `src/`, comments and string literals aside, the graph of top-level modules is
-//! acyclic, and `lib.rs`'s Layout list names every module after all those it uses.
+//! acyclic, and `lib.rs`'s Layout list names every module after all those it uses. The binary's
+//! commands (`cmd`: serve, eval, health, ceiling) are the top layer: listed last, used by no
+//! other module, so the library never depends on a command's flags or output.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -256,6 +258,22 @@ fn the_server_modules_form_no_cycle_in_their_layout_order() {
                 "lib.rs's Layout lists {module} before {used}, which it uses"
             );
         }
+    }
+    // The commands are the top layer: listed last, and no library module reaches into them.
+    assert_eq!(
+        layout.last(),
+        Some(&"cmd"),
+        "lib.rs's Layout lists cmd last"
+    );
+    assert!(
+        graph["cmd"].contains("server") && graph["cmd"].contains("policy"),
+        "the scanner found too little under cmd/: {graph:?}"
+    );
+    for (module, uses) in &graph {
+        assert!(
+            !uses.contains("cmd"),
+            "{module} uses cmd, the binary's commands; move what it needs into the library"
+        );
     }
     for module in &layout {
         let uses: Vec<&str> = graph

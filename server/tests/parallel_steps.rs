@@ -6,8 +6,8 @@
 use std::sync::Arc;
 
 use dinerdash_server::budget::{Share, Tenant};
-use dinerdash_server::ceiling::Actions;
-use dinerdash_server::cpu::{SERIAL, StepPool, Stepping};
+use dinerdash_server::cmd::ceiling::Actions;
+use dinerdash_server::pools::{SERIAL, StepPool, Stepping};
 use dinerdash_server::session::{
     Autoreset, Batch, Caller, Envs, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
 };

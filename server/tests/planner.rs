@@ -1,8 +1,7 @@
 //! The look-ahead planner: it never peeks at the hidden arrival list, replays exactly from a seed
 //! through eval, Rollout and a session, only picks legal actions, and beats the reference.
 
-use dinerdash_server::eval::run_episode;
-use dinerdash_server::policy::{Planner, PolicyKind};
+use dinerdash_server::policy::{Planner, PolicyKind, run_episode};
 use dinerdash_server::rollout::record;
 use dinerdash_server::session::{Autoreset, Envs, ExpertActions, ResetArgs, SessionOptions};
 use dinerdash_server::sim::{Config, Game};

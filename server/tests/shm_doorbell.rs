@@ -18,8 +18,8 @@ use std::os::fd::OwnedFd;
 use std::time::{Duration, Instant};
 
 use binary_support::Process;
-use dinerdash_server::cpu::CpuPool;
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
+use dinerdash_server::pools::CpuPool;
 use dinerdash_server::server::ServerConfig;
 use dinerdash_server::shm::layout::{FIELDS, Layout};
 use dinerdash_server::shm::{HELLO_BYTES, MAX_PENDING_HELLOS};

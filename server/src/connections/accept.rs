@@ -162,9 +162,7 @@ impl Accepting {
             let admitted = self.table.admit(self.capacity.max_connections);
             match &admitted {
                 Some((_, true)) => {
-                    self.metrics
-                        .connections_shed
-                        .fetch_add(1, Ordering::Relaxed);
+                    self.metrics.connections_shed.inc();
                     if shed_run == 0 {
                         tracing::warn!(
                             max_connections = self.capacity.max_connections,
@@ -196,7 +194,11 @@ impl Accepting {
     fn conn(&self, io: TcpStream, remote: SocketAddr, tracked: Option<Tracked>) -> Option<Conn> {
         let over_limit = tracked.is_none();
         // Connections over the limit share their descriptors with those shed and closing.
-        let leaving = self.metrics.over_limit_connections.load(Ordering::Acquire)
+        let leaving = self
+            .metrics
+            .over_limit_connections
+            .inner()
+            .load(Ordering::Acquire)
             + self.table.closing() as u64;
         if over_limit && leaving >= self.capacity.max_over_limit as u64 {
             // Far over the limit: even an answer would hold a descriptor for its grace period.

@@ -40,9 +40,9 @@ impl Counted {
 
     fn counter(&self) -> &AtomicU64 {
         if self.over_limit {
-            &self.metrics.over_limit_connections
+            self.metrics.over_limit_connections.inner()
         } else {
-            &self.metrics.open_connections
+            self.metrics.open_connections.inner()
         }
     }
 }
@@ -143,7 +143,7 @@ impl AsyncRead for Conn {
                         } else {
                             &metrics.connections_idle_closed
                         };
-                        counter.fetch_add(1, Ordering::Relaxed);
+                        counter.inc();
                     }
                     Poll::Ready(Err(std::io::Error::new(
                         std::io::ErrorKind::TimedOut,

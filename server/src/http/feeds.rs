@@ -12,7 +12,6 @@
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -163,7 +162,7 @@ impl Sessions {
     pub fn snapshot(&mut self, site: &Site) -> String {
         let listing = site.store.summaries(&self.viewer.owner(), MAX_ROWS);
         let now = Instant::now();
-        let env_steps = site.metrics.env_steps.load(Ordering::Relaxed);
+        let env_steps = site.metrics.env_steps.get();
         let rate = |now_count: u64, then_count: u64, since: Instant| {
             let secs = now.duration_since(since).as_secs_f64();
             (secs > 0.0).then(|| now_count.saturating_sub(then_count) as f64 / secs)

@@ -5,11 +5,14 @@
 //! - [`random`]: uniformly random actions, the benchmark's random baseline.
 //! - [`planner`]: the look-ahead planner over sampled futures, which never reads what arrives
 //!   next.
+//! - [`episode`]: one episode of a policy from a seed ([`run_episode`]), summarised.
 
+pub mod episode;
 pub mod expert;
 pub mod planner;
 pub mod random;
 
+pub use episode::{EpisodeSummary, run_episode};
 pub use expert::{Expert, expert_action};
 pub use planner::Planner;
 pub use random::RandomPolicy;

@@ -25,7 +25,7 @@
 //! A decision simulates at most `candidates x samples x (horizon + 1)` steps (36 x 4 x 61 with
 //! the defaults) on stack copies of the restaurant: no allocation (`tests/no_alloc.rs`). A state
 //! with one candidate costs nothing. `benches/sim.rs` (`planner/...`) measures the time per
-//! decision; callers on the async runtime run it on [`crate::cpu::CpuPool`].
+//! decision; callers on the async runtime run it on [`crate::pools::CpuPool`].
 
 use rand::{Rng, SeedableRng, rngs::SmallRng};
 

@@ -43,9 +43,9 @@ use step_path::StepPath;
 
 use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
-use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
 use crate::pb;
+use crate::pools::CpuPool;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{
     Batch, Caller, FoundSession, Owner, SessionError, SessionId, SessionOptions, Store,
@@ -165,7 +165,7 @@ impl DinerDashService {
     fn admit(&self) -> Result<(), Status> {
         self.stopping.admit().map_err(|e| {
             let status = draining(e);
-            self.metrics.count_error(status.code() as usize);
+            self.metrics.count_error(status.code());
             status
         })
     }

@@ -9,10 +9,10 @@ use tonic::Status;
 
 use super::convert::episode_to;
 use super::status::rollout_status;
-use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::policy::PolicyKind;
+use crate::pools::CpuPool;
 use crate::rollout::{self, Recording, RolloutError};
 use crate::shutdown::{self, STREAM_DRAIN_DEADLINE, Shutdown};
 use crate::sim::Config;
@@ -117,9 +117,7 @@ impl Produce {
                 }
                 Next::Episode(rec) => {
                     work_left -= u64::from(rec.steps);
-                    self.metrics
-                        .rollout_episodes
-                        .fetch_add(1, Ordering::Relaxed);
+                    self.metrics.rollout_episodes.inc();
                     slot.send(Ok(episode_to(rec)));
                 }
                 Next::Gone => return,

@@ -16,8 +16,8 @@ use std::sync::Arc;
 
 use tonic::Status;
 
-use crate::cpu::CpuPool;
 use crate::metrics::Metrics;
+use crate::pools::CpuPool;
 use crate::session::{Batch, ExpertActions, FoundSession, SessionError};
 
 /// Where Steps run and where their refusals are counted. Cloning is shallow.
@@ -96,7 +96,7 @@ impl StepPath {
     /// The status for `e`, counted and logged as the gRPC handlers do.
     pub fn fail(&self, e: impl Into<Status>) -> Status {
         let status = e.into();
-        self.metrics.count_error(status.code() as usize);
+        self.metrics.count_error(status.code());
         tracing::debug!(code = ?status.code(), message = status.message(), "request refused");
         status
     }

@@ -8,8 +8,8 @@
 use serde::{Deserialize, Serialize};
 
 use super::SessionError;
-use crate::cpu::{self, StepPool};
 use crate::policy::{Planner, expert_action};
+use crate::pools::{self, StepPool};
 use crate::sim::{
     Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, StepOutcome, render,
     snapshot,
@@ -521,7 +521,7 @@ impl Envs {
     /// Resets every environment, or those of `reset_mask` (all of the request is checked first),
     /// on the caller's thread.
     pub fn reset(&mut self, args: &ResetArgs) -> Result<Batch, SessionError> {
-        self.reset_on(args, &cpu::SERIAL)
+        self.reset_on(args, &pools::SERIAL)
     }
 
     /// [`Envs::reset`], in chunks on `pool`'s threads when the session is large enough for it:
@@ -597,7 +597,7 @@ impl Envs {
     /// One action per environment, as N little-endian int32 (all checked first), on the
     /// caller's thread.
     pub fn step(&mut self, actions: &[u8]) -> Result<Batch, SessionError> {
-        self.step_on(actions, &cpu::SERIAL)
+        self.step_on(actions, &pools::SERIAL)
     }
 
     /// [`Envs::step`], in chunks on `pool`'s threads when the session is large enough for it:

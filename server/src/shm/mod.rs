@@ -58,7 +58,7 @@ use rustix::net::{
 use rustix::process::Uid;
 
 use crate::budget::Charge;
-use crate::cpu::CpuPool;
+use crate::pools::CpuPool;
 use crate::service::step_path::StepPath;
 use crate::session::{SHM_SECRET_BYTES, SessionError, Store};
 use crate::shutdown::Shutdown;

@@ -1,12 +1,14 @@
-//! The bounded pools for CPU-heavy work.
+//! The two thread pools for CPU-heavy work, and nothing else: the bounded pool of blocking
+//! workers ([`CpuPool`]) and the stepping threads of large Steps ([`StepPool`]). The module is
+//! named for what it holds, the pools, rather than for the resource they spend.
 //!
-//! - [`CpuPool`]: Rollout episodes and the Reset and Step of planner-labelled sessions. Such work
-//!   runs on tokio's blocking threads, never on the async workers that serve Step and Reset, and
-//!   at most `workers` jobs run at once, so a flood of heavy requests queues here instead of
-//!   starving every other client. The server's pool ([`CpuPool::beside_steps`]) is one per
-//!   process: the gRPC service and the shared-memory data plane's session threads
-//!   ([`CpuPool::acquire_blocking`]) take their permits from the same semaphore, so planner Steps
-//!   are bounded together whichever transport asked.
+//! - [`CpuPool`]: Rollout episodes and the Reset, Step, Render, Snapshot and Fork of
+//!   planner-labelled sessions. Such work runs on tokio's blocking threads, never on the async
+//!   workers that serve Step and Reset, and at most `workers` jobs run at once, so a flood of
+//!   heavy requests queues here instead of starving every other client. The server's pool
+//!   ([`CpuPool::beside_steps`]) is one per process: the gRPC service and the shared-memory data
+//!   plane's session threads ([`CpuPool::acquire_blocking`]) take their permits from the same
+//!   semaphore, so planner Steps are bounded together whichever transport asked.
 //! - [`StepPool`]: the threads that step one large session's environments in chunks at once
 //!   ([`Stepping`] says when a Step is large enough). Only chunks of large Steps run there;
 //!   small Steps stay on their caller's thread and never queue behind them.

@@ -12,6 +12,8 @@
 //! the given expert labels in every Batch. One line per (N, threads):
 //! `N threads labels in_process grpc`, in env-steps/s.
 
+use std::io::Write as _;
+use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -19,8 +21,8 @@ use clap::ValueEnum;
 
 use crate::budget::{Share, Tenant};
 use crate::config::parse_duration;
-use crate::cpu::Stepping;
 use crate::pb;
+use crate::pools::Stepping;
 use crate::server::{self, Listeners, ServerConfig, ServerError};
 use crate::session::{Autoreset, Caller, ExpertActions, Limits, ResetArgs, SessionOptions, Store};
 use crate::sim::{Config, NUM_ACTIONS};
@@ -126,6 +128,22 @@ impl std::fmt::Display for Rate {
             self.in_process,
             self.grpc
         )
+    }
+}
+
+/// The `ceiling` command: one line per (N, threads) to stdout as soon as it is measured,
+/// `N threads labels in_process grpc` (env-steps/s).
+pub(super) fn execute(args: &CeilingArgs) -> ExitCode {
+    let printed = run(args, |rate| {
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "{rate}").and_then(|()| out.flush());
+    });
+    match printed {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
     }
 }
 

@@ -1,59 +1,14 @@
-//! Runs a policy for many episodes and summarises them: the `eval` command, and the numbers a
-//! researcher compares with the published benchmark.
+//! The `eval` command: runs a policy for many episodes ([`crate::policy::run_episode`]) and
+//! summarises them, the numbers a researcher compares with the published benchmark.
 
+use std::io::Write as _;
+use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use crate::policy::PolicyKind;
-use crate::sim::{Config, Game};
+use clap::ValueEnum;
 
-/// How one episode ended.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct EpisodeSummary {
-    /// The reset seed.
-    pub seed: u64,
-    /// Final score.
-    pub score: i64,
-    /// Steps taken.
-    pub steps: u32,
-    /// Groups lost.
-    pub lost: u32,
-    /// Ended by losing groups (rather than the step cap or time limit).
-    pub terminated: bool,
-}
-
-/// Plays one episode from `reset(seed)` until it terminates, is truncated, or `max_steps` pass.
-pub fn run_episode(
-    kind: PolicyKind,
-    config: Config,
-    seed: u64,
-    max_steps: u32,
-) -> Result<EpisodeSummary, crate::sim::ConfigError> {
-    let mut game = Game::new(config)?;
-    // A drawn arrival list never fails.
-    let _ = game.reset(Some(seed), None);
-    let mut policy = kind.build(seed);
-    let mut steps = 0;
-    let mut terminated = false;
-    while steps < max_steps {
-        let action = policy.act(&game);
-        let Ok(outcome) = game.step(i64::from(action)) else {
-            break;
-        };
-        steps += 1;
-        if outcome.terminated || outcome.truncated {
-            terminated = outcome.terminated;
-            break;
-        }
-    }
-    let r = game.restaurant();
-    Ok(EpisodeSummary {
-        seed,
-        score: r.score(),
-        steps,
-        lost: r.lost(),
-        terminated,
-    })
-}
+use crate::policy::{EpisodeSummary, PolicyKind, run_episode};
+use crate::sim::Config;
 
 /// Mean and standard deviation (population and sample).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -188,4 +143,63 @@ pub fn evaluate(
         episodes: results,
         elapsed: start.elapsed(),
     })
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub(super) enum PolicyArg {
+    /// The reference heuristic.
+    Expert,
+    /// Uniformly random actions.
+    Random,
+    /// The look-ahead planner over sampled futures (about a millisecond a decision).
+    Planner,
+}
+
+#[derive(Debug, clap::Args)]
+pub(super) struct EvalArgs {
+    /// The policy to play.
+    #[arg(long, value_enum, default_value = "expert")]
+    policy: PolicyArg,
+    /// Number of episodes; episode i is reset with seed `seed + i`.
+    #[arg(long, default_value_t = 100)]
+    episodes: u32,
+    /// Seed of the first episode.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Truncate an episode after this many steps.
+    #[arg(long, default_value_t = 100_000)]
+    max_steps: u32,
+    /// Worker threads (default: one per core).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+/// The `eval` command: evaluates and prints [`Evaluation::report`] to stdout.
+pub(super) fn execute(args: &EvalArgs) -> ExitCode {
+    let kind = match args.policy {
+        PolicyArg::Expert => PolicyKind::Expert,
+        PolicyArg::Random => PolicyKind::Random,
+        PolicyArg::Planner => PolicyKind::Planner,
+    };
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let result = match evaluate(
+        kind,
+        Config::default(),
+        args.seed,
+        args.episodes,
+        args.max_steps,
+        threads,
+    ) {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let report = result.report(kind, args.seed, args.episodes, threads);
+    // A reader that went away (`| head`) is not an error worth a panic.
+    let _ = std::io::stdout().lock().write_all(report.as_bytes());
+    ExitCode::SUCCESS
 }

@@ -2,6 +2,8 @@
 //! Docker HEALTHCHECK), plaintext or TLS. With TLS it trusts the given CA certificates, or a
 //! self-signed server certificate named as its own CA.
 
+use std::path::PathBuf;
+use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -15,6 +17,8 @@ use tonic::transport::Endpoint;
 pub use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
 
+use crate::config::parse_duration;
+
 /// What to ask, and of whom.
 #[derive(Debug, Clone)]
 pub struct Probe {
@@ -27,6 +31,56 @@ pub struct Probe {
     /// Connect with TLS, trusting this PEM CA certificate (or a self-signed server certificate
     /// itself).
     pub tls_ca: Option<Vec<u8>>,
+}
+
+#[derive(Debug, clap::Args)]
+pub(super) struct HealthArgs {
+    /// The server, host:port.
+    #[arg(long, default_value = "127.0.0.1:50051")]
+    address: String,
+    /// Give up after this long (seconds, or with ms, s, m or h).
+    #[arg(long, default_value = "5", value_parser = parse_duration)]
+    timeout: Duration,
+    /// The service to ask about; empty means the whole server.
+    #[arg(long, default_value = "")]
+    service: String,
+    /// Connect with TLS, trusting this PEM CA certificate (or a self-signed server certificate
+    /// itself).
+    #[arg(long)]
+    tls_ca: Option<PathBuf>,
+}
+
+/// The `health` command: prints the status the server reported; success if it is SERVING.
+pub(super) fn execute(args: &HealthArgs) -> ExitCode {
+    let probe = |tls_ca: Option<Vec<u8>>| Probe {
+        address: args.address.clone(),
+        timeout: args.timeout,
+        service: args.service.clone(),
+        tls_ca,
+    };
+    let result = args
+        .tls_ca
+        .as_ref()
+        .map(|ca| std::fs::read(ca).map_err(|e| format!("cannot read {}: {e}", ca.display())))
+        .transpose()
+        .and_then(|ca| {
+            let rt = super::runtime().map_err(|e| e.to_string())?;
+            rt.block_on(check(&probe(ca)))
+        });
+    match result {
+        Ok(status) => {
+            println!("{}", status.as_str_name());
+            if status == ServingStatus::Serving {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            }
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
 }
 
 /// One Check: the status the server reported, or why there was none.
