@@ -229,3 +229,91 @@ def test_no_module_writes_another_objects_private_state(package: str) -> None:
     paths = [p for p in sorted(PACKAGES[package].rglob("*.py")) if "_proto" not in p.parts]
     found = [w for path in paths for w in _private_writes(path)]
     assert not found, "private state written from outside: " + "; ".join(found)
+
+
+#: A session core's state (:class:`dinerdash._session.SessionCore`): its ``phase`` and what a
+#: transfer, a drain, a failover or a reconnect leaves in it. Only ``_session.py`` (the core's
+#: own methods: ``begin_receiving``, ``enter``, ``finish_transfer``, ``mark_draining``,
+#: ``mark_lost``...) changes them; every other module reads them.
+SESSION_STATE = ["phase", "last", "pending", "reconnected", "owned", "source", "entering"]
+#: Methods that change a container in place (``core.entering.update(...)`` writes the state).
+_MUTATORS = {"add", "update", "clear", "discard", "remove", "pop", "fill", "sort", "append"}
+
+
+def _session_state_writes(path: Path) -> list[str]:
+    """``x.<state> = ...`` (and ``+=``, annotated, ``x.<state>[i] = ...``, ``del``) and
+    ``x.<state>.update(...)``-like calls, for a name of :data:`SESSION_STATE` and any ``x``
+    but ``self``/``cls`` (a class's own attribute of that name is its own)."""
+
+    def session_attr(node: ast.AST) -> bool:
+        return (
+            isinstance(node, ast.Attribute)
+            and node.attr in SESSION_STATE
+            and not (isinstance(node.value, ast.Name) and node.value.id in {"self", "cls"})
+        )
+
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Assign):
+            targets = node.targets
+        elif isinstance(node, (ast.AugAssign, ast.AnnAssign)):
+            targets = [node.target]
+        elif isinstance(node, ast.Delete):
+            targets = node.targets
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr in _MUTATORS
+            and session_attr(node.func.value)
+        ):
+            out.append(f"{path.name}:{node.lineno}: {ast.unparse(node.func)}()")
+            continue
+        else:
+            continue
+        for target in targets:
+            for sub in ast.walk(target):
+                if session_attr(sub):
+                    out.append(f"{path.name}:{node.lineno}: {ast.unparse(sub)}")
+    return out
+
+
+def test_only_the_session_core_changes_its_state() -> None:
+    """Read with :mod:`ast`: no module of the client but ``_session.py`` assigns (or changes in
+    place) a session core's state attributes (:data:`SESSION_STATE`); the fleet, the failover
+    and the envs change them through the core's methods, whose transitions
+    :mod:`dinerdash._session` documents and checks."""
+    root = PACKAGES["dinerdash"]
+    paths = [p for p in sorted(root.rglob("*.py")) if "_proto" not in p.parts]
+    assert root / "_fleet.py" in paths and root / "_session.py" in paths
+    found = [w for p in paths if p.name != "_session.py" for w in _session_state_writes(p)]
+    assert not found, "a session core's state written from outside _session.py: " + "; ".join(found)
+
+
+def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> None:
+    """The check finds a plain, a tuple, an augmented, an indexed and an in-place write, and
+    leaves a class's own attribute of the same name and a read alone."""
+    path = tmp_path / "m.py"
+    path.write_text(
+        "def f(core, new, env):\n"
+        "    core.last = None\n"
+        "    new.source, new.entering = None, set()\n"
+        "    env._core.reconnected = False\n"
+        "    core.owned[0] = True\n"
+        "    new.entering |= {1}\n"
+        "    new.entering.update([2])\n"
+        "    x = core.last\n"
+        "    core.entering.copy()\n"
+        "class C:\n"
+        "    def g(self):\n"
+        "        self.last = 1\n"
+    )
+    found = _session_state_writes(path)
+    assert [w.split(": ", 1)[1] for w in found] == [
+        "core.last",
+        "new.source",
+        "new.entering",
+        "env._core.reconnected",
+        "core.owned",
+        "new.entering",
+        "new.entering.update()",
+    ], found

@@ -76,7 +76,7 @@ def move(
                 new.create()
                 made.append(new)
                 try:
-                    new.last = start(core, new)
+                    new.start_with(start(core, new))
                 except ServiceError as e:
                     raise new.fail(e) from None
             return made

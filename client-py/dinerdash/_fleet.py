@@ -158,7 +158,7 @@ class Fleet:
             return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
 
         for core in self.cores:
-            core.entering = set()
+            core.forget_entering()
         if mask is None:
             self.complete_transfers()
         if mask is None and self.failover_on():
@@ -284,11 +284,10 @@ class Fleet:
             return
         # NEXT_STEP: the environments whose episode ended at the last step autoreset here.
         for new in [c for c in self.cores if c.entering]:
-            self.enter(new, sorted(new.entering))
-            new.entering = set()
-        for new in self.cores:
-            if new.source is not None and new.index in endpoint.draining:
-                new.source, new.entering = None, set()  # no more environments go to it
+            self.enter(new, new.take_entering())
+        for core in self.cores:
+            if core.index in endpoint.draining:
+                core.mark_draining()  # no more environments go to it
         targets = self.targets()
         # Planning is asked again only when the servers or the sessions changed.
         key = (len(self.cores), tuple(targets), tuple(endpoint.draining), tuple(endpoint.given_up))
@@ -307,7 +306,7 @@ class Fleet:
                 if source.holds(i) and ended[i - source.start] and not new.holds(i)
             ]
             if self.settings.autoreset_mode == AutoresetMode.NEXT_STEP:
-                new.entering.update(due)
+                new.await_entry(due)
             elif due:
                 self.enter(new, due)
         for core in [c for c in self.cores if c.index in late and c.load]:
@@ -410,9 +409,7 @@ class Fleet:
         if opened is None:
             return False
         new, first = opened
-        new.last = new.note(first)
-        new.owned = np.zeros(new.size, dtype=np.bool_)
-        new.source = source
+        new.begin_receiving(source, first)
         self.cores.append(new)
         self.cores.sort(key=lambda c: c.start)
         return True
@@ -441,23 +438,19 @@ class Fleet:
             batch = batch.splice(Batch(new.size, {}), mask, OUTCOME)
         ones = Batch(new.size, {"reset": np.ones(new.size, np.bool_)})
         batch = batch.splice(ones, mask, ("reset",))
-        new.last = batch
-        for i in envs:
-            new.source.disown(i, i + 1)
-        new.own(envs)
+        new.enter(envs, batch)
         self.moves += len(envs)
 
     def tidy(self) -> None:
         """Closes the sessions whose environments have all moved, and ends the transfers that
         are done or whose source is gone (a failover)."""
         for core in list(self.cores):
-            if core.source is not None:
-                if core.owned is None:
-                    core.source = None
-                elif core.source not in self.cores or not any(
-                    core.source.holds(i) for i in range(core.start, core.stop)
-                ):
-                    core.source, core.entering = None, set()
+            if core.source is not None and (
+                core.owned is None  # every environment entered
+                or core.source not in self.cores
+                or not any(core.source.holds(i) for i in range(core.start, core.stop))
+            ):
+                core.finish_transfer()
             if core.load == 0 and core.source is None:
                 core.close()
                 self.cores.remove(core)
@@ -466,11 +459,7 @@ class Fleet:
     def complete_transfers(self) -> None:
         """A full reset starts every episode: the transfers in progress are done at once."""
         for new in [c for c in self.cores if c.source is not None]:
-            envs = [i for i in range(new.start, new.stop) if new.source.holds(i)]
-            for i in envs:
-                new.source.disown(i, i + 1)
-            new.own(envs)
-            new.entering = set()
+            new.complete_transfer()
         self.tidy()
 
     def hand_over(self, core: SessionCore, i: int, dest: int, cut: bool) -> bool:
@@ -483,8 +472,8 @@ class Fleet:
             return False
         new, first = opened
         ended = core.last.slice(i - core.start, i - core.start + 1)
-        new.last, new.pending = handover(ended, first, self.settings.autoreset_mode, cut)
-        new.reconnected = cut
+        last, pending = handover(ended, first, self.settings.autoreset_mode, cut)
+        new.take_over(last, pending, cut)
         core.disown(i, i + 1)
         self.cores.append(new)
         self.cores.sort(key=lambda c: c.start)

@@ -11,10 +11,35 @@ environments (:mod:`dinerdash._failover`). :class:`~dinerdash.DinerDashEnv` is o
 environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Errors are the server's
 typed errors; a core of a vector env that is split over several servers reports an environment by
 its index in the vector env (from the error's structured ``env_index``).
+
+Each core's place in the fleet is an explicit :class:`Phase`, changed only by the core's methods
+(no other module assigns ``phase``, ``last``, ``pending``, ``reconnected``, ``owned``,
+``source`` or ``entering``: ``tests/test_module_graph.py`` reads every module with :mod:`ast` to
+check it). The phases and the transitions allowed (any other raises :class:`IllegalTransition`, an
+internal error, a bug of the client):
+
+- ``NEW`` (made, no session yet) -> ``SERVING`` by :meth:`~SessionCore.create` /
+  :meth:`~SessionCore.adopt` (a session made, forked or restored; a ``CLOSED`` core whose server
+  is asked again after a failed failover too);
+- ``SERVING`` (its session steps the environments it holds: all, or those not moved away yet)
+  -> ``RECEIVING`` by :meth:`~SessionCore.begin_receiving` (a transfer's destination);
+- ``RECEIVING`` (environments of its ``source`` core enter it, each at its episode end:
+  :meth:`~SessionCore.await_entry`, :meth:`~SessionCore.enter`,
+  :meth:`~SessionCore.complete_transfer`) -> ``SERVING`` by :meth:`~SessionCore.finish_transfer`
+  (all entered, or the source gone);
+- ``SERVING`` or ``RECEIVING`` -> ``DRAINING`` by :meth:`~SessionCore.mark_draining` (its server
+  drains: a transfer to it is dropped, it receives nothing more, its environments move off);
+- ``SERVING``, ``RECEIVING`` or ``DRAINING`` -> ``LOST`` by :meth:`~SessionCore.mark_lost` (its
+  server was given up: :class:`ServerLost` is raised for the env to move its environments);
+- any phase -> ``CLOSED`` by :meth:`~SessionCore.close`.
+
+A session replaced under a core (reopened after a lost server, restored) keeps the core's phase;
+marking a phase a core already has is allowed, and marking a closed core lost leaves it closed.
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,6 +90,22 @@ class Settings:
     failover_after: float | None = None
     #: Several cores: errors name the environments by their index in the whole env.
     split: bool = field(default=False)
+
+
+class Phase(enum.Enum):
+    """Where a :class:`SessionCore` stands (see the module's doc for the transitions)."""
+
+    NEW = "new"
+    SERVING = "serving"
+    RECEIVING = "receiving"
+    DRAINING = "draining"
+    LOST = "lost"
+    CLOSED = "closed"
+
+
+class IllegalTransition(RuntimeError):
+    """A core was asked for a change its :class:`Phase` does not allow: a bug of the client,
+    never a server's error (not a :class:`~dinerdash.errors.ServiceError`)."""
 
 
 class ServerLost(Exception):
@@ -143,6 +184,7 @@ class SessionCore:
         "offer",
         "owned",
         "pending",
+        "phase",
         "reconnected",
         "session_id",
         "settings",
@@ -162,6 +204,8 @@ class SessionCore:
         self.start = start
         self.stop = stop
         self.settings = settings
+        #: Where the core stands (:class:`Phase`), changed only by its methods.
+        self.phase = Phase.NEW
         #: The session on the server, ``None`` before :meth:`create` and after :meth:`close`.
         self.session_id: str | None = None
         self.spec: pb.Spec | None = None
@@ -247,6 +291,103 @@ class SessionCore:
         self.drain_ms = batch.drain_ms
         return batch
 
+    # -- the phase: transfers, drains, losses --------------------------------------------------
+
+    def _change(self, to: Phase | None, action: str, allowed: tuple[Phase, ...]) -> None:
+        """Moves to phase ``to`` (``None``: stays) by ``action``, allowed only from ``allowed``;
+        raises :class:`IllegalTransition` otherwise."""
+        if self.phase not in allowed:
+            raise IllegalTransition(
+                f"session core of environments {self.start}..{self.stop - 1} on server "
+                f"{self.index}: {action}() while {self.phase.value} (allowed only while "
+                f"{', '.join(p.value for p in allowed)})"
+            )
+        if to is not None:
+            self.phase = to
+
+    def start_with(self, batch: Batch) -> None:
+        """``batch`` is what the env reports for the environments of this new session (moved
+        here by a failover, :mod:`dinerdash._failover`) at this step."""
+        self._change(None, "start_with", (Phase.SERVING,))
+        self.last = batch
+
+    def take_over(self, last: Batch, pending: Batch | None, cut: bool) -> None:
+        """This new session took over an environment of another core at once (a drain's
+        hand-over): ``last`` is its report of this step, ``pending`` (NEXT_STEP) the next
+        step's, and ``cut``: its episode was cut (``info["reconnected"]``)."""
+        self._change(None, "take_over", (Phase.SERVING,))
+        self.last, self.pending, self.reconnected = last, pending, cut
+
+    def begin_receiving(self, source: SessionCore, first: Batch) -> None:
+        """SERVING -> RECEIVING: this new session (its first Batch ``first``) takes over the
+        environments of ``source`` in its range, each at its episode end (:meth:`enter`); until
+        then it holds none of them."""
+        self._change(Phase.RECEIVING, "begin_receiving", (Phase.SERVING,))
+        self.last = self.note(first)
+        self.owned = np.zeros(self.size, dtype=np.bool_)
+        self.source = source
+
+    def await_entry(self, envs) -> None:
+        """Environments ``envs`` (of the env) enter at the next step (NEXT_STEP: that step is
+        their autoreset)."""
+        self._change(None, "await_entry", (Phase.RECEIVING,))
+        self.entering.update(envs)
+
+    def take_entering(self) -> list[int]:
+        """The environments awaiting entry, sorted; none await from now on."""
+        envs, self.entering = sorted(self.entering), set()
+        return envs
+
+    def forget_entering(self) -> None:
+        """No environment awaits entry any more (a reset reports every step anew)."""
+        self.entering = set()
+
+    def enter(self, envs: list[int], batch: Batch | None = None) -> None:
+        """Environments ``envs`` of ``source`` are this core's from now on (``source`` disowns
+        them); ``batch``, if given, is this core's Batch of this step."""
+        self._change(None, "enter", (Phase.RECEIVING,))
+        if batch is not None:
+            self.last = batch
+        for i in envs:
+            self.source.disown(i, i + 1)
+        self.own(envs)
+
+    def complete_transfer(self) -> None:
+        """A full reset starts every episode: the environments of ``source`` in this core's
+        range enter now (:meth:`finish_transfer` ends the transfer)."""
+        self._change(None, "complete_transfer", (Phase.RECEIVING,))
+        self.enter([i for i in range(self.start, self.stop) if self.source.holds(i)])
+        self.entering = set()
+
+    def finish_transfer(self) -> None:
+        """RECEIVING -> SERVING: every environment entered, or the source is gone (a failover);
+        no more will."""
+        self._change(Phase.SERVING, "finish_transfer", (Phase.RECEIVING,))
+        self.source, self.entering = None, set()
+
+    def mark_draining(self) -> None:
+        """SERVING, RECEIVING -> DRAINING: the core's server drains; a transfer to it is
+        dropped (no more environments go to it). A lost or closed core stays as it is."""
+        if self.phase in (Phase.LOST, Phase.CLOSED):
+            return
+        allowed = (Phase.SERVING, Phase.RECEIVING, Phase.DRAINING)
+        self._change(Phase.DRAINING, "mark_draining", allowed)
+        self.source, self.entering = None, set()
+
+    def mark_lost(self) -> None:
+        """SERVING, RECEIVING, DRAINING -> LOST: the core's server was given up (its
+        environments move, the core is closed next). A closed core stays closed."""
+        if self.phase is Phase.CLOSED:
+            return
+        allowed = (Phase.SERVING, Phase.RECEIVING, Phase.DRAINING, Phase.LOST)
+        self._change(Phase.LOST, "mark_lost", allowed)
+
+    def take_reconnected(self) -> bool:
+        """Whether the server was lost and the session reopened (or an episode cut) during the
+        step just reported; reported once."""
+        was, self.reconnected = self.reconnected, False
+        return was
+
     # -- the session ----------------------------------------------------------------------------
 
     def create(self, timeout: float | None = None) -> pb.Spec:
@@ -272,6 +413,12 @@ class SessionCore:
     def adopt(self, reply: pb.CreateSessionResponse) -> None:
         """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's,
         with what it offers of shared memory."""
+        # NEW (or CLOSED: reopened after a failed failover) -> SERVING; a session replaced under
+        # a serving, receiving or draining core keeps its phase.
+        allowed = (Phase.NEW, Phase.CLOSED, Phase.SERVING, Phase.RECEIVING, Phase.DRAINING)
+        self._change(None, "adopt", allowed)
+        if self.phase in (Phase.NEW, Phase.CLOSED):
+            self.phase = Phase.SERVING
         self.detach()
         self.session_id, self.spec = reply.session_id, reply.spec
         self.last = self.pending = None
@@ -320,6 +467,7 @@ class SessionCore:
 
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
+            self.mark_lost()
             raise ServerLost(self, error)
         lost = (
             f"environments {self.start}..{self.stop - 1} ({error})"
@@ -331,6 +479,7 @@ class SessionCore:
             try:
                 endpoint.reopen(self.index, create, lost, s.failover_after)
             except ServiceTransportError:
+                self.mark_lost()
                 raise ServerLost(self, error) from None
             return
         try:
@@ -347,6 +496,8 @@ class SessionCore:
             ) from None
 
     def close(self) -> None:
+        """Any phase -> CLOSED: the session is closed (its server not called if given up)."""
+        self.phase = Phase.CLOSED
         self.detach()
         if self.caller is not None:
             self.caller.close()

@@ -277,8 +277,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             data = check_actions([a], 1).tobytes()  # raises, as for a vector env
         self._check_open("step()")
         batch = self._core.step(data)
-        if self._core.reconnected:
-            self._core.reconnected = False
+        if self._core.take_reconnected():
             info = copy.deepcopy(self._last_info)
             info["reconnected"] = True
             return self._last_obs.copy(), 0.0, False, True, info

@@ -476,13 +476,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 info["_final_obs"] = reset.copy()
                 info["final_info"] = final_info
                 info["_final_info"] = reset.copy()
-        if any(c.reconnected for c in self._cores):
+        cut = [c for c in self._cores if c.reconnected]
+        if cut:
             lost = np.zeros(n, dtype=np.bool_)
-            for core in self._cores:
-                if core.reconnected:
-                    for lo, hi in core.runs():
-                        lost[lo:hi] = True
-                    core.reconnected = False
+            for core in cut:
+                core.take_reconnected()
+                for lo, hi in core.runs():
+                    lost[lo:hi] = True
             info["reconnected"] = lost
             info["_reconnected"] = lost.copy()
         return obs, rewards, terminated, truncated, info
