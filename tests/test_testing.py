@@ -277,8 +277,13 @@ def test_reset_fails_the_calls_in_flight_with_unavailable(proxied) -> None:
     with Connection(proxy.address) as conn:
         server_info(conn, 5)
         proxy.latency(2.0)  # keeps the next call in flight while the connection is reset
+        before = proxy.bytes_from_clients
         future = conn.stub.ServerInfo.future(pb.ServerInfoRequest(), timeout=30)
-        time.sleep(0.2)
+        # The call is in flight once its bytes reached the proxy (held there by the latency).
+        deadline = time.monotonic() + SLACK
+        while proxy.bytes_from_clients == before and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert proxy.bytes_from_clients > before, "the call never reached the proxy"
         proxy.reset()
         with pytest.raises(grpc.RpcError) as e:
             future.result(timeout=SLACK)

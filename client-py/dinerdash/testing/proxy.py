@@ -17,7 +17,9 @@ until a fault is turned on:
 =================  =============================================================================
 
 The proxy is stdlib only: an asyncio event loop in a daemon thread; the methods may be called from
-any thread and take effect before they return.
+any thread and take effect before they return. :attr:`FaultProxy.bytes_from_clients` counts the
+bytes read from clients (delivered or swallowed): a test waits for it to grow past its value before
+a call to know that the call reached the proxy, rather than sleeping.
 """
 
 from __future__ import annotations
@@ -155,6 +157,10 @@ class _ClientSide(_Side):
         super().connection_made(transport)
         self.link.accepted()
 
+    def data_received(self, data: bytes) -> None:
+        self.link.proxy._count_from_client(len(data))
+        super().data_received(data)
+
 
 class _Link:
     """One proxied connection: the client's side and the server's side."""
@@ -226,6 +232,13 @@ class FaultProxy:
             proxy.latency(0.05)   # 50 ms each way
             proxy.blackhole()     # nothing gets through, nothing is closed
             proxy.heal()
+
+    :attr:`bytes_from_clients` (read-only) counts every byte read from a client's connection,
+    whatever the mode (forwarded, delayed or swallowed by a black hole). A call has reached the
+    proxy once the count has grown past its value before the call was sent: e.g. to reset a
+    connection while a call is in flight, read the count, start the call, wait (bounded) until the
+    count grows, then :meth:`reset`. Bytes the client sends on its own (HTTP/2 pings, window
+    updates) count too: read the count after the connection's earlier calls have returned.
     """
 
     def __init__(self, target: str, *, host: str = "127.0.0.1", port: int = 0) -> None:
@@ -237,6 +250,7 @@ class FaultProxy:
         self._mode = _NORMAL
         self._latency = 0.0
         self._links: set[_Link] = set()
+        self._from_clients = 0
         self._loop = asyncio.new_event_loop()
         self._server: asyncio.AbstractServer | None = None
         self._thread = threading.Thread(
@@ -276,6 +290,16 @@ class FaultProxy:
     def connections(self) -> int:
         """Connections open through the proxy now."""
         return self._call(lambda: len(self._links))
+
+    @property
+    def bytes_from_clients(self) -> int:
+        """Bytes read from clients' connections since the proxy started, forwarded or not
+        (see the class's doc); never decreases."""
+        return self._from_clients
+
+    def _count_from_client(self, n: int) -> None:
+        """Called on the proxy's loop for each chunk a client sent."""
+        self._from_clients += n
 
     @property
     def mode(self) -> str:
