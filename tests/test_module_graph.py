@@ -235,7 +235,22 @@ def test_no_module_writes_another_objects_private_state(package: str) -> None:
 #: transfer, a drain, a failover or a reconnect leaves in it. Only ``_session.py`` (the core's
 #: own methods: ``begin_receiving``, ``enter``, ``finish_transfer``, ``mark_draining``,
 #: ``mark_lost``...) changes them; every other module reads them.
-SESSION_STATE = ["phase", "last", "pending", "reconnected", "owned", "source", "entering"]
+SESSION_STATE = [
+    "phase",
+    "last",
+    "pending",
+    "reconnected",
+    "owned",
+    "source",
+    "entering",
+    "session_id",
+    "spec",
+    "offer",
+    "transport",
+    "was",
+    "caller",
+    "drain_ms",
+]
 #: Methods that change a container in place (``core.entering.update(...)`` writes the state).
 _MUTATORS = {"add", "update", "clear", "discard", "remove", "pop", "fill", "sort", "append"}
 
@@ -251,6 +266,20 @@ def _session_state_writes(path: Path) -> list[str]:
             and node.attr in SESSION_STATE
             and not (isinstance(node.value, ast.Name) and node.value.id in {"self", "cls"})
         )
+
+    def written(target: ast.AST):
+        """The attributes a write to ``target`` changes: ``a.b[i].c = ...`` changes ``a.b[i].c``
+        and ``a.b`` (in place), not what the index ``i`` reads."""
+        if isinstance(target, (ast.Tuple, ast.List)):
+            for element in target.elts:
+                yield from written(element)
+        elif isinstance(target, ast.Starred):
+            yield from written(target.value)
+        elif isinstance(target, ast.Attribute):
+            yield target
+            yield from written(target.value)
+        elif isinstance(target, ast.Subscript):
+            yield from written(target.value)
 
     out = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -271,7 +300,7 @@ def _session_state_writes(path: Path) -> list[str]:
         else:
             continue
         for target in targets:
-            for sub in ast.walk(target):
+            for sub in written(target):
                 if session_attr(sub):
                     out.append(f"{path.name}:{node.lineno}: {ast.unparse(sub)}")
     return out
@@ -302,6 +331,8 @@ def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> Non
         "    new.entering |= {1}\n"
         "    new.entering.update([2])\n"
         "    x = core.last\n"
+        "    loads[core.index] += core.load\n"
+        "    mask[[i - core.start for i in core.owned]] = True\n"
         "    core.entering.copy()\n"
         "class C:\n"
         "    def g(self):\n"

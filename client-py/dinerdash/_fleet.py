@@ -10,7 +10,9 @@ sessions (:func:`dinerdash._placement.plan`) and applied here (a transfer: a ses
 destination for a run of environments, each entering it at its episode end, :meth:`Fleet.enter`);
 a draining server whose deadline is about to pass has its environments handed over at once, their
 episodes cut (:meth:`Fleet.hand_over`). A failed server's environments move with
-:func:`dinerdash._failover.fail_over`.
+:func:`dinerdash._failover.fail_over`. The fleet does the calls of a move; each session's phase
+(serving, receiving a transfer, draining, lost: :class:`~dinerdash._session.Phase`) and what it
+holds are changed by the session core's own methods, never assigned here.
 """
 
 from __future__ import annotations

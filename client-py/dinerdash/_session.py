@@ -12,11 +12,12 @@ environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Erro
 typed errors; a core of a vector env that is split over several servers reports an environment by
 its index in the vector env (from the error's structured ``env_index``).
 
-Each core's place in the fleet is an explicit :class:`Phase`, changed only by the core's methods
-(no other module assigns ``phase``, ``last``, ``pending``, ``reconnected``, ``owned``,
-``source`` or ``entering``: ``tests/test_module_graph.py`` reads every module with :mod:`ast` to
-check it). The phases and the transitions allowed (any other raises :class:`IllegalTransition`, an
-internal error, a bug of the client):
+Each core's place in the fleet is an explicit :class:`Phase`, changed only by the core's methods:
+no other module assigns ``phase``, ``last``, ``pending``, ``reconnected``, ``owned``, ``source``
+or ``entering``, nor the session's ``session_id``, ``spec``, ``offer`` or ``transport``
+(``tests/test_module_graph.py`` reads every module with :mod:`ast` to check it: its
+``SESSION_STATE``). The phases and the transitions allowed (any other raises
+:class:`IllegalTransition`, an internal error, a bug of the client):
 
 - ``NEW`` (made, no session yet) -> ``SERVING`` by :meth:`~SessionCore.create` /
   :meth:`~SessionCore.adopt` (a session made, forked or restored; a ``CLOSED`` core whose server
@@ -34,7 +35,8 @@ internal error, a bug of the client):
 - any phase -> ``CLOSED`` by :meth:`~SessionCore.close`.
 
 A session replaced under a core (reopened after a lost server, restored) keeps the core's phase;
-marking a phase a core already has is allowed, and marking a closed core lost leaves it closed.
+marking a phase a core already has is allowed; marking a closed core lost, or a lost or closed
+core draining, leaves it as it is.
 """
 
 from __future__ import annotations
@@ -220,14 +222,14 @@ class SessionCore:
         #: The thread that makes the Step calls of ``start_step``, started at the first one.
         self.caller: Caller | None = None
         #: Which of the session's environments are still this core's (``None``: all). An
-        #: environment moved to another server at its episode end (:mod:`dinerdash._membership`)
+        #: environment moved to another server at its episode end (:mod:`dinerdash._fleet`)
         #: stays in the session, stepped with the env's action for it, its results unused.
         self.owned: np.ndarray | None = None
         #: The server's ``drain_remaining_ms`` in the last Batch it sent (0: not draining).
         self.drain_ms = 0
-        #: A transfer (:mod:`dinerdash._membership`): the core whose environments this one takes
-        #: over, each at its episode end; ``entering``: those whose autoreset (NEXT_STEP) is
-        #: played here at the next step.
+        #: A transfer (RECEIVING, :mod:`dinerdash._fleet`): the core whose environments this one
+        #: takes over, each at its episode end; ``entering``: those whose autoreset (NEXT_STEP)
+        #: is played here at the next step.
         self.source: SessionCore | None = None
         self.entering: set[int] = set()
         #: What the reply that made the session offered of shared memory, and the transport its
