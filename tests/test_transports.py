@@ -15,22 +15,11 @@ import pytest
 from dinerdash import DinerDashEnv, DinerDashVectorEnv, _shm
 from gymnasium.vector import AutoresetMode
 
+from .test_shm import regions
+
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="shared memory needs Linux")
 
 PATIENCE = 60.0
-
-
-def regions(pid: int) -> int:
-    """The shared-memory regions (memfds) process ``pid`` holds open."""
-    import os
-
-    count = 0
-    for fd in os.listdir(f"/proc/{pid}/fd"):
-        try:
-            count += "memfd:dinerdash-session" in os.readlink(f"/proc/{pid}/fd/{fd}")
-        except OSError:
-            pass
-    return count
 
 
 @pytest.mark.parametrize("mode", list(AutoresetMode))
