@@ -191,17 +191,19 @@ def test_close_cancels_a_pending_step_and_reset_reopens(address: str) -> None:
 
 
 def test_the_step_threads_end_with_the_env(address: str) -> None:
+    """Over gRPC a session's Steps are made by a thread of the env, which ends with it."""
+
     def step_threads() -> list[str]:
         return [t.name for t in threading.enumerate() if t.name.startswith("dinerdash-step")]
 
     before = len(step_threads())
-    envs = DinerDashVectorEnv(2, address)
+    envs = DinerDashVectorEnv(2, address, transport="grpc")
     envs.reset(seed=0)
     envs.step_async(np.zeros(2, dtype=np.int64))
     envs.step_wait()
     assert len(step_threads()) == before + 1
     envs.close()
-    dropped = DinerDashVectorEnv(2, address)  # dropped without close(): held weakly
+    dropped = DinerDashVectorEnv(2, address, transport="grpc")  # no close(): held weakly
     dropped.reset(seed=0)
     dropped.step_async(np.zeros(2, dtype=np.int64))
     dropped.step_wait()
@@ -211,3 +213,27 @@ def test_the_step_threads_end_with_the_env(address: str) -> None:
     while len(step_threads()) > before:
         assert time.monotonic() < deadline, step_threads()
         time.sleep(0.01)
+
+
+def test_over_shared_memory_step_async_rings_and_starts_no_thread(address: str) -> None:
+    """Over shared memory ``step_async`` rings the doorbell itself and returns: the server steps
+    while the caller works, with no thread in between. Two envs pipelined so are both stepped
+    by the server before either reply is collected."""
+    threads = threading.active_count()
+    pair = [DinerDashVectorEnv(3, address, transport="shm") for _ in range(2)]
+    try:
+        for envs in pair:
+            envs.reset(seed=0)
+        for envs in pair:
+            envs.step_async(np.zeros(3, dtype=np.int64))
+        for envs in pair:  # both replies are in, neither yet collected
+            (core,) = envs._cores
+            assert core.rung is not None and core.caller is None
+            assert core.transport.ready(30.0)
+        for envs in pair:
+            np.testing.assert_array_equal(envs.step_wait()[4]["tick"], [1, 1, 1])
+        assert threading.active_count() == threads
+        assert [envs.transports for envs in pair] == [{address: "shm"}] * 2
+    finally:
+        for envs in pair:
+            envs.close()

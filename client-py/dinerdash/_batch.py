@@ -38,6 +38,7 @@ __all__ = [
     "handover",
     "interrupt",
     "join",
+    "outcome_one",
 ]
 
 #: Every per-environment field: its dtype and its width per environment (the wire's layout,
@@ -69,8 +70,6 @@ STATE = ("observations", "scores", "lost", "ticks", "action_masks", "expert_acti
 #: What a step reports of an episode's outcome (the rest is the environment's state).
 OUTCOME = ("rewards", "terminated", "truncated")
 FINAL = tuple("final_" + name for name in STATE)
-#: How :meth:`Batch.from_pb` reads each field: dtype, width, whether it is repeated.
-_DECODING = {name: (dtype, width, name in REPEATED) for name, (dtype, width) in FIELDS.items()}
 
 
 def _empty(name: str, n: int) -> np.ndarray:
@@ -88,34 +87,51 @@ class Batch:
     region until the session's next Step): a Batch is never modified in place, every
     operation returns a new one."""
 
-    __slots__ = ("drain_ms", "fields", "num_envs")
+    __slots__ = ("_fields", "_msg", "drain_ms", "num_envs")
 
-    def __init__(self, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> None:
+    def __init__(
+        self,
+        num_envs: int,
+        fields: dict[str, np.ndarray] | None,
+        drain_ms: int = 0,
+        msg: pb.Batch | None = None,
+    ) -> None:
         self.num_envs = num_envs
-        self.fields = fields
+        #: The fields decoded (``None``: not yet, they are ``msg``'s).
+        self._fields = fields
+        #: The gRPC reply not yet decoded (:meth:`from_pb`), else ``None``.
+        self._msg = msg
         self.drain_ms = drain_ms
 
     @classmethod
     def from_pb(cls, msg: pb.Batch) -> Batch:
-        """The Batch of a gRPC reply (arrays reading the message's bytes, not copies)."""
-        n = msg.num_envs
-        fields = {}
-        for desc, value in msg.ListFields():
-            name = desc.name
-            spec = _DECODING.get(name)
-            if spec is None:
-                continue
-            dtype, width, repeated = spec
-            if repeated:
-                # A list first: numpy reads protobuf's repeated container item by item (~5x).
-                fields[name] = np.array(value[:], dtype=dtype)
-            elif width == 1:
-                fields[name] = np.frombuffer(value, dtype=dtype)
-            else:
-                fields[name] = np.frombuffer(value, dtype=dtype).reshape(-1, width)
-        if not n and "rewards" in fields:
-            n = len(fields["rewards"])
-        return cls(n, fields, msg.drain_remaining_ms)
+        """The Batch of a gRPC reply. Its fields are read from the message when first asked for
+        (arrays reading the message's bytes, not copies): one field by ``batch[name]``, all of
+        them by :attr:`fields`. A single env reads a few fields of each reply, never all."""
+        return cls(msg.num_envs or len(msg.rewards) // 4, None, msg.drain_remaining_ms, msg)
+
+    @property
+    def fields(self) -> dict[str, np.ndarray]:
+        """Each field the reply has, by name (a field it lacks is absent)."""
+        if self._fields is None:
+            self._fields = {}
+            for desc, _ in self._msg.ListFields():
+                if desc.name in FIELDS:
+                    self._fields[desc.name] = self._read(desc.name)
+            self._msg = None
+        return self._fields
+
+    def _read(self, name: str) -> np.ndarray | None:
+        """Field ``name`` of the undecoded message (``None``: the reply lacks it)."""
+        value = getattr(self._msg, name)
+        if not value:
+            return None
+        dtype, width = FIELDS[name]
+        if name in REPEATED:
+            # A list first: numpy reads protobuf's repeated container item by item (~5x).
+            return np.array(value[:], dtype=dtype)
+        array = np.frombuffer(value, dtype=dtype)
+        return array.reshape(-1, width) if width > 1 else array
 
     @classmethod
     def of_arrays(cls, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> Batch:
@@ -133,11 +149,13 @@ class Batch:
         return out
 
     def __getitem__(self, name: str) -> np.ndarray:
-        value = self.fields.get(name)
+        value = self._read(name) if self._fields is None else self._fields.get(name)
         return _empty(name, self.num_envs) if value is None else value
 
     def __contains__(self, name: str) -> bool:
-        return name in self.fields
+        if self._fields is None:
+            return name in FIELDS and len(getattr(self._msg, name)) > 0
+        return name in self._fields
 
     def copy(self) -> Batch:
         """A Batch of arrays of its own (valid whatever happens to the region it was read from)."""
@@ -292,14 +310,36 @@ def decode(
 
 def decode_one(batch: Batch, expert: bool) -> tuple[np.ndarray, dict[str, Any]]:
     """The observation ``(40,)`` and info of a one-environment Batch: :func:`decode` without the
-    batch axis, with plain ``int`` values (cheaper than numpy for one environment)."""
-    f = batch.fields
-    info: dict[str, Any] = {
-        "action_mask": f["action_masks"][0].copy(),
-        "score": int(f["scores"][0]),
-        "lost": int(f["lost"][0]),
-        "tick": int(f["ticks"][0]),
+    batch axis, with plain ``int`` values (cheaper than numpy for one environment). A gRPC
+    reply not yet decoded is read straight from its bytes (a single env's every step)."""
+    msg = batch._msg
+    observations = msg.observations if msg is not None else None
+    if observations:
+        info: dict[str, Any] = {
+            "action_mask": np.frombuffer(msg.action_masks, dtype=np.bool_).copy(),
+            "score": int.from_bytes(msg.scores, "little", signed=True),
+            "lost": int.from_bytes(msg.lost, "little"),
+            "tick": int.from_bytes(msg.ticks, "little"),
+        }
+        if expert:
+            info["expert_action"] = msg.expert_actions[0] if msg.expert_actions else 0
+        return np.frombuffer(observations, dtype=np.int8).astype(np.float32), info
+    info = {
+        "action_mask": batch["action_masks"][0].copy(),
+        "score": int(batch["scores"][0]),
+        "lost": int(batch["lost"][0]),
+        "tick": int(batch["ticks"][0]),
     }
     if expert:
-        info["expert_action"] = int(f["expert_actions"][0])
-    return f["observations"][0].astype(np.float32), info
+        info["expert_action"] = int(batch["expert_actions"][0])
+    return batch["observations"][0].astype(np.float32), info
+
+
+def outcome_one(batch: Batch) -> tuple[float, bool, bool]:
+    """A one-environment step's reward, ``terminated`` and ``truncated``, as Python values."""
+    msg = batch._msg
+    if msg is not None:
+        reward = int.from_bytes(msg.rewards, "little", signed=True)
+        terminated, truncated = msg.terminated, msg.truncated
+        return float(reward), bool(terminated and terminated[0]), bool(truncated and truncated[0])
+    return float(batch["rewards"][0]), bool(batch["terminated"][0]), bool(batch["truncated"][0])

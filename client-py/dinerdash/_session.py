@@ -42,6 +42,7 @@ core draining, leaves it as it is.
 from __future__ import annotations
 
 import enum
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -188,6 +189,7 @@ class SessionCore:
         "pending",
         "phase",
         "reconnected",
+        "rung",
         "session_id",
         "settings",
         "source",
@@ -221,6 +223,9 @@ class SessionCore:
         self.reconnected = False
         #: The thread that makes the Step calls of ``start_step``, started at the first one.
         self.caller: Caller | None = None
+        #: The actions of a Step :meth:`start_step` rang for over shared memory, until
+        #: :meth:`finish_step` collects its reply.
+        self.rung: bytes | None = None
         #: Which of the session's environments are still this core's (``None``: all). An
         #: environment moved to another server at its episode end (:mod:`dinerdash._fleet`)
         #: stays in the session, stepped with the env's action for it, its results unused.
@@ -500,6 +505,7 @@ class SessionCore:
     def close(self) -> None:
         """Any phase -> CLOSED: the session is closed (its server not called if given up)."""
         self.phase = Phase.CLOSED
+        self.rung = None
         self.detach()
         if self.caller is not None:
             self.caller.close()
@@ -582,37 +588,53 @@ class SessionCore:
 
     # -- Step -----------------------------------------------------------------------------------
 
-    def step(self, actions: bytes) -> Batch:
-        """One Step of this core's environments (their ``actions`` as packed int32), blocking."""
-        if self.pending is not None:
+    def step(self, actions: bytes, rung: bool = False) -> Batch:
+        """One Step of this core's environments (their ``actions`` as packed int32), blocking;
+        ``rung``: :meth:`start_step` already sent it over shared memory (the checks below were
+        made then), only its reply is awaited."""
+        if rung:
+            batch = self.step_or_recover(actions, rung)
+        elif self.pending is not None:
             batch, self.pending = self.pending, None
         elif self.index in self.endpoint.given_up:
             # Another session on this server found it lost: this one moves too.
             gone = ServiceTransportError("the server was given up", address=self.conn.address)
             batch = self.recover_step(gone)
         else:
-            try:
-                batch = self.note(self.step_on(actions))
-            except ServiceError as e:
-                # A call cancelled because its server was given up (silent) is lost too.
-                if not (isinstance(e, LOST) or self.given_up()):
-                    raise self.fail(e) from None
-                batch = self.recover_step(e)
+            batch = self.step_or_recover(actions)
         self.last = batch
         return batch
 
-    def step_on(self, actions: bytes) -> Batch:
-        """One Step on the session's transport; shared memory lost under it (:class:`Detached
+    def step_or_recover(self, actions: bytes, rung: bool = False) -> Batch:
+        """The Batch of a Step on the session's transport; a lost server (``reconnect=True``)
+        recovered from (:meth:`recover_step`), any other error raised."""
+        try:
+            return self.note(self.step_on(actions, rung))
+        except ServiceError as e:
+            # A call cancelled because its server was given up (silent) is lost too.
+            if not (isinstance(e, LOST) or self.given_up()):
+                raise self.fail(e) from None
+            return self.recover_step(e)
+
+    def ready_transport(self) -> _transport.Transport:
+        """The session's transport, attached if it has none yet (a session forked or restored is
+        attached at its first Step); its last Batch copied first when the next Step overwrites
+        it and a lost server's episodes may have to end in their last state."""
+        if self.transport is None:
+            self.attach()
+        if self.transport.views and self.last is not None and self.settings.reconnect:
+            self.last = self.last.copy()
+        return self.transport
+
+    def step_on(self, actions: bytes, rung: bool = False) -> Batch:
+        """One Step on the session's transport (``rung``: its reply only, the Step was sent by
+        :meth:`start_step`); shared memory lost under it (:class:`Detached
         <dinerdash._transport.Detached>`) changes to gRPC (an event), where the Step is made
         unless it was abandoned (its error raised)."""
-        transport = self.transport
-        if transport is None:  # a session forked or restored: attached at its first Step
-            self.attach()
-            transport = self.transport
-        if transport.views and self.last is not None and self.settings.reconnect:
-            self.last = self.last.copy()  # a lost server's episodes end in their last state
         try:
-            return transport.step(actions)
+            if rung:
+                return self.transport.receive()
+            return self.ready_transport().step(actions)
         except _transport.Detached as gone:
             self.detach()
             self.transport = _transport.GrpcTransport(self.conn, self.session_id)
@@ -622,19 +644,40 @@ class SessionCore:
             return self.transport.step(actions)
 
     def start_step(self, actions: bytes) -> None:
-        """Hands a Step to this core's :class:`Caller` thread and returns at once;
-        :meth:`finish_step` returns its Batch (or raises its error)."""
+        """Starts a Step and returns at once; :meth:`finish_step` returns its Batch (or raises
+        its error). Over shared memory the Step is rung for here, with no thread (the server
+        steps while the caller works); otherwise it is handed to this core's :class:`Caller`
+        thread."""
+        if (
+            self.pending is None
+            and self.transport is not None
+            and self.transport.split
+            and not self.given_up()
+            and self.ready_transport().send(actions)
+        ):
+            self.rung = actions
+            return
         if self.caller is None:
             self.caller = Caller(self.step, f"dinerdash-step-{self.index}")
         self.caller.submit(actions)
 
+    def in_flight(self) -> bool:
+        """A Step started by :meth:`start_step` awaits :meth:`finish_step`."""
+        return self.rung is not None or self.caller is not None
+
     def step_ready(self, deadline: float | None = None) -> bool:
         """True when the Step begun by :meth:`start_step` has its outcome by ``deadline``
         (a :func:`time.monotonic` time; ``None``: waits for it)."""
+        if self.rung is not None:
+            timeout = None if deadline is None else deadline - time.monotonic()
+            return self.transport.ready(timeout)
         return self.caller.wait(deadline)
 
     def finish_step(self) -> Batch:
         """The Batch of the Step begun by :meth:`start_step`, once it has arrived."""
+        if self.rung is not None:
+            actions, self.rung = self.rung, None
+            return self.step(actions, rung=True)
         return self.caller.result()
 
     def recover_step(self, error: ServiceError) -> Batch:

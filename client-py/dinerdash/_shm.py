@@ -35,8 +35,10 @@ import dataclasses
 import functools
 import ipaddress
 import logging
+import math
 import mmap
 import os
+import select
 import socket
 import struct
 import sys
@@ -182,6 +184,7 @@ class Channel:
         "_lengths",
         "_offsets",
         "_quick",
+        "_sent",
         "address",
         "conn",
         "mm",
@@ -244,6 +247,8 @@ class Channel:
         self._known: tuple[bytes, dict[str, np.ndarray]] = (b"", {})
         #: Whether the last reply came within _SPIN: then the next one is polled for.
         self._quick = False
+        #: When the last Step was sent (:func:`time.perf_counter`).
+        self._sent = 0.0
 
     def _refusal(self, method: str, reply: bytes) -> ServiceError:
         """The typed exception of an ``E`` reply (code, message, ``google.rpc.Status``)."""
@@ -266,30 +271,47 @@ class Channel:
     def step(self, actions: bytes) -> Batch | None:
         """One Step: the reply (views of the region, valid until the next Step is sent), the
         server's typed refusal raised, or ``None`` when the doorbell closed (the Step is then to
-        be made over gRPC)."""
+        be made over gRPC). :meth:`send` and :meth:`receive` in a row."""
+        return self.receive() if self.send(actions) else None
+
+    def send(self, actions: bytes) -> bool:
+        """Writes a Step's ``actions`` into the region and rings: the server steps while the
+        caller works, until :meth:`receive`. False when the doorbell closed (nothing was sent)."""
         offset = self._offsets[0]
         self.mm[offset : offset + len(actions)] = actions
         try:
             self.sock.send(b"S")
         except OSError:
-            return None
-        sent = time.perf_counter()
+            return False
+        self._sent = time.perf_counter()
+        return True
+
+    def ready(self, timeout: float | None) -> bool:
+        """Whether the outcome of the Step :meth:`send` rang for is in within ``timeout`` seconds
+        (``None``: waits for it): its reply, the doorbell's end, or the connection closed (a
+        server given up: :meth:`receive` then raises at once, as a cancelled gRPC call)."""
+        if self.conn._closed:
+            return True
+        poller = select.poll()
+        poller.register(self.sock, select.POLLIN | select.POLLHUP | select.POLLERR)
+        return bool(poller.poll(None if timeout is None else max(0, math.ceil(timeout * 1000))))
+
+    def receive(self) -> Batch | None:
+        """The reply of the Step :meth:`send` rang for, as :meth:`step` returns it."""
+        sent = self._sent
         reply = self._poll(sent) if self._quick else None
-        deadline = None
         while reply is None:
+            closed = self.conn._closed  # given up: as a gRPC call cancelled by its channel
             try:
-                reply = self.sock.recv(65536)
+                reply = self.sock.recv(65536, socket.MSG_DONTWAIT if closed else 0)
                 break
             except BlockingIOError:
-                if self.conn._closed:  # given up: as a gRPC call cancelled by its channel
+                if closed:
                     raise EnvClosed(
                         "Step: the connection was closed during the call",
                         code=grpc.StatusCode.CANCELLED,
                     ) from None
-                now = time.monotonic()
-                if deadline is None:
-                    deadline = now + self.timeout - _TICK
-                if now >= deadline:
+                if time.perf_counter() - sent >= self.timeout:
                     raise ServiceTimeout(
                         f"Step: no answer from the server at {self.address} within "
                         f"{self.timeout:g} s (the timeout= keyword or DINERDASH_TIMEOUT sets this "

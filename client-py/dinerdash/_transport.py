@@ -15,6 +15,8 @@ session reopened after a reconnect. ``envs.transports`` reads what each session 
 
 from __future__ import annotations
 
+from typing import NoReturn
+
 from . import _shm
 from ._batch import Batch
 from ._proto import pb
@@ -42,6 +44,7 @@ class Transport:
 
     name = "grpc"
     views = False
+    split = False
 
     def __init__(self, conn: Connection, session_id: str) -> None:
         self.conn = conn
@@ -68,24 +71,46 @@ class ShmTransport(Transport):
 
     name = "shm"
     views = True
+    #: A Step can be rung for (:meth:`send`) and collected later (:meth:`receive`) with no
+    #: thread: the server steps while the caller works (``step_async`` / ``step_wait``).
+    split = True
 
     def __init__(self, conn: Connection, session_id: str, channel: _shm.Channel) -> None:
         super().__init__(conn, session_id)
         self.channel = channel
 
     def step(self, actions: bytes) -> Batch:
+        if not self.send(actions):
+            self._closed()
+        return self.receive()
+
+    def send(self, actions: bytes) -> bool:
+        """Rings for a Step and returns at once (the server steps meanwhile); :meth:`receive`
+        returns its Batch. False when the doorbell closed: nothing was sent, and :meth:`step`
+        would raise :class:`Detached`."""
+        return self.channel.send(actions)
+
+    def ready(self, timeout: float | None) -> bool:
+        """Whether the reply of the Step :meth:`send` rang for is in within ``timeout``."""
+        return self.channel.ready(timeout)
+
+    def receive(self) -> Batch:
+        """The Batch of the Step :meth:`send` rang for; raises :class:`Detached` as :meth:`step`."""
         try:
-            batch = self.channel.step(actions)
+            batch = self.channel.receive()
         except ServiceTimeout as e:
             raise Detached("a Step over shared memory timed out", e) from None
         except EnvClosed as e:
             raise Detached("a Step over shared memory was cancelled", e) from None
         if batch is None:
-            raise Detached(
-                f"the doorbell of the server at {self.conn.address} closed under a Step (the "
-                "server died, drained or forgot the session)"
-            )
+            self._closed()
         return batch
+
+    def _closed(self) -> NoReturn:
+        raise Detached(
+            f"the doorbell of the server at {self.conn.address} closed under a Step (the "
+            "server died, drained or forgot the session)"
+        )
 
     def close(self) -> None:
         self.channel.close()

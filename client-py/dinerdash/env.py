@@ -25,7 +25,7 @@ from ._arguments import (
     make_arrivals,
     make_config,
 )
-from ._batch import decode_one
+from ._batch import decode_one, outcome_one
 from ._endpoint import Endpoint
 from ._proto import pb
 from ._session import SessionCore, SessionOwner, Settings, check_actions
@@ -284,9 +284,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         obs, info = decode_one(batch, self.expert)
         info["seed"] = self._last_info["seed"]  # every step's info has reset's keys
         self._last_obs, self._last_info = obs, info
-        f = batch.fields
-        reward = float(f["rewards"][0])
-        return obs.copy(), reward, bool(f["terminated"][0]), bool(f["truncated"][0]), dict(info)
+        reward, terminated, truncated = outcome_one(batch)
+        return obs.copy(), reward, terminated, truncated, dict(info)
 
     def action_masks(self) -> np.ndarray:
         """The 57 actions that have an effect in the current state, as a ``bool`` array: what

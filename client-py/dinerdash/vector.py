@@ -413,7 +413,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             raise NoAsyncCallError("step_wait() without a step_async() before it", "step")
         if timeout is not None:
             deadline = time.monotonic() + timeout
-            if not all(core.step_ready(deadline) for core in self._cores if core.caller):
+            if not all(core.step_ready(deadline) for core in self._cores if core.in_flight()):
                 raise multiprocessing.TimeoutError(
                     f"step_wait(): no reply within {timeout:g} s; the step is still "
                     "pending, call step_wait() again"

@@ -186,6 +186,37 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         envs.close()
 
 
+def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
+    """Where a shared-memory Step of ``num_envs`` environments goes: ``(microseconds a step()
+    takes, microseconds of it from the doorbell's ring to the reply)``; the rest is this
+    client's own work (the actions' check, the decode, the env's bookkeeping)."""
+    from ..vector import DinerDashVectorEnv
+
+    envs = DinerDashVectorEnv(num_envs, address, transport="shm")
+    try:
+        envs.reset(seed=0)
+        (core,) = envs._cores
+        transport, channel = core.transport, core.transport.channel
+        receive, waited = transport.receive, [0.0]
+
+        def timed():
+            batch = receive()
+            waited[0] += time.perf_counter() - channel._sent
+            return batch
+
+        transport.receive = timed  # this env's only: an instance attribute
+        actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, size=(steps + 100, num_envs))
+        for a in actions[:100]:
+            envs.step(a)
+        waited[0] = 0.0
+        start = time.perf_counter()
+        for a in actions[100:]:
+            envs.step(a)
+        return (time.perf_counter() - start) / steps * 1e6, waited[0] / steps * 1e6
+    finally:
+        envs.close()
+
+
 def ceiling_lines(
     sizes: list[int],
     seconds: float = 2.0,
@@ -339,6 +370,13 @@ def transports(
         print(
             f"  decode N={n:<8}: {grpc:10,.1f} {shm:12,.1f}   us/step (gRPC: parse the message, "
             "read it into a Batch, build the arrays and infos; shm: the same from the region)"
+        )
+        step, waited = min(_shm_parts(first, n, vec_steps) for _ in range(rounds))
+        server = n / best[("local", n)] * 1e6
+        print(
+            f"  shm N={n} step   : {step:.1f} us = {waited:.1f} from the doorbell's ring to the "
+            f"reply (the server's Step in process: {server:.1f}) + {step - waited:.1f} in this "
+            f"client (decode {shm:.1f})"
         )
     if cpu_micros < float("inf"):
         print(
