@@ -37,7 +37,6 @@ from dinerdash import (
     _shm,
 )
 from dinerdash._proto import pb, pb_grpc
-from gymnasium.vector import AutoresetMode
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="shared memory needs Linux")
 
@@ -241,27 +240,6 @@ def test_a_client_that_stops_reading_stalls_nobody(start_server) -> None:
         stuck.close()
         channel.close()
         other.close()
-
-
-@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
-def test_reconnect_after_a_restart_attaches_again(start_server, mode: AutoresetMode) -> None:
-    server = start_server()
-    env = DinerDashVectorEnv(
-        4, server.address, transport="shm", reconnect=True, autoreset_mode=mode
-    )
-    try:
-        env.reset(seed=0)
-        env.step(np.zeros(4, dtype=np.int64))
-        server.kill()
-        again = server.restart()
-        start_server.started.append(again)
-        _, reward, terminated, truncated, _ = env.step(np.zeros(4, dtype=np.int64))
-        assert truncated.all() and not terminated.any() and not reward.any()
-        for _ in range(5):
-            env.step(np.zeros(4, dtype=np.int64))
-        assert regions(again.pid) == 1  # the new session steps through shared memory again
-    finally:
-        env.close()
 
 
 def test_closing_envs_unmaps_their_regions(server) -> None:

@@ -119,11 +119,13 @@ def test_a_session_reopened_after_a_restart_takes_shared_memory_again(
         again = server.restart()
         start_server.started.append(again)
         with caplog.at_level(logging.WARNING, logger="dinerdash"):
-            _, _, _, truncated, info = env.step(np.zeros(4, dtype=np.int64))
+            _, reward, terminated, truncated, info = env.step(np.zeros(4, dtype=np.int64))
             for _ in range(5):
                 env.step(np.zeros(4, dtype=np.int64))
-        assert truncated.all() and info["reconnected"].all()
+        assert truncated.all() and not terminated.any() and not reward.any()
+        assert info["reconnected"].all()
         assert env.transports == {again.address: "shm"}
+        assert regions(again.pid) == 1  # the new server holds the new session's region
         # Lost (to gRPC, whose Step met the dead server), then taken up again: two events.
         assert env.transport_changes == 2
         said = [r.getMessage() for r in caplog.records if "instead of" in r.getMessage()]

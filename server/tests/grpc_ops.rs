@@ -69,50 +69,6 @@ async fn idle_sessions_expire() {
 }
 
 #[tokio::test]
-async fn metrics_count_sessions_steps_and_errors() {
-    let server = TestServer::start_with(ServerConfig::default(), true).await;
-    let addr = server.metrics_addr.unwrap();
-    let mut c = server.client().await;
-    let text = scrape(addr).await;
-    assert!(text.contains("# TYPE dinerdash_env_steps_total counter"));
-    assert_eq!(metric(&text, "dinerdash_live_sessions"), 0);
-
-    let one = create(
-        &mut c,
-        create_request(1, pb::AutoresetMode::NextStep, Some(1)),
-    )
-    .await;
-    let four = create(
-        &mut c,
-        create_request(4, pb::AutoresetMode::NextStep, Some(1)),
-    )
-    .await;
-    reset(&mut c, &one, None).await;
-    reset(&mut c, &four, None).await;
-    for _ in 0..10 {
-        step(&mut c, &one, &[0]).await;
-        step(&mut c, &four, &[0, 0, 0, 0]).await;
-    }
-    let _ = c.step(pb::StepRequest::default()).await.unwrap_err();
-    c.close_session(pb::CloseSessionRequest { session_id: one })
-        .await
-        .unwrap();
-
-    let text = scrape(addr).await;
-    assert_eq!(metric(&text, "dinerdash_sessions_created_total"), 2);
-    assert_eq!(metric(&text, "dinerdash_sessions_closed_total"), 1);
-    assert_eq!(metric(&text, "dinerdash_live_sessions"), 1);
-    assert_eq!(metric(&text, "dinerdash_step_calls_total"), 20);
-    assert_eq!(metric(&text, "dinerdash_env_steps_total"), 50);
-    assert_eq!(metric(&text, "dinerdash_env_resets_total"), 5);
-    assert_eq!(
-        metric(&text, "dinerdash_rpc_errors_total{code=\"NOT_FOUND\"}"),
-        1
-    );
-    server.stop().await;
-}
-
-#[tokio::test]
 async fn health_reports_serving() {
     let server = TestServer::start().await;
     let channel = Channel::from_shared(format!("http://{}", server.addr))
