@@ -10,8 +10,8 @@ and a bounded number of attempts.
 
 Retries are the channel's: its service config (:func:`service_config`) gives every method of
 ``dinerdash.v1.DinerDash`` a ``retryPolicy`` that retries ``UNAVAILABLE`` ``retries`` times,
-backing off ``retry_backoff`` seconds doubled after each retry (with gRPC's jitter), within the
-call's one deadline. A draining server's refusal carries the retry push-back
+backing off ``retry_backoff`` seconds doubled after each retry (gRPC jitters each by up to a
+fifth), within the call's one deadline. A draining server's refusal carries the retry push-back
 ``grpc-retry-pushback-ms: -1``, which tells the channel not to ask it again: the caller gets
 :class:`~dinerdash.errors.ServerDraining` at once and goes elsewhere.
 
@@ -119,6 +119,9 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.enable_retries", 1),
     # The retry policy is the client's own (service_config): no DNS TXT record replaces it.
     ("grpc.service_config_disable_resolution", 1),
+    # gRPC retries only a request it still holds, 256 KiB by default: hold any request the
+    # channel may send (a Restore of a large snapshot), as the requests in flight are held anyway.
+    ("grpc.per_rpc_retry_buffer_size", 256 * 1024 * 1024),
     # After a server restart the channel must reconnect within a second or two, not after
     # gRPC's default backoff that grows to two minutes (reconnect=True relies on this).
     ("grpc.initial_reconnect_backoff_ms", 100),
@@ -733,6 +736,9 @@ class Connection:
                 made = f"{attempts} attempts"
             else:
                 made = f"up to {attempts} attempts"
+            pushback = _pushback_ms(error)
+            if pushback is not None and pushback < 0:
+                made += "; it asked not to be retried"
             details = (
                 f"{method}: the server at {self.address} is unavailable after {made} ({details})"
             )
