@@ -44,7 +44,7 @@ import os
 import socket
 import ssl
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -690,7 +690,7 @@ class Connection:
     def _call(
         self,
         method: str,
-        attempt: Any,
+        attempt: Callable[[], Any],
         retries: int | None,
         timeout: float | None,
     ) -> Any:
