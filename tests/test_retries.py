@@ -134,9 +134,15 @@ def test_the_channel_retries_unavailable_until_the_server_is_there(start_server)
         with Connection(address, wait=False, retries=0) as once:
             with pytest.raises(ServiceTransportError, match="after 1 attempt"):
                 once.call("ServerInfo", pb.ServerInfoRequest())
-        with Connection(address, wait=False, retries=4) as stepper:
+            # The fallback: more retries than the channel makes (none here), counted exactly.
+            with pytest.raises(ServiceTransportError, match="after 3 attempts"):
+                once.call("ServerInfo", pb.ServerInfoRequest(), retries=2)
+        with Connection(address, wait=False, retries=4, retry_backoff=0.01) as stepper:
             with pytest.raises(ServiceTransportError, match=r"Step: .* after 1 attempt"):
                 stepper.call("Step", pb.StepRequest(session_id="x"), timeout=PATIENCE_S)
+            # Beyond gRPC's five attempts: the channel's call once more, whole.
+            with pytest.raises(ServiceTransportError, match="after up to 10 attempts"):
+                stepper.call("ServerInfo", pb.ServerInfoRequest(), retries=5, timeout=PATIENCE_S)
         while refuser.accepted.acquire(blocking=False):
             pass
 
