@@ -274,7 +274,9 @@ def test_blackhole_swallows_bytes_and_keeps_the_connection(proxied) -> None:
 
 def test_reset_fails_the_calls_in_flight_with_unavailable(proxied) -> None:
     _, proxy = proxied
-    with Connection(proxy.address) as conn:
+    # retries=0: the channel would retry the call on a new connection (a proxy's fault, not the
+    # client's retries, is under test here).
+    with Connection(proxy.address, retries=0) as conn:
         server_info(conn, 5)
         proxy.latency(2.0)  # keeps the next call in flight while the connection is reset
         before = proxy.bytes_from_clients

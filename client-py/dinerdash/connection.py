@@ -7,19 +7,44 @@ replicas), the
 mapping from gRPC statuses to the typed exceptions of :mod:`dinerdash.errors`, the deadline every
 call carries, TLS, and the retry policy: only ``UNAVAILABLE`` is retried, with exponential backoff
 and a bounded number of attempts.
+
+Retries are the channel's: its service config (:func:`service_config`) gives every method of
+``dinerdash.v1.DinerDash`` a ``retryPolicy`` that retries ``UNAVAILABLE`` ``retries`` times,
+backing off ``retry_backoff`` seconds doubled after each retry (gRPC jitters each by up to a
+fifth), within the call's one deadline. A draining server's refusal carries the retry push-back
+``grpc-retry-pushback-ms: -1``, which tells the channel not to ask it again: the caller gets
+:class:`~dinerdash.errors.ServerDraining` at once and goes elsewhere.
+
+What the channel's service config cannot express is done by one fallback, :meth:`Connection._call`:
+after the channel has given up on ``UNAVAILABLE`` the call is made again by hand, with the same
+backoff and the same push-back rule, until the call's own number of attempts is used up. It covers
+exactly these exceptions:
+
+- more than 4 retries: gRPC caps ``maxAttempts`` at 5 attempts (:data:`CHANNEL_MAX_RETRIES`);
+- a per-call ``retries=`` above the connection's (grpcio has no per-call retry policy);
+- the methods of :data:`BY_HAND`, which the channel does not retry: ``Rollout``, since gRPC commits
+  a stream at its response headers (which the server sends before the first episode) and a stream
+  broken before its first reply must still be opened again; ``CloseSession``, since closing a
+  session at ``close()`` is tried once and briefly (``retries=0``) and only the fallback can make
+  a call retry less than the channel.
+
+A per-call ``retries=`` below the connection's, for a method the channel retries, cannot be
+expressed either: the channel's count applies. :data:`NOT_RETRIED` (``Step``, ``StepStream``) is
+never retried, by the channel or by hand.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import json
 import math
 import numbers
 import os
 import socket
 import ssl
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,7 +58,6 @@ from .errors import (
     ServiceTransportError,
     TLSMismatch,
     error_for_rpc,
-    reason_of,
 )
 
 __all__ = [
@@ -46,6 +70,7 @@ __all__ = [
     "call_timeout",
     "parse_addresses",
     "resolve_replicas",
+    "service_config",
 ]
 
 #: The ways Steps may travel (:attr:`ConnectOptions.transport`).
@@ -59,10 +84,27 @@ DEFAULT_PORT = 50051
 #: planner's Step on a loaded 2-core machine.
 DEFAULT_TIMEOUT = 60.0
 
-#: Calls never retried on UNAVAILABLE. A Step the server applied but whose reply was lost would
-#: be applied twice by a retry, silently changing the episode; it raises instead, and
-#: ``reconnect=True`` recovers by reporting the interrupted episode as truncated.
-NOT_RETRIED = frozenset({"Step"})
+#: The service whose methods the channel's service config retries.
+SERVICE = "dinerdash.v1.DinerDash"
+
+#: Calls never retried on UNAVAILABLE, by the channel or by hand. A Step the server applied but
+#: whose reply was lost would be applied twice by a retry, silently changing the episode; it
+#: raises instead, and ``reconnect=True`` recovers by reporting the interrupted episode as
+#: truncated. A StepStream carries Steps.
+NOT_RETRIED = frozenset({"Step", "StepStream"})
+
+#: Calls the channel does not retry but the fallback does (the module's exception list): a
+#: Rollout stream broken before its first reply is opened again though gRPC has committed it;
+#: CloseSession may be asked for fewer retries than the connection's (none, at ``close()``).
+BY_HAND = frozenset({"Rollout", "CloseSession"})
+
+#: The most retries the channel makes of one call: gRPC caps ``retryPolicy.maxAttempts`` at 5.
+#: More are made by the fallback.
+CHANNEL_MAX_RETRIES = 4
+
+#: The trailer by which a server pushes back on retries (gRFC A6): a negative or unreadable value
+#: asks the client not to retry (a draining server's refusal), a positive one to wait that long.
+RETRY_PUSHBACK = "grpc-retry-pushback-ms"
 
 CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     # A rollout of one long episode is (T + 1) x (40 + 57) bytes plus per-step fields: allow
@@ -71,9 +113,15 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     # Snapshots of large vector sessions travel client -> server in Restore; the server applies
     # its own (smaller) limit and names it in the INVALID_ARGUMENT it returns.
     ("grpc.max_send_message_length", 256 * 1024 * 1024),
-    # gRPC's transparent retries could re-send a Step that the server already applied; this
-    # module retries by itself, and only UNAVAILABLE.
-    ("grpc.enable_retries", 0),
+    # Retries by the service config's retryPolicy (service_config, added per connection), and
+    # gRPC's transparent retries of calls that never reached the server's application (so never
+    # a Step the server applied).
+    ("grpc.enable_retries", 1),
+    # The retry policy is the client's own (service_config): no DNS TXT record replaces it.
+    ("grpc.service_config_disable_resolution", 1),
+    # gRPC retries only a request it still holds, 256 KiB by default: hold any request the
+    # channel may send (a Restore of a large snapshot), as the requests in flight are held anyway.
+    ("grpc.per_rpc_retry_buffer_size", 256 * 1024 * 1024),
     # After a server restart the channel must reconnect within a second or two, not after
     # gRPC's default backoff that grows to two minutes (reconnect=True relies on this).
     ("grpc.initial_reconnect_backoff_ms", 100),
@@ -92,6 +140,46 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.keepalive_permit_without_calls", 0),
     ("grpc.http2.max_pings_without_data", 0),
 ]
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as a protobuf JSON Duration (``"0.100000000s"``), at least a millisecond: gRPC
+    wants backoffs above zero."""
+    return f"{max(seconds, 0.001):.9f}s"
+
+
+def service_config(retries: int, retry_backoff: float) -> str:
+    """The channel's service config (JSON, the ``grpc.service_config`` channel option): every
+    method of :data:`SERVICE` but those of :data:`NOT_RETRIED` and :data:`BY_HAND` retries
+    ``UNAVAILABLE`` up to ``min(retries, CHANNEL_MAX_RETRIES)`` times, the first after
+    ``retry_backoff`` seconds (gRPC jitters it), each next one after twice the last (up to
+    ``2 ** (CHANNEL_MAX_RETRIES - 1)`` times the first: the doubling is never capped within the
+    channel's retries). ``retries=0``: no retry policy at all."""
+    retries = min(retries, CHANNEL_MAX_RETRIES)
+    configs: list[dict[str, Any]] = []
+    if retries > 0:
+        configs.append(
+            {
+                "name": [{"service": SERVICE}],
+                "retryPolicy": {
+                    "maxAttempts": retries + 1,
+                    "initialBackoff": _duration(retry_backoff),
+                    "maxBackoff": _duration(retry_backoff * 2 ** (CHANNEL_MAX_RETRIES - 1)),
+                    "backoffMultiplier": 2,
+                    "retryableStatusCodes": ["UNAVAILABLE"],
+                },
+            }
+        )
+        # A method's own entry wins over its service's: these have no retry policy.
+        configs.append(
+            {
+                "name": [
+                    {"service": SERVICE, "method": method}
+                    for method in sorted(NOT_RETRIED | BY_HAND)
+                ]
+            }
+        )
+    return json.dumps({"methodConfig": configs}, separators=(",", ":"))
 
 
 def call_timeout(timeout: float | None) -> float:
@@ -362,6 +450,20 @@ class ConnectOptions:
         )
 
 
+def _pushback_ms(error: grpc.RpcError) -> int | None:
+    """The retry push-back (:data:`RETRY_PUSHBACK`) a failed call's trailers carry: its
+    milliseconds, -1 for a value that is not a number (gRFC A6: do not retry), ``None`` when
+    there is none."""
+    trailers = getattr(error, "trailing_metadata", None)
+    for key, value in (trailers() if trailers else None) or ():
+        if key == RETRY_PUSHBACK:
+            try:
+                return int(value)
+            except (TypeError, ValueError):
+                return -1
+    return None
+
+
 def _serving(reply: bytes) -> bool:
     """A ``grpc.health.v1.HealthCheckResponse`` is SERVING: its field 1 (a varint) is 1. Decoded
     by hand, so that the client needs no grpcio-health-checking."""
@@ -381,8 +483,9 @@ class Connection:
             the ``DINERDASH_AUTH_TOKEN`` environment variable).
         connect_timeout: seconds to wait for the first connection; past it a readable
             :class:`~dinerdash.errors.ServiceTransportError` says who could not be reached.
-        retries: attempts after the first for a call that fails with ``UNAVAILABLE``.
-        retry_backoff: seconds before the first retry; doubled after each one.
+        retries: attempts after the first for a call that fails with ``UNAVAILABLE`` (up to 4
+            by the channel's service config, more by hand: see the module's exception list).
+        retry_backoff: seconds before the first retry (jittered by gRPC); doubled after each one.
         timeout: deadline of each call in seconds (default: ``DINERDASH_TIMEOUT``, else
             :data:`DEFAULT_TIMEOUT`); a call past it raises
             :class:`~dinerdash.errors.ServiceTimeout`.
@@ -407,17 +510,27 @@ class Connection:
         wait: bool = True,
     ) -> None:
         self.address = parse_addresses(address)[0]
-        self.retries = retries
-        self.retry_backoff = retry_backoff
+        if isinstance(retries, bool) or not isinstance(retries, numbers.Integral) or retries < 0:
+            raise ValueError(f"retries: expected a whole number >= 0, got {retries!r}")
+        if isinstance(retry_backoff, bool) or not isinstance(retry_backoff, numbers.Real):
+            raise TypeError(f"retry_backoff: expected seconds, got {retry_backoff!r}")
+        if not (retry_backoff >= 0 and math.isfinite(retry_backoff)):
+            raise ValueError(f"retry_backoff: expected seconds >= 0, got {retry_backoff!r}")
+        self.retries = int(retries)
+        self.retry_backoff = float(retry_backoff)
         self.timeout = call_timeout(timeout)
         token = token if token is not None else os.environ.get("DINERDASH_AUTH_TOKEN")
         self._metadata = (("authorization", f"Bearer {token}"),) if token else None
         credentials = tls_credentials(tls, tls_ca)
         self.tls = credentials is not None
+        options = [
+            *CHANNEL_OPTIONS,
+            ("grpc.service_config", service_config(self.retries, self.retry_backoff)),
+        ]
         if credentials is None:
-            self.channel = grpc.insecure_channel(self.address, options=CHANNEL_OPTIONS)
+            self.channel = grpc.insecure_channel(self.address, options=options)
         else:
-            self.channel = grpc.secure_channel(self.address, credentials, options=CHANNEL_OPTIONS)
+            self.channel = grpc.secure_channel(self.address, credentials, options=options)
         self.stub = pb_grpc.DinerDashStub(self.channel)
         self._health: grpc.UnaryUnaryMultiCallable | None = None
         self._closed = False
@@ -498,18 +611,15 @@ class Connection:
 
         Raises the typed exception for any gRPC error, with the server's message; retries only
         ``UNAVAILABLE``, at most ``retries`` times (default: the connection's) with exponential
-        backoff.
+        backoff: the channel's retries, and the fallback's beyond them (the module's exception
+        list). ``timeout`` is the deadline of the attempts the channel makes together.
         """
         self._check_open(method)
         rpc = getattr(self.stub, method)
         timeout = self.timeout if timeout is None else timeout
-        attempt = 0
-        while True:
-            try:
-                return rpc(request, timeout=timeout, metadata=self._metadata)
-            except grpc.RpcError as e:
-                error = e
-            attempt = self._retry_or_raise(method, error, attempt, retries, timeout)
+        return self._call(
+            method, lambda: rpc(request, timeout=timeout, metadata=self._metadata), retries, timeout
+        )
 
     def future(self, method: str, request: Any) -> grpc.Future:
         """Starts ``method`` without waiting; pass the future to :meth:`result`."""
@@ -519,39 +629,30 @@ class Connection:
 
     def result(self, method: str, request: Any, future: grpc.Future) -> Any:
         """The reply of a call started by :meth:`future`, with the same errors and retries as
-        :meth:`call`."""
-        try:
-            return future.result()
-        except grpc.RpcError as e:
-            error = e
-        if (
-            error.code() != grpc.StatusCode.UNAVAILABLE
-            or self.retries <= 0
-            or method in NOT_RETRIED
-            or reason_of(error) == "DRAINING"
-        ):
-            raise self._error(method, error, attempts=1) from None
-        time.sleep(self.retry_backoff)
+        :meth:`call` (the future's attempts were the channel's; the fallback calls again)."""
         rpc = getattr(self.stub, method)
-        attempt = 1
-        while True:
-            try:
-                return rpc(request, timeout=self.timeout, metadata=self._metadata)
-            except grpc.RpcError as e:
-                error = e
-            attempt = self._retry_or_raise(method, error, attempt)
+        started = [future]
+
+        def attempt() -> Any:
+            if started:
+                return started.pop().result()
+            return rpc(request, timeout=self.timeout, metadata=self._metadata)
+
+        return self._call(method, attempt, None, None)
 
     def stream(self, method: str, request: Any) -> Iterator[Any]:
         """Iterates the replies of a server-streaming ``method``, mapping errors as :meth:`call`
-        does. Only the opening of the stream is retried: a stream broken half-way raises.
+        does. Only the opening of the stream is retried (before its first reply, by the
+        fallback: ``Rollout`` is in :data:`BY_HAND`): a stream broken half-way raises.
 
         A stream has no overall deadline (a long rollout may rightly take many minutes): the
         keepalive pings, which a stopped or vanished server cannot answer, end it instead."""
         self._check_open(method)
         rpc = getattr(self.stub, method)
-        attempt = 0
-        received = False
+        wanted = self._wanted(method, None)
+        made = 0
         while True:
+            received = False
             try:
                 for reply in rpc(request, metadata=self._metadata):
                     received = True
@@ -559,9 +660,11 @@ class Connection:
                 return
             except grpc.RpcError as e:
                 error = e
-            if received:
-                raise self._error(method, error, attempts=1) from None
-            attempt = self._retry_or_raise(method, error, attempt)
+            made += 1 if received else self._channel_attempts(method)
+            delay = None if received else self._fallback_delay(error, made, wanted)
+            if delay is None:
+                raise self._error(method, error, made) from None
+            time.sleep(delay)
 
     def _check_open(self, method: str) -> None:
         if self._closed:
@@ -571,37 +674,73 @@ class Connection:
                 address=self.address,
             )
 
-    def _retry_or_raise(
+    def _wanted(self, method: str, retries: int | None) -> int:
+        """The retries a call of ``method`` may make: ``retries``, else the connection's; none
+        for :data:`NOT_RETRIED`."""
+        if method in NOT_RETRIED:
+            return 0
+        return self.retries if retries is None else retries
+
+    def _channel_attempts(self, method: str) -> int:
+        """The most attempts the channel makes of one call of ``method`` (its retries + 1)."""
+        if method in NOT_RETRIED or method in BY_HAND:
+            return 1
+        return min(self.retries, CHANNEL_MAX_RETRIES) + 1
+
+    def _call(
         self,
         method: str,
-        error: grpc.RpcError,
-        attempt: int,
-        retries: int | None = None,
-        timeout: float | None = None,
-    ) -> int:
-        retries = self.retries if retries is None else retries
-        if method in NOT_RETRIED:
-            retries = 0
-        if (
-            error.code() == grpc.StatusCode.UNAVAILABLE
-            and attempt < retries
-            and not self._closed
-            # A draining server will not take the session however often it is asked: the caller
-            # goes elsewhere at once.
-            and reason_of(error) != "DRAINING"
-        ):
-            time.sleep(self.retry_backoff * (2**attempt))
-            return attempt + 1
-        raise self._error(method, error, attempts=attempt + 1, timeout=timeout) from None
+        attempt: Callable[[], Any],
+        retries: int | None,
+        timeout: float | None,
+    ) -> Any:
+        """``attempt()`` (one call through the channel, which retries by its service config),
+        made again by the fallback while the call's retries are not used up."""
+        wanted = self._wanted(method, retries)
+        made = 0
+        while True:
+            try:
+                return attempt()
+            except grpc.RpcError as e:
+                error = e
+            made += self._channel_attempts(method)
+            delay = self._fallback_delay(error, made, wanted)
+            if delay is None:
+                raise self._error(method, error, made, timeout) from None
+            time.sleep(delay)
+
+    def _fallback_delay(self, error: grpc.RpcError, made: int, wanted: int) -> float | None:
+        """Seconds before the fallback calls again after ``error``, with ``made`` attempts made
+        (at most) and ``wanted`` retries allowed; ``None``: raise. Only ``UNAVAILABLE`` is
+        retried, and, as the channel does, never after a push-back that says not to (a draining
+        server's refusal); a push-back of N ms waits N ms. The backoff goes on doubling from the
+        channel's last."""
+        if error.code() != grpc.StatusCode.UNAVAILABLE or made > wanted or self._closed:
+            return None
+        pushback = _pushback_ms(error)
+        if pushback is not None:
+            return None if pushback < 0 else pushback / 1000
+        return self.retry_backoff * 2 ** (made - 1)
 
     def _error(
         self, method: str, error: grpc.RpcError, attempts: int, timeout: float | None = None
     ):
+        """The typed exception for ``error``, after at most ``attempts`` attempts (exactly that
+        many when the channel does not retry ``method``; the channel does not say how many it
+        made)."""
         code, details = error.code(), error.details()
         if code == grpc.StatusCode.UNAVAILABLE:
+            if attempts == 1:
+                made = "1 attempt"
+            elif self._channel_attempts(method) == 1:
+                made = f"{attempts} attempts"
+            else:
+                made = f"up to {attempts} attempts"
+            pushback = _pushback_ms(error)
+            if pushback is not None and pushback < 0:
+                made += "; it asked not to be retried"
             details = (
-                f"{method}: the server at {self.address} is unavailable after {attempts} "
-                f"attempt{'s' if attempts != 1 else ''} ({details})"
+                f"{method}: the server at {self.address} is unavailable after {made} ({details})"
             )
         elif code == grpc.StatusCode.DEADLINE_EXCEEDED:
             timeout = self.timeout if timeout is None else timeout

@@ -13,7 +13,7 @@ use binary_support::Process;
 use dinerdash_server::cmd::health::{self, Probe, ServingStatus};
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use dinerdash_server::server::LIVENESS_SERVICE;
-use dinerdash_server::service::ERROR_DOMAIN;
+use dinerdash_server::service::{ERROR_DOMAIN, RETRY_PUSHBACK};
 use grpc_support::{PATIENCE, create, create_request, pack, reset, snapshot, step};
 use tonic::transport::Channel;
 use tonic::{Code, Status};
@@ -57,6 +57,16 @@ fn drain_refusal<T: std::fmt::Debug>(result: Result<T, Status>) -> u32 {
     assert_eq!(
         (info.reason.as_str(), info.domain.as_str()),
         ("DRAINING", ERROR_DOMAIN)
+    );
+    // The retry push-back trailer (gRFC A6) survives the wire: a client whose channel retries
+    // UNAVAILABLE by its service config's retryPolicy does not ask a draining server again.
+    assert_eq!(
+        status
+            .metadata()
+            .get(RETRY_PUSHBACK)
+            .map(|v| v.to_str().unwrap()),
+        Some("-1"),
+        "{status:?}"
     );
     info.metadata["drain_remaining_ms"].parse().unwrap()
 }

@@ -32,7 +32,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
 
 pub use rollout_stream::ROLLOUT_UNREAD_TIMEOUT;
-pub use status::{ERROR_DOMAIN, draining, rollout_status, status};
+pub use status::{ERROR_DOMAIN, RETRY_PUSHBACK, draining, rollout_status, status};
 pub use step_stream::StepReplies;
 
 use convert::{

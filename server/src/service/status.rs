@@ -5,6 +5,7 @@
 
 use std::collections::HashMap;
 
+use tonic::metadata::{MetadataMap, MetadataValue};
 use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
@@ -153,12 +154,21 @@ fn refusal(
     Status::with_error_details(code, message, details)
 }
 
+/// The trailer of gRPC retry push-back (gRFC A6): a client whose service config retries a
+/// status reads it before retrying; a negative value means "do not retry".
+pub const RETRY_PUSHBACK: &str = "grpc-retry-pushback-ms";
+
 /// The refusal of new work (CreateSession, Fork, Restore, Rollout) by a draining server:
-/// `UNAVAILABLE`, reason `DRAINING`, metadata "drain_remaining_ms".
+/// `UNAVAILABLE`, reason `DRAINING`, metadata "drain_remaining_ms", and the trailer
+/// `grpc-retry-pushback-ms: -1`, so that a client whose channel retries `UNAVAILABLE` (its
+/// `retryPolicy`) does not ask again: a draining server will not take the work however often it
+/// is asked, and the caller must go elsewhere at once.
 pub fn draining(e: Draining) -> Status {
     let metadata = HashMap::from([("drain_remaining_ms".to_string(), e.remaining_ms.to_string())]);
     let details = ErrorDetails::with_error_info("DRAINING", ERROR_DOMAIN, metadata);
-    Status::with_error_details(Code::Unavailable, e.to_string(), details)
+    let mut trailers = MetadataMap::new();
+    trailers.insert(RETRY_PUSHBACK, MetadataValue::from_static("-1"));
+    Status::with_error_details_and_metadata(Code::Unavailable, e.to_string(), details, trailers)
 }
 
 /// The field an INVALID_ARGUMENT message is about: by the convention of every such message in
