@@ -92,46 +92,52 @@ class Batch:
     def __init__(
         self,
         num_envs: int,
-        fields: dict[str, np.ndarray] | None,
+        fields: dict[str, np.ndarray],
         drain_ms: int = 0,
         msg: pb.Batch | None = None,
     ) -> None:
         self.num_envs = num_envs
-        #: The fields decoded (``None``: not yet, they are ``msg``'s).
+        #: The fields decoded (all of them, or with ``msg`` those read so far).
         self._fields = fields
-        #: The gRPC reply not yet decoded (:meth:`from_pb`), else ``None``.
+        #: The gRPC reply whose other fields are not decoded yet (:meth:`from_pb`), else ``None``.
         self._msg = msg
         self.drain_ms = drain_ms
 
     @classmethod
     def from_pb(cls, msg: pb.Batch) -> Batch:
-        """The Batch of a gRPC reply. Its fields are read from the message when first asked for
-        (arrays reading the message's bytes, not copies): one field by ``batch[name]``, all of
-        them by :attr:`fields`. A single env reads a few fields of each reply, never all."""
-        return cls(msg.num_envs or len(msg.rewards) // 4, None, msg.drain_remaining_ms, msg)
+        """The Batch of a gRPC reply. Each field is read from the message when first asked for
+        (an array reading the message's bytes, not a copy): by ``batch[name]`` or
+        :meth:`get`, all of them by :attr:`fields`. Most steps need a few of the fields only
+        (the single env, a vector env without episode ends: not ``seeds`` nor ``final_*``)."""
+        return cls(msg.num_envs or len(msg.rewards) // 4, {}, msg.drain_remaining_ms, msg)
 
     @property
     def fields(self) -> dict[str, np.ndarray]:
         """Each field the reply has, by name (a field it lacks is absent)."""
-        if self._fields is None:
-            self._fields = {}
+        if self._msg is not None:
             for desc, _ in self._msg.ListFields():
-                if desc.name in FIELDS:
-                    self._fields[desc.name] = self._read(desc.name)
+                self.get(desc.name)
             self._msg = None
         return self._fields
 
-    def _read(self, name: str) -> np.ndarray | None:
-        """Field ``name`` of the undecoded message (``None``: the reply lacks it)."""
-        value = getattr(self._msg, name)
-        if not value:
+    def get(self, name: str) -> np.ndarray | None:
+        """Field ``name``, ``None`` when the reply lacks it."""
+        value = self._fields.get(name)
+        if value is not None or self._msg is None or name not in FIELDS:
+            return value
+        raw = getattr(self._msg, name)
+        if not raw:
             return None
         dtype, width = FIELDS[name]
         if name in REPEATED:
             # A list first: numpy reads protobuf's repeated container item by item (~5x).
-            return np.array(value[:], dtype=dtype)
-        array = np.frombuffer(value, dtype=dtype)
-        return array.reshape(-1, width) if width > 1 else array
+            value = np.array(raw[:], dtype=dtype)
+        else:
+            value = np.frombuffer(raw, dtype=dtype)
+            if width > 1:
+                value = value.reshape(-1, width)
+        self._fields[name] = value
+        return value
 
     @classmethod
     def of_arrays(cls, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> Batch:
@@ -149,13 +155,11 @@ class Batch:
         return out
 
     def __getitem__(self, name: str) -> np.ndarray:
-        value = self._read(name) if self._fields is None else self._fields.get(name)
+        value = self.get(name)
         return _empty(name, self.num_envs) if value is None else value
 
     def __contains__(self, name: str) -> bool:
-        if self._fields is None:
-            return name in FIELDS and len(getattr(self._msg, name)) > 0
-        return name in self._fields
+        return self.get(name) is not None
 
     def copy(self) -> Batch:
         """A Batch of arrays of its own (valid whatever happens to the region it was read from)."""
@@ -285,13 +289,12 @@ def decode(
     """Observations ``(N, 40) float32`` and infos of the state ``batch`` returns, or with
     ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
     Gymnasium ``_key`` mask (default: all). Every array returned is the caller's own."""
-    f = batch.fields
     n = batch.num_envs
     if present is None:
         present = np.ones(n, dtype=np.bool_)
 
     def field(name: str) -> np.ndarray:
-        value = f.get(prefix + name)
+        value = batch.get(prefix + name)
         return _empty(name, n) if value is None else value
 
     obs = field("observations").astype(np.float32)

@@ -132,9 +132,8 @@ def check_actions(actions: Any, num_envs: int) -> np.ndarray:
     acts = np.asarray(actions)
     if acts.shape != (num_envs,):
         raise ValueError(f"actions: expected shape ({num_envs},), got {acts.shape}")
-    bad = np.flatnonzero((acts < 0) | (acts >= NUM_ACTIONS))
-    if bad.size:
-        i = int(bad[0])
+    if num_envs and (acts.min() < 0 or acts.max() >= NUM_ACTIONS):
+        i = int(np.flatnonzero((acts < 0) | (acts >= NUM_ACTIONS))[0])
         raise InvalidArgument(
             f"actions[{i}] must be in 0..={NUM_ACTIONS - 1}, got {acts[i]}",
             reason="ACTION_OUT_OF_RANGE",

@@ -450,12 +450,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def _decode_step(self, batches: list[Batch]):
         n = self.num_envs
         batch = join(batches)
-        f = batch.fields
         obs, info = decode(batch, self.expert)
-        rewards = f["rewards"].astype(np.float64)
-        terminated = f["terminated"].copy()
-        truncated = f["truncated"].copy()
-        reset = f.get("reset")
+        rewards = batch["rewards"].astype(np.float64)
+        terminated = batch["terminated"].copy()
+        truncated = batch["truncated"].copy()
+        reset = batch.get("reset")
         resets = reset is not None and reset.any()
         # Every step's info has reset's keys (TorchRL reads them once): each environment's
         # episode seed, as a SyncVectorEnv of DinerDashEnv reports it.
