@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import re
-import signal
 import socket
 import struct
 import threading
@@ -26,6 +25,8 @@ from dinerdash.connection import (
     service_config,
 )
 
+from .test_drain import _drain
+
 #: Longest a test waits for something that happens at once on an idle machine.
 PATIENCE_S = 30.0
 
@@ -38,20 +39,6 @@ def _refused(http_port: int) -> int:
         text = reply.read().decode()
     match = _UNAVAILABLE.search(text)
     return int(match.group(1)) if match else 0
-
-
-def _drain(server, conn: Connection) -> None:
-    """SIGTERM, then waits (bounded) until CreateSession is refused: the server drains."""
-    server.proc.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + PATIENCE_S
-    while True:
-        try:
-            reply = conn.call("CreateSession", pb.CreateSessionRequest(num_envs=1))
-        except ServerDraining:
-            return
-        conn.call("CloseSession", pb.CloseSessionRequest(session_id=reply.session_id))
-        assert time.monotonic() < deadline, "the server never started draining"
-        time.sleep(0.01)
 
 
 def test_a_draining_server_is_asked_once_despite_retries(start_server) -> None:
