@@ -155,8 +155,12 @@ class Batch:
         return out
 
     def __getitem__(self, name: str) -> np.ndarray:
-        value = self.get(name)
-        return _empty(name, self.num_envs) if value is None else value
+        value = self._fields.get(name)  # most reads: a field decoded already
+        if value is None:
+            value = self.get(name)
+            if value is None:
+                return _empty(name, self.num_envs)
+        return value
 
     def __contains__(self, name: str) -> bool:
         return self.get(name) is not None
