@@ -1,6 +1,7 @@
 """The caller thread: one session core's blocking calls made on a thread of their own, so that a
 vector env can send its Steps, let the trainer work, and collect the Batches later
-(``step_async`` / ``step_wait``)."""
+(``step_async`` / ``step_wait``) over gRPC. Over shared memory no thread is needed: the core
+rings the doorbell itself and collects the reply later (:mod:`dinerdash._transport`)."""
 
 from __future__ import annotations
 
