@@ -14,6 +14,7 @@ from dinerdash import DinerDashEnv, DinerDashVectorEnv, ServiceTimeout
 from dinerdash.connection import DEFAULT_TIMEOUT, Connection, call_timeout
 
 from .conftest import ServerProcess
+from .trajectories import async_step, plain_step
 
 
 @pytest.fixture
@@ -58,16 +59,20 @@ def test_a_stopped_server_times_out_a_step(stoppable: ServerProcess) -> None:
         env.close()
 
 
+@pytest.mark.usefixtures("each_transport")
+@pytest.mark.parametrize("step", [plain_step, async_step], ids=["step", "step_async"])
 def test_dinerdash_timeout_bounds_a_vector_env(
-    stoppable: ServerProcess, monkeypatch: pytest.MonkeyPatch
+    stoppable: ServerProcess, monkeypatch: pytest.MonkeyPatch, step
 ) -> None:
+    """Over shared memory too, and with ``step_async`` / ``step_wait``, whose wait for the reply
+    of a Step rung without a thread must still end at the Step's deadline."""
     monkeypatch.setenv("DINERDASH_TIMEOUT", "1.5")
     envs = DinerDashVectorEnv(4, stoppable.address)
     try:
         envs.reset(seed=0)
         stop(stoppable)
         with pytest.raises(ServiceTimeout, match=r"within 1\.5 s"):
-            envs.step(np.zeros(4, dtype=np.int64))
+            step(envs, np.zeros(4, dtype=np.int64))
         with pytest.raises(ServiceTimeout):
             envs.reset(seed=1)
     finally:

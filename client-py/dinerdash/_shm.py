@@ -288,13 +288,24 @@ class Channel:
 
     def ready(self, timeout: float | None) -> bool:
         """Whether the outcome of the Step :meth:`send` rang for is in within ``timeout`` seconds
-        (``None``: waits for it): its reply, the doorbell's end, or the connection closed (a
-        server given up: :meth:`receive` then raises at once, as a cancelled gRPC call)."""
-        if self.conn._closed:
-            return True
+        (``None``: waits for it), for :meth:`receive` to return or raise at once: its reply, the
+        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or
+        the Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`). Waits in
+        ``poll`` for at most _TICK at a time, to see the connection and the deadline."""
+        now = time.perf_counter()
+        until = None if timeout is None else now + timeout
         poller = select.poll()
         poller.register(self.sock, select.POLLIN | select.POLLHUP | select.POLLERR)
-        return bool(poller.poll(None if timeout is None else max(0, math.ceil(timeout * 1000))))
+        while True:
+            left = self._sent + self.timeout - now
+            if self.conn._closed or left <= 0:
+                return True
+            wait = min(_TICK, left) if until is None else min(_TICK, left, until - now)
+            if poller.poll(max(0, math.ceil(wait * 1000))):
+                return True
+            now = time.perf_counter()
+            if until is not None and now >= until:
+                return False
 
     def receive(self) -> Batch | None:
         """The reply of the Step :meth:`send` rang for, as :meth:`step` returns it."""
