@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import signal
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,6 +11,7 @@ import numpy as np
 import pytest
 from dinerdash import DinerDashEnv, DinerDashVectorEnv, ServiceTimeout
 from dinerdash.connection import DEFAULT_TIMEOUT, Connection, call_timeout
+from dinerdash.testing.cluster import _wait_stopped
 
 from .conftest import ServerProcess
 from .trajectories import async_step, plain_step
@@ -27,15 +27,13 @@ def stoppable(start_server) -> Iterator[ServerProcess]:
 
 
 def stop(server: ServerProcess) -> None:
-    """SIGSTOP, then wait (bounded) until the kernel reports the process stopped: the signal is
-    asynchronous, and a server still running for a moment would answer the next call."""
+    """SIGSTOP, then wait (bounded) until the kernel reports every thread of the process
+    stopped: the signal is asynchronous, and a server still running for a moment would answer
+    the next call."""
     server.proc.send_signal(signal.SIGSTOP)
-    stat = Path(f"/proc/{server.proc.pid}/stat")
-    deadline = time.monotonic() + 10
-    # The state is the field after the parenthesised command name.
-    while stat.read_text().rsplit(")", 1)[1].split()[0] != "T":
-        assert time.monotonic() < deadline, "the server did not stop within 10 s"
-        time.sleep(0.01)
+    _wait_stopped(server.proc.pid, timeout=10)
+    state = Path(f"/proc/{server.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    assert state in ("T", "t"), "the server did not stop within 10 s"
 
 
 def test_a_stopped_server_times_out_a_step(stoppable: ServerProcess) -> None:

@@ -6,10 +6,7 @@ from __future__ import annotations
 
 import gc
 import multiprocessing
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -148,12 +145,6 @@ def test_server_errors_arrive_at_step_wait_as_from_step(two, spread) -> None:
         envs.close()
 
 
-#: Sends SIGINT to the process whose pid is its argument, 0.2 s after it starts.
-_INTERRUPT = (
-    "import os, signal, sys, time; time.sleep(0.2); os.kill(int(sys.argv[1]), signal.SIGINT)"
-)
-
-
 def test_step_wait_timeout_or_interrupt_keeps_the_step_pending(start_server) -> None:
     server = start_server()
     envs = DinerDashVectorEnv(2, server.address)
@@ -166,17 +157,19 @@ def test_step_wait_timeout_or_interrupt_keeps_the_step_pending(start_server) -> 
                 envs.step_wait(timeout=0.2)
             with pytest.raises(AlreadyPendingCallError):
                 envs.step_async(np.zeros(2, dtype=np.int64))
-            # Ctrl-C while waiting loses nothing either: the step stays pending. As from a
-            # terminal, the SIGINT is the process's (another process sends it), which the kernel
-            # may hand to any thread: the waiting main thread must notice it all the same.
-            interrupt = subprocess.Popen(
-                [sys.executable, "-c", _INTERRUPT, str(os.getpid())], stdin=subprocess.DEVNULL
-            )
+            # Ctrl-C while waiting loses nothing either: the step stays pending. Python's own
+            # handler, whatever this process inherited (a job started in the background by a
+            # non-interactive shell ignores SIGINT, and Python then leaves it ignored).
+            main = threading.main_thread().ident
+            interrupt = threading.Timer(0.2, signal.pthread_kill, (main, signal.SIGINT))
+            inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+            interrupt.start()
             try:
                 with pytest.raises(KeyboardInterrupt):
                     envs.step_wait()
             finally:
-                interrupt.wait(timeout=30)
+                interrupt.join()
+                signal.signal(signal.SIGINT, inherited)
         finally:
             server.proc.send_signal(signal.SIGCONT)
         _, _, _, _, info = envs.step_wait(timeout=30)

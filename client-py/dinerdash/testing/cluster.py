@@ -47,21 +47,26 @@ REBIND_TIMEOUT = 10.0
 
 
 def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
-    """Waits until process ``pid`` is stopped: a signal is delivered after ``kill`` returns, and
-    a thread of the server on another core may answer a call in between. Linux only (``/proc``);
-    elsewhere a short sleep."""
-    stat = Path(f"/proc/{pid}/stat")
-    if not stat.exists():
+    """Waits until every thread of process ``pid`` is stopped: a signal is delivered after
+    ``kill`` returns, and a thread of the server on another core (a shared-memory session's,
+    polling for its next Step) may answer a call in between, even once the process's first
+    thread shows stopped. Linux only (``/proc``); elsewhere a short sleep."""
+    tasks = Path(f"/proc/{pid}/task")
+    if not tasks.exists():
         time.sleep(0.1)
         return
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
             # "PID (COMM) STATE ...": COMM may hold spaces and ")"; STATE follows the last ")".
-            state = stat.read_text().rsplit(")", 1)[1].split()[0]
+            states = [
+                (t / "stat").read_text().rsplit(")", 1)[1].split()[0] for t in tasks.iterdir()
+            ]
         except (OSError, IndexError):
-            return  # gone
-        if state in ("T", "t"):
+            if not tasks.exists():
+                return  # gone
+            states = []  # a thread ended between the listing and the read: look again
+        if states and all(state in ("T", "t") for state in states):
             return
         time.sleep(0.005)
 
