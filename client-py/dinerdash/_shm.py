@@ -268,12 +268,6 @@ class Channel:
             message = f"{method}: {message}"
         return error_for_status(code, message, self.address, bytes(reply[9 + size :]) or None)
 
-    def step(self, actions: bytes) -> Batch | None:
-        """One Step: the reply (views of the region, valid until the next Step is sent), the
-        server's typed refusal raised, or ``None`` when the doorbell closed (the Step is then to
-        be made over gRPC). :meth:`send` and :meth:`receive` in a row."""
-        return self.receive() if self.send(actions) else None
-
     def send(self, actions: bytes) -> bool:
         """Writes a Step's ``actions`` into the region and rings: the server steps while the
         caller works, until :meth:`receive`. False when the doorbell closed (nothing was sent)."""
@@ -308,7 +302,9 @@ class Channel:
                 return False
 
     def receive(self) -> Batch | None:
-        """The reply of the Step :meth:`send` rang for, as :meth:`step` returns it."""
+        """The reply of the Step :meth:`send` rang for: its Batch (views of the region, valid
+        until the next Step is sent), the server's typed refusal raised, or ``None`` when the
+        doorbell closed (the Step is then to be made over gRPC)."""
         sent = self._sent
         reply = self._poll(sent) if self._quick else None
         while reply is None:
