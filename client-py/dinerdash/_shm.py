@@ -94,7 +94,8 @@ _TICK = 0.25
 #: A Step whose last reply came within this many seconds polls for its reply (non-blocking
 #: ``recv``) this long before it sleeps in ``recv``: on a virtual machine, waking a process
 #: whose CPU went idle costs tens of microseconds, more than a small session's Step. The
-#: server's session thread does the same for the next Step (``server/src/shm/mod.rs``, ``SPIN``).
+#: server's thread for this process does the same for the next Step
+#: (``server/src/shm/mod.rs``, ``SPIN``).
 _SPIN = 100e-6
 
 log = logging.getLogger("dinerdash")

@@ -20,7 +20,8 @@ use crate::pools::{DEFAULT_PARALLEL_MIN_ENVS, DEFAULT_PARALLEL_MIN_PLANNER_ENVS,
 use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
 use crate::session::{DEFAULT_MAX_ENVS_PER_SESSION, DEFAULT_MAX_SESSIONS, Limits};
 
-/// Default `--max-shm-sessions`: each holds a thread and a region (~240 bytes an environment).
+/// Default `--max-shm-sessions`: each holds a region (~240 bytes an environment), stepped by
+/// its client process's thread.
 pub const DEFAULT_MAX_SHM_SESSIONS: u32 = 64;
 
 /// How log lines are written (to stderr).
@@ -117,8 +118,8 @@ pub struct ServeArgs {
     #[arg(long, default_value = "30", value_parser = parse_drain_timeout)]
     pub drain_timeout: Duration,
     /// Most sessions stepped through shared memory at once (clients on this host, running as
-    /// this user; Linux): each holds a thread and a region counted in --max-memory. 0 offers
-    /// none: every client steps over gRPC.
+    /// this user; Linux): each holds a region counted in --max-memory, stepped by one thread per
+    /// client process. 0 offers none: every client steps over gRPC.
     #[arg(long, default_value_t = DEFAULT_MAX_SHM_SESSIONS)]
     pub max_shm_sessions: u32,
     /// Threads that step one large session's environments in chunks at once (default: one per

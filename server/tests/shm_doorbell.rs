@@ -7,6 +7,9 @@
 //! across tenants, on the real binary); another user's connection is closed before any thread
 //! starts (the real binary, and a second user made here when the test runs as root); silent
 //! connections past the cap are closed at once; a planner session's Steps wait for the CPU pool.
+//!
+//! And how they are served: the sessions of one client process by one thread, in turn, a
+//! planner's by a thread of its own.
 #![cfg(target_os = "linux")]
 
 mod binary_support;
@@ -105,9 +108,19 @@ fn hello(doorbell: &str, hello: &[u8]) -> Result<ShmClient, Vec<u8>> {
 impl ShmClient {
     /// One Step: `Ok` with the region's arrays by name, or the `E` message.
     fn step(&self, actions: &[i32]) -> Result<Vec<(String, Vec<u8>)>, Vec<u8>> {
+        self.ring(actions);
+        self.reply()
+    }
+
+    /// Writes a Step's actions and rings, without waiting for the reply.
+    fn ring(&self, actions: &[i32]) {
         let (offset, _) = self.layout.actions();
         rustix::io::pwrite(&self.region, &pack(actions), offset as u64).unwrap();
         rustix::net::send(&self.sock, b"S", SendFlags::empty()).unwrap();
+    }
+
+    /// The reply to the Step rung for: as [`ShmClient::step`].
+    fn reply(&self) -> Result<Vec<(String, Vec<u8>)>, Vec<u8>> {
         let mut reply = [0u8; 4096];
         let (n, _) = rustix::net::recv(&self.sock, &mut reply, RecvFlags::empty()).unwrap();
         if reply[..n] != *b"K" {
@@ -372,25 +385,24 @@ async fn a_wrong_secret_is_refused_exactly_as_an_unknown_id() {
     server.stop().await;
 }
 
-/// Threads of process `pid` (its /proc status).
+/// Threads of process `pid` other than tokio's (`tokio-rt-worker`: its workers, and its blocking
+/// threads, which the session sweeper starts and ends on its own schedule).
 fn threads(pid: u32) -> usize {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("Threads:"))
-        .unwrap()
-        .trim()
-        .parse()
-        .unwrap()
+    threads_where(pid, |name| name != "tokio-rt-worker")
 }
 
 /// Threads of process `pid` named `name`.
 fn threads_named(pid: u32, name: &str) -> usize {
+    threads_where(pid, |n| n == name)
+}
+
+/// Threads of process `pid` whose name passes `keep`, read in one pass over /proc.
+fn threads_where(pid: u32, keep: impl Fn(&str) -> bool) -> usize {
     std::fs::read_dir(format!("/proc/{pid}/task"))
         .unwrap()
         .filter_map(Result::ok)
         .filter(|task| {
-            std::fs::read_to_string(task.path().join("comm")).is_ok_and(|c| c.trim() == name)
+            std::fs::read_to_string(task.path().join("comm")).is_ok_and(|c| keep(c.trim()))
         })
         .count()
 }
@@ -628,4 +640,79 @@ async fn created_by(
     };
     c.reset(with(token, reset)).await.unwrap();
     reply
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_thread_serves_a_client_processs_sessions_and_a_planners_has_its_own() {
+    let server = Process::start("", "--max-shm-sessions 8");
+    let pid = server.pid();
+    let mut c = DinerDashClient::connect(format!("http://{}", server.addr))
+        .await
+        .unwrap();
+    // Three sessions of this process, each with a twin stepped over gRPC.
+    let mut pairs = Vec::new();
+    for _ in 0..3 {
+        pairs.push((created(&mut c, 2).await, created(&mut c, 2).await));
+    }
+    let doorbell = pairs[0].0.shm_doorbell.clone();
+    let shm: Vec<ShmClient> = tokio::task::block_in_place(|| {
+        pairs
+            .iter()
+            .map(|(s, _)| connect(&doorbell, &s.session_id, &s.shm_secret).unwrap())
+            .collect()
+    });
+    // Every session rung before any reply is read (pipelined), many times over: each gets its
+    // own Step's reply, equal to its twin's over gRPC.
+    let mut actions = Actions::new(8);
+    for k in 0..60 {
+        let a: Vec<Vec<i32>> = (0..3)
+            .map(|_| (0..2).map(|_| actions.next()).collect())
+            .collect();
+        tokio::task::block_in_place(|| shm.iter().zip(&a).for_each(|(s, a)| s.ring(a)));
+        for ((s, (_, twin)), a) in shm.iter().zip(&pairs).zip(&a) {
+            let expected = step(&mut c, &twin.session_id, a).await;
+            let got = tokio::task::block_in_place(|| s.reply()).unwrap();
+            assert_eq!(got, arrays(&expected), "step {k}");
+        }
+    }
+    assert_eq!(threads_named(pid, "shm-session"), 1);
+    // A planner's session: a thread of its own (its Steps may wait for the CPU pool).
+    let mut request = create_request(1, pb::AutoresetMode::NextStep, Some(5));
+    request.expert_policy = pb::Policy::Planner.into();
+    let planner = c.create_session(request).await.unwrap().into_inner();
+    reset(&mut c, &planner.session_id, None).await;
+    let p = tokio::task::block_in_place(|| {
+        connect(&doorbell, &planner.session_id, &planner.shm_secret).unwrap()
+    });
+    assert!(tokio::task::block_in_place(|| p.step(&[0])).is_ok());
+    assert_eq!(threads_named(pid, "shm-session"), 2);
+    // A session closed over gRPC while its client's others keep stepping is let go: its
+    // doorbell hangs up (its region and slot with it).
+    c.close_session(pb::CloseSessionRequest {
+        session_id: pairs[0].0.session_id.clone(),
+    })
+    .await
+    .unwrap();
+    let hung_up = tokio::task::block_in_place(|| {
+        let deadline = Instant::now() + PATIENCE;
+        loop {
+            for s in &shm[1..] {
+                assert!(s.step(&[0, 0]).is_ok());
+            }
+            let mut byte = [0u8; 1];
+            match rustix::net::recv(&shm[0].sock, &mut byte, RecvFlags::DONTWAIT) {
+                Ok((0, _)) => return true,
+                _ if Instant::now() > deadline => return false,
+                _ => std::thread::sleep(Duration::from_millis(5)),
+            }
+        }
+    });
+    assert!(hung_up, "a closed session's doorbell stayed open");
+    // When the client's sessions go, so does their thread.
+    drop(shm);
+    let deadline = Instant::now() + PATIENCE;
+    while threads_named(pid, "shm-session") > 1 && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(threads_named(pid, "shm-session"), 1);
 }

@@ -36,7 +36,7 @@ impl StepPath {
     }
 
     /// Whether the session's work needs the pool: the planner fills its expert actions.
-    fn heavy(session: &FoundSession) -> bool {
+    pub fn heavy(session: &FoundSession) -> bool {
         session.expert_actions() == ExpertActions::Planner
     }
 

@@ -17,28 +17,39 @@
 //! later Step looks the session up by the same ID and secret. Then the server creates the
 //! session's [`region::Region`] (a memfd laid out by [`layout`]) and passes its descriptor back
 //! (`SCM_RIGHTS`). From then on each Step is one message each way: the client writes the
-//! actions into the region and sends `S`; the session's thread copies them out, steps the
+//! actions into the region and sends `S`; its client's thread copies them out, steps the
 //! session exactly as the gRPC Step does (same checks, same errors: `E`, the gRPC code, the
 //! message and the encoded `google.rpc.Status` details, counted in the metrics' error counter),
 //! writes the reply's arrays into the region and answers `K`. A planner session's Steps wait
 //! for a permit of the bounded CPU pool the gRPC path uses ([`crate::service::step_path`]).
 //!
-//! Why a socket and not a futex or an eventfd: one `recv` wakes the thread and tells it when the
+//! Why a socket and not a futex or an eventfd: one `poll` wakes the thread and tells it when the
 //! client died (the socket closes with the process, `kill -9` included), and the handshake, the
-//! descriptor passing and the peer check come with it. Why a std thread per shm session rather
-//! than a tokio task: the step is synchronous CPU work of tens of microseconds, a blocked thread
-//! wakes within one context switch, and a session's thread can only ever slow its own client.
-//! `--max-shm-sessions` bounds the threads and the regions (and [`MAX_PENDING_HELLOS`] the
-//! threads still waiting for a hello); the regions count in the memory budget.
+//! descriptor passing and the peer check come with it.
 //!
-//! Why the thread polls a little before it sleeps ([`poll_next`]): on a virtual machine, waking
+//! Who steps: one std thread per *client process* (the peer's pid, `SO_PEERCRED`) serves all
+//! its sessions in turn ([`serve`]); a later session's hello thread hands the session over to
+//! it ([`Client::join`]) and ends. A planner session, whose Steps may wait for the CPU pool,
+//! gets a thread of its own, so that its waits hold up none of its client's other sessions.
+//! Why a std thread rather than a tokio task: the step is synchronous CPU work of tens of
+//! microseconds, and a blocked thread wakes within one context switch. Why one per client
+//! process rather than per session: a client that pipelines (`step_async` on one session while
+//! it decodes another's reply) rings a thread that is stepping or polling, not one asleep, and
+//! ringing a sleeping thread costs the client tens of microseconds on a virtual machine (its
+//! wake-up); the thread steps the sessions one after another, which is as fast as a Python
+//! client's decoding of them anyway (docs/benchmarks.md). A thread can only ever slow its own
+//! client's sessions. `--max-shm-sessions` bounds the sessions and the regions (and so the
+//! threads; [`MAX_PENDING_HELLOS`] bounds the threads still waiting for a hello); the regions
+//! count in the memory budget.
+//!
+//! Why the thread polls a little before it sleeps ([`wait`]): on a virtual machine, waking
 //! a thread whose CPU has gone idle costs tens of microseconds (a round trip between two idle
 //! processes measured 56 µs on this project's 2-core VM, 8 µs while the machine was busy), more
 //! than a small session's whole Step. A client that asked again within [`SPIN`] of the last
-//! reply is waited for by polling the socket (non-blocking `recv`) for up to [`SPIN`] before the
-//! blocking `recv`; a slower client is never polled for. At most one thread fewer than the
-//! machine's CPUs polls at once (none on one CPU), so polling cannot starve the trainer or the
-//! other sessions of every core. The client does the same on its side (`client-py`'s `_shm`).
+//! reply is waited for by polling its sockets (`poll` with a zero timeout) for up to [`SPIN`]
+//! before the blocking `poll`; a slower client is never polled for. At most one thread fewer
+//! than the machine's CPUs polls at once (none on one CPU), so polling cannot starve the trainer
+//! or the other clients of every core. The client does the same on its side (`client-py`'s `_shm`).
 
 pub mod layout;
 pub mod region;
@@ -50,6 +61,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
+use rustix::event::{PollFd, PollFlags, Timespec};
 use rustix::io::Errno;
 use rustix::net::{
     AddressFamily, RecvFlags, SendAncillaryBuffer, SendAncillaryMessage, SendFlags, SocketAddrUnix,
@@ -66,10 +78,11 @@ use crate::shutdown::Shutdown;
 use layout::Layout;
 use region::Region;
 
-/// How often an idle session's thread and the acceptor look at the shutdown and at whether the
-/// session still exists (closed or expired over gRPC).
+/// How often an idle client's thread and the acceptor look at the shutdown, and how often a
+/// client's thread looks at whether each of its sessions still exists (closed or expired over
+/// gRPC).
 const POLL: Duration = Duration::from_millis(200);
-/// The stack of a session's thread: stepping needs little (the planner included).
+/// The stack of a client's thread: stepping needs little (the planner included).
 const THREAD_STACK: usize = 512 * 1024;
 /// Bytes of a session ID in the hello: 32 hex digits.
 const ID_BYTES: usize = 32;
@@ -86,7 +99,7 @@ pub const HELLO_TIMEOUT: Duration = Duration::from_secs(5);
 /// wait here for microseconds; the cap keeps a looping or stuck process from holding threads
 /// and descriptors without end.
 pub const MAX_PENDING_HELLOS: usize = 32;
-/// The longest a session's thread polls for its client's next Step before it sleeps in `recv`,
+/// The longest a client's thread polls for its client's next Step before it sleeps in `poll`,
 /// and the gap between a reply and the next Step under which it polls at all.
 pub const SPIN: Duration = Duration::from_micros(100);
 
@@ -152,7 +165,7 @@ impl ShmError {
     }
 }
 
-/// What the acceptor and every session thread share.
+/// What the acceptor and every client thread share.
 #[derive(Debug)]
 struct Shared {
     /// The sessions.
@@ -160,7 +173,7 @@ struct Shared {
     /// Where Steps run (the planner's under a permit of the CPU pool the gRPC path uses) and
     /// where their refusals are counted.
     step: StepPath,
-    /// Drives a session thread's wait for a permit of the CPU pool.
+    /// Drives a client thread's wait for a permit of the CPU pool.
     runtime: tokio::runtime::Handle,
     /// Fires when the server drains.
     stopping: Shutdown,
@@ -172,9 +185,11 @@ struct Shared {
     live: AtomicUsize,
     /// Connections whose thread waits for their hello now (at most [`MAX_PENDING_HELLOS`]).
     pending: AtomicUsize,
-    /// Session threads polling for their client's next Step now, and how many may at once.
+    /// Client threads polling for their client's next Step now, and how many may at once.
     polling: AtomicUsize,
     max_polling: usize,
+    /// The thread serving each client process's sessions, by the client's pid.
+    clients: std::sync::Mutex<std::collections::HashMap<i32, Arc<Client>>>,
 }
 
 impl Shared {
@@ -185,7 +200,7 @@ impl Shared {
     }
 }
 
-/// A session thread's slot among the live ones, given back when the thread ends.
+/// A session's slot among the live ones, given back when it ends.
 struct Slot(Arc<Shared>);
 
 impl Drop for Slot {
@@ -257,6 +272,7 @@ impl Doorbell {
             pending: AtomicUsize::new(0),
             polling: AtomicUsize::new(0),
             max_polling: std::thread::available_parallelism().map_or(0, |n| n.get() - 1),
+            clients: std::sync::Mutex::default(),
         });
         let acceptor = Arc::clone(&shared);
         std::thread::Builder::new()
@@ -285,7 +301,7 @@ pub fn peer_is(sock: &impl AsFd, owner: Uid) -> bool {
 
 /// Accepts clients until the server stops. A connection of another user, or one past
 /// [`MAX_PENDING_HELLOS`], is closed here at once, before any thread or allocation; each other
-/// one gets a thread of its own.
+/// one gets a thread of its own until its hello ([`serve_client`]).
 fn accept(listener: &OwnedFd, shared: &Arc<Shared>) {
     while !shared.stopping.is_stopping() {
         let sock = match rustix::net::accept_with(listener, SocketFlags::CLOEXEC) {
@@ -323,7 +339,9 @@ fn accept(listener: &OwnedFd, shared: &Arc<Shared>) {
     }
 }
 
-/// One client, from its hello until it goes, its session goes, or the server stops.
+/// One connection, from its hello until its session is served by its client's thread: this
+/// thread becomes that thread when its client process has none yet (or the session is a
+/// planner's), and otherwise hands the session over and ends.
 fn serve_client(sock: OwnedFd, pending: Pending, shared: &Arc<Shared>) {
     let setup = (|| -> std::io::Result<()> {
         sockopt::set_socket_timeout(&sock, sockopt::Timeout::Recv, Some(POLL))?;
@@ -349,122 +367,287 @@ fn serve_client(sock: OwnedFd, pending: Pending, shared: &Arc<Shared>) {
     };
     drop(pending);
     let accepted = handshake(&sock, &hello[..n], shared);
-    hello.fill(0); // the secret stays in `secret` only
-    let (id, secret, mut region, _slot, _charge) = match accepted {
+    hello.fill(0); // the secret stays in `Served::secret` only
+    let (id, secret, region, slot, charge, heavy) = match accepted {
         Ok(accepted) => accepted,
         Err(e) => {
             let _ = send(&sock, &shared.refusal(e));
             return;
         }
     };
-    let _span = tracing::debug_span!("shm_session", session = %id).entered();
-    let mut message = [0u8; 16];
-    let mut actions = Vec::new();
-    // When the last reply went, and whether the client asked again within SPIN of the one
-    // before: only then is its next Step polled for.
-    let mut replied = Instant::now();
-    let mut quick = false;
-    loop {
-        let polled = if quick {
-            poll_next(&sock, &mut message, shared)
-        } else {
-            None
-        };
-        let received =
-            polled.unwrap_or_else(|| rustix::net::recv(&sock, &mut message, RecvFlags::empty()));
-        quick = replied.elapsed() < SPIN;
-        match received {
-            Ok((0, _)) => break, // the client closed or died
-            Ok((n, _)) if n == 1 && message[0] == b'S' => {
-                if shared.stopping.is_stopping() {
-                    let _ = send(&sock, &shared.refusal(ShmError::Stopping));
-                    break;
-                }
-                if let Err(e) = region.read_actions(&mut actions) {
-                    let _ = send(&sock, &shared.refusal(ShmError::Region(e)));
-                    break;
-                }
-                let stepped = shared.step.run_blocking(
-                    &shared.runtime,
-                    shared.store.find_shm(&id, &secret),
-                    |s| s.step(&actions),
-                );
-                let sent = match stepped {
-                    Ok(batch) => {
-                        match region.write_batch(&batch, shared.stopping.drain_remaining_ms()) {
-                            Ok(()) => send(&sock, b"K"),
-                            Err(e) => {
-                                let _ = send(&sock, &shared.refusal(ShmError::Region(e)));
-                                break;
-                            }
-                        }
-                    }
-                    Err(status) => {
-                        let gone = status.code() == tonic::Code::NotFound;
-                        let sent = send(&sock, &ShmError::encode(&status));
-                        if gone {
-                            break;
-                        }
-                        sent
-                    }
-                };
-                if sent.is_err() {
-                    break; // not reading its replies, or gone
-                }
-                replied = Instant::now();
-            }
-            Ok((n, _)) => {
-                let e = ShmError::Protocol {
-                    len: n,
-                    first: message[0],
-                };
-                let _ = send(&sock, &shared.refusal(e));
-                break;
-            }
-            Err(Errno::AGAIN | Errno::INTR) => {
-                if shared.stopping.is_stopping() || !shared.store.contains(&id) {
-                    break;
-                }
-            }
-            Err(_) => break,
-        }
+    let served = Served {
+        sock,
+        id,
+        secret,
+        region,
+        _slot: slot,
+        _charge: charge,
+        replied: Instant::now(),
+        quick: false,
+    };
+    // A planner's Steps wait for the CPU pool: such a session gets a thread of its own, so that
+    // its waits hold up no other session of its client.
+    let joined = match served.client() {
+        Some(pid) if !heavy => Client::join(shared, pid, served),
+        _ => Joined::Alone(served),
+    };
+    match joined {
+        Joined::Handed => {}
+        Joined::Lead(pid, client, served) => serve(vec![served], Some((pid, client)), shared),
+        Joined::Alone(served) => serve(vec![served], None, shared),
     }
-    tracing::debug!(session = %id, "shared-memory session ended");
 }
 
-/// The client's next message if it comes within [`SPIN`], polled for without sleeping; `None`
-/// when it did not come (or [`Shared::max_polling`] threads poll already): then `recv` waits.
-fn poll_next(
-    sock: &OwnedFd,
-    message: &mut [u8],
-    shared: &Shared,
-) -> Option<rustix::io::Result<(usize, usize)>> {
-    if shared.polling.fetch_add(1, Ordering::AcqRel) >= shared.max_polling {
-        shared.polling.fetch_sub(1, Ordering::AcqRel);
-        return None;
+/// One session being served: its doorbell connection, its region, and the slot and budget it
+/// holds until it ends.
+struct Served {
+    sock: OwnedFd,
+    id: String,
+    secret: [u8; SHM_SECRET_BYTES],
+    region: Region,
+    _slot: Slot,
+    _charge: Charge,
+    /// When the last reply went.
+    replied: Instant,
+    /// Whether the client asked again within [`SPIN`] of the reply before: then its next Step
+    /// is polled for.
+    quick: bool,
+}
+
+impl Served {
+    /// The pid of the client process (`SO_PEERCRED`, read when it connected).
+    fn client(&self) -> Option<i32> {
+        let peer = sockopt::socket_peercred(&self.sock).ok()?;
+        Some(peer.pid.as_raw_nonzero().get())
     }
-    let since = Instant::now();
-    let received = loop {
-        match rustix::net::recv(sock, &mut *message, RecvFlags::DONTWAIT) {
-            Err(Errno::AGAIN | Errno::INTR) if since.elapsed() < SPIN => std::hint::spin_loop(),
-            Err(Errno::AGAIN | Errno::INTR) => break None,
-            other => break Some(other),
+
+    /// Answers what the client sent (`received`, the `recv` of its socket into `message`): a
+    /// Step is stepped and replied to. False when the session ends here (the client went or
+    /// spoke out of turn, the session is gone, the server stops).
+    fn answer(
+        &mut self,
+        received: rustix::io::Result<(usize, usize)>,
+        message: &[u8],
+        actions: &mut Vec<u8>,
+        shared: &Shared,
+    ) -> bool {
+        let n = match received {
+            Ok((0, _)) => return false, // the client closed or died
+            Ok((n, _)) => n,
+            Err(Errno::AGAIN | Errno::INTR) => return true,
+            Err(_) => return false,
+        };
+        self.quick = self.replied.elapsed() < SPIN;
+        if n != 1 || message[0] != b'S' {
+            let e = ShmError::Protocol {
+                len: n,
+                first: message[0],
+            };
+            let _ = send(&self.sock, &shared.refusal(e));
+            return false;
         }
-    };
-    shared.polling.fetch_sub(1, Ordering::AcqRel);
-    received
+        if shared.stopping.is_stopping() {
+            let _ = send(&self.sock, &shared.refusal(ShmError::Stopping));
+            return false;
+        }
+        if let Err(e) = self.region.read_actions(actions) {
+            let _ = send(&self.sock, &shared.refusal(ShmError::Region(e)));
+            return false;
+        }
+        let stepped = shared.step.run_blocking(
+            &shared.runtime,
+            shared.store.find_shm(&self.id, &self.secret),
+            |s| s.step(actions),
+        );
+        let sent = match stepped {
+            Ok(batch) => match self
+                .region
+                .write_batch(&batch, shared.stopping.drain_remaining_ms())
+            {
+                Ok(()) => send(&self.sock, b"K"),
+                Err(e) => {
+                    let _ = send(&self.sock, &shared.refusal(ShmError::Region(e)));
+                    return false;
+                }
+            },
+            Err(status) => {
+                let sent = send(&self.sock, &ShmError::encode(&status));
+                if status.code() == tonic::Code::NotFound {
+                    return false;
+                }
+                sent
+            }
+        };
+        self.replied = Instant::now();
+        sent.is_ok() // not reading its replies, or gone, when not
+    }
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        tracing::debug!(session = %self.id, "shared-memory session ended");
+    }
+}
+
+/// The thread serving one client process's sessions: where the hello threads of its later
+/// sessions hand them over.
+struct Client {
+    /// Sessions handed over, taken at the thread's next turn.
+    joining: std::sync::Mutex<Vec<Served>>,
+    /// Written when a session is handed over, to wake the thread from `poll`.
+    wake: OwnedFd,
+}
+
+impl std::fmt::Debug for Client {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Client").finish_non_exhaustive()
+    }
+}
+
+/// What [`Client::join`] did with a session.
+enum Joined {
+    /// Handed to the thread already serving its client process.
+    Handed,
+    /// Its client process has no thread: the caller serves it, as the thread of this client.
+    Lead(i32, Arc<Client>, Served),
+    /// Not handed over and not registered (no eventfd to wake a thread with): the caller
+    /// serves it alone.
+    Alone(Served),
+}
+
+impl Client {
+    /// Hands `served` to the thread serving process `pid`, or registers the caller as that
+    /// thread.
+    fn join(shared: &Shared, pid: i32, served: Served) -> Joined {
+        let mut clients = lock(&shared.clients);
+        if let Some(client) = clients.get(&pid) {
+            lock(&client.joining).push(served);
+            let _ = rustix::io::write(&client.wake, &1u64.to_ne_bytes());
+            return Joined::Handed;
+        }
+        let Ok(wake) = rustix::event::eventfd(
+            0,
+            rustix::event::EventfdFlags::CLOEXEC | rustix::event::EventfdFlags::NONBLOCK,
+        ) else {
+            return Joined::Alone(served);
+        };
+        let client = Arc::new(Client {
+            joining: std::sync::Mutex::new(Vec::new()),
+            wake,
+        });
+        clients.insert(pid, Arc::clone(&client));
+        Joined::Lead(pid, client, served)
+    }
+
+    /// Whether the thread may end: nothing was handed over, and (under the registry's lock)
+    /// it is unregistered, so that nothing can be.
+    fn leave(shared: &Shared, pid: i32, client: &Arc<Client>) -> bool {
+        let mut clients = lock(&shared.clients);
+        if !lock(&client.joining).is_empty() {
+            return false;
+        }
+        if clients.get(&pid).is_some_and(|c| Arc::ptr_eq(c, client)) {
+            clients.remove(&pid);
+        }
+        true
+    }
+}
+
+/// Serves `sessions`, and as the thread of client process `pid` those its hello threads hand
+/// over, until none is left or the server stops. Each turn answers every session whose client
+/// rang, in order, so that no session of the client waits behind another's second Step.
+fn serve(mut sessions: Vec<Served>, client: Option<(i32, Arc<Client>)>, shared: &Shared) {
+    let mut actions = Vec::new();
+    let mut message = [0u8; 16];
+    let mut rang = Vec::new();
+    let mut checked = Instant::now();
+    loop {
+        if let Some((_, client)) = &client {
+            sessions.append(&mut lock(&client.joining));
+        }
+        if shared.stopping.is_stopping() {
+            sessions.clear();
+        } else if checked.elapsed() >= POLL {
+            // Closed or expired over gRPC: the thread, the region and its budget go now.
+            sessions.retain(|s| shared.store.contains(&s.id));
+            checked = Instant::now();
+        }
+        if sessions.is_empty() {
+            match &client {
+                Some((pid, c)) if !Client::leave(shared, *pid, c) => continue,
+                _ => return,
+            }
+        }
+        let wake = client.as_ref().map(|(_, c)| &c.wake);
+        wait(&sessions, wake, shared, &mut rang);
+        for (served, rang) in sessions.iter_mut().zip(rang.iter_mut()) {
+            if *rang {
+                let received = rustix::net::recv(&served.sock, &mut message, RecvFlags::DONTWAIT);
+                // From here `rang` says whether the session ends.
+                *rang = !served.answer(received, &message, &mut actions, shared);
+            }
+        }
+        let mut ends = rang.iter();
+        sessions.retain(|_| !ends.next().copied().unwrap_or(false));
+    }
+}
+
+/// Sets `rang` to whether each session's client sent something (or hung up). Polls without
+/// sleeping for up to [`SPIN`] when one of them asked quickly last time (and fewer than
+/// [`Shared::max_polling`] threads poll already), then sleeps in `poll` for up to [`POLL`], or
+/// until `wake` says a session was handed over.
+fn wait(sessions: &[Served], wake: Option<&OwnedFd>, shared: &Shared, rang: &mut Vec<bool>) {
+    let mut fds: Vec<PollFd<'_>> = sessions
+        .iter()
+        .map(|s| PollFd::new(&s.sock, PollFlags::IN))
+        .chain(wake.map(|w| PollFd::new(w, PollFlags::IN)))
+        .collect();
+    let quick = sessions.iter().any(|s| s.quick);
+    let mut ready = false;
+    if quick && shared.polling.fetch_add(1, Ordering::AcqRel) < shared.max_polling {
+        let since = Instant::now();
+        let now = Timespec::default();
+        while !ready && since.elapsed() < SPIN {
+            ready = rustix::event::poll(&mut fds, Some(&now)).is_ok_and(|n| n > 0);
+            std::hint::spin_loop();
+        }
+        shared.polling.fetch_sub(1, Ordering::AcqRel);
+    } else if quick {
+        shared.polling.fetch_sub(1, Ordering::AcqRel);
+    }
+    if !ready {
+        let timeout = Timespec::try_from(POLL).ok();
+        let _ = rustix::event::poll(&mut fds, timeout.as_ref());
+    }
+    rang.clear();
+    rang.extend(
+        fds[..sessions.len()]
+            .iter()
+            .map(|f| !f.revents().is_empty()),
+    );
+    if let Some(w) = wake
+        && fds.last().is_some_and(|f| !f.revents().is_empty())
+    {
+        let mut count = [0u8; 8];
+        let _ = rustix::io::read(w, &mut count);
+    }
+}
+
+/// The registry's (or a client's) lock; a thread that panicked holding it left nothing half
+/// done (each critical section is one insert, push, take or remove).
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// A session's hello: its ID and secret.
 type Hello = (String, [u8; SHM_SECRET_BYTES]);
 
-/// Checks the hello (the peer was checked at accept), makes the region, passes it: the session
-/// ID and secret, the region, the thread's slot and the region's charge.
-fn handshake(
-    sock: &OwnedFd,
-    hello: &[u8],
-    shared: &Arc<Shared>,
-) -> Result<(String, [u8; SHM_SECRET_BYTES], Region, Slot, Charge), ShmError> {
+/// What a hello accepted: the session ID and secret, the region, the session's slot, the
+/// region's charge, and whether the session's Steps need the CPU pool (a planner's).
+type Accepted = (String, [u8; SHM_SECRET_BYTES], Region, Slot, Charge, bool);
+
+/// Checks the hello (the peer was checked at accept), makes the region, passes it.
+fn handshake(sock: &OwnedFd, hello: &[u8], shared: &Arc<Shared>) -> Result<Accepted, ShmError> {
     let (id, secret) = parse_hello(hello)?;
     if shared.stopping.is_stopping() {
         return Err(ShmError::Stopping);
@@ -494,7 +677,8 @@ fn handshake(
     )
     .map_err(std::io::Error::from)?;
     tracing::debug!(session = %id, bytes = region.bytes(), "shared-memory session started");
-    Ok((id, secret, region, slot, charge))
+    let heavy = StepPath::heavy(&session);
+    Ok((id, secret, region, slot, charge, heavy))
 }
 
 /// The session ID and secret of a hello: `H`, 32 characters, 32 bytes.
