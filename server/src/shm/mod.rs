@@ -565,11 +565,14 @@ fn serve(mut sessions: Vec<Served>, client: Option<(i32, Arc<Client>)>, shared: 
         if let Some((_, client)) = &client {
             sessions.append(&mut lock(&client.joining));
         }
-        if shared.stopping.is_stopping() {
-            sessions.clear();
-        } else if checked.elapsed() >= POLL {
-            // Closed or expired over gRPC: the thread, the region and its budget go now.
-            sessions.retain(|s| shared.store.contains(&s.id));
+        if checked.elapsed() >= POLL {
+            // The server stops (a Step rung meanwhile was refused as such), or the session was
+            // closed or expired over gRPC: the thread, the region and its budget go now.
+            if shared.stopping.is_stopping() {
+                sessions.clear();
+            } else {
+                sessions.retain(|s| shared.store.contains(&s.id));
+            }
             checked = Instant::now();
         }
         if sessions.is_empty() {
