@@ -49,7 +49,8 @@
 //! reply is waited for by polling its sockets (`poll` with a zero timeout) for up to [`SPIN`]
 //! before the blocking `poll`; a slower client is never polled for. At most one thread fewer
 //! than the machine's CPUs polls at once (none on one CPU), so polling cannot starve the trainer
-//! or the other clients of every core. The client does the same on its side (`client-py`'s `_shm`).
+//! or the other clients of every core. The client does the same on its side (`client-py`'s
+//! `_shm`).
 
 pub mod layout;
 pub mod region;
