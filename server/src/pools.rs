@@ -7,7 +7,7 @@
 //!   workers that serve Step and Reset, and at most `workers` jobs run at once, so a flood of
 //!   heavy requests queues here instead of starving every other client. The server's pool
 //!   ([`CpuPool::beside_steps`]) is one per process: the gRPC service and the shared-memory data
-//!   plane's session threads ([`CpuPool::acquire_blocking`]) take their permits from the same
+//!   plane's threads ([`CpuPool::acquire_blocking`]) take their permits from the same
 //!   semaphore, so planner Steps are bounded together whichever transport asked.
 //! - [`StepPool`]: the threads that step one large session's environments in chunks at once
 //!   ([`Stepping`] says when a Step is large enough). Only chunks of large Steps run there;
@@ -77,8 +77,8 @@ impl CpuPool {
     }
 
     /// Waits for a free worker from a thread of its own outside the runtime (a shared-memory
-    /// session's thread), which then runs its job itself while it holds the permit: the same
-    /// bound as [`CpuPool::run`], without a hop to another thread. `runtime` drives the wait
+    /// planner session's thread), which then runs its job itself while it holds the permit: the
+    /// same bound as [`CpuPool::run`], without a hop to another thread. `runtime` drives the wait
     /// when no permit is free at once; it must not be called from an async task.
     pub fn acquire_blocking(
         &self,

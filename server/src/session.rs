@@ -449,8 +449,8 @@ impl Store {
         Ok(session)
     }
 
-    /// Whether session `id` is live, without marking it used (a shared-memory session's thread
-    /// asks, to end with its session).
+    /// Whether session `id` is live, without marking it used (the shared-memory thread serving it
+    /// asks, to let it go).
     pub fn contains(&self, id: &str) -> bool {
         SessionId::parse(id).is_ok_and(|key| self.shard(key).contains_key(&key))
     }
