@@ -675,7 +675,8 @@ async fn one_thread_serves_a_client_processs_sessions_and_a_planners_has_its_own
             assert_eq!(got, arrays(&expected), "step {k}");
         }
     }
-    assert_eq!(threads_named(pid, "shm-session"), 1);
+    // The hello threads of the second and third sessions handed them over and ended.
+    assert_eq!(shm_threads_settle_at(pid, 1).await, 1);
     // A planner's session: a thread of its own (its Steps may wait for the CPU pool).
     let mut request = create_request(1, pb::AutoresetMode::NextStep, Some(5));
     request.expert_policy = pb::Policy::Planner.into();
@@ -685,7 +686,7 @@ async fn one_thread_serves_a_client_processs_sessions_and_a_planners_has_its_own
         connect(&doorbell, &planner.session_id, &planner.shm_secret).unwrap()
     });
     assert!(tokio::task::block_in_place(|| p.step(&[0])).is_ok());
-    assert_eq!(threads_named(pid, "shm-session"), 2);
+    assert_eq!(shm_threads_settle_at(pid, 2).await, 2);
     // A session closed over gRPC while its client's others keep stepping is let go: its
     // doorbell hangs up (its region and slot with it).
     c.close_session(pb::CloseSessionRequest {
@@ -710,9 +711,18 @@ async fn one_thread_serves_a_client_processs_sessions_and_a_planners_has_its_own
     assert!(hung_up, "a closed session's doorbell stayed open");
     // When the client's sessions go, so does their thread.
     drop(shm);
+    assert_eq!(shm_threads_settle_at(pid, 1).await, 1);
+}
+
+/// The server's `shm-session` threads once their count is `want` (a thread that has just
+/// returned may still be listed for a moment), or after the test's patience.
+async fn shm_threads_settle_at(pid: u32, want: usize) -> usize {
     let deadline = Instant::now() + PATIENCE;
-    while threads_named(pid, "shm-session") > 1 && Instant::now() < deadline {
+    loop {
+        let now = threads_named(pid, "shm-session");
+        if now == want || Instant::now() > deadline {
+            return now;
+        }
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
-    assert_eq!(threads_named(pid, "shm-session"), 1);
 }
