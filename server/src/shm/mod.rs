@@ -608,15 +608,15 @@ fn wait(sessions: &[Served], wake: Option<&OwnedFd>, shared: &Shared, rang: &mut
         .collect();
     let quick = sessions.iter().any(|s| s.quick);
     let mut ready = false;
-    if quick && shared.polling.fetch_add(1, Ordering::AcqRel) < shared.max_polling {
-        let since = Instant::now();
-        let now = Timespec::default();
-        while !ready && since.elapsed() < SPIN {
-            ready = rustix::event::poll(&mut fds, Some(&now)).is_ok_and(|n| n > 0);
-            std::hint::spin_loop();
+    if quick {
+        if shared.polling.fetch_add(1, Ordering::AcqRel) < shared.max_polling {
+            let since = Instant::now();
+            let now = Timespec::default();
+            while !ready && since.elapsed() < SPIN {
+                ready = rustix::event::poll(&mut fds, Some(&now)).is_ok_and(|n| n > 0);
+                std::hint::spin_loop();
+            }
         }
-        shared.polling.fetch_sub(1, Ordering::AcqRel);
-    } else if quick {
         shared.polling.fetch_sub(1, Ordering::AcqRel);
     }
     if !ready {
