@@ -5,8 +5,9 @@
 //!
 //! And whom it trusts: a hello with a wrong secret is refused exactly as an unknown ID (also
 //! across tenants, on the real binary); another user's connection is closed before any thread
-//! starts (the real binary, and a second user made here when the test runs as root); silent
-//! connections past the cap are closed at once; a planner session's Steps wait for the CPU pool.
+//! starts (the real binary, and a second user made here when the test runs as root), while a
+//! client the server cannot see in its pid namespace is served; silent connections past the cap
+//! are closed at once; a planner session's Steps wait for the CPU pool.
 //!
 //! And how they are served: the sessions of one client process by one thread, in turn, a
 //! planner's by a thread of its own.
@@ -490,6 +491,41 @@ async fn another_users_connection_is_closed_before_any_thread_starts() {
     .unwrap();
     assert!(tokio::task::block_in_place(|| shm.step(&[0])).is_ok());
     assert_eq!(threads_named(pid, "shm-session"), 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_the_server_cannot_see_in_its_pid_namespace_is_served() {
+    if !rustix::process::geteuid().is_root() {
+        eprintln!(
+            "skipped: a server in a pid namespace of its own needs root (CI runs as root); \
+             reading a peer without a pid is unit-tested in shm::tests"
+        );
+        return;
+    }
+    // The server in a pid namespace of its own (as in a container that shares the host's
+    // network), this test outside it: the kernel tells the server pid 0 for this process.
+    // Such a client was closed as "another user" (the peer read failed).
+    let server = Process::start_under("unshare --pid --fork --kill-child", "--max-shm-sessions 4");
+    let mut client = DinerDashClient::connect(format!("http://{}", server.addr))
+        .await
+        .unwrap();
+    let reply = created(&mut client, 2).await;
+    // Its own pid in its namespace, not the one this test sees.
+    assert_ne!(reply.shm_server_pid, server.pid());
+    let id = reply.session_id.clone();
+    let shm = tokio::task::block_in_place(|| {
+        connect(&reply.shm_doorbell, &reply.session_id, &reply.shm_secret)
+    })
+    .expect("served");
+    // Served alone (it has no pid to be grouped by), and stepped as over gRPC.
+    let twin = created(&mut client, 2).await.session_id;
+    reset(&mut client, &id, Some(5)).await;
+    reset(&mut client, &twin, Some(5)).await;
+    for t in 0..20 {
+        let actions = [t % 57, (3 * t) % 57];
+        let got = tokio::task::block_in_place(|| shm.step(&actions)).unwrap();
+        assert_eq!(got, arrays(&step(&mut client, &twin, &actions).await));
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

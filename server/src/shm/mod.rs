@@ -30,7 +30,9 @@
 //! Who steps: one std thread per *client process* (the peer's pid, `SO_PEERCRED`) serves all
 //! its sessions in turn ([`serve`]); a later session's hello thread hands the session over to
 //! it ([`Client::join`]) and ends. A planner session, whose Steps may wait for the CPU pool,
-//! gets a thread of its own, so that its waits hold up none of its client's other sessions.
+//! gets a thread of its own, so that its waits hold up none of its client's other sessions, and
+//! so does each session of a client whose pid this server cannot see (another pid namespace:
+//! [`Peer::pid`]).
 //! Why a std thread rather than a tokio task: the step is synchronous CPU work of tens of
 //! microseconds, and a blocked thread wakes within one context switch. Why one per client
 //! process rather than per session: a client that pipelines (`step_async` on one session while
@@ -294,10 +296,31 @@ impl Doorbell {
     }
 }
 
-/// Whether the peer of `sock` runs as `owner`: its credentials when it connected
-/// (`SO_PEERCRED`). A peer whose credentials cannot be read is not.
-pub fn peer_is(sock: &impl AsFd, owner: Uid) -> bool {
-    sockopt::socket_peercred(sock).is_ok_and(|peer| peer.uid == owner)
+/// Who is at the other end of a doorbell connection: its credentials when it connected
+/// (`SO_PEERCRED`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Peer {
+    /// Its user.
+    pub uid: u32,
+    /// Its process; `None` when it runs in a pid namespace this server cannot see (the kernel
+    /// says 0: e.g. a client on the host of a server in a container): it is served, alone (no
+    /// thread shared with its other sessions).
+    pub pid: Option<i32>,
+}
+
+/// The credentials of the peer of `sock`, a socket in non-blocking mode (an `accept` with
+/// `NONBLOCK`). Read through tokio's `peer_cred` (on a duplicate of the descriptor, registered
+/// with `runtime`'s reactor for the moment), not rustix's `socket_peercred`: rustix's `UCred`
+/// holds the pid as a non-zero `Pid`, and the kernel's 0 for a peer in another pid namespace
+/// made that undefined behaviour (such a client was closed as "another user").
+pub fn peer(sock: &impl AsFd, runtime: &tokio::runtime::Handle) -> std::io::Result<Peer> {
+    let _inside = runtime.enter();
+    let copy = std::os::unix::net::UnixStream::from(sock.as_fd().try_clone_to_owned()?);
+    let cred = tokio::net::UnixStream::from_std(copy)?.peer_cred()?;
+    Ok(Peer {
+        uid: cred.uid(),
+        pid: cred.pid().filter(|&pid| pid > 0),
+    })
 }
 
 /// Accepts clients until the server stops. A connection of another user, or one past
@@ -305,7 +328,8 @@ pub fn peer_is(sock: &impl AsFd, owner: Uid) -> bool {
 /// one gets a thread of its own until its hello ([`serve_client`]).
 fn accept(listener: &OwnedFd, shared: &Arc<Shared>) {
     while !shared.stopping.is_stopping() {
-        let sock = match rustix::net::accept_with(listener, SocketFlags::CLOEXEC) {
+        let flags = SocketFlags::CLOEXEC | SocketFlags::NONBLOCK; // for `peer`
+        let sock = match rustix::net::accept_with(listener, flags) {
             Ok(sock) => sock,
             Err(Errno::AGAIN | Errno::INTR | Errno::CONNABORTED) => continue,
             Err(e) => {
@@ -314,11 +338,19 @@ fn accept(listener: &OwnedFd, shared: &Arc<Shared>) {
                 continue;
             }
         };
-        if !peer_is(&sock, shared.owner) {
-            drop(sock);
-            tracing::debug!("doorbell: closed a connection of another user");
-            continue;
-        }
+        let peer = match peer(&sock, &shared.runtime) {
+            Ok(peer) if peer.uid == shared.owner.as_raw() => peer,
+            Ok(_) => {
+                drop(sock);
+                tracing::debug!("doorbell: closed a connection of another user");
+                continue;
+            }
+            Err(e) => {
+                drop(sock);
+                tracing::debug!(error = %e, "doorbell: closed a connection whose peer is unknown");
+                continue;
+            }
+        };
         if shared.pending.fetch_add(1, Ordering::AcqRel) >= MAX_PENDING_HELLOS {
             shared.pending.fetch_sub(1, Ordering::AcqRel);
             drop(sock);
@@ -333,7 +365,7 @@ fn accept(listener: &OwnedFd, shared: &Arc<Shared>) {
         let spawned = std::thread::Builder::new()
             .name("shm-session".into())
             .stack_size(THREAD_STACK)
-            .spawn(move || serve_client(sock, pending, &shared));
+            .spawn(move || serve_client(sock, peer.pid, pending, &shared));
         if let Err(e) = spawned {
             tracing::warn!(error = %e, "doorbell: no thread for a client");
         }
@@ -343,8 +375,9 @@ fn accept(listener: &OwnedFd, shared: &Arc<Shared>) {
 /// One connection, from its hello until its session is served by its client's thread: this
 /// thread becomes that thread when its client process has none yet (or the session is a
 /// planner's), and otherwise hands the session over and ends.
-fn serve_client(sock: OwnedFd, pending: Pending, shared: &Arc<Shared>) {
+fn serve_client(sock: OwnedFd, pid: Option<i32>, pending: Pending, shared: &Arc<Shared>) {
     let setup = (|| -> std::io::Result<()> {
+        rustix::io::ioctl_fionbio(&sock, false)?; // the hello is waited for, up to a timeout
         sockopt::set_socket_timeout(&sock, sockopt::Timeout::Recv, Some(POLL))?;
         Ok(())
     })();
@@ -388,7 +421,7 @@ fn serve_client(sock: OwnedFd, pending: Pending, shared: &Arc<Shared>) {
     };
     // A planner's Steps wait for the CPU pool: such a session gets a thread of its own, so that
     // its waits hold up no other session of its client.
-    let joined = match served.client() {
+    let joined = match pid {
         Some(pid) if !heavy => Client::join(shared, pid, served),
         _ => Joined::Alone(served),
     };
@@ -416,12 +449,6 @@ struct Served {
 }
 
 impl Served {
-    /// The pid of the client process (`SO_PEERCRED`, read when it connected).
-    fn client(&self) -> Option<i32> {
-        let peer = sockopt::socket_peercred(&self.sock).ok()?;
-        Some(peer.pid.as_raw_nonzero().get())
-    }
-
     /// Answers what the client sent (`received`, the `recv` of its socket into `message`): a
     /// Step is stepped and replied to. False when the session ends here (the client went or
     /// spoke out of turn, the session is gone, the server stops).
@@ -706,21 +733,32 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_peer_check_reads_the_connecting_user() {
-        let (a, b) = rustix::net::socketpair(
-            AddressFamily::UNIX,
-            SocketType::SEQPACKET,
-            SocketFlags::CLOEXEC,
-            None,
-        )
-        .unwrap();
-        let me = rustix::process::geteuid();
-        assert!(peer_is(&a, me) && peer_is(&b, me));
-        let other = Uid::from_raw(me.as_raw().wrapping_add(1));
-        assert!(!peer_is(&a, other));
-        // Not a socket with a peer: not the owner.
-        let lone = rustix::net::socket(AddressFamily::UNIX, SocketType::SEQPACKET, None).unwrap();
-        assert!(!peer_is(&lone, me));
+    fn the_peer_check_reads_the_connecting_user_and_process() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_io()
+            .build()
+            .unwrap();
+        let flags = SocketFlags::CLOEXEC | SocketFlags::NONBLOCK;
+        let (a, b) =
+            rustix::net::socketpair(AddressFamily::UNIX, SocketType::SEQPACKET, flags, None)
+                .unwrap();
+        let me = Peer {
+            uid: rustix::process::geteuid().as_raw(),
+            pid: Some(std::process::id() as i32),
+        };
+        assert_eq!(peer(&a, runtime.handle()).unwrap(), me);
+        assert_eq!(peer(&b, runtime.handle()).unwrap(), me);
+        // Read on a duplicate: the socket itself is left as it was, usable.
+        assert!(rustix::io::ioctl_fionbio(&a, false).is_ok());
+        assert_eq!(send(&a, b"S"), Ok(1));
+        // Not a socket with a peer: no process (the kernel's 0, as for a peer in another pid
+        // namespace, read without fault), and the overflow uid (65534) rather than this user.
+        let lone =
+            rustix::net::socket_with(AddressFamily::UNIX, SocketType::SEQPACKET, flags, None)
+                .unwrap();
+        let nobody = peer(&lone, runtime.handle()).unwrap();
+        assert_eq!(nobody.pid, None);
+        assert!(me.uid == 65534 || nobody.uid != me.uid, "{nobody:?}");
     }
 
     #[test]

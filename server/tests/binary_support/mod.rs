@@ -24,9 +24,21 @@ impl Process {
 
     /// [`Process::start`] of the binary at `exe` (another build, to compare with).
     pub fn start_exe(exe: &str, prefix: &str, args: &str) -> Process {
+        Process::spawn(format!("{prefix} exec '{exe}' --port 0 {args}"))
+    }
+
+    /// The server run by `wrapper`, a command that runs the command line after it (e.g.
+    /// `unshare --pid --fork --kill-child`, which must end the server when it is killed):
+    /// [`Process::pid`] is then the wrapper's.
+    pub fn start_under(wrapper: &str, args: &str) -> Process {
+        let exe = env!("CARGO_BIN_EXE_dinerdash-server");
+        Process::spawn(format!("exec {wrapper} '{exe}' --port 0 {args}"))
+    }
+
+    fn spawn(script: String) -> Process {
         let mut child = Command::new("sh")
             .arg("-c")
-            .arg(format!("{prefix} exec '{exe}' --port 0 {args}"))
+            .arg(script)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
