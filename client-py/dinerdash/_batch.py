@@ -292,7 +292,8 @@ def decode(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Observations ``(N, 40) float32`` and infos of the state ``batch`` returns, or with
     ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
-    Gymnasium ``_key`` mask (default: all). Every array returned is the caller's own."""
+    Gymnasium ``_key`` mask (default: all; copied for each key, never kept). Every array
+    returned is the caller's own."""
     n = batch.num_envs
     if present is None:
         present = np.ones(n, dtype=np.bool_)

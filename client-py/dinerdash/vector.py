@@ -200,6 +200,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
         self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
+        self._everyone = np.ones(self.num_envs, np.bool_)  # copied for each step's `_key` masks
         self._closed = False
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
@@ -450,18 +451,20 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def _decode_step(self, batches: list[Batch]):
         n = self.num_envs
         batch = join(batches)
-        obs, info = decode(batch, self.expert)
+        everyone = self._everyone
+        obs, info = decode(batch, self.expert, present=everyone)
         rewards = batch["rewards"].astype(np.float64)
         terminated = batch["terminated"].copy()
         truncated = batch["truncated"].copy()
         reset = batch.get("reset")
-        resets = reset is not None and reset.any()
+        # count_nonzero: a quarter of any()'s time on a (256,) bool.
+        resets = reset is not None and np.count_nonzero(reset) > 0
         # Every step's info has reset's keys (TorchRL reads them once): each environment's
         # episode seed, as a SyncVectorEnv of DinerDashEnv reports it.
         ended_seeds = self._seeds
         if resets:
             self._seeds = np.where(reset, batch["seeds"].astype(np.int64), self._seeds)
-        info["seed"], info["_seed"] = self._seeds.copy(), np.ones(n, np.bool_)
+        info["seed"], info["_seed"] = self._seeds.copy(), everyone.copy()
         if resets:
             reset = reset.copy()
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
