@@ -192,7 +192,7 @@ struct Shared {
     polling: AtomicUsize,
     max_polling: usize,
     /// The thread serving each client process's sessions, by the client's pid.
-    clients: std::sync::Mutex<std::collections::HashMap<i32, Arc<Client>>>,
+    clients: Clients,
 }
 
 impl Shared {
@@ -574,10 +574,37 @@ impl Client {
         if !lock(&client.joining).is_empty() {
             return false;
         }
-        if clients.get(&pid).is_some_and(|c| Arc::ptr_eq(c, client)) {
-            clients.remove(&pid);
-        }
+        unregister(&mut clients, pid, client);
         true
+    }
+}
+
+/// The registry of the threads serving client processes, by pid.
+type Clients = std::sync::Mutex<std::collections::HashMap<i32, Arc<Client>>>;
+
+/// Removes `client` from the registry, if it is still the thread registered for `pid`.
+fn unregister(
+    clients: &mut std::collections::HashMap<i32, Arc<Client>>,
+    pid: i32,
+    client: &Arc<Client>,
+) {
+    if clients.get(&pid).is_some_and(|c| Arc::ptr_eq(c, client)) {
+        clients.remove(&pid);
+    }
+}
+
+/// A client's thread's registration, ended however the thread ends: a Step that panicked (a
+/// bug) must not leave the process's later sessions handed to a thread that is gone (they would
+/// wait for their Step's deadline). Those handed over meanwhile close with the [`Client`].
+struct Registered<'a> {
+    clients: &'a Clients,
+    pid: i32,
+    client: Arc<Client>,
+}
+
+impl Drop for Registered<'_> {
+    fn drop(&mut self) {
+        unregister(&mut lock(self.clients), self.pid, &self.client);
     }
 }
 
@@ -589,6 +616,11 @@ fn serve(mut sessions: Vec<Served>, client: Option<(i32, Arc<Client>)>, shared: 
     let mut message = [0u8; 16];
     let mut rang = Vec::new();
     let mut checked = Instant::now();
+    let _registered = client.as_ref().map(|(pid, c)| Registered {
+        clients: &shared.clients,
+        pid: *pid,
+        client: Arc::clone(c),
+    });
     loop {
         if let Some((_, client)) = &client {
             sessions.append(&mut lock(&client.joining));
@@ -759,6 +791,44 @@ mod tests {
         let nobody = peer(&lone, runtime.handle()).unwrap();
         assert_eq!(nobody.pid, None);
         assert!(me.uid == 65534 || nobody.uid != me.uid, "{nobody:?}");
+    }
+
+    #[test]
+    fn a_client_thread_that_panics_is_unregistered_and_only_itself() {
+        let client = || {
+            let flags = rustix::event::EventfdFlags::CLOEXEC;
+            Arc::new(Client {
+                joining: std::sync::Mutex::new(Vec::new()),
+                wake: rustix::event::eventfd(0, flags).unwrap(),
+            })
+        };
+        let (mine, later, other) = (client(), client(), client());
+        let clients = Clients::default();
+        lock(&clients).insert(7, Arc::clone(&mine));
+        lock(&clients).insert(8, Arc::clone(&other));
+        let ended = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            let _registered = Registered {
+                clients: &clients,
+                pid: 7,
+                client: Arc::clone(&mine),
+            };
+            panic!("a Step's bug");
+        }));
+        assert!(ended.is_err());
+        assert!(!lock(&clients).contains_key(&7));
+        assert!(lock(&clients).contains_key(&8));
+        // A thread registered since for the same pid (the first one left) is not removed.
+        lock(&clients).insert(7, Arc::clone(&later));
+        drop(Registered {
+            clients: &clients,
+            pid: 7,
+            client: mine,
+        });
+        assert!(
+            lock(&clients)
+                .get(&7)
+                .is_some_and(|c| Arc::ptr_eq(c, &later))
+        );
     }
 
     #[test]
