@@ -78,6 +78,7 @@ test-agents: build-server venv
 lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
+	RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --document-private-items
 	$(VENV)/bin/ruff check client-py tests agents scripts server/python
 	scripts/buf_check.sh
 	$(VENV)/bin/ruff format --check client-py tests agents scripts server/python

@@ -8,7 +8,7 @@
 //!   refused `INVALID_ARGUMENT` before prost allocates a vector for it. Prost turns a 2-byte empty submessage into a 24-byte struct in
 //!   a vector that doubles as it grows, so 16 MiB of empty arrival lists used to become ~380 MiB
 //!   before anything was checked; past these bounds a decoded request is at most a few times
-//!   its size, which [`crate::budget::intake`] charges while it is received and decoded.
+//!   its size, which [`intake`] charges while it is received and decoded.
 //!
 //! The bounds here are the server's ceilings (a session has at most [`MAX_ENVS`] environments,
 //! whatever `--max-envs-per-session` says); each request is then checked against its session's

@@ -3,7 +3,7 @@
 //! Every connection holds a descriptor, and so do the listeners, the runtime, metrics scrapes and
 //! files read at start. At start the binary raises its soft limit to the hard one ([`raise`]);
 //! the accept loop then serves at most [`Capacity::for_limit`] connections, so that it sheds
-//! connections (see [`super::accept`]) before `accept` runs out of descriptors.
+//! connections (see [`super::accept`](mod@super::accept)) before `accept` runs out of descriptors.
 //!
 //! On platforms without `RLIMIT_NOFILE` (not Unix) there is no limit to raise or read, and the
 //! connection limit is taken as given.

@@ -28,7 +28,7 @@
 //!   calls in flight finish.
 //!
 //! One job a file:
-//! - [`accept`]: binding the listener, the accept loop with its backoff, admitting or answering
+//! - [`accept`](mod@accept): binding the listener, the accept loop with its backoff, admitting or answering
 //!   each connection over the limit.
 //! - `table`: the admitted connections, and the choice of which to shed.
 //! - [`conn`]: one connection: the socket with its preface and idle timers.

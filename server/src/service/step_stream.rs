@@ -18,7 +18,7 @@ type NextReply = Option<(Result<pb::Batch, Status>, Inbound)>;
 
 /// The replies of one StepStream, computed one at a time as the transport asks for them: the
 /// next request is read only once the previous reply has been handed on (see
-/// [`StepReplies::poll_next`]), so a client that does not read its replies holds at most one
+/// its `Stream::poll_next`), so a client that does not read its replies holds at most one
 /// reply beyond HTTP/2 flow control, and stops the server reading its requests.
 pub struct StepReplies {
     /// Reads the next request and steps it; `None` once the stream has ended.
