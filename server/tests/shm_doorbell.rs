@@ -6,8 +6,9 @@
 //! And whom it trusts: a hello with a wrong secret is refused exactly as an unknown ID (also
 //! across tenants, on the real binary); another user's connection is closed before any thread
 //! starts (the real binary, and a second user made here when the test runs as root), while a
-//! client the server cannot see in its pid namespace is served; silent connections past the cap
-//! are closed at once; a planner session's Steps wait for the CPU pool.
+//! client the server cannot see in its pid namespace is served, and a server run as nobody
+//! offers no doorbell at all; silent connections past the cap are closed at once; a planner
+//! session's Steps wait for the CPU pool.
 //!
 //! And how they are served: the sessions of one client process by one thread, in turn, a
 //! planner's by a thread of its own.
@@ -505,7 +506,11 @@ async fn a_client_the_server_cannot_see_in_its_pid_namespace_is_served() {
     // The server in a pid namespace of its own (as in a container that shares the host's
     // network), this test outside it: the kernel tells the server pid 0 for this process.
     // Such a client was closed as "another user" (the peer read failed).
-    let server = Process::start_under("unshare --pid --fork --kill-child", "--max-shm-sessions 4");
+    let server = Process::start_under(
+        "unshare --pid --fork --kill-child",
+        env!("CARGO_BIN_EXE_dinerdash-server"),
+        "--max-shm-sessions 4",
+    );
     let mut client = DinerDashClient::connect(format!("http://{}", server.addr))
         .await
         .unwrap();
@@ -526,6 +531,45 @@ async fn a_client_the_server_cannot_see_in_its_pid_namespace_is_served() {
         let got = tokio::task::block_in_place(|| shm.step(&actions)).unwrap();
         assert_eq!(got, arrays(&step(&mut client, &twin, &actions).await));
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_run_as_nobody_offers_no_shared_memory() {
+    use std::os::unix::fs::PermissionsExt;
+    if !rustix::process::geteuid().is_root() {
+        eprintln!(
+            "skipped: running the server as nobody (uid 65534) needs root (CI runs as root); \
+             the owner check itself is unit-tested in shm::tests"
+        );
+        return;
+    }
+    // The kernel reports every peer it cannot map (a process of another user namespace) as
+    // nobody: a server running as nobody could not tell its own clients from strangers.
+    // A copy of the binary nobody may run (the build directory may be private).
+    let exe = std::env::temp_dir().join(format!("dinerdash-server-nobody-{}", std::process::id()));
+    std::fs::copy(env!("CARGO_BIN_EXE_dinerdash-server"), &exe).unwrap();
+    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let server = Process::start_under(
+        "setpriv --reuid=65534 --regid=65534 --clear-groups",
+        exe.to_str().unwrap(),
+        "--max-shm-sessions 4",
+    );
+    let _ = std::fs::remove_file(&exe); // running: the file is no longer needed
+    let mut client = DinerDashClient::connect(format!("http://{}", server.addr))
+        .await
+        .unwrap();
+    let reply = created(&mut client, 1).await;
+    assert_eq!(
+        reply.shm_doorbell, "",
+        "a doorbell offered by a server run as nobody"
+    );
+    // Stepping over gRPC is unaffected.
+    step(&mut client, &reply.session_id, &[0]).await;
+    server.signal("-KILL"); // no drain to wait for
+    let (_, stderr) = tokio::task::spawn_blocking(move || server.wait())
+        .await
+        .unwrap();
+    assert!(stderr.contains("kernel.overflowuid"), "{stderr}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -237,6 +237,7 @@ impl Doorbell {
     /// Called within the server's tokio runtime, which drives the waits for the CPU pool.
     pub fn start(store: Store, max: usize, stopping: Shutdown) -> std::io::Result<Doorbell> {
         let runtime = tokio::runtime::Handle::try_current().map_err(std::io::Error::other)?;
+        let owner = owner(rustix::process::geteuid(), overflow_uid())?;
         let mut random = [0u8; 8];
         {
             use rand::TryRngCore;
@@ -269,7 +270,7 @@ impl Doorbell {
             step,
             runtime,
             stopping,
-            owner: rustix::process::geteuid(),
+            owner,
             max,
             live: AtomicUsize::new(0),
             pending: AtomicUsize::new(0),
@@ -294,6 +295,29 @@ impl Doorbell {
     pub fn live(&self) -> usize {
         self.shared.live.load(Ordering::Acquire)
     }
+}
+
+/// The user whose processes the doorbell serves: this server's, unless it is the uid the
+/// kernel reports for a user it cannot map into this user namespace (`kernel.overflowuid`,
+/// `nobody`): a peer reported so could then be any process of another user namespace that
+/// shares the network namespace, and no peer check would hold.
+fn owner(euid: Uid, overflow: u32) -> std::io::Result<Uid> {
+    if euid.as_raw() == overflow {
+        return Err(std::io::Error::other(format!(
+            "this server runs as uid {overflow}, the uid the kernel gives peers it cannot \
+             map (kernel.overflowuid), so it could not tell its own user's clients from \
+             strangers; run it as another user for shared memory"
+        )));
+    }
+    Ok(euid)
+}
+
+/// `kernel.overflowuid` (65534 unless changed, or when `/proc` cannot say).
+fn overflow_uid() -> u32 {
+    std::fs::read_to_string("/proc/sys/kernel/overflowuid")
+        .ok()
+        .and_then(|uid| uid.trim().parse().ok())
+        .unwrap_or(65534)
 }
 
 /// Who is at the other end of a doorbell connection: its credentials when it connected
@@ -784,13 +808,30 @@ mod tests {
         assert!(rustix::io::ioctl_fionbio(&a, false).is_ok());
         assert_eq!(send(&a, b"S"), Ok(1));
         // Not a socket with a peer: no process (the kernel's 0, as for a peer in another pid
-        // namespace, read without fault), and the overflow uid (65534) rather than this user.
+        // namespace, read without fault), and no user (-1).
         let lone =
             rustix::net::socket_with(AddressFamily::UNIX, SocketType::SEQPACKET, flags, None)
                 .unwrap();
         let nobody = peer(&lone, runtime.handle()).unwrap();
-        assert_eq!(nobody.pid, None);
-        assert!(me.uid == 65534 || nobody.uid != me.uid, "{nobody:?}");
+        assert_eq!(
+            nobody,
+            Peer {
+                uid: u32::MAX,
+                pid: None
+            }
+        );
+    }
+
+    #[test]
+    fn a_server_running_as_the_overflow_uid_serves_no_one() {
+        // Every peer the kernel cannot map reads as that uid: no peer check could hold.
+        let e = owner(Uid::from_raw(65534), 65534).unwrap_err();
+        assert!(e.to_string().contains("kernel.overflowuid"), "{e}");
+        assert_eq!(
+            owner(Uid::from_raw(1000), 65534).unwrap(),
+            Uid::from_raw(1000)
+        );
+        assert_eq!(owner(Uid::ROOT, 65534).unwrap(), Uid::ROOT);
     }
 
     #[test]

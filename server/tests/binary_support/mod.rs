@@ -27,11 +27,10 @@ impl Process {
         Process::spawn(format!("{prefix} exec '{exe}' --port 0 {args}"))
     }
 
-    /// The server run by `wrapper`, a command that runs the command line after it (e.g.
-    /// `unshare --pid --fork --kill-child`, which must end the server when it is killed):
-    /// [`Process::pid`] is then the wrapper's.
-    pub fn start_under(wrapper: &str, args: &str) -> Process {
-        let exe = env!("CARGO_BIN_EXE_dinerdash-server");
+    /// The server binary at `exe` run by `wrapper`, a command that runs the command line after
+    /// it (`unshare --pid --fork --kill-child`, which ends the server when it is killed, or
+    /// `setpriv`, which execs it): [`Process::pid`] is then the wrapper's.
+    pub fn start_under(wrapper: &str, exe: &str, args: &str) -> Process {
         Process::spawn(format!("exec {wrapper} '{exe}' --port 0 {args}"))
     }
 
