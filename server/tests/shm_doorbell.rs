@@ -538,19 +538,21 @@ async fn a_server_run_as_nobody_offers_no_shared_memory() {
     use std::os::unix::fs::PermissionsExt;
     if !rustix::process::geteuid().is_root() {
         eprintln!(
-            "skipped: running the server as nobody (uid 65534) needs root (CI runs as root); \
-             the owner check itself is unit-tested in shm::tests"
+            "skipped: running the server as nobody (kernel.overflowuid) needs root (CI runs as \
+             root); the owner check itself is unit-tested in shm::tests"
         );
         return;
     }
     // The kernel reports every peer it cannot map (a process of another user namespace) as
     // nobody: a server running as nobody could not tell its own clients from strangers.
+    let nobody = std::fs::read_to_string("/proc/sys/kernel/overflowuid").unwrap();
+    let nobody = nobody.trim();
     // A copy of the binary nobody may run (the build directory may be private).
     let exe = std::env::temp_dir().join(format!("dinerdash-server-nobody-{}", std::process::id()));
     std::fs::copy(env!("CARGO_BIN_EXE_dinerdash-server"), &exe).unwrap();
     std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
     let server = Process::start_under(
-        "setpriv --reuid=65534 --regid=65534 --clear-groups",
+        &format!("setpriv --reuid={nobody} --regid={nobody} --clear-groups"),
         exe.to_str().unwrap(),
         "--max-shm-sessions 4",
     );
