@@ -57,11 +57,13 @@ def server_env() -> dict[str, str]:
 
 
 class ServerProcess:
-    """One ``dinerdash-server`` child; ``stop()`` is terminate -> wait -> kill."""
+    """One ``dinerdash-server`` child; ``stop()`` is terminate -> wait -> kill. ``wrapper``: a
+    command that runs the server's command line after it (``unshare --pid --fork --kill-child``,
+    which ends the server when it is stopped); ``pid`` is then the wrapper's."""
 
-    def __init__(self, *args: str, port: int = 0) -> None:
+    def __init__(self, *args: str, port: int = 0, wrapper: tuple[str, ...] = ()) -> None:
         self.args = args
-        cmd = [str(server_binary()), "--host", "127.0.0.1", "--port", str(port), *args]
+        cmd = [*wrapper, str(server_binary()), "--host", "127.0.0.1", "--port", str(port), *args]
         self.proc = subprocess.Popen(
             cmd,
             stdin=subprocess.DEVNULL,
@@ -160,8 +162,8 @@ def start_server() -> Iterator:
     """A factory of servers private to one test; all of them are stopped after it."""
     started: list[ServerProcess] = []
 
-    def start(*args: str, port: int = 0) -> ServerProcess:
-        proc = ServerProcess(*args, port=port)
+    def start(*args: str, port: int = 0, wrapper: tuple[str, ...] = ()) -> ServerProcess:
+        proc = ServerProcess(*args, port=port, wrapper=wrapper)
         started.append(proc)
         return proc
 

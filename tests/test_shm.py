@@ -4,7 +4,8 @@ file in /dev/shm), and a client that stops reading, which stalls nobody.
 
 Whom the client trusts: only a server on this host, and only a doorbell whose peer is that
 server (this user's uid, the pid its reply announced); anything else is told nothing, and the
-session steps over gRPC, the reason logged at debug level."""
+session steps over gRPC, the reason logged at debug level. A real server in a pid namespace of
+its own (as in a container sharing the host's network) is such a case."""
 
 from __future__ import annotations
 
@@ -437,6 +438,28 @@ def test_a_doorbell_of_another_user_is_told_nothing(server, caplog) -> None:
         fake.kill()
         fake.wait(timeout=PATIENCE)
         fake.stdout.close()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="a server in a pid namespace of its own needs root")
+def test_a_server_in_another_pid_namespace_is_told_nothing_and_auto_steps_over_grpc(
+    start_server, caplog
+) -> None:
+    # As a server in a container that shares the host's network but not its pids: it announces
+    # its own pid (1 there), and this process sees it under another.
+    server = start_server(wrapper=("unshare", "--pid", "--fork", "--kill-child"))
+    with pytest.raises(ServiceTransportError, match="runs in another pid namespace"):
+        DinerDashEnv(server.address, transport="shm")
+    with caplog.at_level(logging.DEBUG, logger="dinerdash"):
+        env = DinerDashEnv(server.address)  # auto
+    try:
+        env.reset(seed=0)
+        for _ in range(20):
+            env.step(0)
+        assert env.transports == {server.address: "grpc"} and env.transport_changes == 0
+        assert "not the server's pid 1" in caplog.text
+    finally:
+        env.close()
+        server.kill()  # unshare ignores SIGTERM while it waits; its child dies with it
 
 
 def test_a_forked_session_attaches_with_its_own_secret(server) -> None:
