@@ -58,8 +58,9 @@ def server_env() -> dict[str, str]:
 
 class ServerProcess:
     """One ``dinerdash-server`` child; ``stop()`` is terminate -> wait -> kill. ``wrapper``: a
-    command that runs the server's command line after it (``unshare --pid --fork --kill-child``,
-    which ends the server when it is stopped); ``pid`` is then the wrapper's."""
+    command that runs the server's command line after it; ``pid`` is then the wrapper's. (``unshare
+    --pid --fork --kill-child`` ignores SIGTERM while it waits, so ``stop()`` reaches its SIGKILL
+    after 10 s; ``kill()`` ends it, and the server with it, at once.)"""
 
     def __init__(self, *args: str, port: int = 0, wrapper: tuple[str, ...] = ()) -> None:
         self.args = args

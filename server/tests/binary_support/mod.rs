@@ -29,7 +29,8 @@ impl Process {
 
     /// The server binary at `exe` run by `wrapper`, a command that runs the command line after
     /// it (`unshare --pid --fork --kill-child`, which ends the server when it is killed, or
-    /// `setpriv`, which execs it): [`Process::pid`] is then the wrapper's.
+    /// `setpriv`, which execs it): [`Process::pid`] is then the wrapper's (the server's own
+    /// when the wrapper execs it).
     pub fn start_under(wrapper: &str, exe: &str, args: &str) -> Process {
         Process::spawn(format!("exec {wrapper} '{exe}' --port 0 {args}"))
     }
