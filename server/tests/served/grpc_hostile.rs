@@ -4,7 +4,7 @@
 //! connections are closed, connections over the limit are answered, and a draining server
 //! answers new calls UNAVAILABLE.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::sync::Arc;
 use std::time::Duration;

@@ -5,7 +5,7 @@
 //! and commit them with the change (and say so in docs/operations.md):
 //!
 //! ```text
-//! UPDATE_GOLDEN=1 cargo test --release -p dinerdash-server --test metrics_golden
+//! UPDATE_GOLDEN=1 cargo test --release -p dinerdash-server --test served metrics_golden
 //! ```
 //!
 //! The sequence, on a server in this process on 127.0.0.1:0 with the default limits: scrape
@@ -23,7 +23,7 @@
 //! stream has given its budget back before it takes the scrape it compares, since the stream's
 //! charge is released just after its last message.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::path::PathBuf;
 use std::time::Instant;

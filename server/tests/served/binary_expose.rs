@@ -3,8 +3,8 @@
 //! add (before anything is bound); `--insecure` starts it anyway; with a certificate the web
 //! endpoint speaks only HTTPS, and answers only to the host names it serves.
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::path::PathBuf;
 use std::process::{Command, Output};

@@ -1,7 +1,7 @@
 //! The structured details of every kind of refusal: the google.rpc `ErrorInfo` reason (and its
 //! metadata) and the `BadRequest` field that clients map errors from, never from message text.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use dinerdash_server::pb;
 use dinerdash_server::service::ERROR_DOMAIN;

@@ -2,7 +2,7 @@
 //! byte-identical Batches in every autoreset mode, a refused request ends the stream with
 //! exactly the Status the unary call returns, and a shutdown ends an open stream UNAVAILABLE.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::collections::BTreeMap;
 

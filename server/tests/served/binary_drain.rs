@@ -4,8 +4,8 @@
 //! each Batch counting down `drain_remaining_ms`, until the last one closes or the timeout
 //! passes; a second signal ends it at once; `--drain-timeout 0` stops at once as before.
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::time::{Duration, Instant};
 

@@ -14,8 +14,8 @@
 //! planner's by a thread of its own.
 #![cfg(target_os = "linux")]
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::io::{IoSlice, IoSliceMut};
 use std::mem::MaybeUninit;
@@ -66,26 +66,35 @@ fn connect(doorbell: &str, session: &str, secret: &[u8]) -> Result<ShmClient, Ve
     )
 }
 
-/// Connects to `doorbell` and sends `hello` as it is: the region, or the `E` message.
+/// Connects to `doorbell` and sends `hello` as it is: the region, or the `E` message (empty
+/// when the server closed the connection unanswered).
 fn hello(doorbell: &str, hello: &[u8]) -> Result<ShmClient, Vec<u8>> {
     let sock = silent(doorbell);
-    rustix::net::sendmsg(
+    match rustix::net::sendmsg(
         &sock,
         &[IoSlice::new(hello)],
         &mut SendAncillaryBuffer::default(),
-        SendFlags::empty(),
-    )
-    .unwrap();
+        SendFlags::NOSIGNAL,
+    ) {
+        Ok(_) => {}
+        // Closed before the hello arrived (a connection past the cap): as no reply.
+        Err(rustix::io::Errno::PIPE | rustix::io::Errno::CONNRESET) => return Err(Vec::new()),
+        Err(e) => panic!("sendmsg: {e}"),
+    }
     let mut reply = [0u8; 4096];
     let mut space = [MaybeUninit::uninit(); rustix::cmsg_space!(ScmRights(1))];
     let mut control = RecvAncillaryBuffer::new(&mut space);
-    let got = rustix::net::recvmsg(
+    let got = match rustix::net::recvmsg(
         &sock,
         &mut [IoSliceMut::new(&mut reply)],
         &mut control,
         RecvFlags::empty(),
-    )
-    .unwrap();
+    ) {
+        Ok(got) => got,
+        // Closed unanswered with the hello unread (a connection past the cap): as no reply.
+        Err(rustix::io::Errno::CONNRESET) => return Err(Vec::new()),
+        Err(e) => panic!("recvmsg: {e}"),
+    };
     let mut fds = Vec::new();
     for message in control.drain() {
         if let RecvAncillaryMessage::ScmRights(rights) = message {

@@ -1,7 +1,7 @@
 //! Many clients at once: each of 64 tasks steps its own session thousands of times and sees only
 //! its own game; several tasks hammering one session see its steps serialized.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::collections::BTreeSet;
 

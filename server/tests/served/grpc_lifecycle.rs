@@ -2,8 +2,8 @@
 //! fork and snapshot futures, Render, ServerInfo, Rollout, and a replay of the recorded
 //! conformance trajectories.
 
-mod grpc_support;
-mod recorded;
+use crate::grpc_support;
+use crate::recorded;
 
 use dinerdash_server::pb;
 use dinerdash_server::policy::{PolicyKind, expert_action, run_episode};

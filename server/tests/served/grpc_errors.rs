@@ -1,7 +1,7 @@
 //! Every refusal of the service, asserted by status code and message; the server keeps serving
 //! after each one.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use dinerdash_server::pb;
 use dinerdash_server::server::ServerConfig;

@@ -4,8 +4,8 @@
 //! session is untouched (its next Step equals an undisturbed twin's). Sessions a tenant forks or
 //! restores are its own; the web feeds answer the other tenant's session as unknown.
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::net::SocketAddr;
 

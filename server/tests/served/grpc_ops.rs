@@ -2,7 +2,7 @@
 //! token, TLS with a certificate made here, and the binary itself (the listening line on stdout,
 //! the `health` command, exit 0 on SIGTERM).
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::process::{Command, Stdio};
 use std::time::Duration;

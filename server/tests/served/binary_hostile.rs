@@ -2,8 +2,8 @@
 //! once instead of hanging, and at the open-file limit the accept loop backs off with a warning
 //! instead of spinning a core.
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::process::Command;
 use std::time::{Duration, Instant};

@@ -9,8 +9,8 @@
 //! `DINERDASH_SERVER_EXE=/path/to/dinerdash-server` runs the same load against another build
 //! (the baseline of docs in /work/notes: it fails the bound there, printing its figure).
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};

@@ -3,7 +3,7 @@
 //! a server with two async workers, a fourth client's single-environment session completes its
 //! Steps, each answered while large Steps are in flight.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};

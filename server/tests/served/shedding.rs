@@ -4,8 +4,8 @@
 //! one while its session lives on. (Busy connections are never shed:
 //! `grpc_hostile::connections_over_the_limit_are_answered_resource_exhausted`.)
 
-mod binary_support;
-mod grpc_support;
+use crate::binary_support;
+use crate::grpc_support;
 
 use std::io::{ErrorKind, Read};
 use std::net::TcpStream;

@@ -1,5 +1,6 @@
-//! Shared by the `grpc_*` integration tests: an in-process server on 127.0.0.1:0 that each test
-//! stops, a client, packing helpers, and a local model of the Batch a session should return.
+//! Shared by the served tests (`grpc_*` and others): an in-process server on 127.0.0.1:0 that
+//! each test stops, a client, packing helpers, and a local model of the Batch a session should
+//! return.
 
 #![allow(dead_code)]
 

@@ -2,7 +2,7 @@
 //! status codes, the JSON and event feeds following a session as a client steps it, ServerInfo
 //! naming the endpoint, and tokens choosing which sessions a viewer sees.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use std::net::SocketAddr;
 use std::sync::Arc;

@@ -2,7 +2,7 @@
 //! the CPU pool) plays exactly the episode Rollout's POLICY_PLANNER streams for the same seed,
 //! snapshots keep the choice, and a bad expert_policy is refused.
 
-mod grpc_support;
+use crate::grpc_support;
 
 use dinerdash_server::pb;
 use grpc_support::*;
