@@ -614,11 +614,22 @@ class Connection:
         backoff: the channel's retries, and the fallback's beyond them (the module's exception
         list). ``timeout`` is the deadline of the attempts the channel makes together.
         """
-        self._check_open(method)
+        if self._closed:
+            self._check_open(method)
         rpc = getattr(self.stub, method)
         timeout = self.timeout if timeout is None else timeout
+        # The first attempt inline (a Step's every call: no closure, no loop); the fallback
+        # takes over from its error.
+        try:
+            return rpc(request, timeout=timeout, metadata=self._metadata)
+        except grpc.RpcError as e:
+            error = e
         return self._call(
-            method, lambda: rpc(request, timeout=timeout, metadata=self._metadata), retries, timeout
+            method,
+            lambda: rpc(request, timeout=timeout, metadata=self._metadata),
+            retries,
+            timeout,
+            error,
         )
 
     def future(self, method: str, request: Any) -> grpc.Future:
@@ -693,21 +704,25 @@ class Connection:
         attempt: Callable[[], Any],
         retries: int | None,
         timeout: float | None,
+        error: grpc.RpcError | None = None,
     ) -> Any:
         """``attempt()`` (one call through the channel, which retries by its service config),
-        made again by the fallback while the call's retries are not used up."""
+        made again by the fallback while the call's retries are not used up; ``error``: the
+        first attempt was made already, and failed so."""
         wanted = self._wanted(method, retries)
         made = 0
         while True:
-            try:
-                return attempt()
-            except grpc.RpcError as e:
-                error = e
+            if error is None:
+                try:
+                    return attempt()
+                except grpc.RpcError as e:
+                    error = e
             made += self._channel_attempts(method)
             delay = self._fallback_delay(error, made, wanted)
             if delay is None:
                 raise self._error(method, error, made, timeout) from None
             time.sleep(delay)
+            error = None
 
     def _fallback_delay(self, error: grpc.RpcError, made: int, wanted: int) -> float | None:
         """Seconds before the fallback calls again after ``error``, with ``made`` attempts made
