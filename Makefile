@@ -16,8 +16,10 @@ serve:
 build-server:
 	cargo build --release --locked -p dinerdash-server --bin dinerdash-server
 
+# The server and every test target (what `cargo test --release` runs). The criterion benches are
+# built by `make bench` when run; `make lint`'s clippy checks them (--all-targets) on every CI run.
 build: build-server
-	cargo build --release --locked --workspace --all-targets
+	cargo build --release --locked --workspace --tests
 
 # The sb3 extra (stable-baselines3, sb3-contrib) is for tests/test_sb3.py; it brings torch from
 # PyPI, a large download (2-3 minutes the first time). The ray extra (Ray with RLlib, which pins
