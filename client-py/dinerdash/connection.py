@@ -641,15 +641,18 @@ class Connection:
     def result(self, method: str, request: Any, future: grpc.Future) -> Any:
         """The reply of a call started by :meth:`future`, with the same errors and retries as
         :meth:`call` (the future's attempts were the channel's; the fallback calls again)."""
+        try:
+            return future.result()
+        except grpc.RpcError as e:
+            error = e
         rpc = getattr(self.stub, method)
-        started = [future]
-
-        def attempt() -> Any:
-            if started:
-                return started.pop().result()
-            return rpc(request, timeout=self.timeout, metadata=self._metadata)
-
-        return self._call(method, attempt, None, None)
+        return self._call(
+            method,
+            lambda: rpc(request, timeout=self.timeout, metadata=self._metadata),
+            None,
+            None,
+            error,
+        )
 
     def stream(self, method: str, request: Any) -> Iterator[Any]:
         """Iterates the replies of a server-streaming ``method``, mapping errors as :meth:`call`

@@ -269,11 +269,7 @@ struct Garbled {
 #[tokio::test]
 async fn undecodable_bytes_are_invalid_argument() {
     let server = TestServer::start().await;
-    let channel = Channel::from_shared(format!("http://{}", server.addr))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = server.channel().await;
     for method in ["Step", "CreateSession", "Restore", "Rollout"] {
         let mut grpc = tonic::client::Grpc::new(channel.clone());
         grpc.ready().await.unwrap();

@@ -71,11 +71,7 @@ async fn idle_sessions_expire() {
 #[tokio::test]
 async fn health_reports_serving() {
     let server = TestServer::start().await;
-    let channel = Channel::from_shared(format!("http://{}", server.addr))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = server.channel().await;
     let mut health = HealthClient::new(channel);
     for service in ["", "dinerdash.v1.DinerDash"] {
         let reply = health
@@ -142,11 +138,7 @@ async fn auth_token_is_required() {
         ..ServerConfig::default()
     };
     let server = TestServer::start_with(config, false).await;
-    let channel = Channel::from_shared(format!("http://{}", server.addr))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = server.channel().await;
     let with_token = |token: &'static str| {
         DinerDashClient::with_interceptor(channel.clone(), move |mut request: tonic::Request<()>| {
             request

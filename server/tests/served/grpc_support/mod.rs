@@ -57,6 +57,15 @@ impl TestServer {
         TestServer::start_with(ServerConfig::default(), false).await
     }
 
+    /// A plain channel to the server (for the health service, or a raw gRPC call).
+    pub async fn channel(&self) -> Channel {
+        Channel::from_shared(format!("http://{}", self.addr))
+            .unwrap()
+            .connect()
+            .await
+            .unwrap()
+    }
+
     /// A plaintext client.
     pub async fn client(&self) -> DinerDashClient<Channel> {
         DinerDashClient::connect(format!("http://{}", self.addr))
