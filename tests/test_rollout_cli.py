@@ -138,6 +138,8 @@ def test_cli_bench_runs(address: str) -> None:
         assert line in out
     assert "make_vec N=8" in out and "decode N=8" in out and "pipelined 2 x N=8" in out
     assert "x the reference" in out
+    # The transports table, down to the share of the in-process rate no Python client can pass.
+    assert "shm N=256 step" in out and "% of in process at most" in out
     # The SB3 comparison runs when the sb3 extra is installed, and says so when it is not.
     assert "SB3 DummyVecEnv N=4" in out or "skipped (pip install 'dinerdash[sb3]')" in out
 

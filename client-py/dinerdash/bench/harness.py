@@ -16,7 +16,8 @@ comparison.
   client over gRPC and over shared memory (``transport=``), beside the server's own rates on
   this machine (``dinerdash-server ceiling``: in process, and through a Rust gRPC client), the
   limit any client can reach; with ``--pipeline`` two vector envs of N = 256 pipelined on each
-  transport; and the client's decode time of one N = 256 reply on each.
+  transport; the client's decode time of one N = 256 reply on each; and the share of the
+  in-process rate no Python client can pass at N = 256 (:func:`_python_floor`).
 - **Scaling** (:func:`scaling`): the server's ceiling for N = 256 and N = 4096 (and N = 256 with
   planner labels) on one stepping thread and on one per core (``ceiling --threads``), beside this
   client's vector env of the same N over gRPC and shared memory on the local server.
@@ -182,6 +183,52 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         for raw in replies:
             envs._decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
         return (time.perf_counter() - start) / steps * 1e6
+    finally:
+        envs.close()
+
+
+def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
+    """Microseconds of the least work any Python client of this env does for one step of
+    ``num_envs`` environments over shared memory, beside the server's Step: writing the actions
+    and one numpy call for each array a step returns (float32 observations, float64 rewards, the
+    flags) and for each info array with its ``_key`` mask, as Gymnasium's contract and the env's
+    infos require (a returned array is the caller's own), on each reply as it arrives from the
+    server's core. Timed around that work alone: no checks, no bookkeeping, nothing of the
+    doorbell."""
+    from .._batch import join
+    from ..vector import DinerDashVectorEnv
+
+    envs = DinerDashVectorEnv(num_envs, address, transport="shm")
+    try:
+        envs.reset(seed=0)
+        fleet, present = envs._fleet, np.ones(num_envs, dtype=np.bool_)
+        names = ("observations", "rewards", "terminated", "truncated", "action_masks")
+        names += ("scores", "lost", "ticks", "seeds")
+        actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, (steps, num_envs), np.int32)
+        wire = np.zeros(num_envs, dtype=np.int32)
+        times = []
+        for step in actions:
+            start = time.perf_counter()
+            wire[:] = step
+            times.append(time.perf_counter() - start)
+            batch = join(fleet.step(wire))
+            start = time.perf_counter()
+            obs, rewards, terminated, truncated, masks, scores, lost, ticks, seeds = (
+                batch[k] for k in names
+            )
+            info = {
+                "action_mask": masks.copy(),
+                "score": scores.astype(np.int64),
+                "lost": lost.astype(np.int64),
+                "tick": ticks.astype(np.int64),
+                "seed": seeds.astype(np.int64),
+            }
+            for key in list(info):
+                info["_" + key] = present.copy()
+            obs.astype(np.float32), rewards.astype(np.float64)
+            terminated.copy(), truncated.copy()
+            times[-1] += time.perf_counter() - start
+        return float(np.median(times)) * 1e6
     finally:
         envs.close()
 
@@ -377,6 +424,13 @@ def transports(
             f"  shm N={n} step   : {step:.1f} us = {waited:.1f} from the doorbell's ring to the "
             f"reply (the server's Step in process: {server:.1f}) + {step - waited:.1f} in this "
             f"client (decode {shm:.1f})"
+        )
+        floor = _python_floor(first, n, vec_steps)
+        print(
+            f"  shm N={n} bound  : {server / (server + floor):.0%} of in process at most, for any "
+            f"Python client with a transport of no cost: the server's Step {server:.1f} us + "
+            f"{floor:.1f} us of the least work a step takes in Python (write the actions; "
+            "observations, rewards, flags, infos: one numpy call each, on the fresh reply)"
         )
     if cpu_micros < float("inf"):
         print(

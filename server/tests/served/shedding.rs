@@ -1,5 +1,6 @@
 //! Connection shedding (issue 22). The real binary at `ulimit -n 1024`, held by 1,100 silent
-//! connections, serves another client within 2 s and idles under 30 % of a core; in process: a
+//! connections, serves another client while they still hold it (not after they time out) and
+//! idles under 30 % of a core; in process: a
 //! connection that sends no HTTP/2 preface is closed, and an idle connection makes room for a new
 //! one while its session lives on. (Busy connections are never shed:
 //! `grpc_hostile::connections_over_the_limit_are_answered_resource_exhausted`.)
@@ -140,9 +141,11 @@ async fn at_the_file_limit_silent_connections_make_room_for_a_client() {
         to_serve.as_secs_f64() * 1000.0,
         all_closed_after.as_secs_f64(),
     );
+    // Served while silent connections still held the server: by shedding, not because every
+    // one of them had timed out for want of a preface.
     assert!(
-        to_serve < Duration::from_secs(2),
-        "the client waited {to_serve:?}"
+        closed_when_served < SILENT,
+        "the client was served only after all {SILENT} silent connections were closed"
     );
     assert!(
         cpu_percent < 30.0,
