@@ -18,7 +18,6 @@ use tokio::net::TcpStream;
 use tokio_rustls::TlsConnector;
 use tokio_rustls::rustls::pki_types::{CertificateDer, ServerName, pem::PemObject};
 use tokio_rustls::rustls::{self, RootCertStore};
-use tonic::transport::{Certificate, Channel, ClientTlsConfig};
 
 /// The token of these tests: 16 characters or more, no `#`.
 const TOKEN: &str = "expose-test-token-0123456789";
@@ -147,17 +146,7 @@ async fn the_web_endpoint_serves_tls_with_the_grpc_certificate_and_checks_the_ho
 
     // Where the pages are: ServerInfo, over gRPC with TLS and the token.
     let port = server.addr.rsplit(':').next().unwrap();
-    let channel = Channel::from_shared(format!("https://localhost:{port}"))
-        .unwrap()
-        .tls_config(
-            ClientTlsConfig::new()
-                .ca_certificate(Certificate::from_pem(&cert_pem))
-                .domain_name("localhost"),
-        )
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = grpc_support::tls_channel(format!("https://localhost:{port}"), &cert_pem).await;
     let bearer: tonic::metadata::MetadataValue<_> = format!("Bearer {TOKEN}").parse().unwrap();
     let mut client = DinerDashClient::with_interceptor(channel, move |mut r: tonic::Request<()>| {
         r.metadata_mut().insert("authorization", bearer.clone());

@@ -11,8 +11,7 @@ use std::net::SocketAddr;
 
 use binary_support::Process;
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
-use grpc_support::{PATIENCE, create_request, pack};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use grpc_support::{create_request, pack};
 use tonic::transport::Channel;
 use tonic::{Request, Status};
 
@@ -179,19 +178,12 @@ async fn answered_as_unknown(b: &mut Tenant, id: &str) {
 
 /// A GET of the web endpoint with `token`: the status and the body.
 async fn get(addr: SocketAddr, path: &str, token: &str) -> (u16, String) {
-    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
     let head = format!(
         "GET {path} HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\n\
          Connection: close\r\n\r\n"
     );
-    stream.write_all(head.as_bytes()).await.unwrap();
-    let mut text = String::new();
-    tokio::time::timeout(PATIENCE, stream.read_to_string(&mut text))
-        .await
-        .unwrap()
-        .unwrap();
-    let (head, body) = text.split_once("\r\n\r\n").unwrap();
-    (head[9..12].parse().unwrap(), body.to_owned())
+    let (status, text) = grpc_support::http_exchange(addr, &head).await;
+    (status, text.split_once("\r\n\r\n").unwrap().1.to_owned())
 }
 
 #[tokio::test]

@@ -12,7 +12,6 @@ use dinerdash_server::server::{ServerConfig, TlsPem};
 use dinerdash_server::session::Limits;
 use grpc_support::*;
 use tonic::Code;
-use tonic::transport::{Certificate, Channel, ClientTlsConfig};
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
 
@@ -218,17 +217,7 @@ async fn tls_with_a_generated_certificate() {
         ..ServerConfig::default()
     };
     let server = TestServer::start_with(config, false).await;
-    let channel = Channel::from_shared(format!("https://{}", server.addr))
-        .unwrap()
-        .tls_config(
-            ClientTlsConfig::new()
-                .ca_certificate(Certificate::from_pem(&cert_pem))
-                .domain_name("localhost"),
-        )
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = tls_channel(format!("https://{}", server.addr), &cert_pem).await;
     let mut c = DinerDashClient::new(channel);
     let id = create(
         &mut c,

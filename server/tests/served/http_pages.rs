@@ -45,15 +45,8 @@ async fn request(addr: SocketAddr, method: &str, path: &str, token: Option<&str>
 
 /// Sends `head` as it is and reads the whole reply.
 async fn raw(addr: SocketAddr, head: &str) -> Reply {
-    let mut stream = TcpStream::connect(addr).await.unwrap();
-    stream.write_all(head.as_bytes()).await.unwrap();
-    let mut text = String::new();
-    tokio::time::timeout(PATIENCE, stream.read_to_string(&mut text))
-        .await
-        .unwrap()
-        .unwrap();
+    let (status, text) = grpc_support::http_exchange(addr, head).await;
     let (head, body) = text.split_once("\r\n\r\n").unwrap();
-    let status = head[9..12].parse().unwrap();
     Reply {
         status,
         head: head.to_owned(),

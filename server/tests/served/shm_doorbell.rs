@@ -323,10 +323,14 @@ async fn bad_actions_and_unknown_sessions_are_refused_as_over_grpc() {
     server.stop().await;
 }
 
-/// The `E` message's code, and its message with `id` written as `<id>`: what an unknown ID and
-/// a wrong secret must both give.
-fn refused_as(e: &[u8], id: &str) -> (i32, String) {
-    let (code, message) = refusal(e);
+/// The refusal of a hello for session `id` with `secret` at `doorbell`: the `E` message's code,
+/// and its message with `id` written as `<id>` (what an unknown ID and a wrong secret must both
+/// give).
+fn refused_at(doorbell: &str, id: &str, secret: &[u8]) -> (i32, String) {
+    let e = tokio::task::block_in_place(|| connect(doorbell, id, secret))
+        .err()
+        .expect("refused");
+    let (code, message) = refusal(&e);
     (code, message.replace(id, "<id>"))
 }
 
@@ -349,12 +353,7 @@ async fn a_wrong_secret_is_refused_exactly_as_an_unknown_id() {
     assert!(!shown.contains(&format!("{:?}", a.shm_secret)), "{shown}");
 
     let doorbell = a.shm_doorbell.clone();
-    let refused = |id: &str, secret: &[u8]| {
-        let e = tokio::task::block_in_place(|| connect(&doorbell, id, secret))
-            .err()
-            .expect("refused");
-        refused_as(&e, id)
-    };
+    let refused = |id: &str, secret: &[u8]| refused_at(&doorbell, id, secret);
     let unknown = "0123456789abcdef0123456789abcdef";
     let as_unknown = refused(unknown, &a.shm_secret);
     let grpc = client
@@ -680,12 +679,7 @@ async fn another_tenant_knowing_the_id_but_not_the_secret_is_refused_as_unknown(
     let twin = created_by(&mut c, token_a).await;
     let b = created_by(&mut c, token_b).await;
     let doorbell = a.shm_doorbell.clone();
-    let refused = |id: &str, secret: &[u8]| {
-        let e = tokio::task::block_in_place(|| connect(&doorbell, id, secret))
-            .err()
-            .expect("refused");
-        refused_as(&e, id)
-    };
+    let refused = |id: &str, secret: &[u8]| refused_at(&doorbell, id, secret);
     // B knows A's ID: with its own secret, or a guess, it is told what an unknown ID is told.
     let as_unknown = refused("00000000000000000000000000000000", &b.shm_secret);
     assert_eq!(as_unknown.0, tonic::Code::NotFound as i32);

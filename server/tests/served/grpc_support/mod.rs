@@ -382,20 +382,45 @@ fn push_row(
     b.stream_episodes.push(reset.map_or(0, |r| r.1));
 }
 
-/// Reads the metrics endpoint with a plain HTTP/1.1 GET.
-pub async fn scrape(addr: SocketAddr) -> String {
+/// A channel to `url` over TLS that trusts `cert_pem` for the name `localhost`.
+pub async fn tls_channel(url: String, cert_pem: &str) -> Channel {
+    use tonic::transport::{Certificate, ClientTlsConfig};
+    Channel::from_shared(url)
+        .unwrap()
+        .tls_config(
+            ClientTlsConfig::new()
+                .ca_certificate(Certificate::from_pem(cert_pem))
+                .domain_name("localhost"),
+        )
+        .unwrap()
+        .connect()
+        .await
+        .unwrap()
+}
+
+/// Sends `request` (an HTTP/1.1 request as it is) to `addr` and reads the reply until the server
+/// closes: the whole text, with its status.
+pub async fn http_exchange(addr: SocketAddr, request: &str) -> (u16, String) {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
-    stream
-        .write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\n\r\n")
-        .await
-        .unwrap();
+    stream.write_all(request.as_bytes()).await.unwrap();
     let mut text = String::new();
     tokio::time::timeout(PATIENCE, stream.read_to_string(&mut text))
         .await
         .unwrap()
         .unwrap();
-    assert!(text.starts_with("HTTP/1.1 200 OK"), "{text}");
+    let status = text.get(9..12).and_then(|s| s.parse().ok());
+    (
+        status.unwrap_or_else(|| panic!("not an HTTP reply: {text}")),
+        text,
+    )
+}
+
+/// Reads the metrics endpoint with a plain HTTP/1.1 GET.
+pub async fn scrape(addr: SocketAddr) -> String {
+    let (status, text) =
+        http_exchange(addr, "GET /metrics HTTP/1.1\r\nHost: localhost\r\n\r\n").await;
+    assert_eq!(status, 200, "{text}");
     text
 }
 
