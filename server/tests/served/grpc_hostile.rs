@@ -423,16 +423,8 @@ async fn unreachable_snapshots_are_refused() {
 
 /// One raw HTTP request to the metrics endpoint; the whole response.
 async fn get_metrics(addr: std::net::SocketAddr, header: &str) -> String {
-    use tokio::io::AsyncWriteExt;
-    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
     let request = format!("GET /metrics HTTP/1.1\r\nHost: localhost\r\n{header}\r\n");
-    stream.write_all(request.as_bytes()).await.unwrap();
-    let mut text = String::new();
-    tokio::time::timeout(PATIENCE, stream.read_to_string(&mut text))
-        .await
-        .unwrap()
-        .unwrap();
-    text
+    http_exchange(addr, &request).await.1
 }
 
 #[tokio::test]
