@@ -191,10 +191,11 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
     """Microseconds of the least work any Python client of this env does for one step of
     ``num_envs`` environments over shared memory, beside the server's Step: writing the actions
     and one numpy call for each array a step returns (float32 observations, float64 rewards, the
-    flags) and for each info array with its ``_key`` mask, as Gymnasium's contract and the env's
-    infos require (a returned array is the caller's own), on each reply as it arrives from the
-    server's core. Timed around that work alone: no checks, no bookkeeping, nothing of the
-    doorbell."""
+    flags) and for each info array, with one ``_key`` mask for all, as Gymnasium's contract and
+    the env's infos require (a returned array is the caller's own), on each reply as it arrives
+    from the server's core. Timed around that work alone: no checks, no bookkeeping, no expert
+    actions, nothing of the doorbell; and of the times of the steps, the 10th percentile. So the
+    share of the in-process rate it leaves is more than any real client can reach."""
     from .._batch import join
     from ..vector import DinerDashVectorEnv
 
@@ -223,12 +224,15 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
                 "tick": ticks.astype(np.int64),
                 "seed": seeds.astype(np.int64),
             }
+            # One mask shared by every ``_key`` (the env copies one for each): fewer copies.
+            shown = present.copy()
             for key in list(info):
-                info["_" + key] = present.copy()
+                info["_" + key] = shown
             obs.astype(np.float32), rewards.astype(np.float64)
             terminated.copy(), truncated.copy()
             times[-1] += time.perf_counter() - start
-        return float(np.median(times)) * 1e6
+        # The 10th percentile: a burst of load elsewhere on the machine must not raise the floor.
+        return float(np.percentile(times, 10)) * 1e6
     finally:
         envs.close()
 
