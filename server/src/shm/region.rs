@@ -93,7 +93,10 @@ impl Region {
         lengths[4 * FIELDS.len()..].copy_from_slice(&drain_remaining_ms.to_le_bytes());
         // The lengths table (the actions' entry, 0, included), drain_remaining_ms, then each
         // array.
-        let mut run: Vec<IoSlice<'_>> = vec![IoSlice::new(&lengths)];
+        // At most the lengths, then a gap and an array for each array: no allocation a Step.
+        let mut run = [IoSlice::new(&[]); 2 * FIELDS.len()];
+        run[0] = IoSlice::new(&lengths);
+        let mut used = 1;
         let mut start = Layout::length_at(0);
         let mut cursor = start + lengths.len();
         let mut result = Ok(());
@@ -105,16 +108,18 @@ impl Region {
             }
             let gap = offset - cursor;
             if gap <= MAX_GAP {
-                run.push(IoSlice::new(&ZEROS[..gap]));
+                run[used] = IoSlice::new(&ZEROS[..gap]);
+                used += 1;
             } else {
-                result = result.and(write_all(&self.fd, &run, start as u64));
-                run.clear();
+                result = result.and(write_all(&self.fd, &run[..used], start as u64));
+                used = 0;
                 start = offset;
             }
-            run.push(IoSlice::new(data));
+            run[used] = IoSlice::new(data);
+            used += 1;
             cursor = offset + data.len();
         }
-        result = result.and(write_all(&self.fd, &run, start as u64));
+        result = result.and(write_all(&self.fd, &run[..used], start as u64));
         self.scratch = scratch;
         result
     }
