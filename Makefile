@@ -44,12 +44,13 @@ $(BUILD_VENV)/.installed: scripts/build-requirements.txt
 ## dist/: the dinerdash-server wheel (the release binary, stripped; manylinux2014 linked by zig)
 ## and its sdist, and the pure-Python wheels of dinerdash and dinerdash-agents; all one version.
 ## SERVER_WHEEL_FLAGS= (empty) builds a wheel for this machine's glibc with the system linker.
+## Built in target/wheels, so that it never waits for (or holds up) a cargo command on target/.
 SERVER_WHEEL_FLAGS ?= --zig --compatibility manylinux2014
 wheels: $(BUILD_VENV)/.installed
 	$(BUILD_VENV)/bin/python scripts/version.py check
 	rm -rf dist
-	PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" maturin build --release -m server/Cargo.toml \
-		$(SERVER_WHEEL_FLAGS) --out dist
+	CARGO_TARGET_DIR="$(abspath target/wheels)" PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" \
+		maturin build --release -m server/Cargo.toml $(SERVER_WHEEL_FLAGS) --out dist
 	PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" maturin sdist -m server/Cargo.toml --out dist
 	$(BUILD_VENV)/bin/python -m pip wheel --quiet --no-deps --wheel-dir dist ./client-py ./agents
 	if [ "$$(uname)" = Linux ]; then $(BUILD_VENV)/bin/auditwheel show dist/dinerdash_server-*.whl; fi
