@@ -15,6 +15,7 @@ from collections import Counter
 import numpy as np
 import pytest
 from dinerdash import DinerDashVectorEnv, ServiceTimeout, ServiceTransportError
+from dinerdash._membership import PROBE_EVERY
 from dinerdash.testing import FaultProxy
 from gymnasium.vector import AutoresetMode
 
@@ -175,11 +176,12 @@ def test_a_lost_server_that_returns_is_taken_back(dinerdash_cluster, mode) -> No
             if t == 0:
                 assert after[-1]["reconnected"][MOVED].all() and envs.failovers == 1
                 dinerdash_cluster.restart(1)
+                restarted = time.monotonic()
             else:
                 assert "reconnected" not in after[-1], f"step {t}: an episode was cut"
                 check_uncut(before, after, mode, f"step {t}")
             if rejoined is None and envs.rejoins:
-                rejoined = t
+                rejoined, took = t, time.monotonic() - restarted
                 assert envs.lost_addresses == []
             if (
                 rejoined is not None
@@ -190,9 +192,12 @@ def test_a_lost_server_that_returns_is_taken_back(dinerdash_cluster, mode) -> No
                 break
             before = after
         print(
-            f"\n[rejoin {mode.value}] taken back at step {rejoined}, loads even at step "
-            f"{balanced} after {envs.moves} moves: {dict(loads(envs))}"
+            f"\n[rejoin {mode.value}] taken back at step {rejoined}, {took:.3f} s after the "
+            f"restart; loads even at step {balanced} after {envs.moves} moves: {dict(loads(envs))}"
         )
+        # At the next round of health checks (one a second): each waits for the returning
+        # server's channel to reconnect, which it drives while it waits.
+        assert took < PROBE_EVERY + SLACK
         assert envs.rejoins == 1 and envs.moves >= 2
         assert sorted(loads(envs).values()) == [2, 2, 3]
         # The sessions the failover opened moved back whole: no session keeps an unused slot.

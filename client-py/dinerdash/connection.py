@@ -778,7 +778,13 @@ class Connection:
         """Starts a ``grpc.health.v1`` Check of the whole server (answered even while it drains,
         and without the auth token) on this channel; the future's result is True when the server
         is SERVING, False when it answered otherwise. A server that answers nothing leaves the
-        future pending until ``timeout``. What a vector env's watch and membership probe ask."""
+        future pending until ``timeout``. What a vector env's watch and membership probe ask.
+
+        The check waits for the channel to connect (``wait_for_ready``) instead of failing at
+        once while the channel backs off after a lost connection: so a server that came back is
+        found by the next check, whose wait is what drives the reconnection. (Over shared memory
+        no other call may be polling gRPC: failing fast, a returning server went unfound for
+        1-14 s.)"""
         self._check_open("Check")
         if self._health is None:
             self._health = self.channel.unary_unary(
@@ -786,7 +792,7 @@ class Connection:
                 request_serializer=bytes,
                 response_deserializer=_serving,
             )
-        return self._health.future(b"", timeout=timeout)
+        return self._health.future(b"", timeout=timeout, wait_for_ready=True)
 
     def server_info(self) -> pb.ServerInfoResponse:
         """The server's version, ruleset and limits."""
