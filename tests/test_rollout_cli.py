@@ -133,6 +133,7 @@ def test_cli_collect_writes_a_minari_dataset_when_minari_is_installed(
 
 def test_cli_bench_runs(address: str) -> None:
     args = "bench --steps 200 --vec-steps 20 --num-envs 8 --sb3-envs 4 --sb3-steps 20 --pipeline"
+    args += " --rounds 1 --ceiling-seconds 0.2"
     out = run_cli(*args.split(), "--reference-steps", "2000", "--address", address)
     for line in ("loopback TCP floor", "reference", "gRPC round trip", "single env"):
         assert line in out

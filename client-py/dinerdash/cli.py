@@ -33,7 +33,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from ._arguments import EXPERTS
@@ -50,6 +50,22 @@ def _address(text: str) -> str | list[str]:
     if "," not in text:
         return text
     return [a for a in text.split(",") if a]
+
+
+def _above_zero(kind: type) -> Callable[[str], Any]:
+    """An argparse type: ``kind(text)``, refused unless above zero."""
+
+    def convert(text: str) -> Any:
+        value = kind(text)
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
+        return value
+
+    convert.__name__ = kind.__name__  # argparse names it in "invalid int value"
+    return convert
+
+
+_positive_int, _positive_float = _above_zero(int), _above_zero(float)
 
 
 def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
@@ -182,6 +198,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         sb3_steps=args.sb3_steps,
         compare_transports=not args.no_transports,
         compare_scaling=not args.no_scaling,
+        rounds=args.rounds,
+        ceiling_seconds=args.ceiling_seconds,
         **connection_keywords(args),
     )
     return 0
@@ -289,6 +307,18 @@ def _parser() -> argparse.ArgumentParser:
         "--no-scaling",
         action="store_true",
         help="skip the table of the server's rates by stepping threads beside this client's",
+    )
+    p.add_argument(
+        "--rounds",
+        type=_positive_int,
+        default=3,
+        help="rounds of the transports table, taking turns; each figure is the best (default 3)",
+    )
+    p.add_argument(
+        "--ceiling-seconds",
+        type=_positive_float,
+        default=1.0,
+        help="seconds of each measurement of the server's own rates (default 1)",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_bench)

@@ -358,6 +358,7 @@ def transports(
     sizes: tuple[int, ...] = (256, 1024),
     rounds: int = 3,
     pipeline: bool = False,
+    ceiling_seconds: float = 1.0,
 ) -> None:
     """Prints the transports table: this client over gRPC and over shared memory, and the
     server's ceiling, for the single env and a vector env of each N of ``sizes``; with
@@ -378,7 +379,7 @@ def transports(
     floor = doorbell_floor()
     print(f"doorbell floor     : {floor:12,.1f} us/round trip  (Unix SEQPACKET, two processes)")
     for _ in range(rounds):
-        for n, (local, rust) in ceiling(rows, seconds=1.0).items():
+        for n, (local, rust) in ceiling(rows, seconds=ceiling_seconds).items():
             keep(("local", n), local)
             keep(("rust", n), rust)
         for n in rows:
@@ -448,6 +449,7 @@ def scaling(
     vec_steps: int,
     sizes: tuple[int, ...] = (256, 4096),
     planner_sizes: tuple[int, ...] = (256,),
+    ceiling_seconds: float = 1.0,
 ) -> None:
     """Prints the scaling table: the server's ceiling (in process, Rust gRPC client) for each N
     on one stepping thread and on one per core, beside this client's vector env of that N over
@@ -462,7 +464,7 @@ def scaling(
     )
     rows = [("none", n) for n in sizes] + [("planner", n) for n in planner_sizes]
     for labels, n in rows:
-        lines = ceiling_lines([n], seconds=1.0, threads=threads, labels=labels)
+        lines = ceiling_lines([n], seconds=ceiling_seconds, threads=threads, labels=labels)
         by_threads = {t: (local, rust) for _, t, _, local, rust in lines}
         steps = max(10, vec_steps * 256 // n // (10 if labels == "planner" else 1))
         expert = {"expert": "planner"} if labels == "planner" else {}
@@ -531,6 +533,8 @@ def run(
     sb3_steps: int = 2_000,
     compare_transports: bool = True,
     compare_scaling: bool = True,
+    rounds: int = 3,
+    ceiling_seconds: float = 1.0,
     **connection: Any,
 ) -> None:
     """The ``bench`` command: prints one line per measurement. Without ``address`` (and
@@ -600,9 +604,16 @@ def run(
                 f"on the wire; {times(rate)})"
             )
         if compare_transports:
-            transports(address, steps, vec_steps, pipeline=pipeline)
+            transports(
+                address,
+                steps,
+                vec_steps,
+                rounds=rounds,
+                pipeline=pipeline,
+                ceiling_seconds=ceiling_seconds,
+            )
         if compare_scaling and vec_steps > 0:
-            scaling(address, vec_steps)
+            scaling(address, vec_steps, ceiling_seconds=ceiling_seconds)
         if sb3_steps > 0:
             try:
                 dummy, adapter = _sb3(address, sb3_envs, sb3_steps, **connection)
