@@ -48,7 +48,9 @@ def compare_partial_reset(mine: tuple, ref: tuple, done: np.ndarray, where: str)
             )
 
 
-def run_pair(address: str, mode: AutoresetMode, n: int = 4, transport: str = "grpc") -> int:
+def run_pair(
+    address: str, mode: AutoresetMode, n: int = 4, transport: str = "grpc", steps: int = STEPS
+) -> int:
     mine = DinerDashVectorEnv(
         n, address, expert=True, config=SHORT, autoreset_mode=mode, transport=transport
     )
@@ -66,7 +68,7 @@ def run_pair(address: str, mode: AutoresetMode, n: int = 4, transport: str = "gr
         np.testing.assert_array_equal(obs_m, obs_r)
         compare_info(info_m, info_r, "reset")
         rng = np.random.default_rng(0)
-        for t in range(STEPS):
+        for t in range(steps):
             # Half expert, half random: long enough episodes, and invalid actions too.
             actions = np.where(rng.random(n) < 0.5, info_m["expert_action"], rng.integers(0, 57, n))
             out_m, out_r = mine.step(actions), ref.step(actions)
@@ -100,6 +102,12 @@ def test_same_as_gymnasium_sync_vector_env(
 ) -> None:
     """Over either transport, step for step the same as single envs stepped over gRPC."""
     assert run_pair(address, mode, n, transport) >= 2  # the (auto)reset path was taken
+
+
+def test_many_environments_decode_as_single_envs(address: str) -> None:
+    """Above 32 environments a gRPC reply's repeated fields (the seeds) are read through
+    protobuf's container rather than a list: the same values as single envs report."""
+    assert run_pair(address, AutoresetMode.NEXT_STEP, n=40, steps=200) >= 2
 
 
 def test_make_vec_uses_the_batched_session(address: str) -> None:
