@@ -1,8 +1,8 @@
 //! Connection shedding (issue 22). The real binary at `ulimit -n 1024`, held by 1,100 silent
 //! connections, serves another client while they still hold it (not after they time out) and
-//! idles under 30 % of a core; in process: a
-//! connection that sends no HTTP/2 preface is closed, and an idle connection makes room for a new
-//! one while its session lives on. (Busy connections are never shed:
+//! idles under 30 % of a core; in process: a connection that sends no HTTP/2 preface is closed,
+//! and an idle connection makes room for a new one while its session lives on. (Busy connections
+//! are never shed:
 //! `grpc_hostile::connections_over_the_limit_are_answered_resource_exhausted`.)
 
 use crate::binary_support;
