@@ -35,7 +35,7 @@ The judge (:func:`judge`, exit status 1 when it finds anything):
   undisturbed run itself: the variance of its snapshots' mean scores, times ``2 / snapshots`` (a
   difference of two such averages). A final score read at one iteration swings by ~20 % between
   evaluations of the same run (docs/clusters.md), which a bar of the evaluation noise alone
-  ignored.
+  ignored. A gap or sigma that is not a finite number (a NaN or infinite score) fails too.
 
     .venv/bin/python scripts/chaos.py --server target/release/dinerdash-server --duration 180 \\
         --undisturbed
@@ -47,6 +47,7 @@ JAX's threads run is unsafe, and the monkey starts servers again and again.
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing
 import os
 import random
@@ -534,7 +535,9 @@ def judge(chaos: Tally, log: MonkeyLog, calm: Tally | None) -> list[str]:
                 f"the undisturbed run raised {len(calm.exceptions)} exceptions"
             )
         gap, sigma = score_gap(chaos.scores, calm.scores)
-        if gap < -2 * sigma:
+        if not (math.isfinite(gap) and math.isfinite(sigma)):
+            failures.append(f"the score gap is not a number: {gap} (sigma {sigma})")
+        elif gap < -2 * sigma:
             failures.append(
                 f"the score fell by {-gap:,.1f}, more than 2 sigma ({2 * sigma:,.1f})"
             )

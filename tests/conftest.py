@@ -35,6 +35,19 @@ def pytest_runtest_makereport(item, call):
         report.longrepr = f"skipped in CI, where every test must run: {report.longrepr}"
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    """The same rule for a module that skips as it is collected (a module-level
+    ``pytest.importorskip``): in CI its tests would otherwise vanish without a report."""
+    outcome = yield
+    report = outcome.get_result()
+    if os.environ.get("CI") and report.skipped:
+        report.outcome = "failed"
+        report.longrepr = (
+            f"skipped at collection in CI, where every test must run: {report.longrepr}"
+        )
+
+
 def server_binary() -> Path:
     path = Path(
         os.environ.get("DINERDASH_SERVER") or REPO / "target" / "release" / "dinerdash-server"

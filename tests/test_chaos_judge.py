@@ -142,20 +142,34 @@ def test_exceptions_in_either_run_fail(chaos):
     assert any("chaos run raised" in f for f in chaos.judge(run, log, calm))
 
 
+def _fell(failures: list[str]) -> bool:
+    return any(f.startswith("the score fell by") for f in failures)
+
+
 def test_a_fifteen_percent_loss_fails_and_noise_passes(chaos):
     """Across many draws of the noise the judge passes equal runs nearly always and fails a run
     that lost 15 % nearly always (the old bar, the evaluation's unpaired standard error alone,
-    let such a loss through)."""
+    let such a loss through). Each draw goes through ``judge`` itself, its score rule included."""
     rng = np.random.default_rng(1)
+    run, log, calm = healthy(chaos)
     same = loss = 0
     for _ in range(200):
-        calm = scores(rng, 9000.0)
-        gap, sigma = chaos.score_gap(scores(rng, 9000.0), calm)
-        same += gap < -2 * sigma
-        gap, sigma = chaos.score_gap(scores(rng, 9000.0 * 0.85), calm)
-        loss += gap < -2 * sigma
+        calm.scores = scores(rng, 9000.0)
+        run.scores = scores(rng, 9000.0)
+        same += _fell(chaos.judge(run, log, calm))
+        run.scores = scores(rng, 9000.0 * 0.85)
+        loss += _fell(chaos.judge(run, log, calm))
     assert same <= 10, same  # about 2.5 % one-sided false alarms
     assert loss >= 190, loss
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_score_that_is_not_a_number_fails(chaos, bad):
+    run, log, calm = healthy(chaos)
+    run.scores = run.scores.copy()
+    run.scores[0, 0] = bad
+    failures = chaos.judge(run, log, calm)
+    assert any("the score gap is not a number" in f for f in failures), failures
 
 
 def test_the_score_gap_is_paired(chaos):
