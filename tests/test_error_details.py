@@ -101,14 +101,16 @@ def test_episode_over_names_the_environment(address: str) -> None:
         envs.close()
 
 
-def test_a_closed_env_raises_typed_errors_and_reset_reopens(address: str) -> None:
-    env = DinerDashEnv(address, render_mode="ansi")
+@pytest.mark.parametrize("render_mode", ["ansi", "rgb_array"])
+def test_a_closed_env_raises_typed_errors_and_reset_reopens(address: str, render_mode) -> None:
+    env = DinerDashEnv(address, render_mode=render_mode)
     env.reset(seed=5)
     first = env.step(0)[0]
     old = env.session_id
     env.close()
     env.close()  # twice is fine
-    for call in (lambda: env.step(0), env.render, env.snapshot, env.fork):
+    calls = (lambda: env.step(0), env.render, env.action_masks, env.snapshot, env.fork)
+    for call in calls:
         with pytest.raises(EnvClosed) as e:
             call()
         assert isinstance(e.value, ServiceError) and "reset()" in str(e.value)
@@ -116,8 +118,30 @@ def test_a_closed_env_raises_typed_errors_and_reset_reopens(address: str) -> Non
     try:
         assert env.session_id not in (None, old)
         np.testing.assert_array_equal(env.step(0)[0], first)  # the same episode again
-        text = env.render()
-        assert isinstance(text, str) and text
+        assert env.render() is not None and env.action_masks().shape == (57,)
+    finally:
+        env.close()
+
+
+def test_an_action_that_is_not_an_integer_is_refused(address: str) -> None:
+    """As Gymnasium's ``Discrete`` space: 3.7 is not action 3, nor is the string '3'. Integers of
+    any kind (Python, numpy, a one-element integer array) are actions."""
+    env = DinerDashEnv(address)
+    env.reset(seed=5)
+    try:
+        for bad in (3.7, "3", np.float32(3.0), np.array([1, 2]), None):
+            with pytest.raises(InvalidArgument, match="action must be an integer") as e:
+                env.step(bad)
+            assert e.value.reason == "ACTION_NOT_INTEGER" and e.value.field == "action"
+        twin = DinerDashEnv(address)
+        twin.reset(seed=5)
+        try:
+            for good in (np.int64(3), np.uint8(3), np.array(3), np.array([3], dtype=np.int32)):
+                ours, theirs = env.step(good), twin.step(3)
+                np.testing.assert_array_equal(ours[0], theirs[0])
+                assert ours[1:4] == theirs[1:4] and ours[4]["score"] == theirs[4]["score"]
+        finally:
+            twin.close()
     finally:
         env.close()
 

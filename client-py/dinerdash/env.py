@@ -30,13 +30,26 @@ from ._endpoint import Endpoint
 from ._proto import pb
 from ._session import SessionCore, SessionOwner, Settings, check_actions
 from .connection import Connection, ConnectOptions
-from .errors import EnvClosed, SessionNotFound
+from .errors import EnvClosed, InvalidArgument, SessionNotFound
 from .game import NUM_ACTIONS, observation_space
 
 __all__ = ["DinerDashEnv", "Snapshot"]
 
 # The 57 valid actions as the 4 little-endian bytes the server expects, built once.
 _ACTION_BYTES = tuple(struct.pack("<i", a) for a in range(NUM_ACTIONS))
+
+
+def _integer_action(action: Any) -> int:
+    """An action given as a one-element integer array (``np.array(3)``, ``[3]``); anything else,
+    a float or a string among them, is refused as Gymnasium's ``Discrete`` space refuses it."""
+    acts = np.asarray(action)
+    if acts.size != 1 or acts.dtype.kind not in "iu":
+        raise InvalidArgument(
+            f"action must be an integer in 0..={NUM_ACTIONS - 1}, got {action!r}",
+            reason="ACTION_NOT_INTEGER",
+            field="action",
+        )
+    return int(acts.reshape(()))
 
 
 @dataclass(frozen=True)
@@ -270,7 +283,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return obs.copy(), dict(info)
 
     def step(self, action: Any) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
-        a = int(action)
+        a = int(action) if isinstance(action, (int, np.integer)) else _integer_action(action)
         if 0 <= a < NUM_ACTIONS:
             data = _ACTION_BYTES[a]
         else:
@@ -290,6 +303,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     def action_masks(self) -> np.ndarray:
         """The 57 actions that have an effect in the current state, as a ``bool`` array: what
         sb3-contrib's MaskablePPO asks for (``info["action_mask"]`` holds the same)."""
+        self._check_open("action_masks()")
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         return self._last_info["action_mask"].copy()
@@ -300,8 +314,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
                 "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
             )
             return None
+        self._check_open("render()")
         if self.render_mode == "ansi":
-            self._check_open("render()")
             return self._core.render_text(0, self.ansi_color)
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before render()")
