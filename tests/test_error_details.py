@@ -4,6 +4,9 @@ opens a new session."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from dinerdash import (
@@ -174,3 +177,33 @@ def test_a_closed_local_server_env_starts_a_new_server_at_reset() -> None:
         assert info["tick"] == 0 and env.server is not None and env.server.is_running()
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("kind", ["env", "vector"])
+def test_an_env_never_closed_frees_its_session_at_exit(address: str, kind) -> None:
+    """A script that forgets close(): its session is closed as the interpreter exits, not held
+    for the server's session TTL."""
+    make = (
+        "dinerdash.DinerDashEnv(address)"
+        if kind == "env"
+        else "dinerdash.DinerDashVectorEnv(2, address)"
+    )
+    script = (
+        "import sys, dinerdash\n"
+        f"address = sys.argv[1]\nenv = {make}\nenv.reset(seed=1)\n"
+        "print(env.session_id if hasattr(env, 'session_id') else env.session_ids[0])\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script, address],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    session_id = out.stdout.split()[-1]
+    conn = Connection(address)
+    try:
+        with pytest.raises(SessionNotFound):
+            conn.call("Snapshot", pb.SnapshotRequest(session_id=session_id))
+    finally:
+        conn.close()

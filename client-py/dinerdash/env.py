@@ -6,6 +6,7 @@ import copy
 import dataclasses
 import random
 import struct
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, SupportsFloat
@@ -37,6 +38,11 @@ __all__ = ["DinerDashEnv", "Snapshot"]
 
 # The 57 valid actions as the 4 little-endian bytes the server expects, built once.
 _ACTION_BYTES = tuple(struct.pack("<i", a) for a in range(NUM_ACTIONS))
+
+
+def _close(core: SessionCore, endpoint: Endpoint) -> None:
+    core.close()
+    endpoint.close()
 
 
 def _integer_action(action: Any) -> int:
@@ -221,6 +227,9 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         except BaseException:
             self._endpoint.close()
             raise
+        # close() runs it; so does the interpreter's exit for an env never closed, whose session
+        # would otherwise wait out the server's session TTL.
+        self._finalizer = weakref.finalize(self, _close, self._core, self._endpoint)
         self._closed = False
 
     @property
@@ -330,8 +339,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         """Closes the session (and the local server, if this env started one). A later
         ``reset()`` opens a new session; other calls raise :class:`~dinerdash.EnvClosed`."""
         if not self._closed:
-            self._core.close()
-            self._endpoint.close()
+            self._finalizer()
             self._closed = True
         super().close()
 
