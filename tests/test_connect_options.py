@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import socket
 
 import dinerdash
 import gymnasium
@@ -110,3 +111,34 @@ def test_an_unknown_keyword_is_refused_by_name(address: str) -> None:
 def test_bad_values_are_refused_when_the_value_is_built(field, value, error) -> None:
     with pytest.raises(error, match=field):
         ConnectOptions(**{field: value})
+
+
+def test_the_connect_timeout_follows_a_shorter_call_timeout() -> None:
+    assert ConnectOptions().connect_timeout == 10.0
+    assert ConnectOptions(timeout=2.5).connect_timeout == 2.5
+    assert ConnectOptions(timeout=30).connect_timeout == 10.0
+    assert ConnectOptions(timeout=2.5, connect_timeout=4).connect_timeout == 4.0
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_a_wrong_address_says_what_is_there_and_names_connect_timeout(start_server) -> None:
+    """Nothing listening, and the server's web port instead of its gRPC port: each error says
+    which, and names the keyword that bounds the wait."""
+    with pytest.raises(dinerdash.ServiceTransportError) as e:
+        dinerdash.DinerDashEnv(f"127.0.0.1:{_free_port()}", timeout=1)
+    assert "connect_timeout=1 s" in str(e.value) and "nothing accepts connections" in str(e.value)
+
+    server = start_server("--http-port", "0")
+    conn = dinerdash.Connection(server.address)
+    try:
+        http_port = conn.server_info().http_port
+    finally:
+        conn.close()
+    with pytest.raises(dinerdash.ServiceTransportError, match=r"answers HTTP/1\.1, not gRPC") as e:
+        dinerdash.DinerDashEnv(f"127.0.0.1:{http_port}", connect_timeout=1)
+    assert "--http-port" in str(e.value)

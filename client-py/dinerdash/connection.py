@@ -83,6 +83,8 @@ DEFAULT_PORT = 50051
 #: that a stuck server becomes an error, and generous enough for a 1024-environment Step or a
 #: planner's Step on a loaded 2-core machine.
 DEFAULT_TIMEOUT = 60.0
+#: Seconds a connection waits for its server to answer at first, unless the call timeout is shorter.
+CONNECT_TIMEOUT = 10.0
 
 #: The service whose methods the channel's service config retries.
 SERVICE = "dinerdash.v1.DinerDash"
@@ -268,6 +270,27 @@ def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
         sock.close()
 
 
+def _why_not_grpc(address: str, timeout: float = 2.0) -> str:
+    """What listens at ``address`` instead of a gRPC server, in words for a failed connect."""
+    port = _split_host_port(address)[1]
+    start = (
+        f"start one with `dinerdash-server --port {port}`, or omit `address` (and "
+        "DINERDASH_ADDRESS) to let the client start a local one"
+    )
+    try:
+        with socket.create_connection(_split_host_port(address), timeout=timeout) as sock:
+            sock.sendall(b"HEAD / HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+            answer = sock.recv(16)
+    except OSError:
+        return f"nothing accepts connections there; is it running? {start[0].upper()}{start[1:]}"
+    if answer.startswith(b"HTTP/1."):
+        return (
+            "it answers HTTP/1.1, not gRPC: is this the server's web port (--http-port)? "
+            "Clients connect to its gRPC port (--port, 50051 by default)"
+        )
+    return f"something listens there but did not answer as a gRPC server in time; {start}"
+
+
 def _split_host_port(address: str) -> tuple[str, int]:
     address = address.strip()
     if address.startswith("["):  # [ipv6]:port
@@ -359,7 +382,8 @@ class ConnectOptions:
             or a DNS name; ``None``: ``DINERDASH_ADDRESS``, else a local server. It is resolved
             at each connect, so that a DNS name that moved is followed.
         token: the auth token (``None``: ``DINERDASH_AUTH_TOKEN``).
-        connect_timeout: seconds to wait for a server to answer at first.
+        connect_timeout: seconds to wait for a server to answer at first (``None``: 10, or
+            ``timeout`` when that is shorter); a wrong address costs this long.
         timeout: every call's deadline in seconds, resolved here (:func:`call_timeout`).
         tls, tls_ca: TLS trusting the system's roots, or this PEM CA (``None``:
             ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says, as for the
@@ -383,7 +407,7 @@ class ConnectOptions:
 
     address: str | tuple[str, ...] | None = None
     token: str | None = None
-    connect_timeout: float = 10.0
+    connect_timeout: float | None = None
     timeout: float | None = None
     tls: bool = False
     tls_ca: str | os.PathLike | bool | None = None
@@ -403,6 +427,8 @@ class ConnectOptions:
         if self.address is not None and not isinstance(self.address, str):
             object.__setattr__(self, "address", tuple(self.address))
         object.__setattr__(self, "timeout", call_timeout(self.timeout))
+        if self.connect_timeout is None:
+            object.__setattr__(self, "connect_timeout", min(CONNECT_TIMEOUT, self.timeout))
         object.__setattr__(self, "reconnect", bool(self.reconnect))
         for name in ("connect_timeout", "reconnect_timeout"):
             value = getattr(self, name)
@@ -501,7 +527,7 @@ class Connection:
         address: str,
         *,
         token: str | None = None,
-        connect_timeout: float = 10.0,
+        connect_timeout: float = CONNECT_TIMEOUT,
         retries: int = 4,
         retry_backoff: float = 0.1,
         timeout: float | None = None,
@@ -548,9 +574,7 @@ class Connection:
             self.close()
             raise ServiceTransportError(
                 f"could not connect to a dinerdash-server at {self.address} within "
-                f"{connect_timeout:g} s; is it running? Start one with "
-                f"`dinerdash-server --port {_split_host_port(self.address)[1]}`, or omit `address` "
-                "(and DINERDASH_ADDRESS) to let the client start a local one",
+                f"connect_timeout={connect_timeout:g} s: {_why_not_grpc(self.address)}",
                 address=self.address,
             )
 
