@@ -215,7 +215,7 @@ pub async fn drained(until: Instant, sessions_left: impl Fn() -> usize) {
         sessions = sessions_left(),
         drain_timeout_s = timeout.as_secs_f64(),
         "draining: no new sessions; serving the ones left until they close or the drain timeout \
-         passes"
+         passes (a second Ctrl-C or SIGTERM exits at once)"
     );
     let deadline = tokio::time::Instant::from_std(until);
     let mut poll = tokio::time::interval(DRAIN_POLL);

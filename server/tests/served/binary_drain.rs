@@ -239,6 +239,11 @@ async fn a_second_signal_ends_the_drain_at_once() {
         stderr.contains("a second signal: exiting at once"),
         "{stderr}"
     );
+    // The drain's first line told the operator so.
+    assert!(
+        stderr.contains("a second Ctrl-C or SIGTERM exits at once"),
+        "{stderr}"
+    );
 }
 
 #[tokio::test]
