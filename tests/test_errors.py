@@ -131,9 +131,10 @@ def test_resource_exhausted(start_server) -> None:
 
 def test_unauthenticated(start_server) -> None:
     server = start_server("--auth-token", "s3cret-0123456789")
-    with pytest.raises(Unauthenticated):
+    hint = "token= or DINERDASH_AUTH_TOKEN"  # the client's words, not gRPC metadata's
+    with pytest.raises(Unauthenticated, match=hint):
         DinerDashEnv(server.address)
-    with pytest.raises(Unauthenticated):
+    with pytest.raises(Unauthenticated, match=hint):
         DinerDashEnv(server.address, token="wrong")
     env = DinerDashEnv(server.address, token="s3cret-0123456789")
     try:

@@ -29,6 +29,7 @@ a ``FileNotFoundError``) says how to build one or point to one.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import grpc
 
@@ -120,7 +121,14 @@ class ResourceExhausted(ServiceError):
 
 
 class Unauthenticated(ServiceError):
-    """The server wants ``authorization: Bearer <token>`` and the token was missing or wrong."""
+    """The server wants ``authorization: Bearer <token>`` and the token was missing or wrong.
+    Its message says how this client sends one: ``token=`` or ``DINERDASH_AUTH_TOKEN``."""
+
+    def __init__(self, details: str, **kwargs: Any) -> None:
+        super().__init__(
+            f"{details} (this client sends the token given as token= or DINERDASH_AUTH_TOKEN)",
+            **kwargs,
+        )
 
 
 class ServiceTimeout(ServiceError, TimeoutError):
