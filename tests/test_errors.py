@@ -151,3 +151,16 @@ def test_connect_timeout_is_readable(start_server) -> None:
         DinerDashEnv(gone.address, connect_timeout=1.0)
     assert isinstance(e.value, OSError) and isinstance(e.value, ServiceError)
     assert gone.address in str(e.value) and "could not connect" in str(e.value)
+
+
+def test_a_lost_server_without_reconnect_says_what_would_ride_it_out(start_server) -> None:
+    server = start_server()
+    env = DinerDashEnv(server.address)
+    try:
+        env.reset(seed=0)
+        server.kill()
+        with pytest.raises(ServiceTransportError, match="reconnect=True would wait") as e:
+            env.step(0)
+        assert "several addresses" in str(e.value)
+    finally:
+        env.close()

@@ -67,8 +67,8 @@ def test_reconnect_waits_for_a_server_that_comes_back_later(start_server) -> Non
             start_server.started.append(server.restart())
 
         thread = threading.Thread(target=restart)
+        began = time.monotonic()  # before the thread's sleep starts, however loaded the machine
         thread.start()
-        began = time.monotonic()
         _, _, _, truncated, info = env.step(0)  # blocks until the server is back
         returned = time.monotonic()
         thread.join(timeout=30)

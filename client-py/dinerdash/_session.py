@@ -525,18 +525,27 @@ class SessionCore:
 
     def fail(self, error: ServiceError) -> ServiceError:
         """``error``, saying which environments it concerns when the env is split over several
-        servers: its ``env_index`` becomes the index in the whole env."""
-        if not self.settings.split:
+        servers (its ``env_index`` becomes the index in the whole env), and, for a lost server
+        without ``reconnect=True``, what would have ridden it out."""
+        lost = isinstance(error, LOST) and not self.settings.reconnect
+        if not (self.settings.split or lost):
             return error
         env_index = error.env_index
-        if env_index is not None:
+        where = ""
+        if self.settings.split and env_index is not None:
             where = (
                 f" [the server's environment {env_index} is environment {env_index + self.start}"
                 f" of the vector env, whose environments {self.start}..{self.stop - 1} it holds]"
             )
             env_index += self.start
-        else:
+        elif self.settings.split:
             where = f" [environments {self.start}..{self.stop - 1} of the vector env]"
+        if lost:
+            where += (
+                "; reconnect=True would wait for the server and go on with new episodes "
+                "(truncated), and a vector env given several addresses would move its "
+                "environments to the others"
+            )
         return type(error)(
             error.details + where,
             code=error.code,

@@ -125,10 +125,8 @@ class Unauthenticated(ServiceError):
     Its message says how this client sends one: ``token=`` or ``DINERDASH_AUTH_TOKEN``."""
 
     def __init__(self, details: str, **kwargs: Any) -> None:
-        super().__init__(
-            f"{details} (this client sends the token given as token= or DINERDASH_AUTH_TOKEN)",
-            **kwargs,
-        )
+        super().__init__(details, **kwargs)
+        self.args = (f"{self.args[0]}; this client sends token= or DINERDASH_AUTH_TOKEN",)
 
 
 class ServiceTimeout(ServiceError, TimeoutError):
