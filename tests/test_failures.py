@@ -3,6 +3,7 @@ server is back (restarted on the same port)."""
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
@@ -30,9 +31,10 @@ def test_killed_server_gives_a_clear_error(start_server) -> None:
         env.close()  # closing after the server is gone does not raise
 
 
-def test_reconnect_after_restart_on_the_same_port(start_server) -> None:
+def test_reconnect_after_restart_on_the_same_port(start_server, caplog) -> None:
     server = start_server()
     env = DinerDashEnv(server.address, reconnect=True, reconnect_timeout=30)
+    caplog.set_level(logging.INFO, logger="dinerdash")
     try:
         _, info = env.reset(seed=1)
         old_session = env.session_id
@@ -44,6 +46,8 @@ def test_reconnect_after_restart_on_the_same_port(start_server) -> None:
         assert truncated and not terminated and reward == 0.0 and info["reconnected"]
         assert info["tick"] == 10  # the last state seen of the interrupted episode
         assert env.session_id != old_session
+        # The logger's name says whose line it is; the message does not say it again.
+        assert not [r.message for r in caplog.records if r.message.startswith("dinerdash")]
         obs, info = env.reset(seed=1)  # the loop goes on, on the restarted server
         assert info["tick"] == 0
         for _ in range(5):

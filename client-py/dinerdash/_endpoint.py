@@ -139,10 +139,10 @@ class Endpoint:
             self.connections[index].close()
             self.draining.pop(index, None)
             if why is None:
-                log.info("dinerdash: %s drained; its environments moved", self.addresses[index])
+                log.info("the server at %s drained; its environments moved", self.addresses[index])
             else:
                 self.failovers += 1
-                log.warning("dinerdash: gave up %s: %s", self.addresses[index], why)
+                log.warning("gave up the server at %s: %s", self.addresses[index], why)
 
     def transport_changed(self, address: str, session: str, old: str, new: str, why: str) -> None:
         """A session's Steps changed transport (``old`` to ``new``: ``"shm"``, ``"grpc"``):
@@ -150,7 +150,7 @@ class Endpoint:
         user who measured shared memory's rate must not train at gRPC's without knowing."""
         self.transport_changes += 1
         log.warning(
-            "dinerdash: session %s on %s steps over %s instead of %s from now on: %s",
+            "session %s on %s steps over %s instead of %s from now on: %s",
             session,
             address,
             "shared memory" if new == "shm" else "gRPC",
@@ -164,14 +164,14 @@ class Endpoint:
         self.given_up.remove(index)
         self.connections[index] = conn
         self.rejoins += 1
-        log.info("dinerdash: took back %s: it answers again", self.addresses[index])
+        log.info("took back the server at %s: it answers again", self.addresses[index])
 
     def add(self, conn: Connection) -> int:
         """A new server (``conn``'s address, e.g. a DNS name's new replica) taken in; its index."""
         self.addresses.append(conn.address)
         self.connections.append(conn)
         self.rejoins += 1
-        log.info("dinerdash: took in %s: a new replica", conn.address)
+        log.info("took in the server at %s: a new replica", conn.address)
         return len(self.connections) - 1
 
     def drain(self, index: int, remaining: float | None) -> None:
@@ -182,7 +182,7 @@ class Endpoint:
         deadline = float("inf") if remaining is None else time.monotonic() + remaining
         if index not in self.draining:
             log.info(
-                "dinerdash: %s drains (%s): its environments move at their episode ends",
+                "the server at %s drains (%s): its environments move at their episode ends",
                 self.addresses[index],
                 "deadline unknown" if remaining is None else f"{remaining:.1f} s left",
             )
