@@ -22,7 +22,7 @@ import grpc
 
 from . import connection
 from ._endpoint import Endpoint
-from .connection import Connection, ConnectOptions, _split_host_port
+from .connection import Connection, ConnectOptions, split_host_port
 from .errors import ServiceError
 
 __all__ = ["Membership", "await_replies", "has_name"]
@@ -101,7 +101,7 @@ def has_name(address: str | Sequence[str] | None) -> bool:
         return False
     for item in items:
         try:
-            ipaddress.ip_address(_split_host_port(item)[0])
+            ipaddress.ip_address(split_host_port(item)[0])
         except ValueError:
             return True
     return False

@@ -50,7 +50,7 @@ import numpy as np
 
 from ._batch import FIELDS as _SHAPES
 from ._batch import Batch
-from .connection import Connection, _split_host_port
+from .connection import Connection, split_host_port
 from .errors import (
     EnvClosed,
     ServiceError,
@@ -138,7 +138,7 @@ def _on_this_host(address: str) -> bool:
     address, or one this host can bind (an address of one of its interfaces). Only then can
     the server be on this machine, and only then is its doorbell looked for."""
     try:
-        host, port = _split_host_port(address)
+        host, port = split_host_port(address)
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (OSError, ValueError, UnicodeError):
         return False

@@ -252,7 +252,7 @@ def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
     """Whether the server at ``address`` completes a TLS handshake (certificate not checked):
     ``None`` when nothing accepts a TCP connection there. Only asked after a failed connect, to
     say why."""
-    host, port = _split_host_port(address)
+    host, port = split_host_port(address)
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     context.check_hostname = False
     context.verify_mode = ssl.CERT_NONE
@@ -272,13 +272,13 @@ def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
 
 def _why_not_grpc(address: str, timeout: float = 2.0) -> str:
     """What listens at ``address`` instead of a gRPC server, in words for a failed connect."""
-    port = _split_host_port(address)[1]
+    port = split_host_port(address)[1]
     start = (
         f"start one with `dinerdash-server --port {port}`, or omit `address` (and "
         "DINERDASH_ADDRESS) to let the client start a local one"
     )
     try:
-        with socket.create_connection(_split_host_port(address), timeout=timeout) as sock:
+        with socket.create_connection(split_host_port(address), timeout=timeout) as sock:
             sock.sendall(b"HEAD / HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
             answer = sock.recv(16)
     except OSError:
@@ -291,7 +291,8 @@ def _why_not_grpc(address: str, timeout: float = 2.0) -> str:
     return f"something listens there but did not answer as a gRPC server in time; {start}"
 
 
-def _split_host_port(address: str) -> tuple[str, int]:
+def split_host_port(address: str) -> tuple[str, int]:
+    """``"host:port"`` or ``"[v6]:port"`` as ``(host, port)``; no port: :data:`DEFAULT_PORT`."""
     address = address.strip()
     if address.startswith("["):  # [ipv6]:port
         host, _, rest = address[1:].partition("]")
@@ -305,7 +306,8 @@ def _split_host_port(address: str) -> tuple[str, int]:
     return address, DEFAULT_PORT
 
 
-def _join_host_port(host: str, port: int) -> str:
+def join_host_port(host: str, port: int) -> str:
+    """``host`` and ``port`` as an address, an IPv6 host in brackets."""
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
@@ -321,10 +323,10 @@ def parse_addresses(address: str | Sequence[str]) -> list[str]:
         if not isinstance(item, str) or not item.strip():
             raise ValueError(f"address: expected 'host:port' strings, got {item!r}")
         try:
-            host, port = _split_host_port(item)
+            host, port = split_host_port(item)
         except ValueError:
             raise ValueError(f"address: bad port in {item!r}; expected 'host:port'") from None
-        out.append(_join_host_port(host, port))
+        out.append(join_host_port(host, port))
     if not out:
         raise ValueError("address: no server address given")
     return out
@@ -341,7 +343,7 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
     """
     out: list[str] = []
     for item in parse_addresses(address):
-        host, port = _split_host_port(item)
+        host, port = split_host_port(item)
         try:
             ipaddress.ip_address(host)
             out.append(item)
@@ -359,7 +361,7 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
         if len(ips) <= 1:
             out.append(item)  # one server: keep the name (nicer in messages, TLS-friendly)
         else:
-            out.extend(_join_host_port(ip, port) for ip in ips)
+            out.extend(join_host_port(ip, port) for ip in ips)
     return out
 
 

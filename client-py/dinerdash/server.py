@@ -23,13 +23,33 @@ import tempfile
 import threading
 import time
 import weakref
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from .errors import LocalServerError, ServerBinaryNotFound
 
-__all__ = ["LocalServer", "find_server_binary", "local_server_unless_addressed"]
+__all__ = ["LocalServer", "find_server_binary", "local_server_unless_addressed", "server_args"]
+
+
+def server_args(flags: Mapping[str, Any]) -> list[str]:
+    """Command-line arguments from keywords: ``max_sessions=8`` is ``--max-sessions 8``; ``True``
+    is the bare flag; ``None`` and ``False`` leave the flag out; a list or tuple repeats it."""
+    args: list[str] = []
+    for name, value in flags.items():
+        flag = "--" + name.replace("_", "-")
+        if value is None or value is False:
+            continue
+        if value is True:
+            args.append(flag)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                args += [flag, str(item)]
+        else:
+            args += [flag, str(value)]
+    return args
+
 
 _LISTENING = re.compile(r"^dinerdash-server listening on (\S+)\s*$")
 _BUILD_HINT = (

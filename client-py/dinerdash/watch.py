@@ -23,7 +23,7 @@ import os
 import sys
 import webbrowser
 
-from .connection import Connection, _join_host_port, _split_host_port
+from .connection import Connection, join_host_port, split_host_port
 from .errors import FailedPrecondition
 
 __all__ = ["open_browser", "pages_url", "watch_url"]
@@ -45,10 +45,10 @@ def pages_url(conn: Connection) -> str:
         )
     host = info.http_host
     if host in _WILDCARDS:
-        host = _split_host_port(conn.address)[0]
+        host = split_host_port(conn.address)[0]
     # A server with a certificate serves its pages over TLS too, with the same certificate.
     scheme = "https" if getattr(conn, "tls", False) else "http"
-    return f"{scheme}://{_join_host_port(host, info.http_port)}/"
+    return f"{scheme}://{join_host_port(host, info.http_port)}/"
 
 
 def watch_url(conn: Connection, session_id: str, env: int = 0) -> str:

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import LocalServerError
-from ..server import LocalServer
+from ..server import LocalServer, server_args
 
 try:
     import ray
@@ -102,22 +102,14 @@ class _ServerActor:
 
 
 def _server_flags(flags: Mapping[str, Any]) -> list[str]:
-    """``max_sessions=8`` -> ``--max-sessions 8``; ``True`` a bare flag, ``False``/``None``
-    nothing."""
-    args: list[str] = []
-    for name, value in flags.items():
-        flag = "--" + name.replace("_", "-")
-        if flag in ("--host", "--port", "--auth-token"):
+    """:func:`~dinerdash.server.server_args` of ``flags``, less those the pool chooses."""
+    for name in flags:
+        if name.replace("-", "_") in ("host", "port", "auth_token"):
             raise TypeError(
                 f"start_servers(): {name}= is chosen by the pool (the node's address, a free "
                 "port, token=)"
             )
-        if value is None or value is False:
-            continue
-        args.append(flag)
-        if value is not True:
-            args.append(str(value))
-    return args
+    return server_args(flags)
 
 
 def _server_nodes() -> list[dict[str, Any]]:

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import LocalServerError
-from ..server import LocalServer, find_server_binary
+from ..server import LocalServer, find_server_binary, server_args
 
 __all__ = ["LocalCluster", "server_args"]
 
@@ -81,24 +81,6 @@ def _ready(address: str, timeout: float) -> None:
         Connection(address, connect_timeout=timeout).close()
     except ServiceError:  # any answer (TLS, a token needed) will do; no answer fails later calls
         pass
-
-
-def server_args(flags: dict[str, Any]) -> list[str]:
-    """Command-line arguments from keywords: ``max_sessions=8`` is ``--max-sessions 8``; ``True``
-    is the bare flag; ``None`` and ``False`` leave the flag out; a list or tuple repeats it."""
-    args: list[str] = []
-    for name, value in flags.items():
-        flag = "--" + name.replace("_", "-")
-        if value is None or value is False:
-            continue
-        if value is True:
-            args.append(flag)
-        elif isinstance(value, (list, tuple)):
-            for item in value:
-                args += [flag, str(item)]
-        else:
-            args += [flag, str(value)]
-    return args
 
 
 class LocalCluster:
