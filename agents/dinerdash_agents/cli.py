@@ -36,7 +36,10 @@ def _connect(args: argparse.Namespace) -> ConnectOptions:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from .curves import tensorboard_dir
     from .train_rl import RL_ALGORITHMS
+
+    args.tensorboard = tensorboard_dir(args.out, args.tensorboard)
 
     runs = {
         "dagger": _cmd_train_dagger,
@@ -61,6 +64,7 @@ def _cmd_train_imitation(args: argparse.Namespace) -> int:
         episodes=args.episodes,
         seed=args.seed,
         config=config,
+        tensorboard=args.tensorboard,
     )
     data, training = description["data"], description["training"]
     print(
@@ -96,6 +100,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         init=args.init,
         teacher=args.teacher,
         config=config,
+        tensorboard=args.tensorboard,
     )
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
@@ -126,7 +131,9 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
+    _, description = train_dagger(
+        args.out, config, connect=_connect(args), seed=args.seed, tensorboard=args.tensorboard
+    )
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger (teacher {config.teacher}), {config.rounds} rounds of "
@@ -160,7 +167,9 @@ def _cmd_train_recurrent(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
+    _, description = train_dagger(
+        args.out, config, connect=_connect(args), seed=args.seed, tensorboard=args.tensorboard
+    )
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger-recurrent ({config.kind}, teacher {config.teacher}), "
@@ -275,6 +284,13 @@ def _parser() -> argparse.ArgumentParser:
         "--episodes", type=int, default=None, help="train on the first K episodes (default: all)"
     )
     p.add_argument("--out", required=True, help="checkpoint directory to write")
+    p.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        help="directory of the run's TensorBoard event files, written as it goes (default: "
+        "tensorboard/NAME beside the checkpoint OUT = .../NAME; view with `tensorboard --logdir "
+        "DIR`)",
+    )
     p.add_argument("--seed", type=int, default=0, help="initialisation and shuffling seed")
     p.add_argument(
         "--epochs", type=int, default=None, help="epochs (of every stage, for dpgm); default: tuned"

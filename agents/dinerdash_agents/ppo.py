@@ -500,6 +500,8 @@ class Trainer:
         #: One row per iteration: steps, mean score of the last 100 episodes, env-steps/s.
         self.curve: list[tuple[int, float, float]] = []
         self.recent_scores: list[float] = []
+        #: The lengths of the same episodes (not checkpointed: a resumed run starts it afresh).
+        self.recent_lengths: list[int] = []
         #: Seconds spent since the trainer was made, by part of the iteration: ``act`` (the
         #: jitted acting calls, copies included), ``env`` (waiting for the environments' steps,
         #: the client's decoding included), ``bootstrap`` (the values of the truncated episodes'
@@ -546,6 +548,7 @@ class Trainer:
             self._groups.append(group)
             start += size
         self._score = np.zeros(self.config.num_envs)
+        self._length = np.zeros(self.config.num_envs, np.int64)
 
     def _next_key(self) -> jax.Array:
         self.key, k = jax.random.split(self.key)
@@ -658,16 +661,18 @@ class Trainer:
         group.sent = None
         done = terminated | truncated
         b.rewards[t, rows], b.terminated[t, rows], b.done[t, rows] = reward, terminated, done
-        score = self._score[rows]
+        score, length = self._score[rows], self._length[rows]
         score += reward
+        length += 1
         if done.any():
             for i in np.flatnonzero(done):
                 if not terminated[i]:  # truncated: bootstrapped from its last observation
                     self._truncations.append((t, rows.start + i, info["final_obs"][i]))
                 self.recent_scores.append(float(score[i]))
-                score[i] = 0.0
+                self.recent_lengths.append(int(length[i]))
+                score[i], length[i] = 0.0, 0
             self.episodes += int(done.sum())
-            del self.recent_scores[:-100]
+            del self.recent_scores[:-100], self.recent_lengths[:-100]
         group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
 
     def view(self) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -744,6 +749,11 @@ class Trainer:
     @property
     def mean_recent_score(self) -> float:
         return float(np.mean(self.recent_scores)) if self.recent_scores else float("nan")
+
+    @property
+    def mean_recent_length(self) -> float:
+        """The mean length of the last 100 episodes this process saw end (NaN before one)."""
+        return float(np.mean(self.recent_lengths)) if self.recent_lengths else float("nan")
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo`` or ``ppo-masked``
