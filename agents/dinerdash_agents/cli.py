@@ -25,7 +25,12 @@ import sys
 from collections.abc import Sequence
 
 from dinerdash import ConnectOptions
-from dinerdash.cli import add_connection_arguments, connection_keywords, run_command
+from dinerdash.cli import (
+    DefaultsHelpFormatter,
+    add_connection_arguments,
+    connection_keywords,
+    run_command,
+)
 
 __all__ = ["main"]
 
@@ -186,6 +191,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from dinerdash.evaluation import Progress, print_evaluation
 
+    from . import seeds
     from .checkpoint import load
     from .evaluate import evaluate_policy
 
@@ -193,13 +199,26 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         print("error: --episodes must be at least 1", file=sys.stderr)
         return 2
+    trained = seeds.trained_on(policy.description)
+    seed = args.seed
+    if seed is None:
+        seed = seeds.evaluation_seed(trained, args.episodes)
+        if seed != seeds.EVALUATION_SEEDS.start:
+            print(
+                f"note: {policy.name} was trained on seeds {seeds.spelled(trained)}: evaluating "
+                f"on the unseen seeds {seed}..{seed + args.episodes - 1}",
+                file=sys.stderr,
+            )
+    warning = seeds.overlap_warning(policy.name, trained, seed, args.episodes)
+    if warning is not None:
+        print(f"warning: {warning}", file=sys.stderr)
     progress = Progress(args.episodes, policy.name)
     start = time.monotonic()
     scores, lengths = evaluate_policy(
         policy.act,
         args.episodes,
-        seed=args.seed,
         connect=_connect(args),
+        seed=seed,
         num_envs=args.num_envs,
         max_steps=args.max_steps,
         use_mask=not args.no_mask,
@@ -210,7 +229,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         policy.name + (" (no mask)" if args.no_mask else ""),
         scores,
         lengths,
-        seed=args.seed,
+        seed=seed,
         how=f"the client's vector env ({min(args.num_envs, args.episodes)} environments)",
         elapsed=time.monotonic() - start,
         as_json=args.json,
@@ -262,6 +281,7 @@ def _parser() -> argparse.ArgumentParser:
         "train",
         help="train an agent: on expert demonstrations (bc, dpgm), on the server (RL) or with a "
         "teacher labelling the learner's states (dagger)",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument(
         "algorithm",
@@ -367,11 +387,21 @@ def _parser() -> argparse.ArgumentParser:
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", help="mean ± sd score of a checkpoint over seeded episodes")
+    p = sub.add_parser(
+        "evaluate",
+        help="mean ± sd score of a checkpoint over seeded episodes",
+        formatter_class=DefaultsHelpFormatter,
+    )
     p.add_argument("checkpoint", help="checkpoint directory")
-    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--episodes", type=int, default=100, help="episodes to play")
     p.add_argument(
-        "--seed", type=int, default=0, help="seed of the first episode (episode i: seed + i)"
+        "--seed",
+        type=int,
+        default=None,
+        help="seed of the first episode (episode i: seed + i); a warning names the seeds the "
+        "checkpoint was trained on if they overlap (default: the evaluation seeds' first, 1000, "
+        "or, if the checkpoint was trained on some of the seeds from there, the first seed after "
+        "them)",
     )
     p.add_argument(
         "--max-steps", type=int, default=100_000, help="truncate an episode after this many steps"
@@ -385,7 +415,9 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser(
-        "paper", help="the paper's experiment: collect, train every agent, evaluate, report"
+        "paper",
+        help="the paper's experiment: collect, train every agent, evaluate, report",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--out", required=True, help="results directory (e.g. docs/results)")
     p.add_argument(
@@ -411,7 +443,9 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_paper)
 
     p = sub.add_parser(
-        "bench-ppo", help="PPO's end-to-end env-steps/s and where an iteration's time goes"
+        "bench-ppo",
+        help="PPO's end-to-end env-steps/s and where an iteration's time goes",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--algorithm", choices=["ppo-masked", "ppo"], default="ppo-masked")
     p.add_argument("--num-envs", type=int, default=256, help="environments stepped together")

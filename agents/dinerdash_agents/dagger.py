@@ -54,6 +54,7 @@ from dinerdash.game import (
 
 from . import checkpoint
 from .errors import AgentsError
+from .seeds import RESERVED_SEEDS, VALIDATION_SEEDS
 from .supervised import fit, masked_logits
 
 __all__ = [
@@ -75,9 +76,8 @@ __all__ = [
 
 #: The teachers: the ``expert=`` keyword of the sessions for each.
 TEACHERS = {"planner": "planner", "expert": True}
-#: Seeds no training episode uses: the evaluation's (1000..1099) and the validation's.
-RESERVED_SEEDS = (range(1000, 1100), range(2000, 2100))
-VALIDATION_SEED = 2000
+#: The first validation seed (the learner after each round plays seeds 2000..).
+VALIDATION_SEED = VALIDATION_SEEDS.start
 
 
 @dataclass(frozen=True)

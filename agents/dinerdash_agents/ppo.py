@@ -53,6 +53,7 @@ import optax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
 from . import checkpoint
+from .seeds import as_ranges
 from .supervised import masked_logits
 
 __all__ = ["ActorCritic", "PPOConfig", "gae", "init", "observation_scale", "sample_actions"]
@@ -500,6 +501,10 @@ class Trainer:
         #: One row per iteration: steps, mean score of the last 100 episodes, env-steps/s.
         self.curve: list[tuple[int, float, float]] = []
         self.recent_scores: list[float] = []
+        #: The seeds trained on, as ``[first, last]`` runs (the checkpoint's
+        #: ``data["seed_ranges"]``): the environments' first resets (:meth:`attach`), and what
+        #: the run adds (demonstrations, a starting checkpoint's).
+        self.seed_ranges: list[list[int]] = []
         #: The lengths of the same episodes (not checkpointed: a resumed run starts it afresh).
         self.recent_lengths: list[int] = []
         #: Seconds spent since the trainer was made, by part of the iteration: ``act`` (the
@@ -529,7 +534,8 @@ class Trainer:
         """Starts playing on ``envs``: a SAME_STEP vector env of ``num_envs`` environments, or a
         sequence of them that hold ``num_envs`` in all (environment ``i`` of the trainer is then
         the ``i``-th counting across them in order; with several, their steps are pipelined).
-        Environment ``i`` is seeded with ``seed * num_envs + i`` at the first reset."""
+        Environment ``i`` is seeded with ``seed * num_envs + steps + i`` at the first reset (a
+        resumed run's ``steps`` are those done), and the seeds are added to :attr:`seed_ranges`."""
         several = isinstance(envs, Sequence)
         parts = list(envs) if several else [envs]
         sizes = [e.num_envs for e in parts]
@@ -543,7 +549,9 @@ class Trainer:
         for part, size in zip(parts, sizes, strict=True):
             group = _Group(part, slice(start, start + size))
             group.view = self.view()
-            obs, info = part.reset(seed=self.seed * self.config.num_envs + self.steps + start)
+            first = self.seed * self.config.num_envs + self.steps + start
+            obs, info = part.reset(seed=first)
+            self.seed_ranges = as_ranges(self.seeds_trained_on() + list(range(first, first + size)))
             group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
             self._groups.append(group)
             start += size
@@ -745,6 +753,11 @@ class Trainer:
         self.steps, self.iteration, self.episodes = (int(c) for c in state["counts"])
         scores = np.asarray(state["recent_scores"])
         self.recent_scores = [float(s) for s in scores if not np.isnan(s)]
+        self.seed_ranges = list(description.get("data", {}).get("seed_ranges") or [])
+
+    def seeds_trained_on(self) -> list[int]:
+        """Every seed of :attr:`seed_ranges`."""
+        return [s for first, last in self.seed_ranges for s in range(first, last + 1)]
 
     @property
     def mean_recent_score(self) -> float:

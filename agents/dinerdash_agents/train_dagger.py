@@ -40,6 +40,7 @@ from .dagger import (
 )
 from .evaluate import evaluate_policy
 from .recurrent import RecurrentConfig
+from .seeds import as_ranges
 
 __all__ = ["CURVE_COLUMNS", "LEARNERS", "Learner", "iter_rows", "save_run", "train_dagger"]
 
@@ -286,6 +287,7 @@ def save_run(
             "teacher": config.teacher,
             "episodes": len(seeds),
             "seeds": [seeds[0], seeds[-1]],
+            "seed_ranges": as_ranges(seeds),
             **data,
         },
         "training": {

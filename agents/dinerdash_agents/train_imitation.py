@@ -17,6 +17,7 @@ from ._version import __version__
 from .curves import LiveCurves
 from .demos import load_demos
 from .errors import AgentsError
+from .seeds import as_ranges
 
 __all__ = ["IMITATION", "default_config", "train_checkpoint"]
 
@@ -84,6 +85,7 @@ def train_checkpoint(
             "episodes_in_file": demos.available,
             "steps": demos.steps,
             "seeds": None if demos.seeds is None else [int(s) for s in demos.seeds[[0, -1]]],
+            "seed_ranges": None if demos.seeds is None else as_ranges(demos.seeds),
         },
         "training": {
             "seed": seed,

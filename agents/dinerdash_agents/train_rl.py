@@ -35,6 +35,7 @@ from .connect import ConnectOptions, options, served
 from .curves import LiveCurves, read_curve, write_curve
 from .demos import load_demos
 from .errors import AgentsError
+from .seeds import as_ranges, trained_on
 
 __all__ = ["PIPELINE", "RL", "RL_ALGORITHMS", "RLAlgorithm", "make_envs", "train_rl"]
 
@@ -170,7 +171,11 @@ def _description(trainer: ppo.Trainer, algorithm: str, name: str, spent: _Spent)
         "algorithm": algorithm,
         "package_version": __version__,
         "config": trainer.config.to_json(),
-        "data": {"environment_steps": trainer.steps, "episodes": trainer.episodes},
+        "data": {
+            "environment_steps": trainer.steps,
+            "episodes": trainer.episodes,
+            "seed_ranges": trainer.seed_ranges,
+        },
         "training": {
             "seed": trainer.seed,
             "total_steps": trainer.total_steps,
@@ -289,6 +294,7 @@ def train_rl(
                     high = envs[0].single_observation_space.high
                     config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
                 trainer = entry.trainer(config, steps, seed, demo_data, False)
+                trainer.seed_ranges = _seeds_learnt_from(demo_data, init)
             live = LiveCurves(tensorboard, resumed=resume is not None, step=trainer.steps)
             with live:
                 _run(trainer, envs, out, algorithm, spent, progress, live)
@@ -297,6 +303,16 @@ def train_rl(
                 e.close()
         _save(trainer, out, algorithm, spent)
         return trainer
+
+
+def _seeds_learnt_from(demos: Any, init: str | Path | None) -> list[list[int]]:
+    """The seeds a new run learns from beyond its environments': its demonstrations' (GAIL) and
+    those its starting checkpoint (``--init``) was trained on."""
+    seeds = [] if demos is None or demos.seeds is None else [int(s) for s in demos.seeds]
+    if init is not None:
+        ranges = trained_on(checkpoint.read_description(init))
+        seeds += [s for r in ranges for s in r]
+    return as_ranges(seeds)
 
 
 def _prepare(

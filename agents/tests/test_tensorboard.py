@@ -5,6 +5,7 @@ values, and the agents with their writer import no torch."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import subprocess
 import sys
@@ -70,6 +71,9 @@ def test_a_resumed_ppo_run_continues_its_curves(server_address: str, tmp_path: P
     scalars = _scalars(tmp_path / "runs" / "tensorboard" / "p")
     per_iteration = 8 * ppo.PPOConfig().num_steps
     assert [step for step, _ in scalars["train/policy_loss"]] == [per_iteration, 2 * per_iteration]
+    # The seeds trained on: each process's first resets, seed * 8 + steps done + i.
+    described = json.loads((out / "checkpoint.json").read_text())
+    assert described["data"]["seed_ranges"] == [[0, 7], [per_iteration, per_iteration + 7]]
 
 
 def test_a_short_dagger_run_writes_its_rounds_and_the_agreement(
