@@ -247,6 +247,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
         seed=args.seed,
         rl_steps=args.rl_steps,
         update=args.update,
+        tensorboard=args.tensorboard,
     )
     return 0
 
@@ -438,6 +439,12 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="keep the rows of OUT/results.json, train and evaluate only the agents it lacks, "
         "and write the report (with its confidence intervals) again",
+    )
+    p.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        help="write the live TensorBoard curves of every run trained to DIR/NAME (default: "
+        "none, as the checkpoints under OUT are meant to be committed)",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
