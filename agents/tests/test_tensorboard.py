@@ -16,7 +16,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from dinerdash_agents import ppo
 from dinerdash_agents.cli import main
-from dinerdash_agents.curves import read_curve
+from dinerdash_agents.curves import LiveCurves, read_curve
 from dinerdash_agents.dagger import DaggerConfig
 from dinerdash_agents.train_dagger import train_dagger
 from dinerdash_agents.train_rl import train_rl
@@ -60,6 +60,21 @@ def test_a_short_ppo_run_writes_its_curves_as_it_goes(server_address: str, tmp_p
     assert scalars["rollout/episode_length"][-1][1] == pytest.approx(trainer.mean_recent_length)
     assert all(value > 0 for _, value in scalars["time/env_steps_per_s"])
     assert all(value > 0 for _, value in scalars["train/entropy"])
+
+
+def test_a_resumed_run_drops_what_its_interrupted_process_wrote_after_the_checkpoint(
+    tmp_path: Path,
+):
+    with LiveCurves(tmp_path) as live:  # checkpointed at step 10, then lost after step 30
+        for step in (10, 20, 30):
+            live.add(step, {"rollout/score": step})
+    with LiveCurves(tmp_path, resumed=True, step=10) as live:
+        live.add(20, {"rollout/score": -20})
+    assert _scalars(tmp_path)["rollout/score"] == [(10, 10.0), (20, -20.0)]
+    # A new run of the same name starts the curves afresh.
+    with LiveCurves(tmp_path) as live:
+        live.add(5, {"rollout/score": 5, "rollout/episode_length": float("nan")})
+    assert _scalars(tmp_path) == {"rollout/score": [(5, 5.0)]}
 
 
 def test_a_resumed_ppo_run_continues_its_curves(server_address: str, tmp_path: Path):
