@@ -6,7 +6,7 @@
 #   - gymnasium.make("dinerdash:DinerDash-v0", expert=True) with no address plays one expert
 #     episode on the server the wheel installed (the client starts it, and stops it);
 #   - dinerdash-server eval --policy expert --episodes 3;
-#   - python -m dinerdash evaluate --episodes 3;
+#   - python -m dinerdash evaluate --episodes 3 --seed 0;
 #   - python -m dinerdash_agents evaluate on a committed checkpoint;
 #   each checked against the known scores (the game is deterministic for a seed): the expert's
 #   seeds 0..2 (EXPERT_SCORES), the checkpoint's seeds 1000..1002 as docs/results/results.json
@@ -138,8 +138,8 @@ if ! printf '%s\n' "$eval_out" | grep -q '^score  5700.0 '; then
     exit 1
 fi
 
-echo "== wheel-smoke: python -m dinerdash evaluate --episodes 3"
-check_scores "$EXPERT_SCORES" python -m dinerdash evaluate --episodes 3 --num-envs 3 --json
+echo "== wheel-smoke: python -m dinerdash evaluate --episodes 3 --seed 0"
+check_scores "$EXPERT_SCORES" python -m dinerdash evaluate --episodes 3 --seed 0 --num-envs 3 --json
 
 echo "== wheel-smoke: python -m dinerdash_agents evaluate (docs/results/checkpoints/bc-70)"
 check_scores "$checkpoint_scores" python -m dinerdash_agents evaluate checkpoint --episodes 3 \

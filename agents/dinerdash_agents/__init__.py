@@ -34,7 +34,9 @@ Layout:
     checkpoint       checkpoint directories, the policy shape (BasePolicy, Policy), load(), and
                      ALGORITHMS, the one table of algorithms (load imports only the one needed)
     connect          the one ConnectOptions value a run hands down; a local server if none named
-    curves           the learning curve every run writes (curve.csv, curve.png)
+    curves           the learning curve every run writes (curve.csv, curve.png) and its live
+                     curves (LiveCurves: TensorBoard event files beside the checkpoint)
+    seeds            the seeds a checkpoint was trained on, and evaluation seeds clear of them
     demos            reading and slicing ``python -m dinerdash collect``'s demonstrations
     supervised       the (masked) cross-entropy and the jitted minibatch loop of BC and DPGM
     bc               behaviour cloning: two FC layers with dropout between

@@ -25,7 +25,12 @@ import sys
 from collections.abc import Sequence
 
 from dinerdash import ConnectOptions
-from dinerdash.cli import add_connection_arguments, connection_keywords, run_command
+from dinerdash.cli import (
+    DefaultsHelpFormatter,
+    add_connection_arguments,
+    connection_keywords,
+    run_command,
+)
 
 __all__ = ["main"]
 
@@ -36,7 +41,10 @@ def _connect(args: argparse.Namespace) -> ConnectOptions:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    from .curves import tensorboard_dir
     from .train_rl import RL_ALGORITHMS
+
+    args.tensorboard = tensorboard_dir(args.out, args.tensorboard)
 
     runs = {
         "dagger": _cmd_train_dagger,
@@ -61,6 +69,7 @@ def _cmd_train_imitation(args: argparse.Namespace) -> int:
         episodes=args.episodes,
         seed=args.seed,
         config=config,
+        tensorboard=args.tensorboard,
     )
     data, training = description["data"], description["training"]
     print(
@@ -96,6 +105,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         init=args.init,
         teacher=args.teacher,
         config=config,
+        tensorboard=args.tensorboard,
     )
     print(
         f"wrote {args.out}: {args.algorithm} after {trainer.steps} environment steps, "
@@ -126,7 +136,9 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
+    _, description = train_dagger(
+        args.out, config, connect=_connect(args), seed=args.seed, tensorboard=args.tensorboard
+    )
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger (teacher {config.teacher}), {config.rounds} rounds of "
@@ -160,7 +172,9 @@ def _cmd_train_recurrent(args: argparse.Namespace) -> int:
     config = dataclasses.replace(
         RecurrentConfig(), **{k: v for k, v in given.items() if v is not None}
     )
-    _, description = train_dagger(args.out, config, connect=_connect(args), seed=args.seed)
+    _, description = train_dagger(
+        args.out, config, connect=_connect(args), seed=args.seed, tensorboard=args.tensorboard
+    )
     data, training = description["data"], description["training"]
     print(
         f"wrote {args.out}: dagger-recurrent ({config.kind}, teacher {config.teacher}), "
@@ -177,6 +191,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from dinerdash.evaluation import Progress, print_evaluation
 
+    from . import seeds
     from .checkpoint import load
     from .evaluate import evaluate_policy
 
@@ -184,13 +199,26 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         print("error: --episodes must be at least 1", file=sys.stderr)
         return 2
+    trained = seeds.trained_on(policy.description)
+    seed = args.seed
+    if seed is None:
+        seed = seeds.evaluation_seed(trained, args.episodes)
+        if seed != seeds.EVALUATION_SEEDS.start:
+            print(
+                f"note: {policy.name} was trained on seeds {seeds.spelled(trained)}: evaluating "
+                f"on the unseen seeds {seed}..{seed + args.episodes - 1}",
+                file=sys.stderr,
+            )
+    warning = seeds.overlap_warning(policy.name, trained, seed, args.episodes)
+    if warning is not None:
+        print(f"warning: {warning}", file=sys.stderr)
     progress = Progress(args.episodes, policy.name)
     start = time.monotonic()
     scores, lengths = evaluate_policy(
         policy.act,
         args.episodes,
-        seed=args.seed,
         connect=_connect(args),
+        seed=seed,
         num_envs=args.num_envs,
         max_steps=args.max_steps,
         use_mask=not args.no_mask,
@@ -201,7 +229,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         policy.name + (" (no mask)" if args.no_mask else ""),
         scores,
         lengths,
-        seed=args.seed,
+        seed=seed,
         how=f"the client's vector env ({min(args.num_envs, args.episodes)} environments)",
         elapsed=time.monotonic() - start,
         as_json=args.json,
@@ -219,6 +247,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
         seed=args.seed,
         rl_steps=args.rl_steps,
         update=args.update,
+        tensorboard=args.tensorboard,
     )
     return 0
 
@@ -253,6 +282,7 @@ def _parser() -> argparse.ArgumentParser:
         "train",
         help="train an agent: on expert demonstrations (bc, dpgm), on the server (RL) or with a "
         "teacher labelling the learner's states (dagger)",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument(
         "algorithm",
@@ -275,6 +305,13 @@ def _parser() -> argparse.ArgumentParser:
         "--episodes", type=int, default=None, help="train on the first K episodes (default: all)"
     )
     p.add_argument("--out", required=True, help="checkpoint directory to write")
+    p.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        help="directory of the run's TensorBoard event files, written as it goes (default: "
+        "tensorboard/NAME beside the checkpoint OUT = .../NAME; view with `tensorboard --logdir "
+        "DIR`)",
+    )
     p.add_argument("--seed", type=int, default=0, help="initialisation and shuffling seed")
     p.add_argument(
         "--epochs", type=int, default=None, help="epochs (of every stage, for dpgm); default: tuned"
@@ -351,11 +388,21 @@ def _parser() -> argparse.ArgumentParser:
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", help="mean ± sd score of a checkpoint over seeded episodes")
+    p = sub.add_parser(
+        "evaluate",
+        help="mean ± sd score of a checkpoint over seeded episodes",
+        formatter_class=DefaultsHelpFormatter,
+    )
     p.add_argument("checkpoint", help="checkpoint directory")
-    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--episodes", type=int, default=100, help="episodes to play")
     p.add_argument(
-        "--seed", type=int, default=0, help="seed of the first episode (episode i: seed + i)"
+        "--seed",
+        type=int,
+        default=None,
+        help="seed of the first episode (episode i: seed + i); a warning names the seeds the "
+        "checkpoint was trained on if they overlap (default: the evaluation seeds' first, 1000, "
+        "or, if the checkpoint was trained on some of the seeds from there, the first seed after "
+        "them)",
     )
     p.add_argument(
         "--max-steps", type=int, default=100_000, help="truncate an episode after this many steps"
@@ -369,7 +416,9 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser(
-        "paper", help="the paper's experiment: collect, train every agent, evaluate, report"
+        "paper",
+        help="the paper's experiment: collect, train every agent, evaluate, report",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--out", required=True, help="results directory (e.g. docs/results)")
     p.add_argument(
@@ -391,11 +440,19 @@ def _parser() -> argparse.ArgumentParser:
         help="keep the rows of OUT/results.json, train and evaluate only the agents it lacks, "
         "and write the report (with its confidence intervals) again",
     )
+    p.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        help="write the live TensorBoard curves of every run trained to DIR/NAME (default: "
+        "none, as the checkpoints under OUT are meant to be committed)",
+    )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
 
     p = sub.add_parser(
-        "bench-ppo", help="PPO's end-to-end env-steps/s and where an iteration's time goes"
+        "bench-ppo",
+        help="PPO's end-to-end env-steps/s and where an iteration's time goes",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--algorithm", choices=["ppo-masked", "ppo"], default="ppo-masked")
     p.add_argument("--num-envs", type=int, default=256, help="environments stepped together")

@@ -54,6 +54,7 @@ from dinerdash.game import (
 
 from . import checkpoint
 from .errors import AgentsError
+from .seeds import RESERVED_SEEDS, VALIDATION_SEEDS
 from .supervised import fit, masked_logits
 
 __all__ = [
@@ -75,9 +76,8 @@ __all__ = [
 
 #: The teachers: the ``expert=`` keyword of the sessions for each.
 TEACHERS = {"planner": "planner", "expert": True}
-#: Seeds no training episode uses: the evaluation's (1000..1099) and the validation's.
-RESERVED_SEEDS = (range(1000, 1100), range(2000, 2100))
-VALIDATION_SEED = 2000
+#: The first validation seed (the learner after each round plays seeds 2000..).
+VALIDATION_SEED = VALIDATION_SEEDS.start
 
 
 @dataclass(frozen=True)
@@ -441,13 +441,23 @@ class Episode:
 @dataclass
 class RoundPlay:
     """What one round's episodes gave: the recorded episodes (in the order of the seeds), their
-    final scores and lengths, the states recorded, how many of them the teacher acted in."""
+    final scores and lengths, the states recorded, how many of them the teacher acted in; of the
+    recorded states with a choice (more than one legal action) in which the learner was asked,
+    how many there were and in how many its action was the teacher's (none when β is 1)."""
 
     episodes: list[Episode]
     scores: np.ndarray
     lengths: np.ndarray
     states: int
     teacher_steps: int
+    choices: int = 0
+    agreed: int = 0
+
+    @property
+    def agreement(self) -> float:
+        """The learner's agreement with the teacher on its round's states with a choice (NaN
+        when it was not asked)."""
+        return self.agreed / self.choices if self.choices else float("nan")
 
 
 class SeedQueue:
@@ -513,7 +523,7 @@ def play_round(
     obs, info = envs.reset(seed=episodes.padded)
     record: list[dict[str, list]] = [{"obs": [], "mask": [], "action": []} for _ in seeds]
     lengths = np.zeros(len(seeds), np.int64)
-    states = teacher_steps = 0
+    states = teacher_steps = choices = agreed = 0
     state, restart = None, np.ones(n, np.bool_)
     while active.any():
         teacher = np.asarray(info["expert_action"], np.int64)
@@ -530,6 +540,9 @@ def play_round(
             learned = teacher
         else:
             learned, state = learner.predict(obs, state, restart, action_masks=mask)
+            asked = active & (mask.sum(axis=1) > 1)
+            choices += int(asked.sum())
+            agreed += int((asked & (np.asarray(learned) == teacher)).sum())
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
         teacher_steps += int((from_teacher & active).sum())
         restart = np.zeros(n, np.bool_)
@@ -546,7 +559,7 @@ def play_round(
         o = np.stack(r["obs"])
         a = np.asarray(r["action"], np.int32)
         recorded.append(Episode(o, np.stack(r["mask"]), a, sequence_starts(o)))
-    return RoundPlay(recorded, episodes.scores, lengths, states, teacher_steps)
+    return RoundPlay(recorded, episodes.scores, lengths, states, teacher_steps, choices, agreed)
 
 
 def seat_weights(actions: np.ndarray, seat_weight: float) -> np.ndarray:

@@ -214,6 +214,7 @@ def run_paper(
     seed: int = 0,
     rl_steps: int | None = None,
     update: bool = False,
+    tensorboard: str | Path | None = None,
     **connection: Any,
 ) -> dict[str, Any]:
     """Runs the experiment against the server(s) of ``connect`` (with ``address`` and the
@@ -222,8 +223,9 @@ def run_paper(
     expert's demonstrations to use instead of collecting them; ``rl_steps``: every RL agent's
     budget instead of the paper's; ``update``: keep the rows (and the expert's, planner's and
     random play's) of ``out/results.json`` and only train and evaluate the agents it lacks, then
-    write the report again; ``connection``: the connection keywords of every env (``timeout``,
-    ``tls``, ``tls_ca``, ...)."""
+    write the report again; ``tensorboard``: a directory for the live curves of every run trained
+    (``<tensorboard>/<checkpoint name>``; ``None``: none written); ``connection``: the connection
+    keywords of every env (``timeout``, ``tls``, ``tls_ca``, ...)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     previous = None
@@ -256,6 +258,7 @@ def run_paper(
                 seed,
                 rl_steps,
                 previous,
+                None if tensorboard is None else Path(tensorboard),
             )
 
 
@@ -286,6 +289,7 @@ def _experiment(
     seed: int,
     rl_steps: int | None,
     previous: dict[str, Any] | None = None,
+    tensorboard: Path | None = None,
 ) -> dict[str, Any]:
     from dinerdash.evaluation import Progress, evaluate_through_env
 
@@ -317,7 +321,16 @@ def _experiment(
             "planner",
             lambda p: evaluate_through_env("planner", EVAL_EPISODES, progress=p, **common),
         )
-    job = _Job(out, demos, planner_demos, connect, seed, rl_steps, reuse=previous is not None)
+    job = _Job(
+        out,
+        demos,
+        planner_demos,
+        connect,
+        seed,
+        rl_steps,
+        reuse=previous is not None,
+        tensorboard=tensorboard,
+    )
     for agent in AGENTS:
         if previous is not None and _done(agent, previous):
             rows.extend(r for r in previous["agents"] if r["name"].split(" (")[0] == agent.name)
@@ -416,8 +429,9 @@ def _write(out: Path, results: dict[str, Any]) -> dict[str, Any]:
 @dataclass(frozen=True)
 class _Job:
     """What every agent's training shares: the results directory, both demonstration files, the
-    server(s), the base training seed, the RL budget, and whether checkpoints that stand are
-    reused (``--update``) rather than trained again."""
+    server(s), the base training seed, the RL budget, whether checkpoints that stand are
+    reused (``--update``) rather than trained again, and where the live curves go (``None``:
+    nowhere)."""
 
     out: Path
     demos: Path
@@ -426,6 +440,11 @@ class _Job:
     seed: int
     rl_steps: int | None
     reuse: bool
+    tensorboard: Path | None = None
+
+    def curves(self, directory: Path) -> Path | None:
+        """The live curves' directory of the run checkpointed to ``directory``."""
+        return None if self.tensorboard is None else self.tensorboard / directory.name
 
 
 def _agent_rows(agent: Agent, job: _Job, evaluate, common) -> list[dict[str, Any]]:
@@ -505,6 +524,7 @@ def _train_imitation(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, An
         seed=job.seed + k,
         config=default_config(agent.algorithm, loss=agent.loss),
         name=directory.name,
+        tensorboard=job.curves(directory),
     )
 
 
@@ -530,6 +550,7 @@ def _train_rl(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]:
         config=KickstartConfig(**KICKSTART_SETTINGS[agent.name])
         if kickstart and agent.name in KICKSTART_SETTINGS
         else None,
+        tensorboard=job.curves(directory),
     )
     return _loaded(directory)
 
@@ -552,7 +573,14 @@ def _train_taught(agent: Agent, job: _Job, k: int) -> tuple[Any, dict[str, Any]]
             if agent.name in DAGGER_SETTINGS
             else RecurrentConfig(teacher=agent.teacher, **RECURRENT_SETTINGS[agent.name])
         )
-        train_dagger(directory, config, connect=job.connect, seed=job.seed + k, name=directory.name)
+        train_dagger(
+            directory,
+            config,
+            connect=job.connect,
+            seed=job.seed + k,
+            name=directory.name,
+            tensorboard=job.curves(directory),
+        )
     return _loaded(directory)
 
 

@@ -53,6 +53,7 @@ import optax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
 from . import checkpoint
+from .seeds import as_ranges
 from .supervised import masked_logits
 
 __all__ = ["ActorCritic", "PPOConfig", "gae", "init", "observation_scale", "sample_actions"]
@@ -500,6 +501,12 @@ class Trainer:
         #: One row per iteration: steps, mean score of the last 100 episodes, env-steps/s.
         self.curve: list[tuple[int, float, float]] = []
         self.recent_scores: list[float] = []
+        #: The seeds trained on, as ``[first, last]`` runs (the checkpoint's
+        #: ``data["seed_ranges"]``): the environments' first resets (:meth:`attach`), and what
+        #: the run adds (demonstrations, a starting checkpoint's).
+        self.seed_ranges: list[list[int]] = []
+        #: The lengths of the same episodes (not checkpointed: a resumed run starts it afresh).
+        self.recent_lengths: list[int] = []
         #: Seconds spent since the trainer was made, by part of the iteration: ``act`` (the
         #: jitted acting calls, copies included), ``env`` (waiting for the environments' steps,
         #: the client's decoding included), ``bootstrap`` (the values of the truncated episodes'
@@ -527,7 +534,8 @@ class Trainer:
         """Starts playing on ``envs``: a SAME_STEP vector env of ``num_envs`` environments, or a
         sequence of them that hold ``num_envs`` in all (environment ``i`` of the trainer is then
         the ``i``-th counting across them in order; with several, their steps are pipelined).
-        Environment ``i`` is seeded with ``seed * num_envs + i`` at the first reset."""
+        Environment ``i`` is seeded with ``seed * num_envs + steps + i`` at the first reset (a
+        resumed run's ``steps`` are those done), and the seeds are added to :attr:`seed_ranges`."""
         several = isinstance(envs, Sequence)
         parts = list(envs) if several else [envs]
         sizes = [e.num_envs for e in parts]
@@ -541,11 +549,14 @@ class Trainer:
         for part, size in zip(parts, sizes, strict=True):
             group = _Group(part, slice(start, start + size))
             group.view = self.view()
-            obs, info = part.reset(seed=self.seed * self.config.num_envs + self.steps + start)
+            first = self.seed * self.config.num_envs + self.steps + start
+            obs, info = part.reset(seed=first)
+            self.seed_ranges = as_ranges(self.seeds_trained_on() + list(range(first, first + size)))
             group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
             self._groups.append(group)
             start += size
         self._score = np.zeros(self.config.num_envs)
+        self._length = np.zeros(self.config.num_envs, np.int64)
 
     def _next_key(self) -> jax.Array:
         self.key, k = jax.random.split(self.key)
@@ -658,16 +669,18 @@ class Trainer:
         group.sent = None
         done = terminated | truncated
         b.rewards[t, rows], b.terminated[t, rows], b.done[t, rows] = reward, terminated, done
-        score = self._score[rows]
+        score, length = self._score[rows], self._length[rows]
         score += reward
+        length += 1
         if done.any():
             for i in np.flatnonzero(done):
                 if not terminated[i]:  # truncated: bootstrapped from its last observation
                     self._truncations.append((t, rows.start + i, info["final_obs"][i]))
                 self.recent_scores.append(float(score[i]))
-                score[i] = 0.0
+                self.recent_lengths.append(int(length[i]))
+                score[i], length[i] = 0.0, 0
             self.episodes += int(done.sum())
-            del self.recent_scores[:-100]
+            del self.recent_scores[:-100], self.recent_lengths[:-100]
         group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
 
     def view(self) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -740,10 +753,20 @@ class Trainer:
         self.steps, self.iteration, self.episodes = (int(c) for c in state["counts"])
         scores = np.asarray(state["recent_scores"])
         self.recent_scores = [float(s) for s in scores if not np.isnan(s)]
+        self.seed_ranges = list(description.get("data", {}).get("seed_ranges") or [])
+
+    def seeds_trained_on(self) -> list[int]:
+        """Every seed of :attr:`seed_ranges`."""
+        return [s for first, last in self.seed_ranges for s in range(first, last + 1)]
 
     @property
     def mean_recent_score(self) -> float:
         return float(np.mean(self.recent_scores)) if self.recent_scores else float("nan")
+
+    @property
+    def mean_recent_length(self) -> float:
+        """The mean length of the last 100 episodes this process saw end (NaN before one)."""
+        return float(np.mean(self.recent_lengths)) if self.recent_lengths else float("nan")
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo`` or ``ppo-masked``

@@ -5,7 +5,14 @@ the server with the teacher labelling every state, the rounds of play
 (:func:`~dinerdash_agents.dagger.play_round`, the one play loop) and retraining, validation of
 each round's learner on seeds 2000.., the curve (``curve.csv``, ``curve.png``: one row per round)
 and the checkpoint of the best round. What differs between the learners is a row of
-:data:`LEARNERS`, not a branch."""
+:data:`LEARNERS`, not a branch.
+
+Beside the checkpoint, the live curves (:class:`~dinerdash_agents.curves.LiveCurves`), after every
+round at its number: ``rollout/score`` and ``rollout/episode_length`` (the mixture's episodes),
+``validation/score`` (the learner on seeds 2000..), ``train/loss``, ``dagger/agreement`` (the
+learner's action is the teacher's, on the round's states with a choice; from round 2 on, when it
+acts), ``dagger/beta``, ``dagger/teacher_share``, ``dagger/dataset_steps`` and
+``time/env_steps_per_s`` (the states played over the seconds of play)."""
 
 from __future__ import annotations
 
@@ -21,7 +28,7 @@ import numpy as np
 from . import checkpoint, dagger, recurrent
 from ._version import __version__
 from .connect import ConnectOptions, options, served
-from .curves import read_curve, write_curve
+from .curves import LiveCurves, read_curve, write_curve
 from .dagger import (
     TEACHERS,
     VALIDATION_SEED,
@@ -33,6 +40,7 @@ from .dagger import (
 )
 from .evaluate import evaluate_policy
 from .recurrent import RecurrentConfig
+from .seeds import as_ranges
 
 __all__ = ["CURVE_COLUMNS", "LEARNERS", "Learner", "iter_rows", "save_run", "train_dagger"]
 
@@ -108,22 +116,30 @@ def train_dagger(
     seed: int = 0,
     name: str | None = None,
     progress: bool = True,
+    tensorboard: str | Path | None = None,
     **connection: Any,
 ) -> tuple[checkpoint.BasePolicy, dict]:
     """Runs ``config.rounds`` DAgger rounds (the learner of :data:`LEARNERS` for the config's
     type) against the server(s) of ``connect`` (with ``address`` and the connection keywords put
     in; none named: ``DINERDASH_ADDRESS``, else a local server started here) and writes the best
-    round's learner to ``out``; returns its policy and description."""
+    round's learner to ``out``; returns its policy and description. ``tensorboard``: the
+    directory of the live curves (``None``: none written)."""
     import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
     connect = options(connect, "train_dagger", address, **connection)
     # A local server, if any, starts before any JAX work.
-    with served(connect) as (connect, _):
-        return _train(Path(out), config, connect, seed, name, progress)
+    with served(connect) as (connect, _), LiveCurves(tensorboard) as live:
+        return _train(Path(out), config, connect, seed, name, progress, live)
 
 
 def _train(
-    out: Path, config: Any, connect: ConnectOptions, seed: int, name, progress: bool
+    out: Path,
+    config: Any,
+    connect: ConnectOptions,
+    seed: int,
+    name: str | None,
+    progress: bool,
+    live: LiveCurves,
 ) -> tuple[checkpoint.BasePolicy, dict]:
     learner = LEARNERS[type(config)]
     start, cpu_start = time.monotonic(), time.process_time()
@@ -192,6 +208,20 @@ def _train(
                 "round_seconds": round(time.monotonic() - began, 1),
             }
         )
+        live.add(
+            r,
+            {
+                "rollout/score": rows[-1]["rollout_mean_score"],
+                "rollout/episode_length": rows[-1]["rollout_mean_length"],
+                "validation/score": val,
+                "train/loss": losses[-1],
+                "dagger/agreement": played.agreement,
+                "dagger/beta": beta,
+                "dagger/teacher_share": rows[-1]["teacher_share"],
+                "dagger/dataset_steps": aggregate.steps,
+                "time/env_steps_per_s": played.states / max(playing, 1e-9),
+            },
+        )
         if progress:
             row = rows[-1]
             print(
@@ -257,6 +287,7 @@ def save_run(
             "teacher": config.teacher,
             "episodes": len(seeds),
             "seeds": [seeds[0], seeds[-1]],
+            "seed_ranges": as_ranges(seeds),
             **data,
         },
         "training": {

@@ -7,6 +7,12 @@ A checkpoint directory of an RL run holds what every checkpoint holds (``model.e
 ``checkpoint.json``) plus the trainer's state (``trainer.eqx``: optimiser state and random key)
 and the learning curve (``curve.csv``, ``curve.png``). Losing the server stops the run with a
 clear error after writing such a checkpoint, so no finished iteration is lost.
+
+Beside the checkpoint, the live curves (:class:`~dinerdash_agents.curves.LiveCurves`): after every
+iteration, at its environment steps, ``rollout/score`` and ``rollout/episode_length`` (means of
+the last 100 training episodes), ``time/env_steps_per_s`` and the update's statistics as
+``train/<name>`` (``policy_loss``, ``value_loss``, ``entropy``, ``approx_kl``, and a variant's
+own, e.g. kick-starting's).
 """
 
 from __future__ import annotations
@@ -26,9 +32,10 @@ from gymnasium.vector import AutoresetMode
 from . import checkpoint, gail, kickstart, ppo
 from ._version import __version__
 from .connect import ConnectOptions, options, served
-from .curves import read_curve, write_curve
+from .curves import LiveCurves, read_curve, write_curve
 from .demos import load_demos
 from .errors import AgentsError
+from .seeds import as_ranges, trained_on
 
 __all__ = ["PIPELINE", "RL", "RL_ALGORITHMS", "RLAlgorithm", "make_envs", "train_rl"]
 
@@ -164,7 +171,11 @@ def _description(trainer: ppo.Trainer, algorithm: str, name: str, spent: _Spent)
         "algorithm": algorithm,
         "package_version": __version__,
         "config": trainer.config.to_json(),
-        "data": {"environment_steps": trainer.steps, "episodes": trainer.episodes},
+        "data": {
+            "environment_steps": trainer.steps,
+            "episodes": trainer.episodes,
+            "seed_ranges": trainer.seed_ranges,
+        },
         "training": {
             "seed": trainer.seed,
             "total_steps": trainer.total_steps,
@@ -236,6 +247,7 @@ def train_rl(
     pipeline: int = PIPELINE,
     init: str | Path | None = None,
     teacher: str | None = None,
+    tensorboard: str | Path | None = None,
     **connection: Any,
 ) -> ppo.Trainer:
     """Trains ``algorithm`` for ``steps`` environment steps in all (counting a resumed run's),
@@ -245,7 +257,8 @@ def train_rl(
     from and whose actions it is pulled toward (``expert`` or ``planner``). ``connect``: how to
     reach the server(s) (:class:`dinerdash.ConnectOptions`; ``address`` and the connection
     keywords ``timeout``, ``tls``, ``tls_ca``, ... are put in; none named:
-    ``DINERDASH_ADDRESS``, else a local server started here)."""
+    ``DINERDASH_ADDRESS``, else a local server started here). ``tensorboard``: the directory
+    of the live curves (``None``: none written)."""
     if algorithm not in RL:
         raise AgentsError(f"unknown RL algorithm {algorithm!r} (known: {', '.join(RL)})")
     entry = RL[algorithm]
@@ -281,12 +294,25 @@ def train_rl(
                     high = envs[0].single_observation_space.high
                     config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
                 trainer = entry.trainer(config, steps, seed, demo_data, False)
-            _run(trainer, envs, out, algorithm, spent, progress)
+                trainer.seed_ranges = _seeds_learnt_from(demo_data, init)
+            live = LiveCurves(tensorboard, resumed=resume is not None, step=trainer.steps)
+            with live:
+                _run(trainer, envs, out, algorithm, spent, progress, live)
         finally:
             for e in envs:
                 e.close()
         _save(trainer, out, algorithm, spent)
         return trainer
+
+
+def _seeds_learnt_from(demos: Any, init: str | Path | None) -> list[list[int]]:
+    """The seeds a new run learns from beyond its environments': its demonstrations' (GAIL) and
+    those its starting checkpoint (``--init``) was trained on."""
+    seeds = [] if demos is None or demos.seeds is None else [int(s) for s in demos.seeds]
+    if init is not None:
+        ranges = trained_on(checkpoint.read_description(init))
+        seeds += [s for r in ranges for s in r]
+    return as_ranges(seeds)
 
 
 def _prepare(
@@ -317,10 +343,17 @@ def _prepare(
 
 
 def _run(
-    trainer: ppo.Trainer, envs: Any, out: Path, algorithm: str, spent: _Spent, progress: bool
+    trainer: ppo.Trainer,
+    envs: Any,
+    out: Path,
+    algorithm: str,
+    spent: _Spent,
+    progress: bool,
+    live: LiveCurves,
 ) -> None:
-    """Iterations on ``envs`` until the trainer has done them all, checkpointing every
-    :data:`CHECKPOINT_EVERY` seconds; a lost server checkpoints and raises :class:`AgentsError`."""
+    """Iterations on ``envs`` until the trainer has done them all, each added to the curve and
+    the live curves, checkpointing every :data:`CHECKPOINT_EVERY` seconds; a lost server
+    checkpoints and raises :class:`AgentsError`."""
     # The bar counts environment steps, so that its rate is env-steps/s.
     bar = Progress(trainer.iterations * trainer.per_iteration, algorithm) if progress else None
     if bar is not None:
@@ -330,9 +363,18 @@ def _run(
         trainer.attach(envs)
         while trainer.iteration < trainer.iterations:
             began, steps_before = time.monotonic(), trainer.steps
-            trainer.step()
+            stats = trainer.step()
             rate = (trainer.steps - steps_before) / max(time.monotonic() - began, 1e-9)
             trainer.curve.append((trainer.steps, trainer.mean_recent_score, round(rate, 1)))
+            live.add(
+                trainer.steps,
+                {
+                    "rollout/score": trainer.mean_recent_score,
+                    "rollout/episode_length": trainer.mean_recent_length,
+                    "time/env_steps_per_s": rate,
+                    **{f"train/{name}": value for name, value in stats.items()},
+                },
+            )
             if bar is not None:
                 bar.desc = f"{algorithm} score {trainer.mean_recent_score:,.0f}"
                 bar.update(trainer.per_iteration)

@@ -5,6 +5,7 @@ schedules, the checkpoint, and a short run against a real local server that beat
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +110,31 @@ def test_a_round_adds_every_visited_state_labelled_by_the_teacher(beta: float) -
     # Seeds were given in order, each once; the final scores are the info's at each end.
     assert sorted(s for batch in envs.resets for s in batch if s in seeds) == seeds
     assert list(played.scores) == [100 * s + ScriptedVectorEnv.length(s) for s in seeds]
+
+
+class LearnerRightOnEvenSteps(checkpoint.BasePolicy):
+    """A learner that takes the teacher's action (``s % 50 + 5``) at even steps ``t``, and
+    ``t + 1`` (never the teacher's in the scripted env) at odd ones."""
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True, action_masks=None):
+        s, t = obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64)
+        return np.where(t % 2 == 0, s % 50 + 5, t + 1), state
+
+
+@pytest.mark.parametrize("beta", [1.0, 0.5, 0.0])
+def test_a_round_counts_the_learners_agreement_with_the_teacher(beta: float) -> None:
+    seeds = [3, 4, 5, 6, 7, 9, 10]
+    played = dagger.play_round(
+        ScriptedVectorEnv(3), LearnerRightOnEvenSteps(), beta, seeds, np.random.default_rng(0)
+    )
+    if beta == 1.0:  # the learner is not asked
+        assert played.choices == 0 and math.isnan(played.agreement)
+        return
+    # Every recorded state has three legal actions; the learner is asked in each, whoever acts.
+    steps = [t for s in seeds for t in range(ScriptedVectorEnv.length(s))]
+    assert played.choices == len(steps)
+    assert played.agreed == sum(t % 2 == 0 for t in steps)
+    assert played.agreement == pytest.approx(played.agreed / len(steps))
 
 
 def test_the_mixture_follows_beta() -> None:

@@ -145,6 +145,8 @@ def test_a_short_kickstarted_run_beats_its_bc_starting_point(
     description = json.loads((out / "checkpoint.json").read_text())
     assert description["config"]["init"] == str(init)
     assert description["config"]["kick_schedule"] == "linear"
+    # Trained on: the BC start's demonstrations (seeds 0..19) and the first resets (0..15).
+    assert description["data"]["seed_ranges"] == [[0, 19]]
 
     seeds = {"seed": 700, "address": server_address, "num_envs": 8}
     policy = load(out)

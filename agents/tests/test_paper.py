@@ -89,6 +89,7 @@ def test_training_seed_k_of_a_long_run_has_its_own_directory_seed_and_bc_start(
         seed=10,
         rl_steps=1,  # one iteration
         reuse=True,
+        tensorboard=tmp_path / "board",
     )
     kick = next(a for a in paper.AGENTS if a.algorithm == "ppo-kickstart")
     # Kick-started PPO's seed 2 starts from BC's seed 2 (a small one here, on 20 episodes).
@@ -104,3 +105,6 @@ def test_training_seed_k_of_a_long_run_has_its_own_directory_seed_and_bc_start(
     ppo = next(a for a in paper.AGENTS if a.name == "ppo-masked")
     paper._train_rl(ppo, job, 1)
     assert (tmp_path / "checkpoints" / "ppo-masked-seed1" / checkpoint.DESCRIPTION).is_file()
+    # With a directory for the live curves, each run's are under its checkpoint's name.
+    for name in (f"{kick.name}-seed2", "ppo-masked-seed1"):
+        assert list((tmp_path / "board" / name).glob("events.out.tfevents.*")), name

@@ -38,8 +38,15 @@ from typing import Any
 
 from ._arguments import EXPERTS
 from .errors import LocalServerError, ServiceError
+from .evaluation import EVALUATION_SEEDS
 
-__all__ = ["add_connection_arguments", "connection_keywords", "main", "run_command"]
+__all__ = [
+    "DefaultsHelpFormatter",
+    "add_connection_arguments",
+    "connection_keywords",
+    "main",
+    "run_command",
+]
 
 
 # -- what every command shares --------------------------------------------------------------
@@ -66,6 +73,19 @@ def _above_zero(kind: type) -> Callable[[str], Any]:
 
 
 _positive_int, _positive_float = _above_zero(int), _above_zero(float)
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """``--help`` with each option's default, "(default: X)", unless its help says it already or
+    it has none (``None``, a flag's ``False``)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        none = action.default is None or action.default is False
+        none = none or action.default == argparse.SUPPRESS  # --help's
+        if "(default" in text or not action.option_strings or none:
+            return action.help
+        return f"{text} (default: %(default)s)"
 
 
 def add_connection_arguments(parser: argparse.ArgumentParser) -> None:
@@ -232,11 +252,22 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("evaluate", help="mean ± sd score of a policy over seeded episodes")
-    p.add_argument("--policy", choices=["expert", "random", "planner"], default="expert")
-    p.add_argument("--episodes", type=int, default=100)
+    p = sub.add_parser(
+        "evaluate",
+        help="mean ± sd score of a policy over seeded episodes",
+        formatter_class=DefaultsHelpFormatter,
+    )
     p.add_argument(
-        "--seed", type=int, default=0, help="seed of the first episode (episode i: seed + i)"
+        "--policy", choices=["expert", "random", "planner"], default="expert", help="who plays"
+    )
+    p.add_argument("--episodes", type=int, default=100, help="episodes to play")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=EVALUATION_SEEDS.start,
+        help="seed of the first episode (episode i: seed + i); the default is the first of the "
+        f"evaluation seeds {EVALUATION_SEEDS.start}..{EVALUATION_SEEDS.stop - 1}, which no agent "
+        "trains on",
     )
     p.add_argument(
         "--max-steps", type=int, default=100_000, help="truncate an episode after this many steps"
@@ -256,7 +287,9 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser(
-        "collect", help="expert demonstrations (.npz; a Minari dataset when installed)"
+        "collect",
+        help="expert demonstrations (.npz; a Minari dataset when installed)",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument(
         "--policy",
@@ -264,10 +297,18 @@ def _parser() -> argparse.ArgumentParser:
         default="expert",
         help="whose demonstrations: the reference heuristic or the look-ahead planner",
     )
-    p.add_argument("--episodes", type=int, default=274)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--episodes", type=int, default=274, help="episodes to collect")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the first episode (episode i: seed + i): training seeds, below the "
+        f"evaluation seeds {EVALUATION_SEEDS.start}..{EVALUATION_SEEDS.stop - 1}",
+    )
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--max-steps", type=int, default=None)
+    p.add_argument(
+        "--max-steps", type=int, default=None, help="truncate an episode after this many steps"
+    )
     p.add_argument(
         "--dataset-id", default=None, help="Minari dataset id (default: dinerdash/<policy>-v0)"
     )

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from .rollout import Episode
 
 __all__ = [
+    "EVALUATION_SEEDS",
     "Collected",
     "Progress",
     "collect",
@@ -51,6 +52,10 @@ __all__ = [
     "print_evaluation",
     "write_minari",
 ]
+
+#: The project's evaluation seeds (docs/agents.md): every result is measured on them and no agent
+#: is trained on them. ``evaluate`` starts at the first of them unless told otherwise.
+EVALUATION_SEEDS = range(1000, 1100)
 
 
 class Progress:
