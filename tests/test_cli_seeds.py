@@ -1,9 +1,12 @@
 """``python -m dinerdash evaluate`` starts on the evaluation seeds (1000..) unless told
-otherwise, and ``--help`` of ``evaluate`` and ``collect`` shows the defaults."""
+otherwise, ``--help`` of ``evaluate`` and ``collect`` shows the defaults, and every ``--help``
+says whole sentences."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 from dinerdash.cli import main
@@ -35,3 +38,14 @@ def test_help_shows_the_defaults(
     for words in shown:
         assert words in text, words
     assert "(default: None)" not in text and "(default: False)" not in text
+
+
+@pytest.mark.parametrize("module", ["dinerdash", "dinerdash_agents"])
+def test_help_says_whole_sentences(module: str) -> None:
+    """The description is the module docstring's whole first paragraph, not its first line cut
+    mid-sentence ("measure speed,")."""
+    out = subprocess.run(
+        [sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60
+    ).stdout
+    description = " ".join(out.split("\n\n")[1].split())
+    assert description.endswith(".") and "``" not in description, description

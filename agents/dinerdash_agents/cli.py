@@ -30,6 +30,7 @@ from dinerdash.cli import (
     add_connection_arguments,
     connection_keywords,
     run_command,
+    summary,
 )
 
 __all__ = ["main"]
@@ -274,7 +275,7 @@ def _parser() -> argparse.ArgumentParser:
     from .train_rl import PIPELINE
 
     parser = argparse.ArgumentParser(
-        prog="python -m dinerdash_agents", description=__doc__.splitlines()[0]
+        prog="python -m dinerdash_agents", description=summary(__doc__)
     )
     sub = parser.add_subparsers(dest="command", required=True)
 

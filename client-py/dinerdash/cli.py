@@ -75,6 +75,11 @@ def _above_zero(kind: type) -> Callable[[str], Any]:
 _positive_int, _positive_float = _above_zero(int), _above_zero(float)
 
 
+def summary(doc: str) -> str:
+    """A module docstring's first paragraph as one line of ``--help`` text, reST quotes dropped."""
+    return " ".join(doc.split("\n\n")[0].split()).replace("``", "")
+
+
 class DefaultsHelpFormatter(argparse.HelpFormatter):
     """``--help`` with each option's default, "(default: X)", unless its help says it already or
     it has none (``None``, a flag's ``False``)."""
@@ -247,9 +252,7 @@ def _cmd_watch(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m dinerdash", description=__doc__.splitlines()[0]
-    )
+    parser = argparse.ArgumentParser(prog="python -m dinerdash", description=summary(__doc__))
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser(
