@@ -2,9 +2,9 @@
 (``reconnect=True``, ``failover_after``) gives up a server that hangs (SIGSTOP) within
 ``failover_after`` + 2 s, with the other environments' trajectories those of an undisturbed run;
 takes back a lost server that returns and a DNS name's new replica, moving environments onto them
-(by Snapshot and Restore, no episode cut) until the loads are even; and the single-server env keeps its typed
-errors. Over each transport. (A black-holed network and a slow one, through a TCP proxy:
-``test_membership_proxy.py``.)"""
+(by Snapshot and Restore, no episode cut) until the loads are even; and the single-server env
+keeps its typed errors. Over each transport. (A black-holed network and a slow one, through a
+TCP proxy: ``test_membership_proxy.py``.)"""
 
 from __future__ import annotations
 

@@ -22,6 +22,8 @@ Layout:
                   operations (slice, join, an episode cut) and the Gymnasium observations
                   and infos made of it
     _failover     moving a lost server's environments to the servers left (failover_after)
+    _fleet        Fleet: a vector env's slices (server, session, range of environments), moved
+                  between servers by Snapshot and Restore (drains, servers taken in, balance)
     _membership   the liveness watch of calls in flight, and the discovery of servers to take in
     _grpc_settings  gRPC process settings applied before grpc is first imported
     env           DinerDashEnv, the Gymnasium Env
