@@ -70,7 +70,7 @@ def test_a_rolling_restart_and_a_new_server_change_nothing(
     kwargs = {"autoreset_mode": mode, "config": CONFIG}
     reference = DinerDashVectorEnv(N, start_server().address, **kwargs)
     envs = DinerDashVectorEnv(
-        N, DNS, reconnect=True, failover_after=5.0, resolve_every=0.2, **kwargs
+        N, DNS, reconnect=True, failover_after=30.0, resolve_every=0.2, **kwargs
     )
     rng = np.random.default_rng(SEED)
     steps = 0
@@ -167,7 +167,7 @@ def test_a_restore_refused_for_its_version_starts_new_episodes_once_warned(
     cluster = dinerdash_cluster_factory(2, drain_timeout=60)
     kwargs = {"autoreset_mode": mode, "config": CONFIG}
     reference = DinerDashVectorEnv(N, start_server().address, **kwargs)
-    envs = DinerDashVectorEnv(N, cluster.addresses, reconnect=True, failover_after=5.0, **kwargs)
+    envs = DinerDashVectorEnv(N, cluster.addresses, reconnect=True, failover_after=30.0, **kwargs)
     call = connection.Connection.call
 
     def other_version(self, method, request, **kw):

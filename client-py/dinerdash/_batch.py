@@ -37,8 +37,11 @@ __all__ = [
     "outcome_one",
 ]
 
-#: Every per-environment field: its dtype and its width per environment (the wire's layout,
-#: ``proto/dinerdash/v1/dinerdash.proto``). The flags (0/1 bytes) read as bools.
+#: The one table of the Batch's per-environment fields: each field's dtype and width per
+#: environment. gRPC reads each by its name in the reply (``dinerdash.v1.Batch``); shared memory
+#: reads the region's arrays in this order, after the ``actions`` the client writes
+#: (``server/src/shm/layout.rs``, ``FIELDS``). ``tests/test_batch_fields.py`` ties the three.
+#: The flags (0/1 bytes) read as bools.
 FIELDS: dict[str, tuple[str, int]] = {
     "observations": ("i1", OBSERVATION_SIZE),
     "rewards": ("<i4", 1),
@@ -51,11 +54,11 @@ FIELDS: dict[str, tuple[str, int]] = {
     "expert_actions": ("u1", 1),
     "reset": ("?", 1),
     "seeds": ("<u8", 1),
+    "stream_episodes": ("<u4", 1),
     "final_observations": ("i1", OBSERVATION_SIZE),
     "final_scores": ("<i4", 1),
     "final_lost": ("<u4", 1),
     "final_ticks": ("<u4", 1),
-    "stream_episodes": ("<u4", 1),
     "final_action_masks": ("?", NUM_ACTIONS),
     "final_expert_actions": ("u1", 1),
 }
