@@ -222,9 +222,10 @@ class Fleet:
         if key == self.quiet:
             return  # nothing changed since the slices were where they should be: the common step
         settled = True
-        if targets:
-            for core, parts in self.plan(targets):
-                settled &= self.split(core, parts)
+        for core, parts in self.plan(targets) if targets else []:
+            if not self.split(core, parts):
+                settled = False  # planned again at the next step, with what the refusal taught
+                break
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self.cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
