@@ -24,7 +24,7 @@ The judge (:func:`judge`, exit status 1 when it finds anything):
 - the fault thread died (an exception in it is caught and reported), a fault it began did not end,
   or a fault it had scheduled before the stop never began: fewer faults than scheduled;
 - an episode was cut (``info["reconnected"]``) while the last fault begun was a ``drain`` or a
-  ``restart`` (planned stops hand environments over at their episode ends: only crashes may cut),
+  ``restart`` (planned stops move sessions whole by Snapshot and Restore: only crashes may cut),
   or with no fault begun at all;
 - either run raised an exception;
 - the score: each run's policy is kept at its last ``--snapshots`` multiples of
@@ -422,7 +422,7 @@ def _supports_drain(binary: str) -> bool:
 
 
 #: Faults whose outages may cut episodes: a crash, a hung process, a dead network. A drain or a
-#: restart is planned: its environments move at their episode ends.
+#: restart is planned: its sessions move whole, by Snapshot and Restore.
 CRASHES = ("kill", "hang", "blackhole")
 #: Seconds of slack in the fault thread's own timing (a wake-up, a log line).
 SLACK = 1.0

@@ -2,9 +2,9 @@
 (``reconnect=True``, ``failover_after``) gives up a server that hangs (SIGSTOP) within
 ``failover_after`` + 2 s, with the other environments' trajectories those of an undisturbed run;
 takes back a lost server that returns and a DNS name's new replica, moving environments onto them
-only at their episode ends until the loads are even; and the single-server env keeps its typed
-errors. Over each transport. (A black-holed network and a slow one, through a TCP proxy:
-``test_membership_proxy.py``.)"""
+(by Snapshot and Restore, no episode cut) until the loads are even; and the single-server env
+keeps its typed errors. Over each transport. (A black-holed network and a slow one, through a
+TCP proxy: ``test_membership_proxy.py``.)"""
 
 from __future__ import annotations
 
@@ -236,8 +236,9 @@ def _drains() -> bool:
 @pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
 def test_a_rolling_restart_cuts_no_episode(dinerdash_cluster_factory, mode) -> None:
     """Each server in turn drains (SIGTERM), exits once the env has moved every environment off
-    it (each at its episode end), and is started again on its port; the env takes it back and
-    moves environments onto it at their episode ends. No episode is cut, none is lost."""
+    it (at once, by Snapshot and Restore), and is started again on its port; the env takes it
+    back and moves environments onto it. No episode is cut, none is lost (that every step is the
+    undisturbed run's: ``test_moves.py``)."""
     if not _drains():
         pytest.skip("this dinerdash-server does not drain on SIGTERM (no --drain-timeout)")
     cluster = dinerdash_cluster_factory(3, drain_timeout=20)
@@ -279,10 +280,10 @@ def test_a_rolling_restart_cuts_no_episode(dinerdash_cluster_factory, mode) -> N
         envs.close()
 
 
-def test_a_drain_deadline_cuts_what_is_left(dinerdash_cluster_factory) -> None:
-    """Episodes longer than the drain: the environments still on the draining server when its
-    deadline (3 s) is about to pass move at once, their episodes cut as a failover's
-    (truncated, ``info["reconnected"]``), and the server exits with no session left."""
+def test_a_drain_moves_episodes_longer_than_it_whole(dinerdash_cluster_factory) -> None:
+    """Episodes far longer than the drain (3 s): the draining server's environments move at the
+    first step after its SIGTERM, by Snapshot and Restore, none cut (no ``reconnected``, no
+    truncation), and the server exits with no session left, well before its deadline."""
     if not _drains():
         pytest.skip("this dinerdash-server does not drain on SIGTERM (no --drain-timeout)")
     cluster = dinerdash_cluster_factory(2, drain_timeout=3)
@@ -292,18 +293,16 @@ def test_a_drain_deadline_cuts_what_is_left(dinerdash_cluster_factory) -> None:
     try:
         envs.reset(seed=0)
         cluster.drain(0)
-        cut = np.zeros(4, dtype=np.bool_)
         deadline = time.monotonic() + 30
         while cluster.is_running(0):
             assert time.monotonic() < deadline, f"server 0 still runs: {envs.env_slices}"
             _, _, terminated, truncated, info = envs.step(np.zeros(4, dtype=np.int64))
-            if "reconnected" in info:
-                assert truncated[info["reconnected"]].all()
-                assert not terminated[info["reconnected"]].any()
-                cut |= info["reconnected"]
-            time.sleep(0.01)  # 100 steps a second: an episode outlasts the drain
-        assert cut[:2].all() and not cut[2:].any()  # server 0 held environments 0 and 1
-        assert envs.failovers == 0 and envs.moves == 2
+            assert "reconnected" not in info and not truncated.any()
+            time.sleep(0.01)
+        assert cluster.wait(0, 0) == 0
+        _, _, _, truncated, info = envs.step(np.zeros(4, dtype=np.int64))
+        assert "reconnected" not in info and not truncated.any()
+        assert envs.failovers == 0 and envs.moves == 2  # server 0 held environments 0 and 1
         assert envs.addresses == [cluster.address(1)]
     finally:
         envs.close()

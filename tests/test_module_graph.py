@@ -160,10 +160,10 @@ def test_the_reader_sees_every_kind_of_import(tmp_path: Path) -> None:
 
 
 #: The client's layers, lowest first: a module may import the client's modules of its own layer
-#: or a lower one, never a higher one. ``_batch`` (the reply's arrays) and ``_placement`` (a
-#: pure plan) know nothing of connections or sessions; the transports know no environment.
+#: or a lower one, never a higher one. ``_batch`` (the reply's arrays) knows nothing of
+#: connections or sessions; the transports know no environment.
 LAYERS = [
-    {"dinerdash._proto", "dinerdash.game", "dinerdash._placement", "dinerdash._grpc_settings"},
+    {"dinerdash._proto", "dinerdash.game", "dinerdash._grpc_settings"},
     {"dinerdash._batch", "dinerdash.errors", "dinerdash._version"},
     {"dinerdash.connection", "dinerdash.server", "dinerdash._arguments"},
     {"dinerdash._shm", "dinerdash._transport", "dinerdash._endpoint", "dinerdash._step_thread"},
@@ -186,8 +186,6 @@ def test_the_client_layers_point_down() -> None:
         if t in layer and layer[t] > layer[m]
     ]
     assert not upward, "imports up the layers: " + "; ".join(upward)
-    pure = graph["dinerdash._placement"]
-    assert not pure, f"_placement imports {sorted(pure)}: it must stay a pure function"
 
 
 def _private_writes(path: Path) -> list[str]:
@@ -231,18 +229,17 @@ def test_no_module_writes_another_objects_private_state(package: str) -> None:
     assert not found, "private state written from outside: " + "; ".join(found)
 
 
-#: A session core's state (:class:`dinerdash._session.SessionCore`): its ``phase`` and what a
-#: transfer, a drain, a failover or a reconnect leaves in it. Only ``_session.py`` (the core's
-#: own methods: ``begin_receiving``, ``enter``, ``finish_transfer``, ``mark_draining``,
-#: ``mark_lost``...) changes them; every other module reads them.
+#: A session core's state (:class:`dinerdash._session.SessionCore`): its range of environments
+#: and server (fixed: a move makes new cores) and what a step, a failover, a move or a
+#: reconnect leaves in it. Only ``_session.py`` (the core's own methods: ``restored``,
+#: ``cut_over``, ``interrupt``, ``adopt``...) changes them; every other module reads them.
 SESSION_STATE = [
-    "phase",
+    "index",
+    "start",
+    "stop",
     "last",
     "pending",
     "reconnected",
-    "owned",
-    "source",
-    "entering",
     "session_id",
     "spec",
     "offer",
@@ -309,8 +306,7 @@ def _session_state_writes(path: Path) -> list[str]:
 def test_only_the_session_core_changes_its_state() -> None:
     """Read with :mod:`ast`: no module of the client but ``_session.py`` assigns (or changes in
     place) a session core's state attributes (:data:`SESSION_STATE`); the fleet, the failover
-    and the envs change them through the core's methods, whose transitions
-    :mod:`dinerdash._session` documents and checks."""
+    and the envs change them through the core's methods (:mod:`dinerdash._session`)."""
     root = PACKAGES["dinerdash"]
     paths = [p for p in sorted(root.rglob("*.py")) if "_proto" not in p.parts]
     assert root / "_fleet.py" in paths and root / "_session.py" in paths
@@ -325,15 +321,15 @@ def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> Non
     path.write_text(
         "def f(core, new, env):\n"
         "    core.last = None\n"
-        "    new.source, new.entering = None, set()\n"
+        "    new.pending, new.offer = None, None\n"
         "    env._core.reconnected = False\n"
-        "    core.owned[0] = True\n"
-        "    new.entering |= {1}\n"
-        "    new.entering.update([2])\n"
+        "    core.stop[0] = True\n"
+        "    new.start |= 1\n"
+        "    new.spec.update([2])\n"
         "    x = core.last\n"
-        "    loads[core.index] += core.load\n"
-        "    mask[[i - core.start for i in core.owned]] = True\n"
-        "    core.entering.copy()\n"
+        "    loads[core.index] += core.stop\n"
+        "    mask[[i - core.start for i in core.session_id]] = True\n"
+        "    core.pending.copy()\n"
         "class C:\n"
         "    def g(self):\n"
         "        self.last = 1\n"
@@ -341,10 +337,10 @@ def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> Non
     found = _session_state_writes(path)
     assert [w.split(": ", 1)[1] for w in found] == [
         "core.last",
-        "new.source",
-        "new.entering",
+        "new.pending",
+        "new.offer",
         "env._core.reconnected",
-        "core.owned",
-        "new.entering",
-        "new.entering.update()",
+        "core.stop",
+        "new.start",
+        "new.spec.update()",
     ], found

@@ -1,16 +1,16 @@
-"""Placement as a pure function (:func:`dinerdash._placement.plan`), property-tested with
-hypothesis and no server: whatever the fleet looks like, once a plan's moves are done every
-draining server is empty and the serving servers' loads differ by at most one; a draining or
-lost server receives nothing; every environment keeps its index and is moved at most once, from
-a run its session holds; and every move is a transfer at the environments' episode ends (the
-plan has no way to cut an episode)."""
+"""Where slices move (:func:`dinerdash._fleet.plan`), property-tested with hypothesis and no
+server: whatever the fleet looks like, once a plan's splits are done every draining server is
+empty and the serving servers' loads differ by at most one; a draining or lost server receives
+nothing; every environment keeps its index; a slice that may not move now is left alone; and a
+balanced fleet is left as it is. (The moves themselves, Snapshot and Restore on real servers:
+``test_moves.py``.)"""
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 
-from dinerdash._placement import Move, SessionView, pieces, plan
+from dinerdash._failover import pieces
+from dinerdash._fleet import plan
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 @st.composite
 def fleets(draw):
     """A fleet: servers with a state each (serving, draining, lost), and the env's environments
-    in contiguous runs of sessions on the serving and draining servers (a lost server's were
-    moved by the failover already), as after a failover or a membership change."""
+    in contiguous slices on the serving and draining servers (a lost server's were moved by the
+    failover already), some of them not movable now (a failover's cut waiting to be reported)."""
     k = draw(st.integers(1, 6))
     states = draw(
         st.lists(st.sampled_from(["serving", "draining", "lost"]), min_size=k, max_size=k)
@@ -29,86 +29,59 @@ def fleets(draw):
     holders = [j for j, state in enumerate(states) if state != "lost"]
     n = draw(st.integers(1, 60))
     cuts = sorted(draw(st.sets(st.integers(1, n - 1), max_size=min(8, n - 1)))) if n > 1 else []
-    bounds = [0, *cuts, n]
-    sessions = []
-    for key, (lo, hi) in enumerate(itertools.pairwise(bounds)):
-        server = draw(st.sampled_from(holders))
-        sessions.append(SessionView(key, server, ((lo, hi),), hi - lo))
-    return states, n, sessions
+    slices = [
+        (draw(st.sampled_from(holders)), lo, hi, draw(st.booleans()) or draw(st.booleans()))
+        for lo, hi in itertools.pairwise([0, *cuts, n])
+    ]
+    return states, n, slices
 
 
-def _apply(sessions: list[SessionView], moves: list[Move]) -> dict[int, int]:
-    """Where each environment is once ``moves`` are done: env index -> server."""
-    where = {}
-    for s in sessions:
-        for lo, hi in s.runs:
-            for i in range(lo, hi):
-                where[i] = s.server
-    by_key = {s.key: s for s in sessions}
-    moved: set[int] = set()
-    for m in moves:
-        source = by_key[m.source]
-        assert m.origin == source.server
-        assert any(lo <= m.start < m.stop <= hi for lo, hi in source.runs), m
-        for i in range(m.start, m.stop):
-            assert i not in moved, f"environment {i} moved twice"
-            moved.add(i)
-            where[i] = m.dest
-    return where
+def _apply(slices, splits) -> list[tuple[int, int, int]]:
+    """The slices ``(server, start, stop)`` once ``splits`` are done, checking each split."""
+    out = {pos: [(server, lo, hi)] for pos, (server, lo, hi, _) in enumerate(slices)}
+    for pos, parts in splits:
+        server, lo, hi, movable = slices[pos]
+        assert movable, f"slice {pos} may not move now"
+        assert [i for a, b, _ in parts for i in range(a, b)] == list(range(lo, hi)), parts
+        assert all(a < b for a, b, _ in parts), parts
+        out[pos] = [(dest, a, b) for a, b, dest in parts]
+    return [s for pos in sorted(out) for s in out[pos]]
 
 
 @settings(max_examples=400, deadline=None)
 @given(fleets())
 def test_a_plan_balances_empties_draining_servers_and_keeps_indices(fleet) -> None:
-    states, n, sessions = fleet
+    states, n, slices = fleet
     targets = [j for j, state in enumerate(states) if state == "serving"]
-    draining = {j for j, state in enumerate(states) if state == "draining"}
-    loads = {j: 0 for j in range(len(states))}
-    for s in sessions:
-        loads[s.server] += s.load
-    moves = plan(sessions, loads, targets, draining)
-
-    for m in moves:
-        assert states[m.dest] == "serving", "a draining or lost server received environments"
-        assert isinstance(m, Move) and m.start < m.stop
-    where = _apply(sessions, moves)
-    assert sorted(where) == list(range(n)), "an environment lost or added"
-    after = {j: 0 for j in range(len(states))}
-    for server in where.values():
-        after[server] += 1
-    for j in draining:
-        assert after[j] == 0, f"draining server {j} keeps {after[j]} environments"
-    serving = [after[j] for j in targets]
-    assert max(serving) - min(serving) <= 1, (after, moves)
+    splits = plan(slices, n, targets)
+    assert len({pos for pos, _ in splits}) == len(splits), "a slice split twice"
+    after = _apply(slices, splits)
+    assert [i for _, a, b in after for i in range(a, b)] == list(range(n)), "an index changed"
+    moved = {pos for pos, _ in splits}
+    for _, parts in splits:
+        for _, _, dest in parts:
+            assert dest in targets, parts
+    if all(movable for *_, movable in slices):
+        loads = dict.fromkeys(targets, 0)
+        for server, a, b in after:
+            assert server in loads, f"server {server} ({states[server]}) keeps environments"
+            loads[server] += b - a
+        assert max(loads.values()) - min(loads.values()) <= 1, (after, splits)
+    for pos, (*_, movable) in enumerate(slices):
+        if not movable:
+            assert pos not in moved
 
 
 @settings(max_examples=200, deadline=None)
 @given(fleets())
-def test_a_plan_is_a_pure_function_of_its_view(fleet) -> None:
-    states, _, sessions = fleet
+def test_a_balanced_fleet_is_left_alone(fleet) -> None:
+    states, n, slices = fleet
     targets = [j for j, state in enumerate(states) if state == "serving"]
-    draining = {j for j, state in enumerate(states) if state == "draining"}
-    loads = {j: sum(s.load for s in sessions if s.server == j) for j in range(len(states))}
-    frozen = (list(sessions), dict(loads), list(targets), set(draining))
-    first = plan(sessions, loads, targets, draining)
-    assert plan(sessions, loads, targets, draining) == first
-    assert (sessions, loads, targets, draining) == frozen  # the view is not changed
-
-
-@settings(max_examples=200, deadline=None)
-@given(fleets())
-def test_a_balanced_fleet_is_left_alone_and_nothing_moves_without_targets(fleet) -> None:
-    states, _, sessions = fleet
-    draining = {j for j, state in enumerate(states) if state == "draining"}
-    loads = {j: sum(s.load for s in sessions if s.server == j) for j in range(len(states))}
-    assert plan(sessions, loads, [], draining) == []
-    # A session with a transfer under way into it gives nothing.
-    busy = [dataclasses.replace(s, busy=True) for s in sessions]
-    targets = [j for j, state in enumerate(states) if state == "serving"]
-    assert all(m.origin in draining for m in plan(busy, loads, targets, draining))
-    serving = [loads[j] for j in targets]
-    if not draining and max(serving) - min(serving) <= 1:
-        assert plan(sessions, loads, targets, set()) == []
+    assert plan(slices, n, targets) == plan(list(slices), n, list(targets))  # pure
+    once = _apply(slices, plan(slices, n, targets))
+    if all(movable for *_, movable in slices):
+        again = [(server, a, b, True) for server, a, b in once]
+        assert plan(again, n, targets) == []
 
 
 @given(

@@ -236,7 +236,7 @@ def test_a_server_ray_restarts_is_taken_back(pool) -> None:
     """An EnvRunner's env over both servers (what ``make_env`` builds for a runner whose share
     is both): the first server's process stops answering, its environments move to the second
     after ``failover_after``; the process is then killed, Ray restarts the server on its port, and
-    the env takes it back and moves environments onto it at their episode ends until each server
+    the env takes it back and moves environments onto it (Snapshot, Restore) until each server
     holds two. (The process is stopped before it is killed because Ray can restart a killed
     server in less than ``failover_after``: the env would then just reconnect, losing nothing.)"""
     from dinerdash.ray.rllib import make_env

@@ -19,11 +19,12 @@ Layout:
     _shm          the shared-memory channel: doorbell, peer check, the region's views
     _step_thread  the thread that makes a core's Steps for step_async / step_wait
     _batch        Batch: a reply's arrays, whatever transport carried them, decoded once; its
-                  operations (slice, join, splice, hand-over) and the Gymnasium observations
+                  operations (slice, join, an episode cut) and the Gymnasium observations
                   and infos made of it
     _failover     moving a lost server's environments to the servers left (failover_after)
+    _fleet        Fleet: a vector env's slices (server, session, range of environments), moved
+                  between servers by Snapshot and Restore (drains, servers taken in, balance)
     _membership   the liveness watch of calls in flight, and the discovery of servers to take in
-    _placement    plan(): which environments move where, a pure function of a view of the fleet
     _grpc_settings  gRPC process settings applied before grpc is first imported
     env           DinerDashEnv, the Gymnasium Env
     vector        DinerDashVectorEnv, the VectorEnv (one batched session per server)

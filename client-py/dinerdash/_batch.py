@@ -11,10 +11,9 @@ server's episodes end in their last state). What the environments return to thei
 always the caller's own (:func:`decode` copies exactly there, as Gymnasium's contract asks: an
 observation returned must not change under the caller at the next step).
 
-The operations the client needs are here too: cut (:meth:`Batch.slice`), :func:`join`,
-:meth:`Batch.splice` (some environments' fields taken from another Batch), and the Batches of
-environments that move between servers (:func:`handover`, :func:`interrupt`) or sit at an
-episode end (:func:`boundary`).
+The operations the client needs are here too: :meth:`Batch.slice`, :func:`join`, and the
+Batches of environments whose episodes a lost server (:func:`interrupt`) or a refused Restore
+(:func:`cut`) ends early.
 """
 
 from __future__ import annotations
@@ -28,21 +27,21 @@ from ._proto import pb
 from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
 __all__ = [
-    "FINAL",
-    "OUTCOME",
     "Batch",
-    "boundary",
+    "cut",
     "decode",
     "decode_one",
     "drain_remaining_ms",
-    "handover",
     "interrupt",
     "join",
     "outcome_one",
 ]
 
-#: Every per-environment field: its dtype and its width per environment (the wire's layout,
-#: ``proto/dinerdash/v1/dinerdash.proto``). The flags (0/1 bytes) read as bools.
+#: The one table of the Batch's per-environment fields: each field's dtype and width per
+#: environment. gRPC reads each by its name in the reply (``dinerdash.v1.Batch``); shared memory
+#: reads the region's arrays in this order, after the ``actions`` the client writes
+#: (``server/src/shm/layout.rs``, ``FIELDS``). ``tests/test_batch_fields.py`` ties the three.
+#: The flags (0/1 bytes) read as bools.
 FIELDS: dict[str, tuple[str, int]] = {
     "observations": ("i1", OBSERVATION_SIZE),
     "rewards": ("<i4", 1),
@@ -55,11 +54,11 @@ FIELDS: dict[str, tuple[str, int]] = {
     "expert_actions": ("u1", 1),
     "reset": ("?", 1),
     "seeds": ("<u8", 1),
+    "stream_episodes": ("<u4", 1),
     "final_observations": ("i1", OBSERVATION_SIZE),
     "final_scores": ("<i4", 1),
     "final_lost": ("<u4", 1),
     "final_ticks": ("<u4", 1),
-    "stream_episodes": ("<u4", 1),
     "final_action_masks": ("?", NUM_ACTIONS),
     "final_expert_actions": ("u1", 1),
 }
@@ -69,9 +68,6 @@ REPEATED = ("seeds", "stream_episodes")
 _LIST_UP_TO = 32
 #: An environment's state (what ``final_*`` repeats for an episode that ended in a step).
 STATE = ("observations", "scores", "lost", "ticks", "action_masks", "expert_actions")
-#: What a step reports of an episode's outcome (the rest is the environment's state).
-OUTCOME = ("rewards", "terminated", "truncated")
-FINAL = tuple("final_" + name for name in STATE)
 
 
 def _empty(name: str, n: int) -> np.ndarray:
@@ -189,22 +185,6 @@ class Batch:
             return self
         return Batch(hi - lo, {k: v[lo:hi] for k, v in self.fields.items()}, self.drain_ms)
 
-    def splice(self, other: Batch, mask: np.ndarray, names=None) -> Batch:
-        """This Batch with the environments of ``mask`` taken from ``other`` (a Batch of the same
-        environments) for the fields ``names`` (default: the state, the reset flags and seeds
-        ``other`` has, not the outcome nor ``final_*``); a field missing on one side counts as
-        zeros."""
-        if names is None:
-            names = [k for k in other.fields if k not in OUTCOME + FINAL and k != "stream_episodes"]
-        fields = dict(self.fields)
-        for name in names:
-            if name not in self.fields and name not in other.fields:
-                continue
-            joined = self[name].copy()
-            joined[mask] = other[name][mask]
-            fields[name] = joined
-        return Batch(self.num_envs, fields, self.drain_ms)
-
     def finals_from(self, ended: Batch, prefix: str = "") -> dict[str, np.ndarray]:
         """The ``final_*`` fields that make ``ended``'s state (``prefix="final_"``: its own
         ``final_*``) the last state of episodes that end in this Batch."""
@@ -233,37 +213,32 @@ def drain_remaining_ms(batch: Batch | pb.Batch | None) -> int:
     return batch.drain_remaining_ms
 
 
-def boundary(batch: Batch, mode: AutoresetMode) -> np.ndarray:
-    """Which environments of ``batch`` (a step's) are at an episode end, where one may move
-    without cutting its episode: NEXT_STEP, the episode ended in this step (its next step is
-    the autoreset); SAME_STEP, the next episode began in this step and has not been played."""
-    if mode == AutoresetMode.SAME_STEP:
-        return batch["reset"]
-    return batch["terminated"] | batch["truncated"]
-
-
-def handover(ended: Batch, first: Batch, mode: AutoresetMode, cut: bool) -> tuple:
-    """The Batch that environments moving to a new session report for the step just made,
-    and the Batch their next step reports (NEXT_STEP's autoreset; else ``None``).
-
-    ``ended`` is their part of the step's Batch on the old server, ``first`` the new session's
-    Reset reply. Not ``cut`` (they are at an episode end, :func:`boundary`): NEXT_STEP reports
-    ``ended`` as it is and the next step hands out ``first`` as the autoreset; SAME_STEP reports
-    ``first`` as the new episode, with the ended one's last state and infos as ``final_*``, so
-    that the new episode is the new server's. ``cut`` (a drain deadline about to pass): their
-    episodes end truncated in this step, as a failover's do, keeping this step's rewards."""
+def cut(ended: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
+    """The Batch that environments report for the step just made when they could not be
+    restored on the server they move to (another snapshot version) and start new episodes on a
+    new session there, whose Reset replied ``first``; and the Batch their next step reports
+    (NEXT_STEP's autoreset; else ``None``). ``ended`` is their part of the step's Batch on the
+    old server: their episodes end truncated in this step (unless terminated), keeping its
+    rewards. SAME_STEP reports ``first`` as the new episode, the ended one as ``final_*``."""
     n = ended.num_envs
-    truncated = ~ended["terminated"] if cut else ended["truncated"]
+    truncated = ~ended["terminated"]
     if mode != AutoresetMode.SAME_STEP:
-        return ended.copy().replace(truncated=truncated.copy()), first
-    finals = ended.finals_from(ended, "" if cut else "final_")
+        pending = first if mode == AutoresetMode.NEXT_STEP else None
+        return ended.copy().replace(truncated=truncated.copy()), pending
+    reset = ended["reset"]
+    finals = {
+        "final_" + k: np.where(
+            reset.reshape(-1, *([1] * (ended[k].ndim - 1))), ended["final_" + k], ended[k]
+        )
+        for k in STATE
+    }
     out = first.replace(
         rewards=ended["rewards"].copy(),
         terminated=ended["terminated"].copy(),
         truncated=truncated.copy(),
         reset=np.ones(n, np.bool_),
         stream_episodes=None,
-        **{k: v.copy() for k, v in finals.items()},
+        **finals,
     )
     return out, None
 

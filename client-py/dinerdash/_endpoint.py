@@ -182,7 +182,7 @@ class Endpoint:
         deadline = float("inf") if remaining is None else time.monotonic() + remaining
         if index not in self.draining:
             log.info(
-                "the server at %s drains (%s): its environments move at their episode ends",
+                "the server at %s drains (%s): its sessions move to the other servers",
                 self.addresses[index],
                 "deadline unknown" if remaining is None else f"{remaining:.1f} s left",
             )

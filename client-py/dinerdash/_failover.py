@@ -17,7 +17,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from ._batch import Batch
-from ._placement import pieces
 from ._session import SessionCore
 from .errors import (
     NoServerLeft,
@@ -28,30 +27,42 @@ from .errors import (
     SessionNotFound,
 )
 
-__all__ = ["fail_over", "move"]
+__all__ = ["fail_over", "move", "pieces"]
 
 #: A server that refuses a new session for one of these is passed over, not given up: the
 #: environments go to the other servers left.
 PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
+
+
+def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
+    """Environments ``start:stop`` cut into one contiguous piece per server of ``loads``
+    (server index -> environments it holds), as ``(start, stop, server)``: the sizes differ by
+    at most one, the larger ones go to the servers holding fewest environments (ties: the lower
+    index), and empty pieces are left out."""
+    order = sorted(loads, key=lambda i: (loads[i], i))
+    m, k = stop - start, len(order)
+    out = []
+    for j, server in enumerate(order):
+        size = m // k + (j < m % k)
+        if size:
+            out.append((start, start + size, server))
+            start += size
+    return out
+
 
 #: ``start(lost_core, new_core)``: the new core's session is created; this resets it and returns
 #: the Batch that the env reports for the new core's environments.
 Start = Callable[[SessionCore, SessionCore], Batch]
 
 
-def move(
-    core: SessionCore,
-    cores: list[SessionCore],
-    start: Start,
-    run: tuple[int, int] | None = None,
-) -> list[SessionCore]:
-    """New cores for the environments ``run`` (default: all) of ``core`` (whose server is given
+def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[SessionCore]:
+    """New cores for the environments of ``core`` (whose server is given
     up or drains) on the servers that take new sessions, given ``cores`` (the env's others, for
     the servers' loads), each started by ``start``; its Batch becomes the new core's ``last``.
     A server that cannot take a session now is passed over (one that says it drains is marked
     so); none left raises :class:`~dinerdash.errors.NoServerLeft`."""
     endpoint = core.endpoint
-    first, stop = run if run is not None else (core.start, core.stop)
+    first, stop = core.start, core.stop
     candidates = [i for i in endpoint.open_to_new() if i != core.index]
     while True:
         if not candidates:
@@ -67,7 +78,7 @@ def move(
         loads = dict.fromkeys(candidates, 0)
         for c in cores:
             if c.index in loads:
-                loads[c.index] += c.load
+                loads[c.index] += c.size
         made: list[SessionCore] = []
         target = None
         try:
@@ -110,8 +121,7 @@ def fail_over(
     kept = len(out)
     try:
         for core in lost:
-            for run in core.runs():
-                out.extend(move(core, out, start, run))
+            out.extend(move(core, out, start))
     except BaseException:
         for new in out[kept:]:
             new.close()

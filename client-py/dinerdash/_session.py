@@ -12,36 +12,15 @@ environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Erro
 typed errors; a core of a vector env that is split over several servers reports an environment by
 its index in the vector env (from the error's structured ``env_index``).
 
-Each core's place in the fleet is an explicit :class:`Phase`, changed only by the core's methods:
-no other module assigns ``phase``, ``last``, ``pending``, ``reconnected``, ``owned``, ``source``
-or ``entering``, nor the session's ``session_id``, ``spec``, ``offer`` or ``transport``
+A core's state (``last``, ``pending``, ``reconnected``, the session's ``session_id``, ``spec``,
+``offer``, ``transport``...) is changed only by its own methods, never assigned by another module
 (``tests/test_module_graph.py`` reads every module with :mod:`ast` to check it: its
-``SESSION_STATE``). The phases and the transitions allowed (any other raises
-:class:`IllegalTransition`, an internal error, a bug of the client):
-
-- ``NEW`` (made, no session yet) -> ``SERVING`` by :meth:`~SessionCore.create` /
-  :meth:`~SessionCore.adopt` (a session made, forked or restored; a ``CLOSED`` core whose server
-  is asked again after a failed failover too);
-- ``SERVING`` (its session steps the environments it holds: all, or those not moved away yet)
-  -> ``RECEIVING`` by :meth:`~SessionCore.begin_receiving` (a transfer's destination);
-- ``RECEIVING`` (environments of its ``source`` core enter it, each at its episode end:
-  :meth:`~SessionCore.await_entry`, :meth:`~SessionCore.enter`,
-  :meth:`~SessionCore.complete_transfer`) -> ``SERVING`` by :meth:`~SessionCore.finish_transfer`
-  (all entered, or the source gone);
-- ``SERVING`` or ``RECEIVING`` -> ``DRAINING`` by :meth:`~SessionCore.mark_draining` (its server
-  drains: a transfer to it is dropped, it receives nothing more, its environments move off);
-- ``SERVING``, ``RECEIVING`` or ``DRAINING`` -> ``LOST`` by :meth:`~SessionCore.mark_lost` (its
-  server was given up: :class:`ServerLost` is raised for the env to move its environments);
-- any phase -> ``CLOSED`` by :meth:`~SessionCore.close`.
-
-A session replaced under a core (reopened after a lost server, restored) keeps the core's phase;
-marking a phase a core already has is allowed; marking a closed core lost, or a lost or closed
-core draining, leaves it as it is.
+``SESSION_STATE``). A core never changes its range of environments: a move between servers
+(:mod:`dinerdash._fleet`) makes new cores of restored sessions (:meth:`SessionCore.restored`).
 """
 
 from __future__ import annotations
 
-import enum
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -96,22 +75,6 @@ class Settings:
     failover_after: float | None = None
     #: Several cores: errors name the environments by their index in the whole env.
     split: bool = field(default=False)
-
-
-class Phase(enum.Enum):
-    """Where a :class:`SessionCore` stands (see the module's doc for the transitions)."""
-
-    NEW = "new"
-    SERVING = "serving"
-    RECEIVING = "receiving"
-    DRAINING = "draining"
-    LOST = "lost"
-    CLOSED = "closed"
-
-
-class IllegalTransition(RuntimeError):
-    """A core was asked for a change its :class:`Phase` does not allow: a bug of the client,
-    never a server's error (not a :class:`~dinerdash.errors.ServiceError`)."""
 
 
 class ServerLost(Exception):
@@ -189,18 +152,14 @@ class SessionCore:
         "caller",
         "drain_ms",
         "endpoint",
-        "entering",
         "index",
         "last",
         "offer",
-        "owned",
         "pending",
-        "phase",
         "reconnected",
         "rung",
         "session_id",
         "settings",
-        "source",
         "spec",
         "start",
         "stop",
@@ -216,8 +175,6 @@ class SessionCore:
         self.start = start
         self.stop = stop
         self.settings = settings
-        #: Where the core stands (:class:`Phase`), changed only by its methods.
-        self.phase = Phase.NEW
         #: The session on the server, ``None`` before :meth:`create` and after :meth:`close`.
         self.session_id: str | None = None
         self.spec: pb.Spec | None = None
@@ -234,17 +191,8 @@ class SessionCore:
         #: The actions of a Step :meth:`start_step` rang for over shared memory, until
         #: :meth:`finish_step` collects its reply.
         self.rung: bytes | None = None
-        #: Which of the session's environments are still this core's (``None``: all). An
-        #: environment moved to another server at its episode end (:mod:`dinerdash._fleet`)
-        #: stays in the session, stepped with the env's action for it, its results unused.
-        self.owned: np.ndarray | None = None
         #: The server's ``drain_remaining_ms`` in the last Batch it sent (0: not draining).
         self.drain_ms = 0
-        #: A transfer (RECEIVING, :mod:`dinerdash._fleet`): the core whose environments this one
-        #: takes over, each at its episode end; ``entering``: those whose autoreset (NEXT_STEP)
-        #: is played here at the next step.
-        self.source: SessionCore | None = None
-        self.entering: set[int] = set()
         #: What the reply that made the session offered of shared memory, and the transport its
         #: Steps take (``None`` until the first Step of a session forked or restored).
         self.offer: _shm.Offer | None = None
@@ -259,44 +207,8 @@ class SessionCore:
 
     @property
     def size(self) -> int:
-        """The session's environments (moved ones included)."""
+        """The environments this core holds."""
         return self.stop - self.start
-
-    @property
-    def load(self) -> int:
-        """The environments this core still holds."""
-        return self.size if self.owned is None else int(self.owned.sum())
-
-    def runs(self) -> list[tuple[int, int]]:
-        """The environments this core holds, as contiguous ``(start, stop)`` runs of the env's
-        indices."""
-        if self.owned is None:
-            return [(self.start, self.stop)]
-        out, lo = [], None
-        for j, mine in enumerate([*self.owned.tolist(), False]):
-            if mine and lo is None:
-                lo = j
-            elif not mine and lo is not None:
-                out.append((self.start + lo, self.start + j))
-                lo = None
-        return out
-
-    def disown(self, lo: int, hi: int) -> None:
-        """Environments ``lo:hi`` moved to another core."""
-        if self.owned is None:
-            self.owned = np.ones(self.size, dtype=np.bool_)
-        self.owned[lo - self.start : hi - self.start] = False
-
-    def holds(self, i: int) -> bool:
-        """Environment ``i`` of the env is this core's."""
-        return self.start <= i < self.stop and (self.owned is None or self.owned[i - self.start])
-
-    def own(self, envs) -> None:
-        """Environments ``envs`` (indices of the env) are this core's from now on."""
-        for i in envs:
-            self.owned[i - self.start] = True
-        if self.owned.all():
-            self.owned = None
 
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up
@@ -306,96 +218,26 @@ class SessionCore:
         self.drain_ms = batch.drain_ms
         return batch
 
-    # -- the phase: transfers, drains, losses --------------------------------------------------
-
-    def _change(self, to: Phase | None, action: str, allowed: tuple[Phase, ...]) -> None:
-        """Moves to phase ``to`` (``None``: stays) by ``action``, allowed only from ``allowed``;
-        raises :class:`IllegalTransition` otherwise."""
-        if self.phase not in allowed:
-            raise IllegalTransition(
-                f"session core of environments {self.start}..{self.stop - 1} on server "
-                f"{self.index}: {action}() while {self.phase.value} (allowed only while "
-                f"{', '.join(p.value for p in allowed)})"
-            )
-        if to is not None:
-            self.phase = to
+    # -- what the env reports -------------------------------------------------------------------
 
     def start_with(self, batch: Batch) -> None:
         """``batch`` is what the env reports for the environments of this new session (moved
         here by a failover, :mod:`dinerdash._failover`) at this step."""
-        self._change(None, "start_with", (Phase.SERVING,))
         self.last = batch
 
-    def take_over(self, last: Batch, pending: Batch | None, cut: bool) -> None:
-        """This new session took over an environment of another core at once (a drain's
-        hand-over): ``last`` is its report of this step, ``pending`` (NEXT_STEP) the next
-        step's, and ``cut``: its episode was cut (``info["reconnected"]``)."""
-        self._change(None, "take_over", (Phase.SERVING,))
-        self.last, self.pending, self.reconnected = last, pending, cut
+    def restored(self, reply: pb.CreateSessionResponse, last: Batch) -> None:
+        """This new core's session is ``reply``'s (Restore's: the environments moved here by
+        Snapshot and Restore, exactly as they were); ``last`` is their report of the step just
+        made."""
+        self.adopt(reply)
+        self.last = last
 
-    def begin_receiving(self, source: SessionCore, first: Batch) -> None:
-        """SERVING -> RECEIVING: this new session (its first Batch ``first``) takes over the
-        environments of ``source`` in its range, each at its episode end (:meth:`enter`); until
-        then it holds none of them."""
-        self._change(Phase.RECEIVING, "begin_receiving", (Phase.SERVING,))
-        self.last = self.note(first)
-        self.owned = np.zeros(self.size, dtype=np.bool_)
-        self.source = source
-
-    def await_entry(self, envs) -> None:
-        """Environments ``envs`` (of the env) enter at the next step (NEXT_STEP: that step is
-        their autoreset)."""
-        self._change(None, "await_entry", (Phase.RECEIVING,))
-        self.entering.update(envs)
-
-    def take_entering(self) -> list[int]:
-        """The environments awaiting entry, sorted; none await from now on."""
-        envs, self.entering = sorted(self.entering), set()
-        return envs
-
-    def forget_entering(self) -> None:
-        """No environment awaits entry any more (a reset reports every step anew)."""
-        self.entering = set()
-
-    def enter(self, envs: list[int], batch: Batch | None = None) -> None:
-        """Environments ``envs`` of ``source`` are this core's from now on (``source`` disowns
-        them); ``batch``, if given, is this core's Batch of this step."""
-        self._change(None, "enter", (Phase.RECEIVING,))
-        if batch is not None:
-            self.last = batch
-        for i in envs:
-            self.source.disown(i, i + 1)
-        self.own(envs)
-
-    def complete_transfer(self) -> None:
-        """A full reset starts every episode: the environments of ``source`` in this core's
-        range enter now (:meth:`finish_transfer` ends the transfer)."""
-        self._change(None, "complete_transfer", (Phase.RECEIVING,))
-        self.enter([i for i in range(self.start, self.stop) if self.source.holds(i)])
-        self.entering = set()
-
-    def finish_transfer(self) -> None:
-        """RECEIVING -> SERVING: every environment entered, or the source is gone (a failover);
-        no more will."""
-        self._change(Phase.SERVING, "finish_transfer", (Phase.RECEIVING,))
-        self.source, self.entering = None, set()
-
-    def mark_draining(self) -> None:
-        """SERVING, RECEIVING -> DRAINING: the core's server drains; a transfer to it is
-        dropped (no more environments go to it). A lost or closed core stays as it is."""
-        if self.phase in (Phase.LOST, Phase.CLOSED):
-            return
-        allowed = (Phase.SERVING, Phase.RECEIVING, Phase.DRAINING)
-        self._change(Phase.DRAINING, "mark_draining", allowed)
-        self.source, self.entering = None, set()
-
-    def mark_lost(self) -> None:
-        """SERVING, RECEIVING, DRAINING -> LOST: the core's server was given up (its
-        environments move, the core is closed next). A closed core stays closed."""
-        if self.phase is Phase.CLOSED:
-            return
-        allowed = (Phase.SERVING, Phase.RECEIVING, Phase.DRAINING, Phase.LOST)
-        self._change(Phase.LOST, "mark_lost", allowed)
+    def cut_over(self, last: Batch, pending: Batch | None) -> None:
+        """This new core's session (created and reset) took over environments whose episodes
+        were cut (a Restore refused, :func:`~dinerdash._batch.cut`): ``last`` is their report
+        of the step just made, ``pending`` (NEXT_STEP) the next step's; ``info["reconnected"]``
+        will say so."""
+        self.last, self.pending, self.reconnected = last, pending, True
 
     def take_reconnected(self) -> bool:
         """Whether the server was lost and the session reopened (or an episode cut) during the
@@ -428,12 +270,6 @@ class SessionCore:
     def adopt(self, reply: pb.CreateSessionResponse) -> None:
         """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's,
         with what it offers of shared memory."""
-        # NEW (or CLOSED: reopened after a failed failover) -> SERVING; a session replaced under
-        # a serving, receiving or draining core keeps its phase.
-        allowed = (Phase.NEW, Phase.CLOSED, Phase.SERVING, Phase.RECEIVING, Phase.DRAINING)
-        self._change(None, "adopt", allowed)
-        if self.phase in (Phase.NEW, Phase.CLOSED):
-            self.phase = Phase.SERVING
         self.detach()
         self.session_id, self.spec = reply.session_id, reply.spec
         self.last = self.pending = None
@@ -482,7 +318,6 @@ class SessionCore:
 
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
-            self.mark_lost()
             raise ServerLost(self, error)
         lost = (
             f"environments {self.start}..{self.stop - 1} ({error})"
@@ -494,7 +329,6 @@ class SessionCore:
             try:
                 endpoint.reopen(self.index, create, lost, s.failover_after)
             except ServiceTransportError:
-                self.mark_lost()
                 raise ServerLost(self, error) from None
             return
         try:
@@ -511,8 +345,7 @@ class SessionCore:
             ) from None
 
     def close(self) -> None:
-        """Any phase -> CLOSED: the session is closed (its server not called if given up)."""
-        self.phase = Phase.CLOSED
+        """Closes the session (its server not called if given up)."""
         self.rung = None
         self.detach()
         if self.caller is not None:

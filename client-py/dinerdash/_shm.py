@@ -63,28 +63,9 @@ __all__ = ["Channel", "Offer", "attach"]
 
 #: "DDsh" and the layout version this client reads.
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
-#: The layout's arrays, in order; ``actions`` is the one the client writes.
-FIELDS = (
-    "actions",
-    "observations",
-    "rewards",
-    "terminated",
-    "truncated",
-    "scores",
-    "lost",
-    "ticks",
-    "action_masks",
-    "expert_actions",
-    "reset",
-    "seeds",
-    "stream_episodes",
-    "final_observations",
-    "final_scores",
-    "final_lost",
-    "final_ticks",
-    "final_action_masks",
-    "final_expert_actions",
-)
+#: The region's arrays, in order: the ``actions`` the client writes, then the Batch's fields
+#: (:data:`dinerdash._batch.FIELDS`, the one table).
+FIELDS = ("actions", *_SHAPES)
 _TABLE, _LENGTHS, _ARRAYS = 32, 256, 512
 #: The last reply's ``drain_remaining_ms``, right after the lengths.
 _DRAIN_AT, _DRAIN = _LENGTHS + 4 * len(FIELDS), struct.Struct("<I")

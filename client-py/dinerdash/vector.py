@@ -14,9 +14,10 @@ server. A session's calls always go to the server that created it.
 Failover (``reconnect=True``): a server unreachable, or silent, for more than ``failover_after``
 seconds is given up and its environments move to the servers left (:mod:`dinerdash._failover`);
 they keep their indices, and the other servers' sessions are not touched. Membership
-(:mod:`dinerdash._membership`): a given-up server that answers again, or a DNS name's new
-replica, is taken in, and environments move onto it at their own episode ends until the loads
-differ by at most one; a draining server's environments move off it at their episode ends.
+(:mod:`dinerdash._membership`): a draining server's environments move off it at once, and a
+given-up server that answers again, or a DNS name's new replica, is given environments until the
+loads differ by at most one, every move by Snapshot and Restore between two steps: exact, the
+trajectories those of an undisturbed run (:mod:`dinerdash._fleet`).
 
 This module is the Gymnasium adapter (arguments, autoreset modes, infos, the ``VectorEnv``
 API); the servers and sessions are the :class:`~dinerdash._fleet.Fleet`'s.
@@ -209,10 +210,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """The fleet's sessions, in environment order."""
         return self._fleet.cores
 
-    @_cores.setter
-    def _cores(self, cores: list[SessionCore]) -> None:
-        self._fleet.cores = cores
-
     @property
     def _endpoint(self) -> Endpoint:
         return self._fleet.endpoint
@@ -221,7 +218,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def addresses(self) -> list[str]:
         """The servers serving now, in the order of the first environments they hold (after a
         failover a server may hold several slices; the servers given up are left out)."""
-        return list(dict.fromkeys(c.conn.address for _, _, c in self._fleet.pieces()))
+        return list(dict.fromkeys(c.conn.address for c in self._cores))
 
     @property
     def lost_addresses(self) -> list[str]:
@@ -248,7 +245,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         sessions differ). A change is logged as a warning and counted in
         :attr:`transport_changes`: nothing falls back to gRPC silently."""
         out: dict[str, list[str]] = {}
-        for _, _, core in self._fleet.pieces():
+        for core in self._cores:
             name = core.transport.name if core.transport is not None else "grpc"
             names = out.setdefault(core.conn.address, [])
             if name not in names:
@@ -263,15 +260,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     @property
     def moves(self) -> int:
-        """Environments moved to another server at their episode end (onto a server taken in,
-        or off a draining one), or, a draining server's deadline about to pass, cut."""
+        """Environments moved to another server by Snapshot and Restore (off a draining server,
+        onto a server taken in, or to even the loads), each exactly as it was. Not counted: a
+        failover's (their episodes restart) and those a server refused to restore (another
+        snapshot version: their episodes restart too)."""
         return self._fleet.moves
 
     @property
     def env_slices(self) -> list[tuple[str, slice]]:
         """Which server holds which environments: one entry per contiguous run of a session's
         environments, in environment order (after a failover a server holds several)."""
-        return [(c.conn.address, slice(lo, hi)) for lo, hi, c in self._fleet.pieces()]
+        return [(c.conn.address, slice(c.start, c.stop)) for c in self._cores]
 
     @property
     def session_ids(self) -> list[str | None]:
@@ -285,7 +284,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_open("watch_url()")
         if not 0 <= index < self.num_envs:
             raise IndexError(f"index must be in 0..{self.num_envs - 1}, got {index}")
-        core = next(c for lo, hi, c in self._fleet.pieces() if lo <= index < hi)
+        core = next(c for c in self._cores if c.start <= index < c.stop)
         return watch_url(core.conn, core.session_id, index - core.start)
 
     def _check_open(self, what: str) -> None:
@@ -333,15 +332,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             "arrivals": arrivals,
             "config": config,
         }
-        kept = self._fleet.reset(given, mask)
+        called = self._fleet.reset(given, mask)
         batch = join(self._fleet.batches())
         obs, info = decode(batch, self.expert)
         info["seed"] = batch["seeds"].astype(np.int64)  # as SyncVectorEnv; torch has no uint64
-        reset = batch["reset"].copy()
-        for lo, hi, c in self._fleet.pieces():
-            if id(c) in kept:
-                reset[lo:hi] = False
-        info["_seed"] = reset
+        info["_seed"] = batch["reset"] & called
         self._seeds = np.where(info["_seed"], info["seed"], self._seeds)
         return obs, info
 
@@ -483,8 +478,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             lost = np.zeros(n, dtype=np.bool_)
             for core in cut:
                 core.take_reconnected()
-                for lo, hi in core.runs():
-                    lost[lo:hi] = True
+                lost[core.start : core.stop] = True
             info["reconnected"] = lost
             info["_reconnected"] = lost.copy()
         return obs, rewards, terminated, truncated, info
@@ -500,8 +494,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._check_open("render()")
             return tuple(
                 core.render_text(i - core.start, self.ansi_color)
-                for lo, hi, core in self._fleet.pieces()
-                for i in range(lo, hi)
+                for core in self._cores
+                for i in range(core.start, core.stop)
             )
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")

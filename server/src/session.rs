@@ -330,6 +330,12 @@ impl FoundSession {
         self.session.lock().snapshot()
     }
 
+    /// Environments `start..start + count` of the session (`count` 0: to the end) as the
+    /// versioned bytes of a session of their own.
+    pub fn snapshot_range(&self, start: u32, count: u32) -> Result<Vec<u8>, SessionError> {
+        self.session.lock().snapshot_range(start, count)
+    }
+
     /// One environment of the session drawn as text.
     pub fn render(&self, env_index: u32, color: bool) -> Result<String, SessionError> {
         self.session.lock().render(env_index, color)

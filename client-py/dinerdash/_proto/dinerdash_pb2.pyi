@@ -214,10 +214,14 @@ class ForkRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ...) -> None: ...
 
 class SnapshotRequest(_message.Message):
-    __slots__ = ("session_id",)
+    __slots__ = ("session_id", "env_start", "env_count")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    ENV_START_FIELD_NUMBER: _ClassVar[int]
+    ENV_COUNT_FIELD_NUMBER: _ClassVar[int]
     session_id: str
-    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+    env_start: int
+    env_count: int
+    def __init__(self, session_id: _Optional[str] = ..., env_start: _Optional[int] = ..., env_count: _Optional[int] = ...) -> None: ...
 
 class SnapshotResponse(_message.Message):
     __slots__ = ("snapshot",)

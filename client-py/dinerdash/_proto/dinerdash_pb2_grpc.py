@@ -160,7 +160,8 @@ class DinerDashServicer:
 
     def Snapshot(self, request, context):
         """Serialises a session into bytes that Restore turns into an identical session, on this or
-        another server of the same snapshot version. Errors: NOT_FOUND.
+        another server of the same snapshot version; `env_start`/`env_count` snapshot a range of
+        its environments. Errors: NOT_FOUND, INVALID_ARGUMENT (a range outside the session).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

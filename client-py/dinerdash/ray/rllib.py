@@ -306,7 +306,7 @@ def masked_ppo(
     :func:`start_servers` restarts is found again on its port, its episodes end truncated. An
     EnvRunner with several servers moves a lost one's environments to its others after
     ``failover_after`` (``env_config``; default 10 s) and, when Ray has restarted the server,
-    takes it back and moves environments onto it again at their episode ends.
+    takes it back and moves environments onto it again (Snapshot and Restore: exact).
 
     ``ppo_overrides``: any ``AlgorithmConfig`` setting, applied last (``lr=1e-4``,
     ``train_batch_size_per_learner=...``); an ``env_config`` is merged into this one

@@ -300,9 +300,11 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::SnapshotRequest>,
     ) -> Result<Response<pb::SnapshotResponse>, Status> {
+        let r = request.get_ref();
+        let (start, count) = (r.env_start, r.env_count);
         let snapshot = self
-            .with_session(&owner(&request), &request.get_ref().session_id, |found| {
-                Ok(found.snapshot())
+            .with_session(&owner(&request), &r.session_id, move |found| {
+                found.snapshot_range(start, count)
             })
             .await?;
         Ok(Response::new(pb::SnapshotResponse { snapshot }))

@@ -667,6 +667,33 @@ impl Envs {
         snapshot::encode(SESSION_SNAPSHOT, self)
     }
 
+    /// Environments `start..start + count` (`count` 0: to the end) as the versioned bytes of a
+    /// session of their own, each exactly as it is here; Restore makes that session.
+    pub fn snapshot_range(&self, start: u32, count: u32) -> Result<Vec<u8>, SessionError> {
+        let n = self.envs.len();
+        let (start, count) = (start as usize, count as usize);
+        let stop = if count == 0 {
+            n
+        } else {
+            start.saturating_add(count)
+        };
+        if start == 0 && stop == n {
+            return Ok(self.snapshot());
+        }
+        if start >= stop || stop > n {
+            return Err(SessionError::InvalidArgument(format!(
+                "snapshot range: env_start {start} and env_count {count} must name environments \
+                 of 0..{n}"
+            )));
+        }
+        let part = Envs {
+            envs: self.envs[start..stop].to_vec(),
+            options: self.options,
+            first_seed: self.first_seed.map(|s| s.wrapping_add(start as u64)),
+        };
+        Ok(part.snapshot())
+    }
+
     /// A session from [`Envs::snapshot`] bytes, checked: at most `max_envs` environments, every
     /// game a reachable state.
     pub fn restore(bytes: &[u8], max_envs: usize) -> Result<Envs, SessionError> {
@@ -933,5 +960,33 @@ mod tests {
         assert_eq!(copy.step(&actions(&[0, 0])), envs.step(&actions(&[0, 0])));
         assert!(Envs::restore(&bytes, 1).is_err());
         assert!(Envs::restore(&bytes[..bytes.len() - 3], 8).is_err());
+    }
+
+    #[test]
+    fn a_range_restores_as_a_session_of_its_own() {
+        let mut envs =
+            Envs::new(4, Config::default(), options(Autoreset::NextStep), Some(7)).unwrap();
+        envs.reset(&ResetArgs::default()).unwrap();
+        envs.step(&actions(&[15, 16, 17, 18])).unwrap();
+        let mut middle = Envs::restore(&envs.snapshot_range(1, 2).unwrap(), 8).unwrap();
+        let mut tail = Envs::restore(&envs.snapshot_range(3, 0).unwrap(), 8).unwrap();
+        assert_eq!((middle.len(), tail.len()), (2, 1));
+        let whole = envs.step(&actions(&[0, 1, 2, 3])).unwrap();
+        let (m, t) = (
+            middle.step(&actions(&[1, 2])).unwrap(),
+            tail.step(&actions(&[3])).unwrap(),
+        );
+        assert_eq!(
+            m.observations,
+            whole.observations[OBSERVATION_SIZE..3 * OBSERVATION_SIZE]
+        );
+        assert_eq!(t.observations, whole.observations[3 * OBSERVATION_SIZE..]);
+        assert_eq!(envs.snapshot_range(0, 0).unwrap(), envs.snapshot());
+        for (start, count) in [(4, 0), (3, 2), (5, 1)] {
+            assert!(
+                envs.snapshot_range(start, count).is_err(),
+                "{start} {count}"
+            );
+        }
     }
 }

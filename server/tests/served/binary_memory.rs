@@ -179,6 +179,7 @@ async fn hostile_requests(c: &mut DinerDashClient<Channel>, size: usize) -> Vec<
         let s = c
             .snapshot(pb::SnapshotRequest {
                 session_id: id.clone(),
+                ..Default::default()
             })
             .await
             .unwrap()

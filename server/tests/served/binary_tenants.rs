@@ -99,6 +99,7 @@ impl Tenant {
     async fn snapshot(&mut self, id: &str) -> Result<Vec<u8>, Status> {
         let request = self.request(pb::SnapshotRequest {
             session_id: id.to_owned(),
+            ..Default::default()
         });
         Ok(self.client.snapshot(request).await?.into_inner().snapshot)
     }

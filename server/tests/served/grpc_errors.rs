@@ -46,9 +46,12 @@ async fn unknown_sessions_are_not_found() {
         ),
         (
             "snapshot",
-            c.snapshot(pb::SnapshotRequest { session_id: id() })
-                .await
-                .map(drop),
+            c.snapshot(pb::SnapshotRequest {
+                session_id: id(),
+                ..Default::default()
+            })
+            .await
+            .map(drop),
         ),
         (
             "render",

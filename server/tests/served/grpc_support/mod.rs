@@ -182,6 +182,7 @@ pub async fn snapshot(client: &mut DinerDashClient<Channel>, id: &str) -> Vec<u8
     client
         .snapshot(pb::SnapshotRequest {
             session_id: id.to_owned(),
+            ..Default::default()
         })
         .await
         .unwrap()
