@@ -17,7 +17,8 @@
 //!   the budget by sending a large message slowly; any other message within
 //!   [`SMALL_INTAKE_TIMEOUT`], so that no partly sent message is held for ever.
 //! - Calls outside the DinerDash service (health checks, reflection, unknown paths) take
-//!   messages of [`PROBE_MESSAGE_BYTES`] at most: they are served before the token is checked.
+//!   messages of [`PROBE_MESSAGE_BYTES`] at most, and their first one must start within
+//!   [`SMALL_INTAKE_TIMEOUT`] of the call: they are served before the token is checked.
 //!
 //! Smaller messages (every Step of up to 4096 environments, CreateSession, most Resets) are not
 //! charged here: each authenticated call is charged a fixed [`CALL_BYTES`] for the whole call
@@ -150,8 +151,16 @@ where
         let (limits, method) = (bounds(path), path.rsplit('/').next().unwrap_or_default());
         let method = method.to_owned();
         let (budget, charge) = (Arc::clone(&self.budget), Arc::clone(&held));
-        let request =
-            request.map(|inner| Body::new(IntakeBody::new(inner, budget, limits, method, charge)));
+        // A call outside the DinerDash service (served before the token is checked) must send
+        // its message soon, not hold its stream open for ever.
+        let probe = limits.max_bytes == PROBE_MESSAGE_BYTES;
+        let request = request.map(|inner| {
+            let mut body = IntakeBody::new(inner, budget, limits, method, charge);
+            if probe {
+                body.deadline = Some(Box::pin(tokio::time::sleep(SMALL_INTAKE_TIMEOUT)));
+            }
+            Body::new(body)
+        });
         IntakeFuture {
             inner: self.inner.call(request),
             held: Some(held),

@@ -3,9 +3,10 @@
 //!
 //! - Calls outside the DinerDash service (health checks, reflection, unknown paths) are served
 //!   or reach the token check without a token: at most [`PROBE_CALLS`] of them are open at once
-//!   in all and [`PROBE_CALLS_PER_PEER`] from one peer address ([`ProbeLayer`]); more are
-//!   answered `RESOURCE_EXHAUSTED` at their headers. Their messages are 1 KiB at most
-//!   (`codec::intake`).
+//!   in all and [`PROBE_CALLS_PER_PEER`] from one peer address, of which health Watches (calls
+//!   that never end) [`WATCHES`] and [`WATCHES_PER_PEER`] ([`ProbeLayer`]); more are answered
+//!   `RESOURCE_EXHAUSTED` at their headers. Their one message is 1 KiB at most and must arrive
+//!   within 10 s of the call (`codec::intake`).
 //! - Each DinerDash call that passed the token check ([`Admit`]) is charged
 //!   [`CALL_BYTES`](crate::codec::intake::CALL_BYTES) against the intake bound for as long as it
 //!   is open, and one identity (a tenant, or the shared identity) may hold at most
@@ -31,9 +32,16 @@ use crate::budget::{Budget, IntakeCharge, Tenant};
 use crate::codec::intake::CALL_BYTES;
 
 /// Most calls outside the DinerDash service open at once, from everyone.
-pub const PROBE_CALLS: usize = 64;
+pub const PROBE_CALLS: usize = 256;
 /// Most calls outside the DinerDash service open at once from one peer address.
-pub const PROBE_CALLS_PER_PEER: usize = 8;
+pub const PROBE_CALLS_PER_PEER: usize = 32;
+/// Most health Watches open at once, from everyone (Kubernetes' probes and the Python client
+/// send Checks).
+pub const WATCHES: usize = 64;
+/// Most health Watches open at once from one peer address.
+pub const WATCHES_PER_PEER: usize = 4;
+/// The path of a health Watch.
+const WATCH: &str = "/grpc.health.v1.Health/Watch";
 /// One identity may hold at most this part of the calls the intake bound holds (1/2: two
 /// identities are needed to fill it).
 pub const IDENTITY_SHARE: usize = 2;
@@ -43,11 +51,20 @@ const SERVICE_PREFIX: &str = "/dinerdash.v1.DinerDash/";
 /// The calls outside the DinerDash service open now.
 #[derive(Debug, Default)]
 struct Probes {
-    /// From everyone.
-    open: usize,
-    /// By peer address.
-    by_peer: HashMap<Option<IpAddr>, usize>,
+    /// From everyone: other calls, then Watches.
+    open: [usize; 2],
+    /// By kind (0: other calls, 1: Watches) and peer address.
+    by_peer: HashMap<(usize, Option<IpAddr>), usize>,
 }
+
+/// The caps of each kind of [`Probes`]: in all, and from one peer.
+const PROBE_CAPS: [(usize, usize); 2] = [
+    (
+        PROBE_CALLS - WATCHES,
+        PROBE_CALLS_PER_PEER - WATCHES_PER_PEER,
+    ),
+    (WATCHES, WATCHES_PER_PEER),
+];
 
 /// Shared by [`ProbeLayer`]'s services.
 type SharedProbes = Arc<Mutex<Probes>>;
@@ -89,27 +106,33 @@ pub struct ProbeCalls<S> {
 pub struct ProbeSlot {
     /// Where it is counted.
     probes: SharedProbes,
-    /// Its peer's address.
-    peer: Option<IpAddr>,
+    /// Its kind and its peer's address.
+    key: (usize, Option<IpAddr>),
 }
 
 impl ProbeSlot {
-    /// A slot for a call from `peer`, unless the caps are reached.
-    fn take(probes: &SharedProbes, peer: Option<IpAddr>) -> Result<ProbeSlot, Status> {
+    /// A slot for a call to `path` from `peer`, unless the caps are reached.
+    fn take(probes: &SharedProbes, path: &str, peer: Option<IpAddr>) -> Result<ProbeSlot, Status> {
+        let kind = usize::from(path == WATCH);
+        let (most, most_from_peer) = PROBE_CAPS[kind];
         let mut open = lock(probes);
-        let from_peer = open.by_peer.get(&peer).copied().unwrap_or(0);
-        if open.open >= PROBE_CALLS || from_peer >= PROBE_CALLS_PER_PEER {
+        let from_peer = open.by_peer.get(&(kind, peer)).copied().unwrap_or(0);
+        if open.open[kind] >= most || from_peer >= most_from_peer {
+            let what = if kind == 1 {
+                "health Watches"
+            } else {
+                "calls outside the DinerDash service (health checks, reflection)"
+            };
             return Err(Status::resource_exhausted(format!(
-                "at most {PROBE_CALLS} calls outside the DinerDash service (health checks, \
-                 reflection) may be open at once, {PROBE_CALLS_PER_PEER} from one address: \
+                "at most {most} {what} may be open at once, {most_from_peer} from one address: \
                  retry later"
             )));
         }
-        open.open += 1;
-        *open.by_peer.entry(peer).or_default() += 1;
+        open.open[kind] += 1;
+        *open.by_peer.entry((kind, peer)).or_default() += 1;
         Ok(ProbeSlot {
             probes: Arc::clone(probes),
-            peer,
+            key: (kind, peer),
         })
     }
 }
@@ -117,11 +140,11 @@ impl ProbeSlot {
 impl Drop for ProbeSlot {
     fn drop(&mut self) {
         let mut open = lock(&self.probes);
-        open.open -= 1;
-        if let Some(n) = open.by_peer.get_mut(&self.peer) {
+        open.open[self.key.0] -= 1;
+        if let Some(n) = open.by_peer.get_mut(&self.key) {
             *n -= 1;
             if *n == 0 {
-                open.by_peer.remove(&self.peer);
+                open.by_peer.remove(&self.key);
             }
         }
     }
@@ -148,7 +171,7 @@ where
         let peer = conn_info_in(request.extensions())
             .and_then(|info| info.remote)
             .map(|addr| addr.ip());
-        match ProbeSlot::take(&self.probes, peer) {
+        match ProbeSlot::take(&self.probes, request.uri().path(), peer) {
             Ok(slot) => Answer::call(self.inner.call(request), Some(slot)),
             Err(status) => Answer::Refused(Some(status.into_http())),
         }
@@ -376,12 +399,25 @@ mod tests {
     fn probe_calls_are_capped_in_all_and_by_peer() {
         let probes = SharedProbes::default();
         let peer = |i: u8| Some(IpAddr::from([10, 0, 0, i]));
-        let mut held: Vec<ProbeSlot> = (0..PROBE_CALLS_PER_PEER)
-            .map(|_| ProbeSlot::take(&probes, peer(1)).unwrap())
+        const CHECK: &str = "/grpc.health.v1.Health/Check";
+        let (calls, calls_per_peer) = PROBE_CAPS[0];
+        let take = |path, i| ProbeSlot::take(&probes, path, peer(i));
+        let mut held: Vec<ProbeSlot> = (0..calls_per_peer)
+            .map(|_| take(CHECK, 1).unwrap())
             .collect();
-        assert!(ProbeSlot::take(&probes, peer(1)).is_err());
+        assert!(take(CHECK, 1).is_err());
+        // Watches have their own, smaller caps.
+        for _ in 0..WATCHES_PER_PEER {
+            held.push(take(WATCH, 1).unwrap());
+        }
+        let e = take(WATCH, 1).unwrap_err();
+        assert_eq!(e.code(), tonic::Code::ResourceExhausted);
+        assert!(
+            e.message().starts_with("at most 64 health Watches"),
+            "{e:?}"
+        );
         for i in 2.. {
-            match ProbeSlot::take(&probes, peer(i)) {
+            match take(CHECK, i) {
                 Ok(slot) => held.push(slot),
                 Err(e) => {
                     assert_eq!(e.code(), tonic::Code::ResourceExhausted);
@@ -389,11 +425,11 @@ mod tests {
                 }
             }
         }
-        assert_eq!(held.len(), PROBE_CALLS);
-        held.truncate(PROBE_CALLS_PER_PEER - 1);
-        ProbeSlot::take(&probes, peer(1)).unwrap();
+        assert_eq!(held.len(), calls + WATCHES_PER_PEER);
+        held.truncate(calls_per_peer - 1);
+        take(CHECK, 1).unwrap();
         drop(held);
-        assert_eq!(lock(&probes).open, 0);
+        assert_eq!(lock(&probes).open, [0, 0]);
         assert!(lock(&probes).by_peer.is_empty());
     }
 }

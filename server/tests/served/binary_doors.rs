@@ -333,20 +333,25 @@ async fn health_watches_without_a_token_cannot_keep_a_tenant_out() {
         unary(&mut a, &addr, INFO, Some(TOKEN_A), &[]).await,
         Some(0)
     );
-    // Eight connections without a token, each holding a health Watch (a call that never ends).
+    // Eight connections without a token, each holding a health Watch (a call that never ends),
+    // each from its own address (so that no cap on one address's Watches refuses them).
     let mut watches = Vec::new();
-    for _ in 0..8 {
-        let send = h2_connect(&addr, None).await;
-        let Ok(mut ready) = send.ready().await else {
-            continue;
-        };
+    for i in 0..8 {
+        let from = IpAddr::from([127, 0, 0, 2 + i]);
+        let mut ready = h2_connect(&addr, Some(from)).await.ready().await.unwrap();
         let headers = grpc_headers(&addr, "/grpc.health.v1.Health/Watch", None);
-        if let Ok((response, mut stream)) = ready.send_request(headers, false) {
-            let _ = stream.send_data(framed(0, &[]), true);
-            watches.push((ready, response, stream));
-        }
-        // Each takes its place before the next arrives.
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        let (response, mut stream) = ready.send_request(headers, false).unwrap();
+        stream.send_data(framed(0, &[]), true).unwrap();
+        // The Watch is served (its answer's headers carry no status: the stream goes on).
+        let response = tokio::time::timeout(PATIENCE, response)
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(
+            response.headers().get("grpc-status").is_none(),
+            "{response:?}"
+        );
+        watches.push((ready, response, stream));
     }
     // Tenant B connects and is served while they hold the server.
     let mut b = client(&addr).await;
