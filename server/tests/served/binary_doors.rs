@@ -11,6 +11,8 @@
 //! - Connection slots: connections that never made an authenticated call, each holding a health
 //!   Watch, are shed before a tenant's: tenant B connects and is served, tenant A's idle
 //!   connection stays open.
+//! - Web endpoint slots (item 4): tenant A holding 32 event streams and 32 silent sockets
+//!   without a token do not make the endpoint refuse tenant B.
 //!
 //! The attacks speak raw HTTP/2 ([`h2`]) so that a message can be left unfinished. Nothing
 //! depends on the machine's speed: counts are fixed, every wait is bounded by a deadline, and
@@ -28,6 +30,8 @@ use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
 use grpc_support::{PATIENCE, create_request};
 use prost::Message as _;
 use prost::bytes::Bytes;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
 use tonic::codegen::http;
 use tonic::transport::Channel;
 
@@ -365,6 +369,57 @@ async fn health_watches_without_a_token_cannot_keep_a_tenant_out() {
         "tenant A's connection was closed"
     );
     drop(watches);
+    let (status, _) = server.terminate().await;
+    assert_eq!(status.code(), Some(0));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Opens a connection to the web endpoint at `addr` and sends `path`'s GET as `token`; returns
+/// the socket (unread beyond the status line) and the status.
+async fn web_get(addr: std::net::SocketAddr, path: &str, token: &str) -> (TcpStream, u16) {
+    let mut socket = TcpStream::connect(addr).await.unwrap();
+    let request =
+        format!("GET {path} HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {token}\r\n\r\n");
+    socket.write_all(request.as_bytes()).await.unwrap();
+    let mut head = [0u8; 12];
+    let read = tokio::time::timeout(PATIENCE, socket.read_exact(&mut head)).await;
+    assert!(read.is_ok(), "no answer from the web endpoint");
+    let status = std::str::from_utf8(&head[9..12]).unwrap().parse().unwrap();
+    (socket, status)
+}
+
+#[tokio::test]
+async fn neither_strangers_nor_one_tenant_take_the_web_endpoints_slots() {
+    let dir = scratch("web");
+    let server = start(&dir, "--http-port 0");
+    let mut a = client(&server.addr).await;
+    let info = a.server_info(with_token(TOKEN_A, pb::ServerInfoRequest {}));
+    let port = info.await.unwrap().into_inner().http_port;
+    let web = std::net::SocketAddr::from(([127, 0, 0, 1], u16::try_from(port).unwrap()));
+    // Tenant A holds as many event streams as the endpoint has connections.
+    let mut streams = Vec::new();
+    let mut served = 0;
+    for _ in 0..32 {
+        let (socket, status) = web_get(web, "/api/sessions/events", TOKEN_A).await;
+        served += usize::from(status == 200);
+        streams.push(socket);
+    }
+    // Then 32 silent sockets without a token.
+    let mut silent = Vec::new();
+    for _ in 0..32 {
+        silent.push(TcpStream::connect(web).await.unwrap());
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    // Tenant B is served.
+    let (_, status) = web_get(web, "/api/sessions", TOKEN_B).await;
+    println!("tenant A's event streams served: {served} of 32; tenant B's request: {status}");
+    assert_eq!(
+        status, 200,
+        "tenant B was refused while A and strangers held the endpoint"
+    );
+    // A's streams served before the strangers came were not closed for them.
+    assert!(served > 0);
+    drop((streams, silent));
     let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
     std::fs::remove_dir_all(&dir).unwrap();
