@@ -20,6 +20,7 @@ pub use crate::config::{ServerConfig, TlsPem};
 use crate::auth::{RequestGate, Tokens};
 use crate::codec::intake::IntakeLayer;
 use crate::config::{ConfigError, ServeArgs};
+use crate::connections::calls::{Admit, Admitted, ProbeLayer};
 use crate::connections::{self, KEEPALIVE_INTERVAL, KEEPALIVE_TIMEOUT, MAX_STREAMS_PER_CONNECTION};
 use crate::http::{self, Access, Exposure, HttpTls, Site, TlsError};
 use crate::metrics::Metrics;
@@ -234,11 +235,14 @@ pub async fn run(
     let dinerdash = DinerDashServer::new(service)
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    // Behind the token check: each call counted by identity and charged while it is open.
+    let dinerdash = Admit::new(dinerdash, Admitted::new(Arc::clone(&budget)));
 
     // Live clients answer the keepalive pings, which keeps their connections out of the idle
     // timeout; dead ones do not, and are closed.
     let mut builder = Server::builder()
-        .layer(connections::InFlightLayer)
+        // Health checks and reflection, open without a token, are few at once.
+        .layer(ProbeLayer::default())
         // Large messages count against --max-memory while they are received and decoded.
         .layer(IntakeLayer::new(Arc::clone(&budget)))
         .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)

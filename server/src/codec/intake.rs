@@ -14,11 +14,15 @@
 //!   charge is given back when the call's handler has answered (a unary call) or when the next
 //!   message of the stream starts (StepStream).
 //! - A charged message must arrive whole within [`INTAKE_TIMEOUT`], so that a client cannot hold
-//!   the budget by sending a large message slowly.
+//!   the budget by sending a large message slowly; any other message within
+//!   [`SMALL_INTAKE_TIMEOUT`], so that no partly sent message is held for ever.
+//! - Calls outside the DinerDash service (health checks, reflection, unknown paths) take
+//!   messages of [`PROBE_MESSAGE_BYTES`] at most, and their first one must start within
+//!   [`SMALL_INTAKE_TIMEOUT`] of the call: they are served before the token is checked.
 //!
 //! Smaller messages (every Step of up to 4096 environments, CreateSession, most Resets) are not
-//! charged: what they cost is part of each open stream's fixed cost, which the connection and
-//! stream limits bound (docs/operations.md, "Requests being received").
+//! charged here: each authenticated call is charged a fixed [`CALL_BYTES`] for the whole call
+//! instead (`connections::calls`), which covers one of them.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -40,6 +44,16 @@ use crate::rollout::MAX_ROLLOUT_EPISODES;
 pub const SMALL_MESSAGE_BYTES: u64 = 16 << 10;
 /// Longest a charged message may take to arrive whole.
 pub const INTAKE_TIMEOUT: Duration = Duration::from_secs(60);
+/// Longest a message up to [`SMALL_MESSAGE_BYTES`] may take to arrive whole once its header
+/// has: 16 KiB in 10 s is 1.6 KB/s.
+pub const SMALL_INTAKE_TIMEOUT: Duration = Duration::from_secs(10);
+/// The longest message of a call outside the DinerDash service: a health check names a
+/// service, a reflection request a symbol.
+pub const PROBE_MESSAGE_BYTES: u64 = 1024;
+/// What one open authenticated call may cost the server besides its charged messages: an
+/// uncharged message of up to [`SMALL_MESSAGE_BYTES`] in tonic's buffer (which may have grown
+/// to twice that), the HTTP/2 stream and the call's task (docs/security.md).
+pub const CALL_BYTES: u64 = 48 << 10;
 /// Length of the gRPC message header: a compression flag, then the length (big-endian u32).
 const HEADER: usize = 5;
 /// Room for a request's fields besides its large one: a session ID, tags, lengths, a config.
@@ -70,8 +84,8 @@ pub fn bounds(path: &str) -> MethodBounds {
         Some("Step" | "StepStream") => (2, 4 * MAX_ENVS as u64 + FIELDS_BYTES),
         // CreateSession, CloseSession, Fork, Snapshot, Render, ServerInfo: a few dozen bytes.
         Some(_) => (2, SMALL_MESSAGE_BYTES),
-        // Health and reflection.
-        None => (2, u64::MAX),
+        // Health, reflection and unknown paths.
+        None => (2, PROBE_MESSAGE_BYTES),
     };
     MethodBounds {
         expansion,
@@ -137,8 +151,16 @@ where
         let (limits, method) = (bounds(path), path.rsplit('/').next().unwrap_or_default());
         let method = method.to_owned();
         let (budget, charge) = (Arc::clone(&self.budget), Arc::clone(&held));
-        let request =
-            request.map(|inner| Body::new(IntakeBody::new(inner, budget, limits, method, charge)));
+        // A call outside the DinerDash service (served before the token is checked) must send
+        // its message soon, not hold its stream open for ever.
+        let probe = limits.max_bytes == PROBE_MESSAGE_BYTES;
+        let request = request.map(|inner| {
+            let mut body = IntakeBody::new(inner, budget, limits, method, charge);
+            if probe {
+                body.deadline = Some(Box::pin(tokio::time::sleep(SMALL_INTAKE_TIMEOUT)));
+            }
+            Body::new(body)
+        });
         IntakeFuture {
             inner: self.inner.call(request),
             held: Some(held),
@@ -255,6 +277,9 @@ impl IntakeBody {
             )));
         }
         if self.length <= SMALL_MESSAGE_BYTES {
+            if self.left > 0 {
+                self.deadline = Some(Box::pin(tokio::time::sleep(SMALL_INTAKE_TIMEOUT)));
+            }
             return Ok(());
         }
         let factor = self.limits.expansion;
@@ -273,15 +298,23 @@ impl IntakeBody {
         Ok(())
     }
 
-    /// The refusal of a charged message that took too long to arrive.
+    /// The refusal of a message that took too long to arrive.
     fn too_slow(&self) -> Status {
+        let within = if self.length > SMALL_MESSAGE_BYTES {
+            INTAKE_TIMEOUT
+        } else {
+            SMALL_INTAKE_TIMEOUT
+        };
         Status::resource_exhausted(format!(
-            "a {} message of {} bytes did not arrive whole within {} s: a message over {} bytes \
-             holds its share of --max-memory while it arrives, for at most that long",
+            "a {} message of {} bytes did not arrive whole within {} s: a message up to {} bytes \
+             must arrive within {} s of its header, a longer one (which holds its share of \
+             --max-memory while it arrives) within {} s",
             self.method,
             self.length,
+            within.as_secs(),
+            SMALL_MESSAGE_BYTES,
+            SMALL_INTAKE_TIMEOUT.as_secs(),
             INTAKE_TIMEOUT.as_secs(),
-            SMALL_MESSAGE_BYTES
         ))
     }
 }
@@ -354,10 +387,14 @@ mod tests {
         // The bound is its floor, 64 MiB.
         let budget = Arc::new(Budget::new(1 << 20, 10, Arc::new(Metrics::default())));
         let mut b = body(&budget, "/dinerdash.v1.DinerDash/Reset");
-        // A small message, split across frames: not charged.
+        // A small message, split across frames: not charged, but given a deadline while it is
+        // partly sent.
         b.measure(&header(100)[..3]).unwrap();
-        b.measure(&[&header(100)[3..], &[0; 100][..]].concat())
-            .unwrap();
+        assert!(b.deadline.is_none());
+        b.measure(&header(100)[3..]).unwrap();
+        assert!(b.deadline.is_some());
+        b.measure(&[0; 100]).unwrap();
+        assert!(b.deadline.is_none());
         assert_eq!(budget.intake_bytes(), 0);
         // A large one: 17 times its length, from its header on.
         b.measure(&header(20_000)).unwrap();
@@ -379,5 +416,12 @@ mod tests {
         let e = c.measure(&header(1 << 20)).unwrap_err();
         assert_eq!(e.code(), tonic::Code::InvalidArgument);
         assert_eq!(bounds("/dinerdash.v1.DinerDash/Step").expansion, 2);
+        // Outside the DinerDash service (served before the token is checked): 1 KiB.
+        let mut h = body(&budget, "/grpc.health.v1.Health/Check");
+        let e = h.measure(&header(4 << 20)).unwrap_err();
+        assert_eq!(e.code(), tonic::Code::InvalidArgument);
+        assert_eq!(budget.intake_bytes(), 0);
+        h.measure(&header(1024)).unwrap();
+        assert_eq!(bounds("/no.Such/Path").max_bytes, PROBE_MESSAGE_BYTES);
     }
 }

@@ -1,5 +1,6 @@
-//! The tower layer that counts each connection's calls in flight, so that the accept loop never
-//! sheds a connection in the middle of a call.
+//! What keeps a call counted while it runs: a guard ([`Call`], or the slots of
+//! [`calls`](super::calls)) carried by the response future and then by the response body until
+//! it ends or is dropped, streams included.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -15,7 +16,8 @@ use super::table::Activity;
 
 /// Counts each connection's calls in flight, from the request's arrival until its response body
 /// ends or is dropped (streams included), so that the accept loop never sheds a connection in
-/// the middle of a call. Every service is behind it: `Server::builder().layer(InFlightLayer)`.
+/// the middle of a call. The server counts only authenticated calls
+/// ([`calls::Admit`](super::calls::Admit)); this layer counts every call.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct InFlightLayer;
 
@@ -60,7 +62,7 @@ where
 
 /// A call in flight on a connection: counted until dropped.
 #[derive(Debug)]
-pub(super) struct Call(Arc<Activity>);
+pub struct Call(Arc<Activity>);
 
 impl Call {
     pub(super) fn new(activity: &Arc<Activity>) -> Call {
@@ -75,20 +77,20 @@ impl Drop for Call {
     }
 }
 
-/// The response future of [`InFlight`]: hands the call to the response body.
+/// The response future of [`InFlight`]: hands the call's guard `G` to the response body.
 #[derive(Debug)]
-pub struct CallFuture<F> {
+pub struct CallFuture<F, G = Call> {
     /// The inner service's future.
-    inner: F,
+    pub(super) inner: F,
     /// The call, until the response is ready.
-    call: Option<Call>,
+    pub(super) call: Option<G>,
 }
 
-impl<F, B, E> Future for CallFuture<F>
+impl<F, B, E, G: Unpin> Future for CallFuture<F, G>
 where
     F: Future<Output = Result<http::Response<B>, E>> + Unpin,
 {
-    type Output = Result<http::Response<CallBody<B>>, E>;
+    type Output = Result<http::Response<CallBody<B, G>>, E>;
 
     fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Self::Output> {
         let response = ready!(Pin::new(&mut self.inner).poll(cx));
@@ -97,16 +99,16 @@ where
     }
 }
 
-/// A response body that keeps its call counted until it ends or is dropped.
+/// A response body that keeps its call's guard `G` until it ends or is dropped.
 #[derive(Debug)]
-pub struct CallBody<B> {
+pub struct CallBody<B, G = Call> {
     /// The body.
-    body: B,
+    pub(super) body: B,
     /// The call, until the body ends.
-    call: Option<Call>,
+    pub(super) call: Option<G>,
 }
 
-impl<B: Body + Unpin> Body for CallBody<B> {
+impl<B: Body + Unpin, G: Unpin> Body for CallBody<B, G> {
     type Data = B::Data;
     type Error = B::Error;
 

@@ -11,9 +11,10 @@
 //!   answer the server's keepalive pings, which count as traffic, so only silent or dead peers
 //!   are closed.
 //! - At [`Limits::max_connections`], a new connection is admitted by closing the longest-idle
-//!   connection with no call in flight, those that never sent the preface first. Sessions live
-//!   on: they are keyed by ID, not by connection, and the client's next call reconnects.
-//!   [`InFlightLayer`] counts each connection's calls in flight.
+//!   connection with no authenticated call in flight: those that never made an authenticated
+//!   call first (a health Watch is no call in flight), among them those that never sent the
+//!   preface. Sessions live on: they are keyed by ID, not by connection, and the client's next
+//!   call reconnects. [`calls::Admit`] counts each connection's authenticated calls in flight.
 //!   A shed connection closes when its task next runs; the loop accepts no more while too many
 //!   are still closing, so that a burst of new connections cannot outrun them into the
 //!   open-file limit.
@@ -21,7 +22,8 @@
 //!   be answered `RESOURCE_EXHAUSTED` (see [`ConnInfo::over_limit`]) and closed after a short
 //!   grace; beyond [`Capacity::max_over_limit`] of those (counting the shed ones still closing) it
 //!   is closed at once.
-//! - A connection may have [`MAX_STREAMS_PER_CONNECTION`] requests open at once.
+//! - A connection may have [`MAX_STREAMS_PER_CONNECTION`] requests open at once; the server, its
+//!   calls as [`calls`] bounds them.
 //! - Each connection is its own [`Tenant`] when the server has no tenant tokens: what it may hold
 //!   is that tenant's share.
 //! - On shutdown the loop drops the listener at once, so new connections are refused while the
@@ -32,10 +34,12 @@
 //!   each connection over the limit.
 //! - `table`: the admitted connections, and the choice of which to shed.
 //! - [`conn`]: one connection: the socket with its preface and idle timers.
-//! - [`in_flight`]: the tower layer counting each connection's calls in flight.
+//! - [`calls`]: the calls open at once, outside the DinerDash service and by identity.
+//! - [`in_flight`]: what keeps a call counted until its response ends.
 //! - [`fd_limit`]: the open-file limit, and the connections it has room for ([`Capacity`]).
 
 pub mod accept;
+pub mod calls;
 pub mod conn;
 pub mod fd_limit;
 pub mod in_flight;
@@ -105,7 +109,7 @@ pub struct ConnInfo {
     pub over_limit: Option<usize>,
     /// The tenant this connection is when the server has no tenant tokens.
     pub tenant: Arc<Tenant>,
-    /// What [`InFlightLayer`] counts its calls in; `None` over the limit (never shed).
+    /// What [`calls::Admit`] counts its calls in; `None` over the limit (never shed).
     activity: Option<Arc<Activity>>,
 }
 

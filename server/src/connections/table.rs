@@ -17,14 +17,17 @@ pub(super) struct Activity {
     pub(super) last_read_ms: AtomicU64,
     /// The first [`PREFACE_BYTES`](super::conn::PREFACE_BYTES) bytes have arrived.
     pub(super) preface: AtomicBool,
-    /// Calls in flight ([`InFlightLayer`](super::InFlightLayer)).
+    /// Authenticated calls in flight ([`calls::Admit`](super::calls::Admit)).
     pub(super) in_flight: AtomicUsize,
+    /// It has made an authenticated call ([`calls::Admit`](super::calls::Admit)).
+    pub(super) authenticated: AtomicBool,
 }
 
 impl Activity {
     /// What the choice reads, now.
     fn idle(&self) -> Idle {
         Idle {
+            authenticated: self.authenticated.load(Ordering::Relaxed),
             preface: self.preface.load(Ordering::Relaxed),
             last_read_ms: self.last_read_ms.load(Ordering::Relaxed),
             in_flight: self.in_flight.load(Ordering::Acquire),
@@ -35,6 +38,8 @@ impl Activity {
 /// A connection's activity at one moment, for [`choose_to_shed`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct Idle {
+    /// It has made an authenticated call.
+    authenticated: bool,
     /// It has sent the HTTP/2 preface.
     preface: bool,
     /// When it last sent a byte, in milliseconds from the table's epoch.
@@ -43,14 +48,15 @@ struct Idle {
     in_flight: usize,
 }
 
-/// The connection to close for a new one: among those with no call in flight, those that never
-/// sent the preface first, then the one idle longest (the oldest on a tie). `None`: every
-/// connection has a call in flight.
+/// The connection to close for a new one: among those with no authenticated call in flight,
+/// those that never made an authenticated call first (a stranger's, whatever it holds: a health
+/// Watch is no call in flight), among them those that never sent the preface, then the one idle
+/// longest (the oldest on a tie). `None`: every connection has a call in flight.
 fn choose_to_shed(conns: impl IntoIterator<Item = (u64, Idle)>) -> Option<u64> {
     conns
         .into_iter()
         .filter(|(_, idle)| idle.in_flight == 0)
-        .min_by_key(|&(id, idle)| (idle.preface, idle.last_read_ms, id))
+        .min_by_key(|&(id, idle)| (idle.authenticated, idle.preface, idle.last_read_ms, id))
         .map(|(id, _)| id)
 }
 
@@ -142,6 +148,7 @@ impl Table {
             last_read_ms: AtomicU64::new(self.millis(now)),
             preface: AtomicBool::new(false),
             in_flight: AtomicUsize::new(0),
+            authenticated: AtomicBool::new(false),
         });
         let (close, closed) = oneshot::channel();
         open.conns.insert(
@@ -210,6 +217,7 @@ mod tests {
 
     fn idle(preface: bool, last_read_ms: u64, in_flight: usize) -> Idle {
         Idle {
+            authenticated: true,
             preface,
             last_read_ms,
             in_flight,
@@ -242,6 +250,14 @@ mod tests {
         // Ties go to the oldest connection.
         let conns = [(7, idle(false, 5, 0)), (4, idle(false, 5, 0))];
         assert_eq!(choose_to_shed(conns), Some(4));
+        // A connection that never made an authenticated call goes before any tenant's, however
+        // recently it sent a byte.
+        let stranger = Idle {
+            authenticated: false,
+            ..idle(true, 900, 0)
+        };
+        let conns = [(1, idle(false, 5, 0)), (2, stranger), (3, idle(true, 1, 0))];
+        assert_eq!(choose_to_shed(conns), Some(2));
         // Every connection busy (or none at all): nothing to shed.
         let conns = [(1, idle(true, 1, 2)), (2, idle(false, 1, 1))];
         assert_eq!(choose_to_shed(conns), None);

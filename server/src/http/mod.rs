@@ -20,8 +20,10 @@
 //! read timeout, malformed requests answered 400), axum routes them and frames the event
 //! streams. axum is built lean (`tokio` and `query` features only: no JSON, forms or
 //! `axum::serve`). The accept loop ([`serve`]) stays ours, because the endpoint's two limits
-//! are per connection, which a router cannot see: at most [`MAX_CONNECTIONS`] at once (more
-//! are answered 503), and a client that does not read is cut off after [`WRITE_TIMEOUT`]
+//! are per connection, which a router cannot see: at most [`MAX_CONNECTIONS`] at once, of which
+//! one identity holds at most [`PER_IDENTITY`] and a stranger's (no valid token) are closed
+//! first to make room ([`slots`]; with none to close, a new one is answered 503), and a client
+//! that does not read is cut off after [`WRITE_TIMEOUT`]
 //! ([`deadline`]; its socket's send buffer is [`SEND_BUFFER`], so that a write blocks soon). Each connection serves one request and closes, as browsers' event streams
 //! hold their own connection anyway.
 //!
@@ -30,6 +32,7 @@
 //! - [`feeds`]: the JSON of the sessions and of a watched environment, and their event streams.
 //! - [`assets`]: the pages, scripts and style, and the 404 pages.
 //! - [`deadline`]: the slow-viewer cut-off.
+//! - [`slots`]: the connection slots, by identity.
 //! - [`tls`]: the endpoint's TLS acceptor and its certificate's names.
 //! - [`hosts`]: the `Host` names a request may give.
 
@@ -39,6 +42,7 @@ pub mod deadline;
 pub mod feeds;
 pub mod hosts;
 pub mod routes;
+pub mod slots;
 pub mod tls;
 
 use std::sync::Arc;
@@ -51,7 +55,6 @@ use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpListener;
-use tokio::sync::Semaphore;
 use tower::ServiceExt as _;
 
 use crate::metrics::Metrics;
@@ -61,6 +64,7 @@ use crate::shutdown::Shutdown;
 pub use access::{Access, Refused, Viewer};
 pub use deadline::{WRITE_TIMEOUT, WriteDeadline};
 pub use hosts::Hosts;
+pub use slots::{Identity, PER_IDENTITY, Slot, Slots};
 pub use tls::{HttpTls, TlsError};
 
 /// Largest HTTP request head read (hyper's smallest buffer); anything longer is answered 431.
@@ -138,7 +142,8 @@ pub async fn serve_exposed(
     mut shutdown: Shutdown,
     exposure: Exposure,
 ) {
-    let connections = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    let slots = Slots::new(MAX_CONNECTIONS);
+    let access = site.access.clone();
     let pages = routes::router(site, shutdown.clone());
     let busy = routes::busy();
     let bound = match listener.local_addr() {
@@ -166,27 +171,49 @@ pub async fn serve_exposed(
                 }
                 // Over the limit, the connection is still read (hyper needs the request to
                 // answer it), but only to be told 503 within the request timeout.
-                let permit = Arc::clone(&connections).try_acquire_owned().ok();
-                let routes = if permit.is_some() { &pages } else { &busy };
-                let routes = routes.clone();
-                let (hosts, acceptor) = (Arc::clone(&hosts), acceptor.clone());
+                let (slot, closed) = match slots.admit() {
+                    Some((slot, closed)) => (Some(Arc::new(slot)), Some(closed)),
+                    None => (None, None),
+                };
+                let routes = if slot.is_some() { &pages } else { &busy };
+                let viewer = Viewing {
+                    routes: routes.clone(),
+                    hosts: Arc::clone(&hosts),
+                    access: access.clone(),
+                    slot,
+                };
+                let acceptor = acceptor.clone();
                 tokio::spawn(async move {
-                    let served = match acceptor {
-                        None => connection(stream, routes, hosts).await,
-                        Some(acceptor) => {
-                            // The handshake gets the time the request head would.
-                            let handshake = acceptor.accept(stream);
-                            match tokio::time::timeout(REQUEST_TIMEOUT, handshake).await {
-                                Ok(Ok(stream)) => connection(stream, routes, hosts).await,
-                                Ok(Err(e)) => Err(format!("TLS handshake: {e}")),
-                                Err(_) => Err("no TLS handshake in time".into()),
+                    let serving = async move {
+                        match acceptor {
+                            None => connection(stream, viewer).await,
+                            Some(acceptor) => {
+                                // The handshake gets the time the request head would.
+                                let handshake = acceptor.accept(stream);
+                                match tokio::time::timeout(REQUEST_TIMEOUT, handshake).await {
+                                    Ok(Ok(stream)) => connection(stream, viewer).await,
+                                    Ok(Err(e)) => Err(format!("TLS handshake: {e}")),
+                                    Err(_) => Err("no TLS handshake in time".into()),
+                                }
                             }
                         }
+                    };
+                    // A stranger's connection is closed when a new one needs its slot.
+                    let shed = async move {
+                        if let Some(closed) = closed {
+                            if closed.await.is_ok() {
+                                return;
+                            }
+                        }
+                        std::future::pending::<()>().await;
+                    };
+                    let served = tokio::select! {
+                        served = serving => served,
+                        () = shed => Err("closed to make room for another connection".into()),
                     };
                     if let Err(e) = served {
                         tracing::debug!("http connection failed: {e}");
                     }
-                    drop(permit);
                 });
             }
             Err(e) => {
@@ -198,13 +225,50 @@ pub async fn serve_exposed(
     }
 }
 
-/// Serves one connection (TCP, or TLS over it) with `routes`: one request, then the connection
-/// closes. A request naming a host `hosts` does not allow is answered 421 without routing.
-async fn connection<S>(stream: S, routes: Router, hosts: Arc<Hosts>) -> Result<(), String>
+/// What one connection is served with.
+struct Viewing {
+    /// The pages, or the 503 answer over the limit.
+    routes: Router,
+    /// The host names a request may give.
+    hosts: Arc<Hosts>,
+    /// The tokens, to tell whose the request is.
+    access: Access,
+    /// The connection's slot; `None` over the limit.
+    slot: Option<Arc<Slot>>,
+}
+
+impl Viewing {
+    /// Counts the request's identity in the connection's slot: `Some(answer)` when that
+    /// identity holds all its connections already.
+    fn identify(&self, headers: &axum::http::HeaderMap) -> Option<Response> {
+        let slot = self.slot.as_ref()?;
+        let authorization = headers.get(header::AUTHORIZATION).map(|v| v.as_bytes());
+        let identity = match self.access.viewer(authorization) {
+            Err(_) => Identity::Stranger,
+            Ok(Viewer::Anyone) => Identity::Everyone,
+            Ok(Viewer::SharedToken) => Identity::Token(0),
+            Ok(Viewer::Tenant(tenant)) => Identity::Token(Arc::as_ptr(&tenant) as usize),
+        };
+        let held = slot.identify(identity).err()?;
+        Some(error(
+            StatusCode::SERVICE_UNAVAILABLE,
+            &format!(
+                "this token holds {held} connections to this endpoint, the most one token may \
+                 (of {MAX_CONNECTIONS} in all): close one"
+            ),
+        ))
+    }
+}
+
+/// Serves one connection (TCP, or TLS over it) as `viewing` says: one request, then the
+/// connection closes. A request naming a host the endpoint does not answer to is answered 421
+/// without routing.
+async fn connection<S>(stream: S, viewing: Viewing) -> Result<(), String>
 where
     S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
 {
     let io = TokioIo::new(WriteDeadline::new(stream, WRITE_TIMEOUT));
+    let viewing = Arc::new(viewing);
     let service = hyper::service::service_fn(move |request: hyper::Request<_>| {
         // An absolute URI's authority is the host (RFC 9112 3.2.2); else the Host header.
         let host = match request.uri().authority() {
@@ -214,11 +278,17 @@ where
                 .get(header::HOST)
                 .and_then(|h| h.to_str().ok()),
         };
-        let allowed = host.is_some_and(|host| hosts.allows(host));
-        let routes = routes.clone();
+        let allowed = host.is_some_and(|host| viewing.hosts.allows(host));
+        let full = allowed
+            .then(|| viewing.identify(request.headers()))
+            .flatten();
+        let routes = viewing.routes.clone();
         async move {
             if !allowed {
                 return Ok(misdirected());
+            }
+            if let Some(full) = full {
+                return Ok(full);
             }
             routes.oneshot(request.map(axum::body::Body::new)).await
         }

@@ -13,6 +13,7 @@ mod grpc_support;
 #[path = "../recorded/mod.rs"]
 mod recorded;
 
+mod binary_doors;
 mod binary_drain;
 mod binary_expose;
 mod binary_hostile;
