@@ -11,54 +11,7 @@ use std::task::{Context, Poll, ready};
 use http_body::{Body, Frame, SizeHint};
 use tonic::codegen::http;
 
-use super::conn_info_in;
 use super::table::Activity;
-
-/// Counts each connection's calls in flight, from the request's arrival until its response body
-/// ends or is dropped (streams included), so that the accept loop never sheds a connection in
-/// the middle of a call. The server counts only authenticated calls
-/// ([`calls::Admit`](super::calls::Admit)); this layer counts every call.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct InFlightLayer;
-
-impl<S> tower::Layer<S> for InFlightLayer {
-    type Service = InFlight<S>;
-
-    fn layer(&self, inner: S) -> InFlight<S> {
-        InFlight { inner }
-    }
-}
-
-/// The service [`InFlightLayer`] makes.
-#[derive(Debug, Clone)]
-pub struct InFlight<S> {
-    /// The services behind it.
-    inner: S,
-}
-
-impl<S, ReqBody, ResBody> tower::Service<http::Request<ReqBody>> for InFlight<S>
-where
-    S: tower::Service<http::Request<ReqBody>, Response = http::Response<ResBody>>,
-    S::Future: Unpin,
-{
-    type Response = http::Response<CallBody<ResBody>>;
-    type Error = S::Error;
-    type Future = CallFuture<S::Future>;
-
-    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
-        self.inner.poll_ready(cx)
-    }
-
-    fn call(&mut self, request: http::Request<ReqBody>) -> Self::Future {
-        let call = conn_info_in(request.extensions())
-            .and_then(|info| info.activity.as_ref())
-            .map(Call::new);
-        CallFuture {
-            inner: self.inner.call(request),
-            call,
-        }
-    }
-}
 
 /// A call in flight on a connection: counted until dropped.
 #[derive(Debug)]
@@ -77,7 +30,7 @@ impl Drop for Call {
     }
 }
 
-/// The response future of [`InFlight`]: hands the call's guard `G` to the response body.
+/// A call's response future: hands the call's guard `G` to the response body.
 #[derive(Debug)]
 pub struct CallFuture<F, G = Call> {
     /// The inner service's future.

@@ -54,7 +54,7 @@ use tonic::codegen::http;
 pub use accept::{Incoming, LISTEN_BACKLOG, accept, bind};
 pub use conn::Conn;
 pub use fd_limit::Capacity;
-pub use in_flight::{CallBody, CallFuture, InFlight, InFlightLayer};
+pub use in_flight::{CallBody, CallFuture};
 
 use crate::budget::Tenant;
 use table::Activity;
