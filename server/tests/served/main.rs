@@ -15,6 +15,7 @@ mod recorded;
 
 mod binary_drain;
 mod binary_expose;
+mod binary_fair;
 mod binary_hostile;
 mod binary_memory;
 mod binary_tenants;
