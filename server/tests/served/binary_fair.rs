@@ -7,6 +7,9 @@
 //! one of A's episodes is still being recorded. A first-come pool (the binary before the fix)
 //! answers B's first Step only after A's first episode: the test then fails when that episode
 //! arrives. The latencies are printed for the record (`--nocapture`).
+//!
+//! `DINERDASH_SERVER_EXE=/path/to/dinerdash-server` runs it against another build (the binary
+//! before the fix answered B's first Step after A's first episode, 13.9 s in).
 
 use crate::binary_support;
 use crate::grpc_support;
@@ -69,7 +72,11 @@ async fn a_tenants_rollouts_leave_another_tenant_its_turn_on_the_cpu_pool() {
         format!("team-a {TOKEN_A} rollouts={rollouts}\nteam-b {TOKEN_B}\n"),
     )
     .unwrap();
-    let server = Process::start("", &format!("--auth-tokens-file '{}'", file.display()));
+    let args = format!("--auth-tokens-file '{}'", file.display());
+    let server = match std::env::var("DINERDASH_SERVER_EXE") {
+        Ok(exe) => Process::start_exe(&exe, "", &args),
+        Err(_) => Process::start("", &args),
+    };
     let url = format!("http://{}", server.addr);
     let mut a = DinerDashClient::connect(url.clone())
         .await

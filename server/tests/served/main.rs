@@ -18,6 +18,7 @@ mod binary_expose;
 mod binary_fair;
 mod binary_hostile;
 mod binary_memory;
+mod binary_restore;
 mod binary_tenants;
 mod grpc_concurrency;
 mod grpc_error_details;
