@@ -15,8 +15,9 @@
 //!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
 //!   stopping server answers.
 //! - [`pools`]: the two thread pools for CPU-heavy work: [`pools::CpuPool`], the bounded
-//!   blocking workers that run Rollout episodes and every planner-labelled session's Reset,
-//!   Step, Render, Snapshot and Fork (one per process, shared by gRPC and shared memory), and
+//!   blocking workers that run Rollout episodes (in chunks) and every planner-labelled session's
+//!   Reset, Step, Render, Snapshot and Fork, serving tenants in turn (one per process, shared by
+//!   gRPC and shared memory), and
 //!   [`pools::StepPool`], the threads that step one large Step's environments in chunks.
 //! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
 //!   Rollouts).

@@ -2,13 +2,16 @@
 //! workers ([`CpuPool`]) and the stepping threads of large Steps ([`StepPool`]). The module is
 //! named for what it holds, the pools, rather than for the resource they spend.
 //!
-//! - [`CpuPool`]: Rollout episodes and the Reset, Step, Render, Snapshot and Fork of
-//!   planner-labelled sessions. Such work runs on tokio's blocking threads, never on the async
-//!   workers that serve Step and Reset, and at most `workers` jobs run at once, so a flood of
-//!   heavy requests queues here instead of starving every other client. The server's pool
-//!   ([`CpuPool::beside_steps`]) is one per process: the gRPC service and the shared-memory data
-//!   plane's threads ([`CpuPool::acquire_blocking`]) take their permits from the same
-//!   semaphore, so planner Steps are bounded together whichever transport asked.
+//! - [`CpuPool`]: Rollout episodes (in chunks of [`crate::rollout::ROLLOUT_CHUNK`]) and the
+//!   Reset, Step, Render, Snapshot and Fork of planner-labelled sessions. Such work runs on
+//!   tokio's blocking threads, never on the async workers that serve Step and Reset, and at most
+//!   `workers` jobs run at once, so a flood of heavy requests queues here instead of starving
+//!   every other client. Waiting jobs queue per tenant ([`Turn`]) and a freed worker goes to the
+//!   tenants in turn (round robin), so one tenant's many jobs delay another's by about one job
+//!   each, not by all of them. The server's pool ([`CpuPool::beside_steps`]) is one per process:
+//!   the gRPC service and the shared-memory data plane's threads ([`CpuPool::acquire_blocking`])
+//!   take their workers from the same queue, so planner Steps are bounded together whichever
+//!   transport asked.
 //! - [`StepPool`]: the threads that step one large session's environments in chunks at once
 //!   ([`Stepping`] says when a Step is large enough). Only chunks of large Steps run there;
 //!   small Steps stay on their caller's thread and never queue behind them.
@@ -24,14 +27,17 @@
 //! workers) that run their own. An async worker that hands a large Step over gives its other
 //! tasks to another thread first (`block_in_place`), so small Steps keep being served.
 
-use std::sync::{Arc, OnceLock};
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock, PoisonError};
 
-use tokio::sync::{OwnedSemaphorePermit, Semaphore, TryAcquireError};
+use tokio::sync::oneshot;
+
+use crate::budget::Tenant;
 
 /// Why a job did not run to completion.
 #[derive(Debug, thiserror::Error)]
 pub enum CpuError {
-    /// The pool's semaphore was closed (nothing closes it today; tokio's API can fail so).
+    /// The pool was dropped while the job waited (nothing drops the server's pool).
     #[error("the worker pool is closed")]
     Closed,
     /// The job panicked; the panic was caught on its blocking thread.
@@ -39,28 +45,35 @@ pub enum CpuError {
     Failed(String),
 }
 
-/// A bounded pool of blocking workers. Cloning is shallow: every clone shares the same permits.
+/// A bounded pool of blocking workers that serves tenants in turn. Cloning is shallow: every
+/// clone shares the same workers.
 #[derive(Debug, Clone)]
 pub struct CpuPool {
-    /// One permit per job allowed to run at once.
-    permits: Arc<Semaphore>,
-    /// The number of permits, for [`CpuPool::workers`].
+    /// The workers and the jobs waiting for one.
+    queue: Arc<Queue>,
+    /// The number of workers, for [`CpuPool::workers`].
     max: usize,
 }
 
 impl CpuPool {
     /// A pool running at most `workers` jobs at once (at least one).
     pub fn new(workers: usize) -> CpuPool {
+        let max = workers.max(1);
         CpuPool {
-            permits: Arc::new(Semaphore::new(workers.max(1))),
-            max: workers.max(1),
+            queue: Arc::new(Queue {
+                state: Mutex::new(Waiting {
+                    free: max,
+                    ..Waiting::default()
+                }),
+            }),
+            max,
         }
     }
 
     /// The process's pool, which leaves one core to the async workers serving Step and Reset
     /// (one worker on one or two cores): Rollouts being read must not raise other clients' Step
     /// latency. Every call returns the same pool (the cores are the machine's, not a service's):
-    /// the gRPC service and the shared-memory data plane share its permits.
+    /// the gRPC service and the shared-memory data plane share its workers.
     pub fn beside_steps() -> CpuPool {
         static POOL: OnceLock<CpuPool> = OnceLock::new();
         POOL.get_or_init(|| {
@@ -72,49 +85,50 @@ impl CpuPool {
 
     /// How many jobs may run at once.
     pub fn workers(&self) -> usize {
-        // The permits are never added to or forgotten: the count given to `new`, at least 1.
         self.max
     }
 
-    /// Waits for a free worker from a thread of its own outside the runtime (a shared-memory
-    /// planner session's thread), which then runs its job itself while it holds the permit: the
-    /// same bound as [`CpuPool::run`], without a hop to another thread. `runtime` drives the wait
-    /// when no permit is free at once; it must not be called from an async task.
+    /// Waits for a free worker for `turn` from a thread of its own outside the runtime (a
+    /// shared-memory planner session's thread), which then runs its job itself while it holds
+    /// the permit: the same bound and the same turns as [`CpuPool::run`], without a hop to
+    /// another thread. `runtime` drives the wait when no worker is free at once; it must not be
+    /// called from an async task.
     pub fn acquire_blocking(
         &self,
+        turn: Turn,
         runtime: &tokio::runtime::Handle,
-    ) -> Result<OwnedSemaphorePermit, CpuError> {
-        match Arc::clone(&self.permits).try_acquire_owned() {
+    ) -> Result<CpuPermit, CpuError> {
+        match self.queue.enter(turn) {
             Ok(permit) => Ok(permit),
-            Err(TryAcquireError::Closed) => Err(CpuError::Closed),
-            Err(TryAcquireError::NoPermits) => runtime.block_on(self.acquire()),
+            Err(handed) => runtime.block_on(handed).map_err(|_| CpuError::Closed),
         }
     }
 
-    /// Waits for a free worker. Holding the permit is what reserves the worker: pass it into
-    /// [`CpuPool::run_with`], or keep it across several blocking jobs.
-    pub async fn acquire(&self) -> Result<OwnedSemaphorePermit, CpuError> {
-        Arc::clone(&self.permits)
-            .acquire_owned()
-            .await
-            .map_err(|_| CpuError::Closed)
+    /// Waits for a worker for `turn`: at once when one is free, else when the tenants with jobs
+    /// waiting before it have had theirs (each tenant's own jobs in their order of arrival).
+    /// Holding the permit is what reserves the worker: pass it into [`CpuPool::run_with`].
+    pub async fn acquire(&self, turn: Turn) -> Result<CpuPermit, CpuError> {
+        match self.queue.enter(turn) {
+            Ok(permit) => Ok(permit),
+            Err(handed) => handed.await.map_err(|_| CpuError::Closed),
+        }
     }
 
-    /// Runs `job` on a blocking thread once a worker is free, and returns its result. When the
-    /// caller stops waiting (a cancelled request), a job already running finishes and releases
-    /// its worker; one still queued never starts.
-    pub async fn run<F, R>(&self, job: F) -> Result<R, CpuError>
+    /// Runs `job` on a blocking thread once a worker is free for `turn`, and returns its result.
+    /// When the caller stops waiting (a cancelled request), a job already running finishes and
+    /// releases its worker; one still queued never starts.
+    pub async fn run<F, R>(&self, turn: Turn, job: F) -> Result<R, CpuError>
     where
         F: FnOnce() -> R + Send + 'static,
         R: Send + 'static,
     {
-        let permit = self.acquire().await?;
+        let permit = self.acquire(turn).await?;
         CpuPool::run_with(permit, job).await
     }
 
     /// Runs `job` on a blocking thread under a permit already taken from [`CpuPool::acquire`];
     /// the permit is released when the job ends.
-    pub async fn run_with<F, R>(permit: OwnedSemaphorePermit, job: F) -> Result<R, CpuError>
+    pub async fn run_with<F, R>(permit: CpuPermit, job: F) -> Result<R, CpuError>
     where
         F: FnOnce() -> R + Send + 'static,
         R: Send + 'static,
@@ -126,6 +140,119 @@ impl CpuPool {
         })
         .await
         .map_err(|e| CpuError::Failed(e.to_string()))
+    }
+}
+
+/// Which tenant a job of the [`CpuPool`] is run for: the pool serves tenants in turn, not jobs
+/// in order of arrival. Made from the tenant a session or a Rollout is charged to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Turn(usize);
+
+impl Turn {
+    /// The turn of `tenant` (one per tenant: its address while it lives).
+    pub fn of(tenant: &Arc<Tenant>) -> Turn {
+        Turn(Arc::as_ptr(tenant) as usize)
+    }
+}
+
+/// A worker of the [`CpuPool`], held while its job runs; dropping it hands the worker to the
+/// next tenant's first waiting job (or frees it).
+#[derive(Debug)]
+#[must_use = "the worker is free again as soon as its permit is dropped"]
+pub struct CpuPermit {
+    /// The pool it is given back to (none once handed on).
+    queue: Option<Arc<Queue>>,
+}
+
+impl Drop for CpuPermit {
+    fn drop(&mut self) {
+        if let Some(queue) = self.queue.take() {
+            queue.release();
+        }
+    }
+}
+
+/// The pool's workers and its waiting jobs, one queue per tenant.
+#[derive(Debug)]
+struct Queue {
+    state: Mutex<Waiting>,
+}
+
+/// What a [`Queue`] holds under its lock.
+#[derive(Debug, Default)]
+struct Waiting {
+    /// Workers not held. Jobs wait only while this is zero.
+    free: usize,
+    /// The tenants with waiting jobs, each once, in the order they are served: a tenant served
+    /// goes to the back if it has more waiting.
+    turns: VecDeque<Turn>,
+    /// Each tenant's waiting jobs, first come first: the senders their permits are handed
+    /// through (a job whose caller stopped waiting has dropped its receiver and is skipped).
+    jobs: HashMap<Turn, VecDeque<oneshot::Sender<CpuPermit>>>,
+}
+
+impl Waiting {
+    /// The next waiting job, the tenants served in turn.
+    fn next(&mut self) -> Option<oneshot::Sender<CpuPermit>> {
+        let turn = self.turns.pop_front()?;
+        let jobs = self.jobs.get_mut(&turn)?;
+        let next = jobs.pop_front();
+        if jobs.is_empty() {
+            self.jobs.remove(&turn);
+        } else {
+            self.turns.push_back(turn);
+        }
+        next
+    }
+}
+
+impl Queue {
+    /// A worker for `turn` at once, or the receiver its permit will come through.
+    fn enter(self: &Arc<Self>, turn: Turn) -> Result<CpuPermit, oneshot::Receiver<CpuPermit>> {
+        let mut guard = self.lock();
+        let waiting = &mut *guard;
+        if waiting.free > 0 {
+            waiting.free -= 1;
+            return Ok(CpuPermit {
+                queue: Some(Arc::clone(self)),
+            });
+        }
+        let (tx, rx) = oneshot::channel();
+        let jobs = waiting.jobs.entry(turn).or_default();
+        if jobs.is_empty() {
+            waiting.turns.push_back(turn);
+        }
+        jobs.push_back(tx);
+        Err(rx)
+    }
+
+    /// A worker given back: handed to the next tenant's waiting job, or freed.
+    fn release(self: &Arc<Self>) {
+        loop {
+            let Some(next) = ({
+                let mut waiting = self.lock();
+                let next = waiting.next();
+                if next.is_none() {
+                    waiting.free += 1;
+                }
+                next
+            }) else {
+                return;
+            };
+            let permit = CpuPermit {
+                queue: Some(Arc::clone(self)),
+            };
+            match next.send(permit) {
+                Ok(()) => return,
+                // Its caller stopped waiting: the worker goes to the next one, without a drop
+                // that would release it again.
+                Err(mut unsent) => unsent.queue = None,
+            }
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Waiting> {
+        self.state.lock().unwrap_or_else(PoisonError::into_inner)
     }
 }
 
@@ -295,7 +422,7 @@ mod tests {
         let jobs = (0..8).map(|_| {
             let (pool, running, most) = (pool.clone(), running.clone(), most.clone());
             tokio::spawn(async move {
-                pool.run(move || {
+                pool.run(Turn(0), move || {
                     let now = running.fetch_add(1, Ordering::SeqCst) + 1;
                     most.fetch_max(now, Ordering::SeqCst);
                     std::thread::sleep(std::time::Duration::from_millis(5));
@@ -316,11 +443,11 @@ mod tests {
             .build()
             .unwrap();
         let pool = CpuPool::new(1);
-        let held = pool.acquire_blocking(runtime.handle()).unwrap();
+        let held = pool.acquire_blocking(Turn(0), runtime.handle()).unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         let (other, handle) = (pool.clone(), runtime.handle().clone());
         let waiter = std::thread::spawn(move || {
-            let permit = other.acquire_blocking(&handle).unwrap();
+            let permit = other.acquire_blocking(Turn(1), &handle).unwrap();
             tx.send(()).unwrap();
             drop(permit);
         });
@@ -334,8 +461,47 @@ mod tests {
         rx.recv_timeout(std::time::Duration::from_secs(60)).unwrap();
         waiter.join().unwrap();
         let (a, b) = (CpuPool::beside_steps(), CpuPool::beside_steps());
-        assert!(Arc::ptr_eq(&a.permits, &b.permits));
+        assert!(Arc::ptr_eq(&a.queue, &b.queue));
         assert_eq!(a.workers(), b.workers());
+    }
+
+    #[tokio::test]
+    async fn a_freed_worker_goes_to_the_tenants_in_turn() {
+        let pool = CpuPool::new(1);
+        let held = pool.acquire(Turn(0)).await.unwrap();
+        // Tenant 1 queues three jobs, then tenant 2 one, and one of tenant 1's callers leaves.
+        let order = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let mut waiters = Vec::new();
+        for (turn, name) in [(1, "a1"), (1, "gone"), (1, "a2"), (1, "a3"), (2, "b1")] {
+            let handed = match pool.queue.enter(Turn(turn)) {
+                Err(handed) => handed,
+                Ok(_) => panic!("a worker was free"),
+            };
+            waiters.push((name, handed));
+        }
+        waiters.retain(|(name, _)| *name != "gone");
+        let tasks: Vec<_> = waiters
+            .into_iter()
+            .map(|(name, handed)| {
+                let order = Arc::clone(&order);
+                tokio::spawn(async move {
+                    let permit = handed.await.unwrap();
+                    order.lock().unwrap().push(name);
+                    tokio::task::yield_now().await;
+                    drop(permit);
+                })
+            })
+            .collect();
+        drop(held);
+        for task in tasks {
+            task.await.unwrap();
+        }
+        // Tenant 2's one job runs after tenant 1's first, not after all of them.
+        assert_eq!(*order.lock().unwrap(), ["a1", "b1", "a2", "a3"]);
+        // Every worker is free again.
+        let state = pool.queue.lock();
+        assert_eq!(state.free, 1);
+        assert!(state.turns.is_empty() && state.jobs.is_empty());
     }
 
     #[test]
@@ -425,9 +591,9 @@ mod tests {
     async fn a_panic_is_an_error_and_frees_its_worker() {
         let pool = CpuPool::new(1);
         assert!(matches!(
-            pool.run(|| panic!("boom")).await,
+            pool.run(Turn(0), || panic!("boom")).await,
             Err(CpuError::Failed(_))
         ));
-        assert_eq!(pool.run(|| 1).await.unwrap(), 1);
+        assert_eq!(pool.run(Turn(0), || 1).await.unwrap(), 1);
     }
 }

@@ -2,13 +2,15 @@
 //! its stream is charged, and the recording of whole episodes of a server-side policy: the reset
 //! observation, then per step the expert's choice in the state before it, the action, the reward
 //! and the new observation. Recording is synchronous and CPU-bound: the service runs it on its
-//! CPU pool.
+//! CPU pool, in chunks of [`ROLLOUT_CHUNK`] ([`Recorder`]) so that no episode holds a worker
+//! while other tenants wait.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
 use crate::budget::{Budget, BudgetError, Charge, Tenant};
-use crate::policy::{PolicyKind, expert_action};
+use crate::policy::{Policy, PolicyKind, expert_action};
 use crate::sim::{Config, ConfigError, Game, NUM_ACTIONS, OBSERVATION_SIZE};
 
 /// Most steps of one recorded episode: bounds the size of one streamed message (~10 MB).
@@ -21,6 +23,10 @@ pub const MAX_ROLLOUT_EPISODES: u32 = 10_000;
 pub const MAX_ROLLOUT_WORK_STEPS: u64 = 10_000_000;
 /// Bytes one recorded step takes at most: observation, action, reward, expert action, mask.
 pub const MAX_BYTES_PER_STEP: u64 = (OBSERVATION_SIZE + 1 + 4 + 1 + NUM_ACTIONS) as u64;
+
+/// How long a Rollout plays on a worker before it gives the worker back and waits for its next
+/// turn ([`crate::pools::CpuPool`]): what another tenant's planner Step may wait for it.
+pub const ROLLOUT_CHUNK: Duration = Duration::from_millis(20);
 
 /// Rollout episodes recorded ahead of the reader: one, so that a stream is produced on demand.
 pub const ROLLOUT_BUFFER: usize = 1;
@@ -172,61 +178,142 @@ pub fn record_until(
     action_masks: bool,
     stop: &AtomicBool,
 ) -> Result<Option<Recording>, ConfigError> {
-    let mut game = Game::new(config)?;
-    // A drawn arrival list cannot be refused.
-    let _ = game.reset(Some(seed), None);
-    let mut player = policy.build(seed);
-    let mut rec = Recording {
-        seed,
-        ..Recording::default()
-    };
-    let push_state = |rec: &mut Recording, game: &Game| {
-        let r = game.restaurant();
-        rec.observations
-            .extend(r.observation().iter().map(|&v| v as u8));
+    let mut recorder = Recorder::new(policy, config, seed, max_steps, action_masks)?;
+    Ok(match recorder.play(None, stop) {
+        Played::Stopped => None,
+        Played::Ended | Played::Paused => Some(recorder.finish()),
+    })
+}
+
+/// Where [`Recorder::play`] stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Played {
+    /// The episode ended (the game, or `max_steps`): [`Recorder::finish`] it.
+    Ended,
+    /// Its time was up: play on later, on any thread.
+    Paused,
+    /// The stop flag was set: abandon it.
+    Stopped,
+}
+
+/// One episode being recorded, played in as many chunks as its caller likes: between them it
+/// holds no thread, so a worker can serve others' jobs meanwhile. The chunks' cut changes
+/// nothing of the episode.
+pub struct Recorder {
+    /// The game played.
+    game: Game,
+    /// Who plays.
+    player: Box<dyn Policy + Send>,
+    /// Which policy `player` is (the expert's choice is reused rather than asked twice).
+    policy: PolicyKind,
+    /// What is recorded so far.
+    rec: Recording,
+    /// Most steps of the episode.
+    max_steps: u32,
+    /// Whether states carry action masks.
+    action_masks: bool,
+    /// Whether the game ended it.
+    ended: bool,
+}
+
+impl Recorder {
+    /// An episode of `policy` from `reset(seed)`, its reset state recorded.
+    pub fn new(
+        policy: PolicyKind,
+        config: Config,
+        seed: u64,
+        max_steps: u32,
+        action_masks: bool,
+    ) -> Result<Recorder, ConfigError> {
+        let mut game = Game::new(config)?;
+        // A drawn arrival list cannot be refused.
+        let _ = game.reset(Some(seed), None);
+        let mut rec = Recording {
+            seed,
+            ..Recording::default()
+        };
+        rec.observations.reserve(OBSERVATION_SIZE * 600);
         if action_masks {
-            rec.action_masks
+            rec.action_masks.reserve(NUM_ACTIONS * 600);
+        }
+        let mut recorder = Recorder {
+            game,
+            player: policy.build(seed),
+            policy,
+            rec,
+            max_steps,
+            action_masks,
+            ended: false,
+        };
+        recorder.push_state();
+        Ok(recorder)
+    }
+
+    /// Records the game's state: its observation, and its action mask when asked for.
+    fn push_state(&mut self) {
+        let r = self.game.restaurant();
+        self.rec
+            .observations
+            .extend(r.observation().iter().map(|&v| v as u8));
+        if self.action_masks {
+            self.rec
+                .action_masks
                 .extend(r.action_mask().iter().map(|&m| u8::from(m)));
         }
-    };
-    rec.observations.reserve(OBSERVATION_SIZE * 600);
-    if action_masks {
-        rec.action_masks.reserve(NUM_ACTIONS * 600);
     }
-    push_state(&mut rec, &game);
-    let mut ended = false;
-    while rec.steps < max_steps && !ended {
-        if stop.load(Ordering::Relaxed) {
-            return Ok(None);
+
+    /// Plays until the episode ends, `stop` is set (checked before every step), or `until`
+    /// passes (checked after every step, so that each chunk plays at least one).
+    pub fn play(&mut self, until: Option<Instant>, stop: &AtomicBool) -> Played {
+        while self.rec.steps < self.max_steps && !self.ended {
+            if stop.load(Ordering::Relaxed) {
+                return Played::Stopped;
+            }
+            let expert = expert_action(self.game.restaurant());
+            let action = match self.policy {
+                // The expert's choice is already known; asking again would repeat the
+                // look-ahead.
+                PolicyKind::Expert => expert,
+                PolicyKind::Random | PolicyKind::Planner => self.player.act(&self.game),
+            };
+            let Ok(outcome) = self.game.step(i64::from(action)) else {
+                // A refused step ends the episode as `max_steps` would: truncated.
+                self.max_steps = self.rec.steps;
+                break;
+            };
+            let rec = &mut self.rec;
+            rec.steps += 1;
+            rec.expert_actions.push(expert);
+            rec.actions.push(action);
+            let reward = outcome
+                .reward
+                .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32;
+            rec.rewards.extend_from_slice(&reward.to_le_bytes());
+            rec.terminated = outcome.terminated;
+            rec.truncated = outcome.truncated;
+            self.ended = outcome.terminated || outcome.truncated;
+            self.push_state();
+            if until.is_some_and(|until| Instant::now() >= until) {
+                break;
+            }
         }
-        let expert = expert_action(game.restaurant());
-        let action = match policy {
-            // The expert's choice is already known; asking again would repeat the look-ahead.
-            PolicyKind::Expert => expert,
-            PolicyKind::Random | PolicyKind::Planner => player.act(&game),
-        };
-        let Ok(outcome) = game.step(i64::from(action)) else {
-            break;
-        };
-        rec.steps += 1;
-        rec.expert_actions.push(expert);
-        rec.actions.push(action);
-        let reward = outcome
-            .reward
-            .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32;
-        rec.rewards.extend_from_slice(&reward.to_le_bytes());
-        push_state(&mut rec, &game);
-        rec.terminated = outcome.terminated;
-        rec.truncated = outcome.truncated;
-        ended = outcome.terminated || outcome.truncated;
+        if self.ended || self.rec.steps >= self.max_steps {
+            Played::Ended
+        } else {
+            Played::Paused
+        }
     }
-    if !ended {
-        rec.truncated = true;
+
+    /// The recording of an episode [`Recorder::play`] ended.
+    pub fn finish(mut self) -> Recording {
+        if !self.ended {
+            self.rec.truncated = true;
+        }
+        let r = self.game.restaurant();
+        self.rec.score = r.score();
+        self.rec.lost = r.lost();
+        self.rec
     }
-    let r = game.restaurant();
-    rec.score = r.score();
-    rec.lost = r.lost();
-    Ok(Some(rec))
 }
 
 #[cfg(test)]
@@ -291,6 +378,22 @@ mod tests {
             RolloutPlan::new(PolicyKind::Random, vec![0], None, bad, false).is_err(),
             "an invalid configuration is refused"
         );
+    }
+
+    #[test]
+    fn an_episode_played_in_chunks_is_the_episode_played_at_once() {
+        let never = AtomicBool::new(false);
+        for policy in [PolicyKind::Expert, PolicyKind::Random, PolicyKind::Planner] {
+            let whole = record(policy, Config::default(), 9, 300, true).unwrap();
+            let mut recorder = Recorder::new(policy, Config::default(), 9, 300, true).unwrap();
+            // A deadline already passed: one step a chunk.
+            let mut chunks = 0;
+            while recorder.play(Some(Instant::now()), &never) == Played::Paused {
+                chunks += 1;
+            }
+            assert_eq!(chunks + 1, whole.steps, "{policy:?}");
+            assert_eq!(recorder.finish(), whole, "{policy:?}");
+        }
     }
 
     #[test]

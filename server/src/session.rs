@@ -610,10 +610,12 @@ impl Store {
         caller: &Caller,
         bytes: &[u8],
     ) -> Result<(SessionId, SessionSpec), SessionError> {
-        // Decoding holds at most max_envs_per_session environments for a moment; they are kept
-        // only once charged.
-        let envs = Envs::restore(bytes, self.shared.limits.max_envs_per_session)?;
-        let charge = self.charge(&caller.tenant, envs.len())?;
+        // The tenant's share and the memory budget are charged for the environments the header
+        // counts before any is decoded: a snapshot over either is refused without allocating
+        // them, and the decoded ones are within the charge (given back if they do not decode).
+        let max_envs = self.shared.limits.max_envs_per_session;
+        let charge = self.charge(&caller.tenant, Envs::count(bytes, max_envs)?)?;
+        let envs = Envs::restore(bytes, max_envs)?;
         self.insert(&caller.owner, envs, charge)
     }
 
@@ -689,6 +691,43 @@ mod tests {
         assert_eq!(SessionId::parse(&text), Ok(id));
         assert!(SessionId::parse("xyz").is_err());
         assert!(SessionId::parse(&format!("+{}", &text[1..])).is_err());
+    }
+
+    #[test]
+    fn a_restore_over_the_share_is_refused_from_the_header_before_decoding() {
+        let store = Store::new(Limits::default(), Arc::default());
+        let (id, _) = store
+            .create(&caller(), 3, Config::default(), options(), None)
+            .unwrap();
+        let bytes = store
+            .find(&Owner::Shared, &id.to_string())
+            .unwrap()
+            .snapshot();
+        let two = crate::budget::Share {
+            max_envs: 2,
+            ..crate::budget::Share::default()
+        };
+        let small = Caller::shared(Arc::new(Tenant::new("small".into(), two)));
+        // Its environments cut off: refused for the share, not as undecodable (never decoded).
+        let header_only = &bytes[..8];
+        assert!(matches!(
+            store.restore(&small, header_only),
+            Err(SessionError::OverBudget(BudgetError::TenantEnvs {
+                needed: 3,
+                ..
+            }))
+        ));
+        assert_eq!(small.tenant.envs(), 0);
+        // Within a share, the same bytes are refused as undecodable, and nothing stays charged.
+        let big = caller();
+        assert!(matches!(
+            store.restore(&big, header_only),
+            Err(SessionError::InvalidArgument(_))
+        ));
+        assert_eq!(big.tenant.envs(), 0);
+        assert_eq!(store.live(), 1);
+        store.restore(&big, &bytes).unwrap();
+        assert_eq!(big.tenant.envs(), 3);
     }
 
     #[test]

@@ -45,7 +45,7 @@ use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
 use crate::metrics::Metrics;
 use crate::pb;
-use crate::pools::CpuPool;
+use crate::pools::{CpuPool, Turn};
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{
     Batch, Caller, FoundSession, Owner, SessionError, SessionId, SessionOptions, Store,
@@ -367,6 +367,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         let (tx, rx) = tokio::sync::mpsc::channel(ROLLOUT_BUFFER);
         let produce = Produce {
             cpu: self.cpu.clone(),
+            turn: Turn::of(&tenant),
             metrics: Arc::clone(&self.metrics),
             stopping: self.stopping.clone(),
             policy: plan.policy,

@@ -1,9 +1,10 @@
-//! The producer of one Rollout stream: records an episode per seed on the CPU pool, each only
-//! once the reader has room for it, within the request's work cap and the drain deadline.
+//! The producer of one Rollout stream: records an episode per seed on the CPU pool, in chunks
+//! taken in its tenant's turn, each episode only once the reader has room for it, within the
+//! request's work cap and the drain deadline.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tonic::Status;
 
@@ -12,8 +13,8 @@ use super::status::rollout_status;
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::policy::PolicyKind;
-use crate::pools::CpuPool;
-use crate::rollout::{self, Recording, RolloutError};
+use crate::pools::{CpuPool, Turn};
+use crate::rollout::{Played, ROLLOUT_CHUNK, Recorder, Recording, RolloutError};
 use crate::shutdown::{self, STREAM_DRAIN_DEADLINE, Shutdown};
 use crate::sim::Config;
 
@@ -24,6 +25,8 @@ pub const ROLLOUT_UNREAD_TIMEOUT: Duration = Duration::from_secs(60);
 pub(super) struct Produce {
     /// The bounded pool episodes are recorded on.
     pub(super) cpu: CpuPool,
+    /// Whose turn on the pool: the tenant the stream is charged to.
+    pub(super) turn: Turn,
     /// Counts recorded episodes.
     pub(super) metrics: Arc<Metrics>,
     /// Fires when the server drains.
@@ -129,26 +132,38 @@ impl Produce {
         }
     }
 
-    /// Records one episode on the pool. Dropping the returned future (the reader left, the
-    /// server drains) stops the recording at its next step.
+    /// Records one episode on the pool, a chunk of [`ROLLOUT_CHUNK`] at a time, each in the
+    /// stream's tenant's turn: between chunks the worker serves whoever's turn is next. Dropping
+    /// the returned future (the reader left, the server drains) stops the recording at its next
+    /// step.
     async fn record(&self, seed: u64, max_steps: u32) -> Next {
         let stop = Arc::new(AtomicBool::new(false));
         // Set on every way out of this function, the early ones included.
         let _stop_on_drop = StopOnDrop(Arc::clone(&stop));
-        let Ok(worker) = self.cpu.acquire().await else {
-            return Next::Fail(shutdown::unavailable());
-        };
-        let (policy, config, masks) = (self.policy, self.config, self.masks);
-        let job = CpuPool::run_with(worker, move || {
-            rollout::record_until(policy, config, seed, max_steps, masks, &stop)
-        });
-        match job.await {
-            Ok(Ok(Some(rec))) => Next::Episode(rec),
-            Ok(Ok(None)) => Next::Gone,
-            Ok(Err(e)) => Next::Fail(rollout_status(RolloutError::InvalidArgument(e.to_string()))),
+        let recorder = Recorder::new(self.policy, self.config, seed, max_steps, self.masks);
+        let mut recorder = match recorder {
+            Ok(recorder) => recorder,
             Err(e) => {
-                tracing::error!("rollout worker failed: {e}");
-                Next::Fail(Status::internal(format!("rollout worker failed: {e}")))
+                return Next::Fail(rollout_status(RolloutError::InvalidArgument(e.to_string())));
+            }
+        };
+        loop {
+            let Ok(worker) = self.cpu.acquire(self.turn).await else {
+                return Next::Fail(shutdown::unavailable());
+            };
+            let stop = Arc::clone(&stop);
+            let chunk = CpuPool::run_with(worker, move || {
+                let played = recorder.play(Some(Instant::now() + ROLLOUT_CHUNK), &stop);
+                (recorder, played)
+            });
+            match chunk.await {
+                Ok((done, Played::Ended)) => return Next::Episode(done.finish()),
+                Ok((paused, Played::Paused)) => recorder = paused,
+                Ok((_, Played::Stopped)) => return Next::Gone,
+                Err(e) => {
+                    tracing::error!("rollout worker failed: {e}");
+                    return Next::Fail(Status::internal(format!("rollout worker failed: {e}")));
+                }
             }
         }
     }

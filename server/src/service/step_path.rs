@@ -1,8 +1,9 @@
 //! One path for a Step (or Reset) once its session is looked up, whichever transport asked:
 //! the lookup's refusal, the choice of where the work runs (here, or under a permit of the
-//! bounded [`CpuPool`] when the session's expert actions come from the planner, whose decisions
-//! cost too much to run unbounded), the step, and every refusal counted in the error counter
-//! and logged at debug level as the gRPC handlers do.
+//! bounded [`CpuPool`], in the turn of the tenant the session is charged to, when the session's
+//! expert actions come from the planner, whose decisions cost too much to run unbounded), the
+//! step, and every refusal counted in the error counter and logged at debug level as the gRPC
+//! handlers do.
 //!
 //! The lookup stays with the caller, because the transports ask different questions: the gRPC
 //! handlers find a session by its ID for the caller, the shared-memory data plane by its ID and
@@ -17,7 +18,7 @@ use std::sync::Arc;
 use tonic::Status;
 
 use crate::metrics::Metrics;
-use crate::pools::CpuPool;
+use crate::pools::{CpuPool, Turn};
 use crate::session::{Batch, ExpertActions, FoundSession, SessionError};
 
 /// Where Steps run and where their refusals are counted. Cloning is shallow.
@@ -56,7 +57,7 @@ impl StepPath {
         let session = found.map_err(|e| self.fail(e))?;
         let result = if Self::heavy(&session) {
             self.cpu
-                .run(move || job(&session))
+                .run(Turn::of(session.tenant()), move || job(&session))
                 .await
                 .unwrap_or_else(|e| Err(SessionError::Internal(e.to_string())))
         } else {
@@ -79,7 +80,10 @@ impl StepPath {
     {
         let session = found.map_err(|e| self.fail(e))?;
         let result = if Self::heavy(&session) {
-            match self.cpu.acquire_blocking(runtime) {
+            match self
+                .cpu
+                .acquire_blocking(Turn::of(session.tenant()), runtime)
+            {
                 Ok(permit) => {
                     let result = job(&session);
                     drop(permit);

@@ -694,18 +694,24 @@ impl Envs {
         Ok(part.snapshot())
     }
 
-    /// A session from [`Envs::snapshot`] bytes, checked: at most `max_envs` environments, every
-    /// game a reachable state.
-    pub fn restore(bytes: &[u8], max_envs: usize) -> Result<Envs, SessionError> {
-        let corrupt = |e| SessionError::InvalidArgument(format!("snapshot: {e}"));
-        // The count (`envs` is the first field) is checked before any environment is decoded.
-        let n = snapshot::leading_count(SESSION_SNAPSHOT, bytes).map_err(corrupt)?;
+    /// How many environments [`Envs::snapshot`] bytes hold, read from their header without
+    /// decoding any (`envs` is the first field): 1..=`max_envs`, else refused.
+    pub fn count(bytes: &[u8], max_envs: usize) -> Result<usize, SessionError> {
+        let n = snapshot::leading_count(SESSION_SNAPSHOT, bytes).map_err(corrupt_snapshot)?;
         if !(1..=max_envs as u64).contains(&n) {
             return Err(SessionError::InvalidArgument(format!(
                 "snapshot: the number of environments must be in 1..={max_envs}, got {n}"
             )));
         }
-        let mut envs: Envs = snapshot::decode(SESSION_SNAPSHOT, bytes).map_err(corrupt)?;
+        // At most `max_envs`, a usize.
+        Ok(n as usize)
+    }
+
+    /// A session from [`Envs::snapshot`] bytes, checked: at most `max_envs` environments (their
+    /// [`Envs::count`], before any is decoded), every game a reachable state.
+    pub fn restore(bytes: &[u8], max_envs: usize) -> Result<Envs, SessionError> {
+        Envs::count(bytes, max_envs)?;
+        let mut envs: Envs = snapshot::decode(SESSION_SNAPSHOT, bytes).map_err(corrupt_snapshot)?;
         for (i, env) in envs.envs.iter().enumerate() {
             env.game.check().map_err(|e| {
                 SessionError::InvalidArgument(format!("snapshot: environment {i}: {e}"))
@@ -718,6 +724,11 @@ impl Envs {
         }
         Ok(envs)
     }
+}
+
+/// The refusal of snapshot bytes that do not decode.
+fn corrupt_snapshot(e: snapshot::SnapshotError) -> SessionError {
+    SessionError::InvalidArgument(format!("snapshot: {e}"))
 }
 
 /// Resets the environments of `run` as `args` asks (`base`: the seed of the session's first

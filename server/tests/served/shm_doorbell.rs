@@ -20,11 +20,13 @@ use crate::grpc_support;
 use std::io::{IoSlice, IoSliceMut};
 use std::mem::MaybeUninit;
 use std::os::fd::OwnedFd;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use binary_support::Process;
+use dinerdash_server::budget::{Share, Tenant};
 use dinerdash_server::pb::{self, diner_dash_client::DinerDashClient};
-use dinerdash_server::pools::CpuPool;
+use dinerdash_server::pools::{CpuPool, Turn};
 use dinerdash_server::server::ServerConfig;
 use dinerdash_server::shm::layout::{FIELDS, Layout};
 use dinerdash_server::shm::{HELLO_BYTES, MAX_PENDING_HELLOS};
@@ -643,9 +645,10 @@ async fn a_planner_sessions_steps_wait_for_the_cpu_pool() {
     });
     // Every worker of the pool the gRPC path uses is taken (by Rollouts, say).
     let pool = CpuPool::beside_steps();
+    let holder = Arc::new(Tenant::new("a holder".into(), Share::default()));
     let mut held = Vec::new();
     for _ in 0..pool.workers() {
-        held.push(pool.acquire().await.unwrap());
+        held.push(pool.acquire(Turn::of(&holder)).await.unwrap());
     }
     // A session without the planner steps on; the planner's Step waits for a worker.
     assert!(tokio::task::block_in_place(|| q.step(&[0])).is_ok());
