@@ -21,9 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Viewer;
 use crate::budget::{Charge, Share, Tenant};
-use crate::pb;
 use crate::policy::expert_action;
-use crate::service::convert::{config_from, config_to};
 use crate::session::{
     Autoreset, Caller, ExpertActions, FoundSession, Owner, ResetArgs, SessionError, SessionOptions,
     Store,
@@ -88,8 +86,10 @@ impl From<SessionError> for PlayError {
     }
 }
 
-/// A game's configuration as JSON and as the new-game query: the protocol's `GameConfig` field
-/// names (what the Python client's `config` takes), absent fields the ruleset's.
+/// A game's configuration as JSON and as the new-game query, in the protocol's `GameConfig`
+/// field names (what the Python client's `config` takes, so that a recording's `config` is one),
+/// absent fields the ruleset's. (The web endpoint sits below the gRPC service, so it does not
+/// borrow the service's conversion of the message itself.)
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ConfigJson {
@@ -121,36 +121,40 @@ impl ConfigJson {
     ];
 
     /// Every field of `config`.
-    fn of(config: &Config) -> ConfigJson {
-        let c = config_to(config);
+    fn of(c: &Config) -> ConfigJson {
         ConfigJson {
-            arrival_interval: c.arrival_interval,
-            patience_type1: c.patience_type1,
-            patience_type2: c.patience_type2,
-            decay_type1: c.decay_type1,
-            decay_type2: c.decay_type2,
-            reading_ticks: c.reading_ticks,
-            cooking_ticks: c.cooking_ticks,
-            eating_ticks: c.eating_ticks,
-            lives: c.lives,
-            time_limit: c.time_limit,
+            arrival_interval: Some(c.arrival_interval),
+            patience_type1: Some(c.patience[0]),
+            patience_type2: Some(c.patience[1]),
+            decay_type1: Some(c.decay[0]),
+            decay_type2: Some(c.decay[1]),
+            reading_ticks: Some(c.reading_ticks),
+            cooking_ticks: Some(c.cooking_ticks),
+            eating_ticks: Some(c.eating_ticks),
+            lives: Some(c.lives),
+            time_limit: Some(c.time_limit),
         }
     }
 
     /// The configuration, absent fields the ruleset's (not yet validated).
     fn config(&self) -> Config {
-        config_from(Some(&pb::GameConfig {
-            arrival_interval: self.arrival_interval,
-            patience_type1: self.patience_type1,
-            patience_type2: self.patience_type2,
-            decay_type1: self.decay_type1,
-            decay_type2: self.decay_type2,
-            reading_ticks: self.reading_ticks,
-            cooking_ticks: self.cooking_ticks,
-            eating_ticks: self.eating_ticks,
-            lives: self.lives,
-            time_limit: self.time_limit,
-        }))
+        let d = Config::default();
+        Config {
+            arrival_interval: self.arrival_interval.unwrap_or(d.arrival_interval),
+            patience: [
+                self.patience_type1.unwrap_or(d.patience[0]),
+                self.patience_type2.unwrap_or(d.patience[1]),
+            ],
+            decay: [
+                self.decay_type1.unwrap_or(d.decay[0]),
+                self.decay_type2.unwrap_or(d.decay[1]),
+            ],
+            reading_ticks: self.reading_ticks.unwrap_or(d.reading_ticks),
+            cooking_ticks: self.cooking_ticks.unwrap_or(d.cooking_ticks),
+            eating_ticks: self.eating_ticks.unwrap_or(d.eating_ticks),
+            lives: self.lives.unwrap_or(d.lives),
+            time_limit: self.time_limit.unwrap_or(d.time_limit),
+        }
     }
 
     /// Sets field `name` from `value`.
@@ -711,6 +715,8 @@ mod tests {
             );
         }
         assert!(plays.recording(&Viewer::Anyone, &ids[2]).is_ok());
-        assert_eq!(store.budget().used_bytes() >= RECORDING_BYTES * 16, true);
+        // The kept games' sessions and recordings, and nothing of the dropped ones.
+        let each = RECORDING_BYTES + crate::session::session_bytes(1);
+        assert_eq!(store.budget().used_bytes(), MAX_RECORDINGS as u64 * each);
     }
 }
