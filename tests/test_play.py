@@ -259,3 +259,38 @@ def test_bad_recordings_are_refused_and_nothing_is_written(
     with np.load(Path(out) / "dinerdash_play.npz") as demos:
         assert demos["actions"].tolist() == recording["actions"]
         assert demos["scores"].tolist() == [recording["score"]]
+
+
+@needs_chromium
+def test_the_replay_page_steps_through_a_recording(start_server, browser, tmp_path) -> None:
+    from selenium.webdriver.common.by import By
+
+    server = start_server("--http-port", "0")
+    url = page_url(server)
+    status, state = call(f"{url}api/play?seed=8&lives=4", "POST")
+    sid = state["session_id"]
+    for _ in range(30):
+        status, state = act(url, sid, state["expert"]["reference"], tick=state["tick"])
+    recording = call(f"{url}api/play/{sid}/recording")[1]
+    path = tmp_path / "game.json"
+    path.write_text(json.dumps(recording))
+
+    browser.get(f"{url}play/replay")
+    browser.find_element(By.ID, "replay-file").send_keys(str(path))
+    replayed = wait_for("the replay's game", lambda: attribute(browser, "data-session-id"))
+    assert replayed != sid
+    for i in range(30):
+        recorded = browser.find_element(By.CSS_SELECTOR, ".target.recorded")
+        assert recorded.get_attribute("data-action") == str(recording["actions"][i])
+        browser.find_element(By.ID, "replay-step").click()
+        wait_for(f"tick {i + 1}", lambda i=i: attribute(browser, "data-tick") == str(i + 1))
+    assert attribute(browser, "data-score") == str(recording["score"])
+    assert not browser.find_element(By.ID, "replay-step").is_enabled()
+    again = call(f"{url}api/play/{replayed}/recording")[1]
+    assert again["actions"] == recording["actions"] and again["config"] == recording["config"]
+
+    # A game of the token's, by its ID.
+    browser.get(f"{url}play/replay?from={sid}")
+    wait_for("the replay's game", lambda: attribute(browser, "data-session-id") not in ("", sid))
+    browser.find_element(By.ID, "replay-step").click()
+    wait_for("tick 1", lambda: attribute(browser, "data-tick") == "1")

@@ -4,6 +4,9 @@
 //
 // `/play?seed=N&lives=3...` starts a game (seed and the GameConfig fields go to the server; `mode`
 // and `rate` are the page's); the address then becomes `/play/{id}`, which a reload resumes.
+// `/play/replay` (an uploaded recording) or `/play/replay?from={id}` (a game of the token's)
+// replays a recording: a new game of its seed and config, stepped with its actions one by one,
+// the recorded action outlined beside the hints.
 "use strict";
 
 (() => {
@@ -100,12 +103,15 @@
     const hint = new Set();
     if ($("hint-expert").checked && s.expert.reference !== null) hint.add(s.expert.reference);
     if ($("hint-planner").checked && s.expert.planner !== null) hint.add(s.expert.planner);
+    const recorded = replayNext();
     for (const [action, b] of targets) {
       const legal = !s.ended && !s.finished && s.mask[action];
       b.hidden = !legal;
       b.disabled = !legal;
       b.classList.toggle("hint", legal && hint.has(action));
+      b.classList.toggle("recorded", legal && action === recorded);
     }
+    showReplay();
     const said = [];
     if ($("hint-expert").checked && s.expert.reference !== null) {
       said.push(`expert: ${s.expert.reference} ${Board.actionName(s.expert.reference)}`);
@@ -145,6 +151,9 @@
   async function act(action, fromClock = false) {
     if (busy || !state || state.finished || state.ended) return;
     if (!fromClock) actedSinceTick = true;
+    if (replay && !fromClock && replay.left === undefined && action !== replayNext()) {
+      replay.left = state.tick;
+    }
     busy = true;
     try {
       const r = await call("POST", `/api/play/${state.session_id}/act`, {
@@ -265,9 +274,96 @@
   });
 
   // ---- starting or resuming ------------------------------------------------------------------
+  // ---- replaying a recording ---------------------------------------------------------------
+  let replay = null; // {actions, score, steps}: the recording being replayed
+  let replayTimer = null;
+  function replayNext() {
+    if (!replay || !state || state.steps >= replay.actions.length) return null;
+    return replay.actions[state.steps];
+  }
+  function showReplay() {
+    if (!replay) return;
+    const next = replayNext();
+    const off = replay.left !== undefined;
+    $("replay-step").disabled = next === null || off;
+    $("replay-play").disabled = next === null || off;
+    $("replay-at").textContent = off
+      ? `You left the recording at tick ${replay.left}: the rest is yours.`
+      : next === null
+        ? `The recording's ${replay.actions.length} actions are played: score ${state.score}, the recording's ${replay.score}.`
+        : `recorded action ${state.steps + 1} of ${replay.actions.length}: ${next} ${Board.actionName(next)}`;
+    if (next === null || off) stopReplay();
+  }
+  function stopReplay() {
+    if (replayTimer !== null) clearInterval(replayTimer);
+    replayTimer = null;
+    $("replay-play").textContent = "play";
+  }
+  async function stepReplay() {
+    const next = replayNext();
+    if (next !== null && !busy) await act(next, true);
+  }
+  $("replay-step").addEventListener("click", stepReplay);
+  $("replay-play").addEventListener("click", () => {
+    if (replayTimer !== null) return stopReplay();
+    const rate = Math.min(Math.max(parseFloat($("rate").value) || 2, 0.5), 20);
+    replayTimer = setInterval(stepReplay, 1000 / rate);
+    $("replay-play").textContent = "pause";
+  });
+  async function startReplay(recording) {
+    if (!recording || recording.format !== "dinerdash-play/1" || !Array.isArray(recording.actions)) {
+      problem("That is not a recording of this page (format dinerdash-play/1).");
+      return;
+    }
+    const q = new URLSearchParams();
+    q.set("seed", String(recording.seed));
+    for (const [key, value] of Object.entries(recording.config || {})) {
+      if (CONFIG_FIELDS.includes(key) && value !== null) q.set(key, String(value));
+    }
+    const r = await call("POST", `/api/play?${q}`);
+    if (r.status !== 200) {
+      problem(`The server refused the replay (${r.status}): ${r.json.error || ""}`);
+      return;
+    }
+    if (r.json.ruleset !== recording.ruleset) {
+      problem(`The recording is of ruleset ${recording.ruleset}, this server plays ${r.json.ruleset}.`);
+    } else {
+      problem("");
+    }
+    replay = { actions: recording.actions, score: recording.score };
+    show(r.json);
+    Live.setStatus("replaying", "live");
+  }
+  $("replay-file").addEventListener("change", async (e) => {
+    const file = e.target.files[0];
+    if (!file) return;
+    let recording = null;
+    try {
+      recording = JSON.parse(await file.text());
+    } catch (err) {
+      problem(`That file is not JSON: ${err}`);
+      return;
+    }
+    await startReplay(recording);
+  });
+
   async function begin() {
     const id = decodeURIComponent(location.pathname.split("/")[2] || "");
     let r;
+    if (id === "replay") {
+      $("replay").hidden = false;
+      $("mode").disabled = true;
+      const from = params.get("from");
+      if (from) {
+        const rec = await call("GET", `/api/play/${encodeURIComponent(from)}/recording`);
+        if (rec.status !== 200) {
+          problem(`There is no such game for this token (${rec.status}).`);
+          return;
+        }
+        await startReplay(rec.json);
+      }
+      return;
+    }
     if (id) {
       r = await call("GET", `/api/play/${encodeURIComponent(id)}`);
     } else {
