@@ -259,6 +259,10 @@ def test_bad_recordings_are_refused_and_nothing_is_written(
     with np.load(Path(out) / "dinerdash_play.npz") as demos:
         assert demos["actions"].tolist() == recording["actions"]
         assert demos["scores"].tolist() == [recording["score"]]
+    # What `python -m dinerdash_agents train bc --demos` reads accepts it.
+    agents_demos = pytest.importorskip("dinerdash_agents.demos")
+    loaded = agents_demos.load_demos(Path(out) / "dinerdash_play.npz")
+    assert loaded.steps == 40 and loaded.actions.tolist() == recording["actions"]
 
 
 @needs_chromium
@@ -294,3 +298,11 @@ def test_the_replay_page_steps_through_a_recording(start_server, browser, tmp_pa
     wait_for("the replay's game", lambda: attribute(browser, "data-session-id") not in ("", sid))
     browser.find_element(By.ID, "replay-step").click()
     wait_for("tick 1", lambda: attribute(browser, "data-tick") == "1")
+    # The hints outline the expert's choice; the space bar plays "wait".
+    browser.find_element(By.ID, "hint-expert").click()
+    expert = browser.execute_script("return window.lastState.expert.reference")
+    hinted = browser.find_elements(By.CSS_SELECTOR, ".target.hint")
+    assert [h.get_attribute("data-action") for h in hinted] == [str(expert)]
+    browser.find_element(By.TAG_NAME, "body").send_keys(" ")
+    wait_for("tick 2", lambda: attribute(browser, "data-tick") == "2")
+    assert browser.execute_script("return window.lastState.steps") == 2
