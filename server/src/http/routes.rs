@@ -299,7 +299,9 @@ async fn play_recording(
     headers: HeaderMap,
 ) -> Result<Response, Refusal> {
     let viewer = viewer(&s.site, &headers)?;
-    let (text, name) = s.site.plays.recording(&viewer, &id)?;
+    // The game's record is locked for the whole of an action (a planner step): not on a worker.
+    let site = Arc::clone(&s.site);
+    let (text, name) = blocking(move || site.plays.recording(&viewer, &id)).await?;
     let mut response = json(text);
     if let Ok(value) = HeaderValue::from_str(&format!("attachment; filename=\"{name}\"")) {
         response
