@@ -11,7 +11,7 @@ use crate::session::{
 use crate::sim::{self, Config, NUM_ACTIONS, OBSERVATION_SIZE};
 
 /// The game configuration of a request: absent fields (or an absent message) keep `v0`.
-pub(crate) fn config_from(config: Option<&pb::GameConfig>) -> Config {
+pub(super) fn config_from(config: Option<&pb::GameConfig>) -> Config {
     let d = Config::default();
     let Some(c) = config else {
         return d;
@@ -35,7 +35,7 @@ pub(crate) fn config_from(config: Option<&pb::GameConfig>) -> Config {
 }
 
 /// A configuration with every field present.
-pub(crate) fn config_to(c: &Config) -> pb::GameConfig {
+fn config_to(c: &Config) -> pb::GameConfig {
     pb::GameConfig {
         arrival_interval: Some(c.arrival_interval),
         patience_type1: Some(c.patience[0]),
