@@ -176,6 +176,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_collect(args: argparse.Namespace) -> int:
     from .evaluation import Progress, collect, write_minari
 
+    if args.from_play:
+        return _cmd_collect_play(args)
     progress = Progress(args.episodes, "collect")
     collected = collect(
         args.out,
@@ -205,6 +207,41 @@ def _cmd_collect(args: argparse.Namespace) -> int:
         print(
             "minari is not installed: skipped the Minari dataset (pip install 'dinerdash[minari]')"
         )
+    return 0
+
+
+def _cmd_collect_play(args: argparse.Namespace) -> int:
+    """``collect --from-play REC.json ...``: the recordings of /play games, replayed."""
+    from .evaluation import Progress, write_minari
+    from .play import RecordingError, collect_from_play
+
+    progress = Progress(len(args.from_play), "replay")
+    try:
+        collected = collect_from_play(
+            args.from_play,
+            args.out,
+            address=args.address,
+            progress=progress,
+            **connection_keywords(args),
+        )
+    except RecordingError as e:
+        progress.close()
+        print(f"error: {e} (nothing written)", file=sys.stderr)
+        return 1
+    progress.close()
+    scores = collected.scores
+    print(
+        f"wrote {collected.path}: {len(collected.episodes)} games, {collected.steps} steps, "
+        f"score {scores.mean():.1f} ± {scores.std():.1f}"
+    )
+    dataset_id = args.dataset_id or "dinerdash/play-v0"
+    try:
+        minari_path = write_minari(collected, dataset_id)
+    except Exception as e:  # minari is optional: say why its dataset is missing, keep the .npz
+        print(f"error: could not write the Minari dataset: {e!r}", file=sys.stderr)
+        return 1
+    if minari_path is not None:
+        print(f"wrote Minari dataset {dataset_id} to {minari_path}")
     return 0
 
 
@@ -314,6 +351,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--dataset-id", default=None, help="Minari dataset id (default: dinerdash/<policy>-v0)"
+    )
+    p.add_argument(
+        "--from-play",
+        nargs="+",
+        metavar="REC.json",
+        help="instead of the expert: replay these recordings of /play games (dinerdash_play.npz, "
+        "Minari dinerdash/play-v0); --policy and --episodes are then ignored",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_collect)

@@ -305,8 +305,16 @@ def collect(
         played.append(ep)
         if progress is not None:
             progress.update()
-    lengths = np.array([ep.steps for ep in played], dtype=np.int64)
     path = out / f"dinerdash_{policy}.npz"
+    write_npz(path, played)
+    return Collected(path, policy, played)
+
+
+def write_npz(path: Path, played: Sequence[Episode]) -> None:
+    """Writes ``played`` to ``path`` in the layout :func:`collect` documents (the demonstrations
+    of ``python -m dinerdash_agents``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lengths = np.array([ep.steps for ep in played], dtype=np.int64)
     np.savez_compressed(
         path,
         observations=np.concatenate([ep.observations[:-1] for ep in played]),
@@ -321,7 +329,14 @@ def collect(
         seeds=np.array([ep.seed for ep in played], dtype=np.uint64),
         scores=np.array([ep.score for ep in played], dtype=np.int64),
     )
-    return Collected(path, policy, played)
+
+
+#: How a Minari dataset names who played its episodes.
+_ALGORITHMS = {
+    "expert": "reference expert (docs/rules.md section 8), server-side rollout",
+    "planner": "look-ahead planner, server-side rollout",
+    "play": "a person on the server's /play page, replayed from its recordings",
+}
 
 
 def write_minari(collected: Collected, dataset_id: str | None = None) -> Path | None:
@@ -364,11 +379,7 @@ def write_minari(collected: Collected, dataset_id: str | None = None) -> Path | 
         # A rollout carries no Spec: the spaces of ruleset v0, as its servers report them.
         observation_space=observation_space(),
         action_space=spaces.Discrete(NUM_ACTIONS),
-        algorithm_name=(
-            "reference expert (docs/rules.md section 8), server-side rollout"
-            if policy == "expert"
-            else "look-ahead planner, server-side rollout"
-        ),
+        algorithm_name=_ALGORITHMS.get(policy, policy),
         author="dinerdash",
         description=f"{len(episodes)} {policy} episodes of {DinerDashEnv.__name__}, ruleset v0",
     )

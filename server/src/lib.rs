@@ -35,7 +35,7 @@
 //!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
 //!   over the connection limit, token.
 //! - [`http`]: the HTTP endpoint on hyper and axum: the sessions page and the watch page, their
-//!   JSON and event feeds, and the metrics.
+//!   JSON and event feeds, the play page and its games' recordings, and the metrics.
 //! - [`service`]: tonic glue: decode a request, call the session store, encode the reply; the
 //!   only place errors become `tonic::Status` ([`service::status`](mod@service::status));
 //!   StepStream and Rollout streams.

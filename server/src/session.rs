@@ -325,6 +325,12 @@ impl FoundSession {
         &self.session.owner
     }
 
+    /// A copy of environment `index`'s state, once it has been reset (the play page reads its
+    /// mask and the reference expert's choice from it).
+    pub fn restaurant(&self, index: usize) -> Option<crate::sim::Restaurant> {
+        self.session.lock().restaurant(index).copied()
+    }
+
     /// The session as versioned bytes.
     pub fn snapshot(&self) -> Vec<u8> {
         self.session.lock().snapshot()

@@ -133,5 +133,12 @@ const Live = (() => {
     return `${n.toFixed(i ? 1 : 0)} ${units[i]}`;
   }
 
-  return { follow, fmt, bytes, setStatus };
+  // The headers of a request with the tab's token, if any.
+  function headers(extra = {}) {
+    const h = { ...extra };
+    if (token()) h.Authorization = `Bearer ${token()}`;
+    return h;
+  }
+
+  return { follow, fmt, bytes, setStatus, headers, askToken };
 })();

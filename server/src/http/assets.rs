@@ -10,8 +10,11 @@ pub const SESSIONS_PAGE: &str = include_str!("../../static/index.html");
 /// The watch page (`/watch/{id}`).
 pub const WATCH_PAGE: &str = include_str!("../../static/watch.html");
 
+/// The play page (`/play`, `/play/{id}`).
+pub const PLAY_PAGE: &str = include_str!("../../static/play.html");
+
 /// The files under `/static/`: name, content type, content.
-const FILES: [(&str, &str, &str); 5] = [
+const FILES: [(&str, &str, &str); 6] = [
     (
         "style.css",
         "text/css; charset=utf-8",
@@ -36,6 +39,11 @@ const FILES: [(&str, &str, &str); 5] = [
         "watch.js",
         "text/javascript; charset=utf-8",
         include_str!("../../static/watch.js"),
+    ),
+    (
+        "play.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../static/play.js"),
     ),
 ];
 

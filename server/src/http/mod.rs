@@ -5,6 +5,7 @@
 //!   (static files compiled into the binary, [`assets`]; an unknown session is a readable 404);
 //! - `/api/sessions`, `/api/watch/{id}?env=K` — their data as JSON, and the same under `/events`
 //!   as server-sent events ([`feeds`]);
+//! - `/play` — a game a person plays, and `/api/play...` its actions and recording ([`play`]);
 //! - `/metrics` — the Prometheus counters ([`crate::metrics`]).
 //!
 //! The pages themselves hold no data and need no token; the feeds and `/metrics` ask for one of
@@ -31,6 +32,7 @@
 //! - [`access`]: tokens, and which sessions a viewer may see.
 //! - [`feeds`]: the JSON of the sessions and of a watched environment, and their event streams.
 //! - [`assets`]: the pages, scripts and style, and the 404 pages.
+//! - [`play`]: the games played in the browser and their recordings.
 //! - [`deadline`]: the slow-viewer cut-off.
 //! - [`slots`]: the connection slots, by identity.
 //! - [`tls`]: the endpoint's TLS acceptor and its certificate's names.
@@ -41,6 +43,7 @@ pub mod assets;
 pub mod deadline;
 pub mod feeds;
 pub mod hosts;
+pub mod play;
 pub mod routes;
 pub mod slots;
 pub mod tls;
@@ -94,6 +97,8 @@ pub struct Site {
     pub access: Access,
     /// When the endpoint started (the first rates are measured from it).
     pub started: Instant,
+    /// The games played on `/play` and their recordings.
+    pub plays: play::Plays,
 }
 
 impl Site {
@@ -104,6 +109,7 @@ impl Site {
             metrics,
             access,
             started: Instant::now(),
+            plays: play::Plays::default(),
         }
     }
 }

@@ -1,19 +1,23 @@
 //! The endpoint's URLs as an axum [`Router`]: which handler answers each path, the GET/HEAD-only
-//! rule, the headers every response carries, and the token each data route asks for.
+//! rule (POST too under `/api/play`), the headers every response carries, and the token each
+//! data route asks for.
 
+use std::collections::HashMap;
 use std::sync::Arc;
 
 use axum::Router;
-use axum::extract::{Path, Query, Request, State};
+use axum::body::Bytes;
+use axum::extract::{DefaultBodyLimit, Path, Query, Request, State};
 use axum::http::header::{self, HeaderMap, HeaderValue};
 use axum::http::{Method, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{get, post};
 use serde::Deserialize;
 
 use super::access::{Refused, Viewer};
 use super::feeds::{Feed, NotWatched, Sessions, Watching};
+use super::play::{Act, MAX_ACT_BODY, NewGame, PlayError};
 use super::{MAX_CONNECTIONS, Site, assets, error, json};
 use crate::shutdown::Shutdown;
 
@@ -45,6 +49,15 @@ pub fn router(site: Arc<Site>, stopping: Shutdown) -> Router {
         .route("/api/sessions/events", get(sessions_events))
         .route("/api/watch/{id}", get(watch_json))
         .route("/api/watch/{id}/events", get(watch_events))
+        .route("/play", get(play_page))
+        .route("/play/{id}", get(play_page))
+        .route("/api/play", post(play_start))
+        .route("/api/play/{id}", get(play_state))
+        .route(
+            "/api/play/{id}/act",
+            post(play_act).layer(DefaultBodyLimit::max(MAX_ACT_BODY)),
+        )
+        .route("/api/play/{id}/recording", get(play_recording))
         .fallback(|| async { assets::no_such_page() })
         .with_state(Served { site, stopping })
         .layer(middleware::from_fn(get_or_head))
@@ -63,9 +76,13 @@ pub fn busy() -> Router {
         .layer(middleware::map_response(guarded))
 }
 
-/// Only GET and HEAD are served (axum answers HEAD from the GET handler, without the body).
+/// Only GET and HEAD are served (axum answers HEAD from the GET handler, without the body),
+/// and POST under `/api/play` (a new game, an action), where the routes say which.
 async fn get_or_head(request: Request, next: Next) -> Response {
-    if matches!(*request.method(), Method::GET | Method::HEAD) {
+    let play = request.uri().path().starts_with("/api/play");
+    if matches!(*request.method(), Method::GET | Method::HEAD)
+        || (play && *request.method() == Method::POST)
+    {
         return next.run(request).await;
     }
     let mut refused = error(
@@ -106,6 +123,9 @@ enum Refusal {
     /// A watch route that names no environment the viewer may see: 404 or 400.
     #[error(transparent)]
     Watch(#[from] NotWatched),
+    /// A play route refused: 404, 400, 409, 429 or 500.
+    #[error(transparent)]
+    Play(#[from] PlayError),
 }
 
 impl IntoResponse for Refusal {
@@ -124,6 +144,16 @@ impl IntoResponse for Refusal {
                 error(StatusCode::INTERNAL_SERVER_ERROR, &message)
             }
             Refusal::Watch(_) => error(StatusCode::BAD_REQUEST, &message),
+            Refusal::Play(e) => error(
+                match e {
+                    PlayError::NotFound => StatusCode::NOT_FOUND,
+                    PlayError::BadRequest(_) => StatusCode::BAD_REQUEST,
+                    PlayError::Conflict(_) => StatusCode::CONFLICT,
+                    PlayError::Exhausted(_) => StatusCode::TOO_MANY_REQUESTS,
+                    PlayError::Failed(_) => StatusCode::INTERNAL_SERVER_ERROR,
+                },
+                &message,
+            ),
         }
     }
 }
@@ -208,4 +238,75 @@ async fn watch_events(
 ) -> Result<Response, Refusal> {
     let watching = watching(&s, &headers, id, env).await?;
     Ok(Feed::Watch(Box::new(watching)).into_sse(s.site, s.stopping))
+}
+
+/// The play page, for a new game (`/play?seed=N&...`) or a game in progress (`/play/{id}`). It
+/// carries no data; the game is started and played through `/api/play`, with the token.
+async fn play_page() -> Response {
+    assets::page(assets::PLAY_PAGE)
+}
+
+/// Runs `work` (which may take a session's lock, held long by a planner step) on a blocking
+/// thread, as the watch routes' attach does.
+async fn blocking<T: Send + 'static>(
+    work: impl FnOnce() -> Result<T, PlayError> + Send + 'static,
+) -> Result<T, Refusal> {
+    let done = tokio::task::spawn_blocking(work)
+        .await
+        .map_err(|e| PlayError::Failed(e.to_string()))?;
+    Ok(done?)
+}
+
+async fn play_start(
+    State(s): State<Served>,
+    Query(params): Query<HashMap<String, String>>,
+    headers: HeaderMap,
+) -> Result<Response, Refusal> {
+    let viewer = viewer(&s.site, &headers)?;
+    let new = NewGame::from_query(&params)?;
+    let site = Arc::clone(&s.site);
+    let state = blocking(move || site.plays.start(&site.store, &viewer, new)).await?;
+    Ok(json(state))
+}
+
+async fn play_state(
+    State(s): State<Served>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, Refusal> {
+    let viewer = viewer(&s.site, &headers)?;
+    let site = Arc::clone(&s.site);
+    let state = blocking(move || site.plays.state(&site.store, &viewer, &id)).await?;
+    Ok(json(state))
+}
+
+async fn play_act(
+    State(s): State<Served>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, Refusal> {
+    let viewer = viewer(&s.site, &headers)?;
+    let act = Act::parse(&body)?;
+    let site = Arc::clone(&s.site);
+    let state = blocking(move || site.plays.act(&site.store, &viewer, &id, act)).await?;
+    Ok(json(state))
+}
+
+async fn play_recording(
+    State(s): State<Served>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, Refusal> {
+    let viewer = viewer(&s.site, &headers)?;
+    // The game's record is locked for the whole of an action (a planner step): not on a worker.
+    let site = Arc::clone(&s.site);
+    let (text, name) = blocking(move || site.plays.recording(&viewer, &id)).await?;
+    let mut response = json(text);
+    if let Ok(value) = HeaderValue::from_str(&format!("attachment; filename=\"{name}\"")) {
+        response
+            .headers_mut()
+            .insert(header::CONTENT_DISPOSITION, value);
+    }
+    Ok(response)
 }

@@ -63,6 +63,7 @@ async fn never_reset_snapshot(c: &mut DinerDashClient<Channel>, n: u32) -> Vec<u
     let snapshot = c
         .snapshot(pb::SnapshotRequest {
             session_id: created.session_id.clone(),
+            ..Default::default()
         })
         .await
         .unwrap()
