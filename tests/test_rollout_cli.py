@@ -80,11 +80,16 @@ def test_expert_through_the_client_reproduces_the_simulator(address: str) -> Non
 
 
 def run_cli(*args: str) -> str:
+    return run_cli_both(*args)[0]
+
+
+def run_cli_both(*args: str) -> tuple[str, str]:
+    """The command's stdout and stderr; it must succeed."""
     result = subprocess.run(
         [sys.executable, "-m", "dinerdash", *args], capture_output=True, text=True, timeout=600
     )
     assert result.returncode == 0, result.stderr
-    return result.stdout
+    return result.stdout, result.stderr
 
 
 def test_cli_evaluate(address: str) -> None:
@@ -119,8 +124,10 @@ def test_cli_collect_writes_a_minari_dataset_when_minari_is_installed(
 ):
     pytest.importorskip("minari", reason="minari is an optional extra (make test installs it)")
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
-    out = run_cli("collect", "--episodes", "2", "--out", str(tmp_path), "--address", address)
+    argv = ("collect", "--episodes", "2", "--out", str(tmp_path), "--address", address)
+    out, err = run_cli_both(*argv)
     assert "wrote Minari dataset dinerdash/expert-v0" in out
+    assert "Warning" not in err, err  # Minari's advice to dataset authors is not the user's
     import minari
 
     dataset = minari.load_dataset("dinerdash/expert-v0")

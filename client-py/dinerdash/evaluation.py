@@ -28,6 +28,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -371,18 +372,21 @@ def write_minari(collected: Collected, dataset_id: str | None = None) -> Path | 
         )
         for i, ep in enumerate(episodes)
     ]
-    create_dataset_from_buffers(
-        dataset_id=dataset_id or f"dinerdash/{policy}-v0",
-        buffer=buffers,
-        env=gymnasium.spec("DinerDash-v0"),  # registered by importing dinerdash
-        eval_env=gymnasium.spec("DinerDash-v0"),
-        # A rollout carries no Spec: the spaces of ruleset v0, as its servers report them.
-        observation_space=observation_space(),
-        action_space=spaces.Discrete(NUM_ACTIONS),
-        algorithm_name=_ALGORITHMS.get(policy, policy),
-        author="dinerdash",
-        description=f"{len(episodes)} {policy} episodes of {DinerDashEnv.__name__}, ruleset v0",
-    )
+    with warnings.catch_warnings():
+        # Minari's advice to a dataset's author (a code permalink, an e-mail), not to our user.
+        warnings.filterwarnings("ignore", message="`(code_permalink|author_email)` is set to None")
+        create_dataset_from_buffers(
+            dataset_id=dataset_id or f"dinerdash/{policy}-v0",
+            buffer=buffers,
+            env=gymnasium.spec("DinerDash-v0"),  # registered by importing dinerdash
+            eval_env=gymnasium.spec("DinerDash-v0"),
+            # A rollout carries no Spec: the spaces of ruleset v0, as its servers report them.
+            observation_space=observation_space(),
+            action_space=spaces.Discrete(NUM_ACTIONS),
+            algorithm_name=_ALGORITHMS.get(policy, policy),
+            author="dinerdash",
+            description=f"{len(episodes)} {policy} episodes of {DinerDashEnv.__name__}, ruleset v0",
+        )
     return root
 
 
