@@ -622,7 +622,11 @@ impl Store {
                 let idle = now.saturating_sub(session.last_used_ms.load(Ordering::Relaxed));
                 let keep = idle <= ttl;
                 if !keep {
-                    tracing::debug!(session = %id, idle_ms = idle, "idle session evicted");
+                    let full = id.to_string();
+                    let short = full.get(..8).unwrap_or(&full);
+                    let tenant = session._charge.tenant().name();
+                    tracing::info!(session = short, tenant, idle_ms = idle, "session expired");
+                    tracing::debug!(session = %full, "session expired: full ID");
                     evicted += 1;
                 }
                 keep

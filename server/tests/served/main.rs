@@ -17,6 +17,7 @@ mod binary_drain;
 mod binary_expose;
 mod binary_hostile;
 mod binary_memory;
+mod binary_operations;
 mod binary_tenants;
 mod grpc_concurrency;
 mod grpc_error_details;
