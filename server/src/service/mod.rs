@@ -50,6 +50,7 @@ use crate::pools::CpuPool;
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{
     Batch, Caller, FoundSession, Owner, SessionError, SessionId, SessionOptions, Store,
+    short_id as short,
 };
 use crate::shutdown::Shutdown;
 use crate::sim::{self, SNAPSHOT_VERSION};
@@ -195,18 +196,6 @@ impl DinerDashService {
 /// The identity of a request: its token's tenant, else the shared identity.
 fn owner<T>(request: &Request<T>) -> Owner {
     Owner::of(request.extensions().get::<Arc<Tenant>>())
-}
-
-/// Digits of a session ID that info-level logs show: enough to match a line with the sessions
-/// page (which shows as many), far from enough to name the session. The full ID, a capability
-/// without tenants, is logged at debug level only.
-const LOGGED_ID: usize = 8;
-
-/// The first [`LOGGED_ID`] characters of a session ID as a request gave it.
-fn short(id: &str) -> &str {
-    id.char_indices()
-        .nth(LOGGED_ID)
-        .map_or(id, |(i, _)| &id[..i])
 }
 
 #[tonic::async_trait]
@@ -416,7 +405,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
 }
 
 /// Logs a session the caller now owns: its short ID and its tenant (whose share it counts
-/// against) at info level, its full ID at debug level (see [`LOGGED_ID`]).
+/// against) at info level, its full ID at debug level (see [`crate::session::LOGGED_ID`]).
 fn created_log(id: SessionId, caller: &Caller, what: &'static str) {
     let full = id.to_string();
     tracing::info!(

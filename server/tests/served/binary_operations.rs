@@ -3,7 +3,8 @@
 //! keeps its sessions, a bad file keeps the tokens before and says why in the log); a token
 //! given both as the shared token and as a tenant's refused at start; failed authentications
 //! counted in `dinerdash_auth_failures_total` and logged with their peer and method, a bounded
-//! number of lines; and the quotas by default: a tenant's fair part of `--max-sessions`, the
+//! number of lines; session create, fork, restore, close and expiry logged at info with the
+//! tenant's name; and the quotas by default: a tenant's fair part of `--max-sessions`, the
 //! shared token's share counted once for all its connections.
 
 use crate::binary_support;
@@ -337,4 +338,51 @@ async fn the_shared_tokens_share_is_one_for_all_its_connections() {
         "{}",
         refused.message()
     );
+}
+
+#[tokio::test]
+async fn every_session_event_is_logged_with_its_tenant() {
+    let dir = Dir::new("lifecycle");
+    let (file, log) = (dir.path("tenants"), dir.path("log"));
+    std::fs::write(&file, format!("team-a {TOKEN_A}\n")).unwrap();
+    let server = start(
+        &log,
+        &format!("--auth-tokens-file '{}' --session-ttl 2s", file.display()),
+    );
+    let mut c = connect(&server.addr).await;
+    let made = create(&mut c, TOKEN_A).await.unwrap();
+    step(&mut c, TOKEN_A, &made).await.unwrap();
+    let fork = pb::ForkRequest {
+        session_id: made.clone(),
+    };
+    let forked = c.fork(with(TOKEN_A, fork)).await.unwrap().into_inner();
+    let snapshot = pb::SnapshotRequest {
+        session_id: made.clone(),
+    };
+    let snapshot = c.snapshot(with(TOKEN_A, snapshot)).await.unwrap();
+    let restore = pb::RestoreRequest {
+        snapshot: snapshot.into_inner().snapshot,
+    };
+    c.restore(with(TOKEN_A, restore)).await.unwrap();
+    let close = pb::CloseSessionRequest {
+        session_id: forked.session_id,
+    };
+    c.close_session(with(TOKEN_A, close)).await.unwrap();
+    // The two left (the first and the restored one) expire, idle.
+    wait_for_lines(&log, "session expired", 2).await;
+    let text = std::fs::read_to_string(&log).unwrap();
+    for event in [
+        "session created",
+        "session forked",
+        "session restored",
+        "session closed",
+        "session expired",
+    ] {
+        let line = text
+            .lines()
+            .find(|l| l.contains(event) && l.contains(" INFO "))
+            .unwrap_or_else(|| panic!("no INFO line {event:?} in\n{text}"));
+        assert!(line.contains("tenant=\"tenant team-a\""), "{line}");
+        assert!(!line.contains(&made), "the whole ID at info level: {line}");
+    }
 }
