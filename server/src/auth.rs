@@ -536,6 +536,47 @@ mod tests {
     }
 
     #[test]
+    fn tenants_get_a_fair_part_of_the_sessions_and_keep_their_identity() {
+        let rules = TenantRules {
+            share: Share::default(),
+            max_sessions: 10,
+            shared_token: Some("shared-token-0123456789".into()),
+        };
+        let text = "a aaaaaaaaaaaaaaaa\nb bbbbbbbbbbbbbbbb sessions=7\n";
+        let lines = rules.lines(text).unwrap();
+        // Three identities (two tenants and the shared token): 10 / 3 each, unless a line says.
+        assert_eq!(lines[0].share.max_sessions, 3);
+        assert_eq!(lines[1].share.max_sessions, 7);
+        assert_eq!(rules.shared_share(2).max_sessions, 3);
+        assert_eq!(fair_sessions(1, 5), 1);
+        let twice = rules.lines("a shared-token-0123456789\n").unwrap_err();
+        assert!(
+            twice.contains("tenant \"a\"'s token is also the shared token"),
+            "{twice}"
+        );
+        assert!(!twice.contains("shared-token-0123456789"), "{twice}");
+
+        let roster = Roster::default();
+        let before = roster.tokens(lines);
+        let a = Arc::clone(before[0].tenant.as_ref().unwrap());
+        let tokens = Tokens::new(&before);
+        assert!(tokens.check(b"Bearer aaaaaaaaaaaaaaaa").is_some());
+        // A rotated: the same tenant, a new token; b gone.
+        let after = roster.tokens(rules.lines("a cccccccccccccccc envs=5\n").unwrap());
+        assert!(Arc::ptr_eq(after[0].tenant.as_ref().unwrap(), &a));
+        assert_eq!(a.share().max_envs, 5);
+        assert_eq!(
+            a.share().max_sessions,
+            5,
+            "10 / (1 tenant + the shared token)"
+        );
+        tokens.replace(&after);
+        assert!(tokens.check(b"Bearer aaaaaaaaaaaaaaaa").is_none());
+        assert!(tokens.check(b"Bearer bbbbbbbbbbbbbbbb").is_none());
+        assert!(tokens.stand_for(&a));
+    }
+
+    #[test]
     fn same_bytes_compares_whole_values() {
         assert!(same_bytes(b"Bearer abc", b"Bearer abc"));
         assert!(!same_bytes(b"Bearer abc", b"Bearer abd"));

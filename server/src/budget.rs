@@ -1,6 +1,7 @@
 //! What clients may hold: the server's memory budget (`--max-memory`) and each tenant's share of
-//! it. A tenant is one token of `--auth-tokens-file`, or, without that file, one connection, so
-//! that a single buggy worker cannot take every session slot or every byte.
+//! it. A tenant is one line of `--auth-tokens-file`, the shared token (all its connections
+//! together), or, on a server without any token, one connection, so that a single buggy worker
+//! cannot take every session slot or every byte.
 //!
 //! Everything is charged before it is allocated: a session its environments' bytes, a Rollout
 //! stream the episodes it may buffer; and, against a bound of their own beside `--max-memory`

@@ -59,14 +59,15 @@ pub struct ServeArgs {
     /// Requests that would pass it are refused with RESOURCE_EXHAUSTED.
     #[arg(long, default_value_t = DEFAULT_MAX_MEMORY, value_parser = parse_bytes)]
     pub max_memory: u64,
-    /// Most environments one tenant may hold: a token of --auth-tokens-file (unless its line
-    /// says otherwise), or else one connection.
+    /// Most environments one tenant may hold: a tenant of --auth-tokens-file (unless its line
+    /// says otherwise), the shared token (all its connections together), or, without any
+    /// token, one connection.
     #[arg(long, default_value_t = DEFAULT_TENANT_ENVS)]
     pub max_envs_per_tenant: u64,
     /// Most steps one Rollout request may record over all its episodes.
     #[arg(long, default_value_t = MAX_ROLLOUT_WORK_STEPS, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_rollout_work_steps: u64,
-    /// Most Rollout streams one tenant (or connection) may run at once.
+    /// Most Rollout streams one tenant (as for --max-envs-per-tenant) may run at once.
     #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
     pub max_rollouts_per_tenant: u64,
     /// Most client connections, capped below the open-file limit. At the limit the longest-idle
@@ -245,7 +246,8 @@ impl ServeArgs {
     }
 
     /// What each tenant (or connection) may hold: `--max-envs-per-tenant`,
-    /// `--max-rollouts-per-tenant`, any number of sessions.
+    /// `--max-rollouts-per-tenant`, any number of sessions (a tenant's and the shared token's
+    /// sessions are then cut to their fair part: [`crate::auth::TenantRules`]).
     pub fn share(&self) -> Share {
         Share {
             max_envs: self.max_envs_per_tenant,
@@ -367,8 +369,8 @@ impl fmt::Debug for TlsPem {
 pub struct ServerConfig {
     /// Session limits and the idle TTL.
     pub limits: Limits,
-    /// The bearer token clients must send; `None` serves everyone (unless `tenants` is given).
-    /// Each connection is then its own tenant.
+    /// The shared bearer token; `None` serves everyone (unless `tenants` is given), each
+    /// connection then its own tenant. Its holders are one identity with one share.
     pub auth_token: Option<Secret>,
     /// Tenant tokens (`--auth-tokens-file`): each token's requests count against its tenant's
     /// share. Given with `auth_token`, either token is accepted.
@@ -481,7 +483,7 @@ impl ServerConfig {
     }
 
     /// Every token the server accepts: the tenants' and `auth_token` (which stands for no
-    /// tenant: each connection is its own).
+    /// tenant: its requests are the shared identity's, counted against the shared token's share).
     pub fn tokens(&self) -> Vec<Token> {
         let mut tokens = self.tenants.clone();
         if let Some(token) = &self.auth_token {
