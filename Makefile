@@ -112,12 +112,23 @@ chaos: build-server venv
 
 ## The docker image end to end (needs a Docker engine with compose): build it, start three
 ## healthy replicas and run the example trainer over all three; exit status is the trainer's.
-## The servers' token comes from docker/dinerdash.env, made here with a random one if missing.
+## The servers' token comes from docker/dinerdash.env, made here with a random one if missing,
+## and their TLS certificate from docker/tls (below).
 COMPOSE := docker compose -f docker/compose.yaml
 docker/dinerdash.env:
 	umask 077 && echo "DINERDASH_AUTH_TOKEN=$$(openssl rand -hex 32)" > $@
 
-docker-smoke: docker/dinerdash.env
+## The servers' TLS certificate and key (docker/tls, not in git): self-signed, naming every
+## replica. The key is readable by the containers' user (a Compose secret keeps the file's mode);
+## its folder is the invoking user's alone.
+docker/tls/server.crt:
+	mkdir -p docker/tls && chmod 700 docker/tls
+	openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 365 \
+		-subj /CN=dinerdash -keyout docker/tls/server.key -out $@ \
+		-addext "subjectAltName=DNS:server1,DNS:server2,DNS:server3,DNS:dinerdash,DNS:localhost,IP:127.0.0.1"
+	chmod 644 docker/tls/server.key
+
+docker-smoke: docker/dinerdash.env docker/tls/server.crt
 	$(COMPOSE) up --build --abort-on-container-exit --exit-code-from trainer; \
 	status=$$?; $(COMPOSE) down; exit $$status
 

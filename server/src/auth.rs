@@ -5,11 +5,13 @@
 //! turns calls away while the server drains or when their connection is over the connection
 //! limit.
 
+use std::collections::HashMap;
 use std::fmt;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError, RwLock};
 
 use tonic::{Request, Status};
 
+use crate::audit::{Audit, AuthFailure, called_method};
 use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
 use crate::shutdown::{self, Shutdown};
@@ -186,16 +188,106 @@ pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, Stri
 /// The tokens of `--auth-tokens-file`'s `text` (see [`parse_tenants`]), each standing for its
 /// own tenant, named `tenant NAME`.
 pub fn tenant_tokens(text: &str, default: Share) -> Result<Vec<Token>, String> {
-    Ok(parse_tenants(text, default)?
-        .into_iter()
-        .map(|line| Token {
-            token: line.token,
-            tenant: Some(Arc::new(Tenant::new(
-                format!("tenant {}", line.name),
-                line.share,
-            ))),
-        })
-        .collect())
+    Ok(Roster::default().tokens(parse_tenants(text, default)?))
+}
+
+/// Sessions each identity may hold when its line gives no `sessions=`: an equal part of
+/// `max_sessions` for each of `identities` (the tenants, and the shared token if there is one),
+/// at least one, so that no identity can take every session slot and every one can always
+/// reach its part.
+pub fn fair_sessions(max_sessions: u64, identities: usize) -> u64 {
+    (max_sessions / identities.max(1) as u64).max(1)
+}
+
+/// What the tenants of a tokens file may hold when their lines say nothing else, and the shared
+/// token their tokens must differ from.
+#[derive(Debug, Clone)]
+pub struct TenantRules {
+    /// `--max-envs-per-tenant` and `--max-rollouts-per-tenant`; its `max_sessions` is ignored:
+    /// a tenant's sessions default to its fair part of `max_sessions` ([`fair_sessions`]).
+    pub share: Share,
+    /// `--max-sessions`.
+    pub max_sessions: u64,
+    /// The shared token (`DINERDASH_AUTH_TOKEN` / `--auth-token`), if any: a tenant's token may
+    /// not be it, and it counts as one more identity in the fair part of the sessions.
+    pub shared_token: Option<Secret>,
+}
+
+impl TenantRules {
+    /// The tenants of a tokens file's `text` with their shares: `default` with each line's
+    /// quotas, the sessions' fair part where a line gives none. Refuses a tenant whose token is
+    /// the shared token (which would make the tenant the shared identity).
+    pub fn lines(&self, text: &str) -> Result<Vec<TenantLine>, String> {
+        // Counted first: the fair part depends on how many identities there are.
+        let count = parse_tenants(text, self.share)?.len();
+        let identities = count + usize::from(self.shared_token.is_some());
+        let default = Share {
+            max_sessions: fair_sessions(self.max_sessions, identities),
+            ..self.share
+        };
+        let lines = parse_tenants(text, default)?;
+        if let Some(shared) = &self.shared_token
+            && let Some(line) = lines.iter().find(|l| l.token == *shared)
+        {
+            return Err(format!(
+                "tenant {:?}'s token is also the shared token (DINERDASH_AUTH_TOKEN or \
+                 --auth-token): give every tenant, and the shared token, a token of its own",
+                line.name
+            ));
+        }
+        Ok(lines)
+    }
+
+    /// The shared token's share: `share`, its sessions its fair part among `tenants` tenants.
+    pub fn shared_share(&self, tenants: usize) -> Share {
+        Share {
+            max_sessions: fair_sessions(self.max_sessions, tenants + 1),
+            ..self.share
+        }
+    }
+}
+
+/// Every tenant the server has known, by name, so that a tenant whose line a reload of the
+/// tokens file keeps (or brings back) stays the same tenant: its sessions are still its own,
+/// what it holds still counts against its share, and only its token and share change.
+#[derive(Debug, Default)]
+pub struct Roster {
+    /// By [`Tenant::name`].
+    known: Mutex<HashMap<String, Arc<Tenant>>>,
+}
+
+impl Roster {
+    /// A roster knowing the tenants of `tokens`.
+    pub fn new(tokens: &[Token]) -> Roster {
+        let known = tokens
+            .iter()
+            .filter_map(|t| t.tenant.as_ref())
+            .map(|t| (t.name().to_owned(), Arc::clone(t)))
+            .collect();
+        Roster {
+            known: Mutex::new(known),
+        }
+    }
+
+    /// The tokens of `lines`, each standing for its tenant (named `tenant NAME`): a tenant known
+    /// already is the same [`Tenant`], its share set to the line's.
+    pub fn tokens(&self, lines: Vec<TenantLine>) -> Vec<Token> {
+        let mut known = self.known.lock().unwrap_or_else(PoisonError::into_inner);
+        lines
+            .into_iter()
+            .map(|line| {
+                let name = format!("tenant {}", line.name);
+                let tenant = known
+                    .entry(name.clone())
+                    .or_insert_with(|| Arc::new(Tenant::new(name, line.share)));
+                tenant.set_share(line.share);
+                Token {
+                    token: line.token,
+                    tenant: Some(Arc::clone(tenant)),
+                }
+            })
+            .collect()
+    }
 }
 
 /// An accepted `authorization` value (`Bearer <token>`) and the tenant it stands for.
@@ -206,14 +298,22 @@ type Accepted = (Box<[u8]>, Option<Arc<Tenant>>);
 /// tokens there are and their tenants, never the tokens.
 #[derive(Clone, Default)]
 pub struct Tokens {
-    /// Accepted `Bearer <token>` values and their tenants; empty: an open server.
-    accepted: Arc<[Accepted]>,
+    /// Accepted `Bearer <token>` values and their tenants; empty: an open server. Replaced as
+    /// a whole when the tokens file is read again ([`Tokens::replace`]).
+    accepted: Arc<RwLock<Arc<[Accepted]>>>,
+    /// What the shared token's requests count against, as one identity (not per connection).
+    shared: Option<Arc<Tenant>>,
 }
+
+/// The share the shared token's requests count against (a request extension the
+/// [`RequestGate`] adds): one for all its connections.
+#[derive(Debug, Clone)]
+pub struct SharedShare(pub Arc<Tenant>);
 
 impl fmt::Debug for Tokens {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let tenants: Vec<Option<&str>> = self
-            .accepted
+        let accepted = self.current();
+        let tenants: Vec<Option<&str>> = accepted
             .iter()
             .map(|(_, tenant)| tenant.as_deref().map(Tenant::name))
             .collect();
@@ -226,21 +326,37 @@ impl fmt::Debug for Tokens {
 impl Tokens {
     /// Accepts `tokens` (none: an open server).
     pub fn new(tokens: &[Token]) -> Tokens {
-        let accepted = tokens
-            .iter()
-            .map(|t| {
-                let expected = format!("Bearer {}", t.token.expose())
-                    .into_bytes()
-                    .into_boxed_slice();
-                (expected, t.tenant.clone())
-            })
-            .collect();
-        Tokens { accepted }
+        Tokens {
+            accepted: Arc::new(RwLock::new(accepted(tokens))),
+            shared: None,
+        }
+    }
+
+    /// These tokens, the shared token's requests counting against `share` (one identity).
+    pub fn with_shared_share(self, share: Arc<Tenant>) -> Tokens {
+        Tokens {
+            shared: Some(share),
+            ..self
+        }
+    }
+
+    /// Accepts `tokens` from now on, instead of the ones before (every clone sees them): a
+    /// new token works on its next request, a removed one is refused on its next request.
+    pub fn replace(&self, tokens: &[Token]) {
+        *self
+            .accepted
+            .write()
+            .unwrap_or_else(PoisonError::into_inner) = accepted(tokens);
+    }
+
+    /// The tokens accepted now.
+    fn current(&self) -> Arc<[Accepted]> {
+        Arc::clone(&self.accepted.read().unwrap_or_else(PoisonError::into_inner))
     }
 
     /// Whether the server has no tokens (every request is let in).
     pub fn is_empty(&self) -> bool {
-        self.accepted.is_empty()
+        self.current().is_empty()
     }
 
     /// Which token the `authorization` value `value` carries: `None`, none of this server's;
@@ -248,7 +364,7 @@ impl Tokens {
     /// is compared, so that the time taken does not reveal which one matched.
     pub fn check(&self, value: &[u8]) -> Option<Option<Arc<Tenant>>> {
         let mut found = None;
-        for (expected, tenant) in self.accepted.iter() {
+        for (expected, tenant) in self.current().iter() {
             if same_bytes(value, expected) {
                 found = Some(tenant.clone());
             }
@@ -258,27 +374,55 @@ impl Tokens {
 
     /// Whether one of the tokens stands for `tenant`.
     pub fn stand_for(&self, tenant: &Arc<Tenant>) -> bool {
-        self.accepted
+        self.current()
             .iter()
             .any(|(_, t)| t.as_ref().is_some_and(|t| Arc::ptr_eq(t, tenant)))
     }
 }
 
+/// `tokens` as the `authorization` values that carry them.
+fn accepted(tokens: &[Token]) -> Arc<[Accepted]> {
+    tokens
+        .iter()
+        .map(|t| {
+            let expected = format!("Bearer {}", t.token.expose())
+                .into_bytes()
+                .into_boxed_slice();
+            (expected, t.tenant.clone())
+        })
+        .collect()
+}
+
 /// Stands in front of every RPC but health checks: answers `UNAVAILABLE` once the server drains,
 /// `RESOURCE_EXHAUSTED` on a connection over the connection limit, and, when the server has
-/// tokens, checks `authorization: Bearer <token>` and tags the request with the token's tenant.
+/// tokens, checks `authorization: Bearer <token>` and tags the request with the token's tenant
+/// (or the shared token's [`SharedShare`]). A refused token is reported to the [`Audit`].
 #[derive(Debug, Clone)]
 pub struct RequestGate {
     /// The accepted tokens; none lets every request in.
     tokens: Tokens,
     /// Fires when the server drains.
     stopping: Shutdown,
+    /// Counts and logs the refused tokens.
+    audit: Arc<Audit>,
 }
 
 impl RequestGate {
-    /// A gate accepting `tokens` (none: an open server).
-    pub fn new(tokens: Tokens, stopping: Shutdown) -> RequestGate {
-        RequestGate { tokens, stopping }
+    /// A gate accepting `tokens` (none: an open server), reporting refusals to `audit`.
+    pub fn new(tokens: Tokens, stopping: Shutdown, audit: Arc<Audit>) -> RequestGate {
+        RequestGate {
+            tokens,
+            stopping,
+            audit,
+        }
+    }
+
+    /// `UNAUTHENTICATED` for `failure`, reported to the audit.
+    fn refuse(&self, request: &Request<()>, failure: AuthFailure) -> Status {
+        let peer = conn_info(request).and_then(|c| c.remote);
+        self.audit
+            .auth_failed(peer, called_method(request.extensions()), failure);
+        Status::unauthenticated(failure.message())
     }
 }
 
@@ -302,15 +446,19 @@ impl tonic::service::Interceptor for RequestGate {
             return Ok(request);
         }
         let Some(value) = request.metadata().get("authorization") else {
-            return Err(Status::unauthenticated(
-                "missing authorization metadata: send `authorization: Bearer <token>`",
-            ));
+            return Err(self.refuse(&request, AuthFailure::Missing));
         };
         match self.tokens.check(value.as_bytes()) {
-            None => Err(Status::unauthenticated("invalid auth token")),
-            Some(tenant) => {
-                if let Some(tenant) = tenant {
-                    request.extensions_mut().insert(tenant);
+            None => Err(self.refuse(&request, AuthFailure::Invalid)),
+            Some(Some(tenant)) => {
+                request.extensions_mut().insert(tenant);
+                Ok(request)
+            }
+            Some(None) => {
+                if let Some(shared) = &self.tokens.shared {
+                    request
+                        .extensions_mut()
+                        .insert(SharedShare(Arc::clone(shared)));
                 }
                 Ok(request)
             }
@@ -385,6 +533,47 @@ mod tests {
             assert!(!shown.contains(secret), "{shown}");
         }
         assert!(format!("{tokens:?}").contains("tenant team-a"));
+    }
+
+    #[test]
+    fn tenants_get_a_fair_part_of_the_sessions_and_keep_their_identity() {
+        let rules = TenantRules {
+            share: Share::default(),
+            max_sessions: 10,
+            shared_token: Some("shared-token-0123456789".into()),
+        };
+        let text = "a aaaaaaaaaaaaaaaa\nb bbbbbbbbbbbbbbbb sessions=7\n";
+        let lines = rules.lines(text).unwrap();
+        // Three identities (two tenants and the shared token): 10 / 3 each, unless a line says.
+        assert_eq!(lines[0].share.max_sessions, 3);
+        assert_eq!(lines[1].share.max_sessions, 7);
+        assert_eq!(rules.shared_share(2).max_sessions, 3);
+        assert_eq!(fair_sessions(1, 5), 1);
+        let twice = rules.lines("a shared-token-0123456789\n").unwrap_err();
+        assert!(
+            twice.contains("tenant \"a\"'s token is also the shared token"),
+            "{twice}"
+        );
+        assert!(!twice.contains("shared-token-0123456789"), "{twice}");
+
+        let roster = Roster::default();
+        let before = roster.tokens(lines);
+        let a = Arc::clone(before[0].tenant.as_ref().unwrap());
+        let tokens = Tokens::new(&before);
+        assert!(tokens.check(b"Bearer aaaaaaaaaaaaaaaa").is_some());
+        // A rotated: the same tenant, a new token; b gone.
+        let after = roster.tokens(rules.lines("a cccccccccccccccc envs=5\n").unwrap());
+        assert!(Arc::ptr_eq(after[0].tenant.as_ref().unwrap(), &a));
+        assert_eq!(a.share().max_envs, 5);
+        assert_eq!(
+            a.share().max_sessions,
+            5,
+            "10 / (1 tenant + the shared token)"
+        );
+        tokens.replace(&after);
+        assert!(tokens.check(b"Bearer aaaaaaaaaaaaaaaa").is_none());
+        assert!(tokens.check(b"Bearer bbbbbbbbbbbbbbbb").is_none());
+        assert!(tokens.stand_for(&a));
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! What clients may hold: the server's memory budget (`--max-memory`) and each tenant's share of
-//! it. A tenant is one token of `--auth-tokens-file`, or, without that file, one connection, so
-//! that a single buggy worker cannot take every session slot or every byte.
+//! it. A tenant is one line of `--auth-tokens-file`, the shared token (all its connections
+//! together), or, on a server without any token, one connection, so that a single buggy worker
+//! cannot take every session slot or every byte.
 //!
 //! Everything is charged before it is allocated: a session its environments' bytes, a Rollout
 //! stream the episodes it may buffer; and, against a bound of their own beside `--max-memory`
@@ -10,8 +11,8 @@
 //! from what is held. The live-session and memory counters are the metrics' gauges themselves:
 //! one counter each, not a copy kept in lockstep.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 
 use crate::metrics::Metrics;
 
@@ -108,8 +109,8 @@ pub enum BudgetError {
 pub struct Tenant {
     /// "tenant NAME" or "connection ADDRESS".
     name: String,
-    /// What it may hold.
-    share: Share,
+    /// What it may hold: a tenants file read again (SIGHUP) may change it.
+    share: Mutex<Share>,
     /// Environments held.
     envs: AtomicU64,
     /// Sessions held.
@@ -123,7 +124,7 @@ impl Tenant {
     pub fn new(name: String, share: Share) -> Tenant {
         Tenant {
             name,
-            share,
+            share: Mutex::new(share),
             envs: AtomicU64::new(0),
             sessions: AtomicU64::new(0),
             rollouts: AtomicU64::new(0),
@@ -133,6 +134,21 @@ impl Tenant {
     /// How messages refer to it.
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// What it may hold now.
+    pub fn share(&self) -> Share {
+        *self.share.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Changes what it may hold from now on (what it holds stays held).
+    pub fn set_share(&self, share: Share) {
+        *self.share.lock().unwrap_or_else(PoisonError::into_inner) = share;
+    }
+
+    /// Sessions it holds now.
+    pub fn sessions(&self) -> u64 {
+        self.sessions.load(Ordering::Relaxed)
     }
 
     /// Environments it holds now.
@@ -266,7 +282,7 @@ impl Budget {
         envs: u64,
         bytes: u64,
     ) -> Result<Charge, BudgetError> {
-        let (share, m) = (tenant.share, &self.metrics);
+        let (share, m) = (tenant.share(), &self.metrics);
         take(m.live_sessions.inner(), 1, self.max_sessions)
             .map_err(|_| BudgetError::Sessions(self.max_sessions))?;
         if take(&tenant.sessions, 1, share.max_sessions).is_err() {
@@ -321,11 +337,10 @@ impl Budget {
         tenant: &Arc<Tenant>,
         bytes: u64,
     ) -> Result<Charge, BudgetError> {
-        take(&tenant.rollouts, 1, tenant.share.max_rollouts).map_err(|_| {
-            BudgetError::TenantRollouts {
-                tenant: tenant.name.clone(),
-                max: tenant.share.max_rollouts,
-            }
+        let max = tenant.share().max_rollouts;
+        take(&tenant.rollouts, 1, max).map_err(|_| BudgetError::TenantRollouts {
+            tenant: tenant.name.clone(),
+            max,
         })?;
         if let Err(e) = self.take_bytes(bytes) {
             give(&tenant.rollouts, 1);

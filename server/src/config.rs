@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use clap::ValueEnum;
 
-use crate::auth::{Secret, Token, TokenError, check_token, tenant_tokens};
+use crate::auth::{Roster, Secret, TenantRules, Token, TokenError, check_token};
 use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
 use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use crate::pools::{DEFAULT_PARALLEL_MIN_ENVS, DEFAULT_PARALLEL_MIN_PLANNER_ENVS, Stepping};
@@ -59,14 +59,15 @@ pub struct ServeArgs {
     /// Requests that would pass it are refused with RESOURCE_EXHAUSTED.
     #[arg(long, default_value_t = DEFAULT_MAX_MEMORY, value_parser = parse_bytes)]
     pub max_memory: u64,
-    /// Most environments one tenant may hold: a token of --auth-tokens-file (unless its line
-    /// says otherwise), or else one connection.
+    /// Most environments one tenant may hold: a tenant of --auth-tokens-file (unless its line
+    /// says otherwise), the shared token (all its connections together), or, without any
+    /// token, one connection.
     #[arg(long, default_value_t = DEFAULT_TENANT_ENVS)]
     pub max_envs_per_tenant: u64,
     /// Most steps one Rollout request may record over all its episodes.
     #[arg(long, default_value_t = MAX_ROLLOUT_WORK_STEPS, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_rollout_work_steps: u64,
-    /// Most Rollout streams one tenant (or connection) may run at once.
+    /// Most Rollout streams one tenant (as for --max-envs-per-tenant) may run at once.
     #[arg(long, default_value_t = DEFAULT_TENANT_ROLLOUTS)]
     pub max_rollouts_per_tenant: u64,
     /// Most client connections, capped below the open-file limit. At the limit the longest-idle
@@ -99,7 +100,9 @@ pub struct ServeArgs {
     pub auth_token: Option<Secret>,
     /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`; `#` starts a
     /// comment at the start of a line or after whitespace. Each token is accepted like
-    /// --auth-token (and follows its rules), and its requests count against its tenant's share.
+    /// --auth-token (and follows its rules), and its requests count against its tenant's share:
+    /// by default an equal part of --max-sessions for each tenant (and the shared token, if
+    /// given, which must differ from every tenant's). Read again on SIGHUP.
     #[arg(long)]
     pub auth_tokens_file: Option<PathBuf>,
     /// Start even where a port is open beyond this machine without a token (--host), or the
@@ -243,7 +246,8 @@ impl ServeArgs {
     }
 
     /// What each tenant (or connection) may hold: `--max-envs-per-tenant`,
-    /// `--max-rollouts-per-tenant`, any number of sessions.
+    /// `--max-rollouts-per-tenant`, any number of sessions (a tenant's and the shared token's
+    /// sessions are then cut to their fair part: [`crate::auth::TenantRules`]).
     pub fn share(&self) -> Share {
         Share {
             max_envs: self.max_envs_per_tenant,
@@ -365,13 +369,19 @@ impl fmt::Debug for TlsPem {
 pub struct ServerConfig {
     /// Session limits and the idle TTL.
     pub limits: Limits,
-    /// The bearer token clients must send; `None` serves everyone (unless `tenants` is given).
-    /// Each connection is then its own tenant.
+    /// The shared bearer token; `None` serves everyone (unless `tenants` is given), each
+    /// connection then its own tenant. Its holders are one identity with one share.
     pub auth_token: Option<Secret>,
     /// Tenant tokens (`--auth-tokens-file`): each token's requests count against its tenant's
     /// share. Given with `auth_token`, either token is accepted.
     pub tenants: Vec<Token>,
-    /// What each connection may hold when its requests carry no tenant token.
+    /// The file `tenants` came from: read again on SIGHUP ([`crate::reload`]); `None`: the
+    /// tokens never change.
+    pub tenants_file: Option<PathBuf>,
+    /// What each connection may hold when the server has no token; what the shared token
+    /// (`auth_token`) may hold, as one identity, with its sessions its fair part of
+    /// `limits.max_sessions` ([`ServerConfig::tenant_rules`]); what a tenant of `tenants_file`
+    /// may hold when its line says nothing else.
     pub connection_share: Share,
     /// How long the sessions left are served once the shutdown future completes, while new
     /// ones are refused (`--drain-timeout`); zero (the default here) stops at once.
@@ -399,7 +409,29 @@ fn read(path: &Path) -> Result<Vec<u8>, ConfigError> {
     })
 }
 
+/// The tenants of the tokens file at `path`, by `rules` ([`TenantRules::lines`]).
+pub fn read_tenants(
+    path: &Path,
+    rules: &TenantRules,
+) -> Result<Vec<crate::auth::TenantLine>, ConfigError> {
+    let text = String::from_utf8(read(path)?).map_err(|_| ConfigError::NotUtf8(path.to_owned()))?;
+    rules.lines(&text).map_err(|message| ConfigError::Tenants {
+        path: path.to_owned(),
+        message,
+    })
+}
+
 impl ServerConfig {
+    /// What the tenants of a tokens file may hold unless their lines say otherwise, and the
+    /// shared token their tokens must differ from.
+    pub fn tenant_rules(&self) -> TenantRules {
+        TenantRules {
+            share: self.connection_share,
+            max_sessions: self.limits.max_sessions as u64,
+            shared_token: self.auth_token.clone(),
+        }
+    }
+
     /// The configuration `args` describe: the TLS files read, the tenants file's tenants as
     /// tokens, the limits; refused unless [`ServeArgs::validate`] passes. Nothing is bound: the
     /// caller binds the listeners and hands them to `server::run`.
@@ -412,15 +444,14 @@ impl ServerConfig {
             _ => None,
         };
         let share = args.share();
+        let auth_token = args.auth_token.clone().filter(|t| !t.is_empty());
+        let rules = TenantRules {
+            share,
+            max_sessions: u64::from(args.max_sessions),
+            shared_token: auth_token.clone(),
+        };
         let tenants = match &args.auth_tokens_file {
-            Some(path) => {
-                let text = String::from_utf8(read(path)?)
-                    .map_err(|_| ConfigError::NotUtf8(path.clone()))?;
-                tenant_tokens(&text, share).map_err(|message| ConfigError::Tenants {
-                    path: path.clone(),
-                    message,
-                })?
-            }
+            Some(path) => Roster::default().tokens(read_tenants(path, &rules)?),
             None => Vec::new(),
         };
         args.validate()?;
@@ -435,8 +466,9 @@ impl ServerConfig {
             rollout: rollout::Limits {
                 max_work_steps: args.max_rollout_work_steps,
             },
-            auth_token: args.auth_token.clone().filter(|t| !t.is_empty()),
+            auth_token,
             tenants,
+            tenants_file: args.auth_tokens_file.clone(),
             connection_share: share,
             drain_timeout: args.drain_timeout,
             connections: connections::Limits {
@@ -451,7 +483,7 @@ impl ServerConfig {
     }
 
     /// Every token the server accepts: the tenants' and `auth_token` (which stands for no
-    /// tenant: each connection is its own).
+    /// tenant: its requests are the shared identity's, counted against the shared token's share).
     pub fn tokens(&self) -> Vec<Token> {
         let mut tokens = self.tenants.clone();
         if let Some(token) = &self.auth_token {

@@ -11,6 +11,8 @@
 //! - [`pb`]: the generated protocol types, client and server of `dinerdash.v1`.
 //! - [`metrics`]: every metric, one entry each, as `prometheus-client` counters, gauges and a
 //!   family labelled by gRPC code, and their Prometheus text.
+//! - [`audit`]: failed authentications counted and logged (peer, method; rate-limited), and
+//!   the tower layer that tags each request with its method.
 //! - [`shutdown`]: SIGINT/SIGTERM, the drain of a planned restart (its phases, its refusal of
 //!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
 //!   stopping server answers.
@@ -42,12 +44,14 @@
 //! - [`shm`]: the same-host data plane (Linux): a session's Steps through a shared-memory region
 //!   and a doorbell socket, for clients on the server's host running as its user.
 //! - [`config`]: the `serve` flags and what they decide ([`config::ServerConfig::from_args`]).
+//! - [`reload`]: the tokens file read again on SIGHUP, its tenants and their sessions kept.
 //! - [`server`]: [`server::run`] puts the service, health, reflection, TLS and HTTP together
 //!   on a listener until a shutdown future completes; [`server::serve`] is the binary's.
 //! - [`cmd`]: the binary's commands, one file each, and the command line that dispatches to
 //!   them: `serve` (the default), `eval`, `health` (the grpc.health.v1 client) and `ceiling`
 //!   (the server's own batch rate). The top layer: it may use every module above, none uses it.
 
+pub mod audit;
 pub mod auth;
 pub mod budget;
 pub mod cmd;
@@ -58,6 +62,7 @@ pub mod http;
 pub mod metrics;
 pub mod policy;
 pub mod pools;
+pub mod reload;
 pub mod rollout;
 pub mod server;
 pub mod service;

@@ -126,6 +126,8 @@ metrics! {
         "Connections closed for not sending the HTTP/2 preface in time";
     connections_idle_closed: Counter = "dinerdash_connections_idle_closed",
         "Connections closed for being silent longer than --idle-timeout";
+    auth_failures: Counter = "dinerdash_auth_failures",
+        "Requests refused for a missing or unknown token (gRPC)";
     live_sessions: Level = "dinerdash_live_sessions",
         "Sessions alive now";
     memory_used_bytes: Level = "dinerdash_memory_used_bytes",
@@ -173,7 +175,7 @@ mod tests {
     fn the_scrape_keeps_the_names_types_and_labels() {
         let metrics = Metrics::default();
         let fresh = metrics.render();
-        assert_eq!(fresh.matches("# TYPE ").count(), 16, "{fresh}");
+        assert_eq!(fresh.matches("# TYPE ").count(), 17, "{fresh}");
         assert!(!fresh.contains("dinerdash_rpc_errors_total"), "{fresh}");
         metrics.env_steps.inc_by(7);
         metrics.live_sessions.inc_by(2);
@@ -195,7 +197,7 @@ mod tests {
             assert!(text.lines().any(|l| l == line), "no {line:?} in\n{text}");
         }
         assert!(!text.contains("code=\"OK\""), "{text}");
-        assert_eq!(text.matches("# TYPE ").count(), 17);
+        assert_eq!(text.matches("# TYPE ").count(), 18);
     }
 
     #[test]

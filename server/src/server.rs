@@ -17,7 +17,9 @@ use tonic::transport::{Identity, Server, ServerTlsConfig};
 
 pub use crate::config::{ServerConfig, TlsPem};
 
-use crate::auth::{RequestGate, Tokens};
+use crate::audit::{Audit, MethodLayer};
+use crate::auth::{RequestGate, Roster, Tokens};
+use crate::budget::Tenant;
 use crate::codec::intake::IntakeLayer;
 use crate::config::{ConfigError, ServeArgs};
 use crate::connections::calls::{Admit, Admitted, ProbeLayer};
@@ -26,6 +28,7 @@ use crate::http::{self, Access, Exposure, HttpTls, Site, TlsError};
 use crate::metrics::Metrics;
 use crate::pb;
 use crate::pb::diner_dash_server::DinerDashServer;
+use crate::reload::{Hangups, Reloader};
 use crate::service::{DinerDashService, MAX_MESSAGE_BYTES};
 use crate::session::Store;
 use crate::shutdown;
@@ -116,6 +119,11 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     // Both signals are listened for before the line below says the server is up, so that a
     // SIGTERM sent as soon as it is read drains the server rather than killing it.
     let signals = shutdown::Signals::new();
+    // SIGHUP reads the tokens file again; without one it keeps its default (the process ends).
+    let hangups = match &config.tenants_file {
+        Some(_) => Hangups::listen(),
+        None => Hangups::default(),
+    };
     // The one line on stdout: clients that started this process read the port from it.
     let mut stdout = std::io::stdout().lock();
     let _ = writeln!(stdout, "dinerdash-server listening on {addr}");
@@ -123,7 +131,7 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
     drop(stdout);
 
     shutdown::serve_until_signal(signals, config.drain_timeout, |stop| {
-        run(listeners, config, stop)
+        run_with_hangups(listeners, config, stop, hangups)
     })
     .await
 }
@@ -163,11 +171,25 @@ impl Listeners {
 
 /// Serves on `listeners` until `shutdown` completes, then drains (for `config.drain_timeout` at
 /// most: see [`shutdown`]), stops accepting connections, lets the RPCs in flight finish, and
-/// returns.
+/// returns. With a `config.tenants_file`, SIGHUPs from now on read it again.
 pub async fn run(
     listeners: Listeners,
     config: ServerConfig,
     shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), ServerError> {
+    let hangups = match &config.tenants_file {
+        Some(_) => Hangups::listen(),
+        None => Hangups::default(),
+    };
+    run_with_hangups(listeners, config, shutdown, hangups).await
+}
+
+/// [`run`], the tokens file read again on each of `hangups` (listened for by the caller).
+pub async fn run_with_hangups(
+    listeners: Listeners,
+    config: ServerConfig,
+    shutdown: impl Future<Output = ()> + Send,
+    hangups: Hangups,
 ) -> Result<(), ServerError> {
     // With a certificate, the endpoint speaks HTTPS only, with the same certificate as gRPC;
     // made first, so that a certificate it cannot use stops the server before anything runs.
@@ -198,8 +220,26 @@ pub async fn run(
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let tokens = Tokens::new(&config.tokens());
-    let gate = RequestGate::new(tokens.clone(), stopping.clone());
+    // The shared token is one identity: its connections share one share.
+    let rules = config.tenant_rules();
+    let shared = config.auth_token.as_ref().map(|_| {
+        let share = rules.shared_share(config.tenants.len());
+        Arc::new(Tenant::new("the shared token".into(), share))
+    });
+    let mut tokens = Tokens::new(&config.tokens());
+    if let Some(shared) = &shared {
+        tokens = tokens.with_shared_share(Arc::clone(shared));
+    }
+    let audit = Arc::new(Audit::new(Arc::clone(&metrics)));
+    let gate = RequestGate::new(tokens.clone(), stopping.clone(), audit);
+    let reloader = config.tenants_file.clone().map(|path| Reloader {
+        path,
+        rules,
+        roster: Roster::new(&config.tenants),
+        tokens: tokens.clone(),
+        shared,
+    });
+    let reload_task = reloader.map(|r| tokio::spawn(r.on_hangups(hangups, stopping.clone())));
     // The pages' feeds and the metrics ask for the same tokens as the RPCs, so that a server
     // that needs a token shows its sessions and load only to its token holders.
     let http_addr = listeners.http.as_ref().and_then(|l| l.local_addr().ok());
@@ -243,6 +283,8 @@ pub async fn run(
     let mut builder = Server::builder()
         // Health checks and reflection, open without a token, are few at once.
         .layer(ProbeLayer::default())
+        // The method of each request, for the audit of refused tokens.
+        .layer(MethodLayer)
         // Large messages count against --max-memory while they are received and decoded.
         .layer(IntakeLayer::new(Arc::clone(&budget)))
         .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
@@ -285,6 +327,9 @@ pub async fn run(
     // The trigger fired, or was dropped with the shutdown future if serving failed: either way
     // the sweeper and the HTTP endpoint are stopping.
     let _ = sweeper.await;
+    if let Some(task) = reload_task {
+        let _ = task.await;
+    }
     if let Some(task) = http_task {
         let _ = task.await;
     }

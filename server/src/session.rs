@@ -104,6 +104,18 @@ pub const DEFAULT_SESSION_TTL: Duration = Duration::from_secs(300);
 /// What a session costs besides its environments: the `Session`, its `Arc`, its map entry.
 const SESSION_OVERHEAD_BYTES: u64 = 256;
 
+/// Digits of a session ID that info-level logs show: enough to match a line with the sessions
+/// page (which shows as many), far from enough to name the session. The full ID, a capability
+/// without tenants, is logged at debug level only.
+pub const LOGGED_ID: usize = 8;
+
+/// The first [`LOGGED_ID`] characters of a session ID as a request gave it.
+pub fn short_id(id: &str) -> &str {
+    id.char_indices()
+        .nth(LOGGED_ID)
+        .map_or(id, |(i, _)| &id[..i])
+}
+
 /// The bytes the memory budget charges a session of `num_envs` environments.
 pub fn session_bytes(num_envs: usize) -> u64 {
     (num_envs as u64).saturating_mul(Envs::BYTES_PER_ENV) + SESSION_OVERHEAD_BYTES
@@ -636,7 +648,11 @@ impl Store {
                 let idle = now.saturating_sub(session.last_used_ms.load(Ordering::Relaxed));
                 let keep = idle <= ttl;
                 if !keep {
-                    tracing::debug!(session = %id, idle_ms = idle, "idle session evicted");
+                    let full = id.to_string();
+                    let tenant = session._charge.tenant().name();
+                    let session = short_id(&full);
+                    tracing::info!(session, tenant, idle_ms = idle, "session expired");
+                    tracing::debug!(session = %full, "session expired: full ID");
                     evicted += 1;
                 }
                 keep

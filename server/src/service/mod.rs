@@ -41,6 +41,7 @@ use convert::{
 use rollout_stream::Produce;
 use step_path::StepPath;
 
+use crate::auth::SharedShare;
 use crate::budget::{Share, Tenant};
 use crate::connections::conn_info;
 use crate::metrics::Metrics;
@@ -49,6 +50,7 @@ use crate::pools::{CpuPool, Turn};
 use crate::rollout::{self, MAX_ROLLOUT_EPISODES, ROLLOUT_BUFFER, RolloutPlan};
 use crate::session::{
     Batch, Caller, FoundSession, Owner, SessionError, SessionId, SessionOptions, Store,
+    short_id as short,
 };
 use crate::shutdown::Shutdown;
 use crate::sim::{self, SNAPSHOT_VERSION};
@@ -171,10 +173,14 @@ impl DinerDashService {
     }
 
     /// Who sends a request that creates a session: its token's tenant (owner and share), else
-    /// the shared identity with its connection's share.
+    /// the shared identity with the shared token's share (one for all its connections), or on a
+    /// server without tokens its connection's.
     fn caller<T>(&self, request: &Request<T>) -> Caller {
         if let Some(tenant) = request.extensions().get::<Arc<Tenant>>() {
             return Caller::tenant(Arc::clone(tenant));
+        }
+        if let Some(SharedShare(share)) = request.extensions().get::<SharedShare>() {
+            return Caller::shared(Arc::clone(share));
         }
         let share =
             conn_info(request).map_or_else(|| Arc::clone(&self.unknown), |c| Arc::clone(&c.tenant));
@@ -190,18 +196,6 @@ impl DinerDashService {
 /// The identity of a request: its token's tenant, else the shared identity.
 fn owner<T>(request: &Request<T>) -> Owner {
     Owner::of(request.extensions().get::<Arc<Tenant>>())
-}
-
-/// Digits of a session ID that info-level logs show: enough to match a line with the sessions
-/// page (which shows as many), far from enough to name the session. The full ID, a capability
-/// without tenants, is logged at debug level only.
-const LOGGED_ID: usize = 8;
-
-/// The first [`LOGGED_ID`] characters of a session ID as a request gave it.
-fn short(id: &str) -> &str {
-    id.char_indices()
-        .nth(LOGGED_ID)
-        .map_or(id, |(i, _)| &id[..i])
 }
 
 #[tonic::async_trait]
@@ -225,7 +219,7 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
             .store
             .create(&caller, r.num_envs, config, options, r.seed)
             .map_err(|e| self.fail(e))?;
-        created_log(id, "session created");
+        created_log(id, &caller, "session created");
         Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
@@ -234,10 +228,11 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         &self,
         request: Request<pb::CloseSessionRequest>,
     ) -> Result<Response<pb::CloseSessionResponse>, Status> {
+        let caller = self.caller(&request);
         self.store
-            .close(&owner(&request), &request.get_ref().session_id)
+            .close(&caller.owner, &request.get_ref().session_id)
             .map_err(|e| self.fail(e))?;
-        tracing::info!("session closed");
+        tracing::info!(tenant = caller.tenant.name(), "session closed");
         Ok(Response::new(pb::CloseSessionResponse {}))
     }
 
@@ -285,13 +280,13 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         self.admit()?;
         let caller = self.caller(&request);
         let store = self.store.clone();
-        let owner = caller.owner.clone();
+        let forker = caller.clone();
         let (id, spec) = self
-            .with_session(&owner, &request.get_ref().session_id, move |found| {
-                store.fork(&caller, found)
+            .with_session(&caller.owner, &request.get_ref().session_id, move |found| {
+                store.fork(&forker, found)
             })
             .await?;
-        created_log(id, "session forked");
+        created_log(id, &caller, "session forked");
         Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
@@ -316,11 +311,12 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
         request: Request<pb::RestoreRequest>,
     ) -> Result<Response<pb::CreateSessionResponse>, Status> {
         self.admit()?;
+        let caller = self.caller(&request);
         let (id, spec) = self
             .store
-            .restore(&self.caller(&request), &request.get_ref().snapshot)
+            .restore(&caller, &request.get_ref().snapshot)
             .map_err(|e| self.fail(e))?;
-        created_log(id, "session restored");
+        created_log(id, &caller, "session restored");
         Ok(Response::new(created(id, &spec, &self.shm_doorbell)))
     }
 
@@ -411,10 +407,14 @@ impl pb::diner_dash_server::DinerDash for DinerDashService {
     }
 }
 
-/// Logs a session the caller now owns: its short ID at info level, its full ID at debug level
-/// (see [`LOGGED_ID`]).
-fn created_log(id: SessionId, what: &'static str) {
+/// Logs a session the caller now owns: its short ID and its tenant (whose share it counts
+/// against) at info level, its full ID at debug level (see [`crate::session::LOGGED_ID`]).
+fn created_log(id: SessionId, caller: &Caller, what: &'static str) {
     let full = id.to_string();
-    tracing::info!(session = short(&full), "{what}");
+    tracing::info!(
+        session = short(&full),
+        tenant = caller.tenant.name(),
+        "{what}"
+    );
     tracing::debug!(session = %full, "{what}: full ID");
 }

@@ -1,8 +1,10 @@
 //! The real binary with two tenants (`--auth-tokens-file`), tried as a hostile tenant would (issue
 //! 34): every call that names a session, given another tenant's session ID, answers exactly as
 //! for an ID that never existed (code, message and details, the ID substituted), and the owner's
-//! session is untouched (its next Step equals an undisturbed twin's). Sessions a tenant forks or
-//! restores are its own; the web feeds answer the other tenant's session as unknown.
+//! session is untouched (its next Step's whole reply equals an undisturbed twin's, a planner
+//! session's too). Sessions a tenant forks or restores are its own; the web feeds answer the
+//! other tenant's session as unknown, and its listings (`/api/sessions` and the event feed
+//! `/api/sessions/events`) hold only its own sessions.
 
 use crate::binary_support;
 use crate::grpc_support;
@@ -187,6 +189,38 @@ async fn get(addr: SocketAddr, path: &str, token: &str) -> (u16, String) {
     (status, text.split_once("\r\n\r\n").unwrap().1.to_owned())
 }
 
+/// The head and first event of the event feed at `path`, read with `token` (the feed itself
+/// never ends: the connection is dropped after its first event).
+async fn first_event(addr: SocketAddr, path: &str, token: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let head =
+        format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\n\r\n");
+    stream.write_all(head.as_bytes()).await.unwrap();
+    let mut text = Vec::new();
+    let read = async {
+        loop {
+            let mut chunk = [0u8; 4096];
+            let n = stream.read(&mut chunk).await.unwrap();
+            assert!(n > 0, "the feed closed: {}", String::from_utf8_lossy(&text));
+            text.extend_from_slice(&chunk[..n]);
+            let so_far = String::from_utf8_lossy(&text);
+            if let Some((head, body)) = so_far.split_once("\r\n\r\n") {
+                assert!(head.starts_with("HTTP/1.1 200"), "{head}");
+                if body
+                    .split_once("data:")
+                    .is_some_and(|(_, e)| e.contains("\n\n"))
+                {
+                    return so_far.into_owned();
+                }
+            }
+        }
+    };
+    tokio::time::timeout(grpc_support::PATIENCE, read)
+        .await
+        .expect("no first event")
+}
+
 #[tokio::test]
 async fn another_tenants_session_answers_as_an_unknown_id() {
     let dir = std::env::temp_dir().join(format!("dinerdash-owners-{}", std::process::id()));
@@ -212,7 +246,8 @@ async fn another_tenants_session_answers_as_an_unknown_id() {
     let mine = a.create(pb::Policy::Expert, 7).await;
     let twin = a.create(pb::Policy::Expert, 7).await;
     let planned = a.create(pb::Policy::Planner, 8).await;
-    for id in [&mine, &twin, &planned] {
+    let planned_twin = a.create(pb::Policy::Planner, 8).await;
+    for id in [&mine, &twin, &planned, &planned_twin] {
         a.reset(id).await.unwrap();
         for t in 0..5 {
             a.step(id, &[t % 3, 1]).await.unwrap();
@@ -223,13 +258,12 @@ async fn another_tenants_session_answers_as_an_unknown_id() {
         answered_as_unknown(&mut b, id).await;
     }
 
-    // Untouched: the next Step of A's session equals its twin's.
-    let next = a.step(&mine, &[2, 0]).await.unwrap();
-    let twins = a.step(&twin, &[2, 0]).await.unwrap();
-    assert_eq!(next.observations, twins.observations);
-    assert_eq!(next.rewards, twins.rewards);
-    assert_eq!(next.ticks, twins.ticks);
-    assert_eq!(next.scores, twins.scores);
+    // Untouched: the next Step of each of A's sessions is its twin's, the whole reply.
+    for (id, twin) in [(&mine, &twin), (&planned, &planned_twin)] {
+        let next = a.step(id, &[2, 0]).await.unwrap();
+        let twins = a.step(twin, &[2, 0]).await.unwrap();
+        assert_eq!(next, twins);
+    }
     // The owner's Render, Snapshot and Fork of the planner session are served (off the async
     // workers).
     assert!(!a.render(&planned).await.unwrap().is_empty());
@@ -271,8 +305,19 @@ async fn another_tenants_session_answers_as_an_unknown_id() {
     assert_eq!(page, unknown_page, "the watch page tells IDs apart");
     let (status, listing) = get(http, "/api/sessions", TOKEN_B).await;
     assert_eq!(status, 200);
-    assert!(!listing.contains(&mine) && !listing.contains(&twin) && !listing.contains(&planned));
-    assert!(listing.contains(&own) && listing.contains(&copied));
+    let feed = first_event(http, "/api/sessions/events", TOKEN_B).await;
+    for listed in [&listing, &feed] {
+        for a_s in [&mine, &twin, &planned, &planned_twin] {
+            assert!(
+                !listed.contains(a_s.as_str()),
+                "B sees A's session: {listed}"
+            );
+        }
+        assert!(
+            listed.contains(&own) && listed.contains(&copied),
+            "{listed}"
+        );
+    }
     let (status, watched) = get(http, &format!("/api/watch/{mine}?env=0"), TOKEN_A).await;
     assert_eq!(status, 200, "{watched}");
 

@@ -198,10 +198,11 @@ fn rollout(seeds: u64, max_steps: Option<u32>) -> pb::RolloutRequest {
 #[tokio::test]
 async fn unread_rollout_streams_do_not_block_other_clients() {
     let server = TestServer::start().await;
-    // More unread streams than the pool has workers (one per core at most), each on its own
-    // connection, none of them read past its first message.
+    // More unread streams than the pool has workers (sized from this machine's cores), each on
+    // its own connection, none of them read past its first message.
+    let workers = dinerdash_server::pools::CpuPool::beside_steps().workers();
     let mut unread = Vec::new();
-    for _ in 0..4 {
+    for _ in 0..workers + 2 {
         let mut c = server.client().await;
         let mut stream = c.rollout(rollout(1000, None)).await.unwrap().into_inner();
         stream.message().await.unwrap().unwrap();

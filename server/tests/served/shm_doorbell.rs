@@ -445,6 +445,24 @@ async fn created(
     reply
 }
 
+/// The environment variable that lets a test needing root be skipped when not root, instead of
+/// failing: `DINERDASH_SKIP_ROOT_TESTS=1` (CI runs as root and never sets it).
+const SKIP_ROOT_TESTS: &str = "DINERDASH_SKIP_ROOT_TESTS";
+
+/// Whether this test, which needs root (`why`), may run: yes as root; when not root, it fails
+/// unless [`SKIP_ROOT_TESTS`] is `1`, which skips it (saying so), so that a run that is not
+/// root never passes a test it did not run.
+fn root_or_opted_out(why: &str) -> bool {
+    if rustix::process::geteuid().is_root() {
+        return true;
+    }
+    if std::env::var(SKIP_ROOT_TESTS).is_ok_and(|v| v == "1") {
+        eprintln!("skipped ({SKIP_ROOT_TESTS}=1): {why}");
+        return false;
+    }
+    panic!("this test needs root: {why}; run it as root, or set {SKIP_ROOT_TESTS}=1 to skip it");
+}
+
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
@@ -452,11 +470,10 @@ fn hex(bytes: &[u8]) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn another_users_connection_is_closed_before_any_thread_starts() {
     use std::os::unix::process::CommandExt;
-    if !rustix::process::geteuid().is_root() {
-        eprintln!(
-            "skipped: running a client as a second user (uid 65534) needs root (CI runs as \
-             root); the peer check itself is unit-tested in shm::tests"
-        );
+    if !root_or_opted_out(
+        "running a client as a second user (uid 65534) needs root (CI runs as \
+             root); the peer check itself is unit-tested in shm::tests",
+    ) {
         return;
     }
     let server = Process::start("", "--max-shm-sessions 4");
@@ -506,11 +523,10 @@ async fn another_users_connection_is_closed_before_any_thread_starts() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_the_server_cannot_see_in_its_pid_namespace_is_served() {
-    if !rustix::process::geteuid().is_root() {
-        eprintln!(
-            "skipped: a server in a pid namespace of its own needs root (CI runs as root); \
-             reading a peer without a pid is unit-tested in shm::tests"
-        );
+    if !root_or_opted_out(
+        "a server in a pid namespace of its own needs root (CI runs as root); \
+             reading a peer without a pid is unit-tested in shm::tests",
+    ) {
         return;
     }
     // The server in a pid namespace of its own (as in a container that shares the host's
@@ -546,11 +562,10 @@ async fn a_client_the_server_cannot_see_in_its_pid_namespace_is_served() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_server_run_as_nobody_offers_no_shared_memory() {
     use std::os::unix::fs::PermissionsExt;
-    if !rustix::process::geteuid().is_root() {
-        eprintln!(
-            "skipped: running the server as nobody (kernel.overflowuid) needs root (CI runs as \
-             root); the owner check itself is unit-tested in shm::tests"
-        );
+    if !root_or_opted_out(
+        "running the server as nobody (kernel.overflowuid) needs root (CI runs as \
+             root); the owner check itself is unit-tested in shm::tests",
+    ) {
         return;
     }
     // The kernel reports every peer it cannot map (a process of another user namespace) as
