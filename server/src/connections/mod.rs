@@ -24,8 +24,8 @@
 //!   is closed at once.
 //! - A connection may have [`MAX_STREAMS_PER_CONNECTION`] requests open at once; the server, its
 //!   calls as [`calls`] bounds them.
-//! - Each connection is its own [`Tenant`] when the server has no tenant tokens: what it may hold
-//!   is that tenant's share.
+//! - Each connection is its own [`Tenant`] when the server has no token at all: what it may hold
+//!   is that tenant's share. (The shared token's holders are one identity, tenants one each.)
 //! - On shutdown the loop drops the listener at once, so new connections are refused while the
 //!   calls in flight finish.
 //!
@@ -107,7 +107,7 @@ pub struct ConnInfo {
     pub remote: Option<SocketAddr>,
     /// Accepted beyond the connection limit: every call is answered `RESOURCE_EXHAUSTED`.
     pub over_limit: Option<usize>,
-    /// The tenant this connection is when the server has no tenant tokens.
+    /// The tenant this connection is when the server has no token at all.
     pub tenant: Arc<Tenant>,
     /// What [`calls::Admit`] counts its calls in; `None` over the limit (never shed).
     activity: Option<Arc<Activity>>,

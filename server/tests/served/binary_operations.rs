@@ -358,6 +358,7 @@ async fn every_session_event_is_logged_with_its_tenant() {
     let forked = c.fork(with(TOKEN_A, fork)).await.unwrap().into_inner();
     let snapshot = pb::SnapshotRequest {
         session_id: made.clone(),
+        ..Default::default()
     };
     let snapshot = c.snapshot(with(TOKEN_A, snapshot)).await.unwrap();
     let restore = pb::RestoreRequest {
