@@ -16,13 +16,13 @@
 //! - [`shutdown`]: SIGINT/SIGTERM, the drain of a planned restart (its phases, its refusal of
 //!   new sessions, the time left), the deadlines, the shutdown handles, and the `UNAVAILABLE` a
 //!   stopping server answers.
+//! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
+//!   Rollouts).
 //! - [`pools`]: the two thread pools for CPU-heavy work: [`pools::CpuPool`], the bounded
 //!   blocking workers that run Rollout episodes (in chunks) and every planner-labelled session's
 //!   Reset, Step, Render, Snapshot and Fork, serving tenants in turn (one per process, shared by
 //!   gRPC and shared memory), and
 //!   [`pools::StepPool`], the threads that step one large Step's environments in chunks.
-//! - [`budget`]: the memory budget and each tenant's share of it (sessions, environments,
-//!   Rollouts).
 //! - [`rollout`]: the Rollout RPC's rules (what a request may ask, what its stream is charged)
 //!   and the recording of whole episodes of a server-side policy.
 //! - [`codec`]: protobuf decoding that measures each request on the wire before decoding it
@@ -32,7 +32,7 @@
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
 //! - [`connections`]: a folder, one job a file: the accept loop (backoff, limit), the table of
 //!   connections and shedding, the connection wrapper with its preface and idle timers, the
-//!   in-flight tower layer, and the open-file limit (`connections::fd_limit`).
+//!   calls' admission and counting (`connections::calls`), and the open-file limit (`connections::fd_limit`).
 //! - [`auth`]: bearer tokens and the tenants they stand for (the tenants file), the
 //!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
 //!   over the connection limit, token.
