@@ -32,7 +32,8 @@
 //!   Step, Fork and Snapshot do to a session's environments (autoreset included).
 //! - [`connections`]: a folder, one job a file: the accept loop (backoff, limit), the table of
 //!   connections and shedding, the connection wrapper with its preface and idle timers, the
-//!   calls' admission and counting (`connections::calls`), and the open-file limit (`connections::fd_limit`).
+//!   calls' admission and counting (`connections::calls`), and the open-file limit
+//!   (`connections::fd_limit`).
 //! - [`auth`]: bearer tokens and the tenants they stand for (the tenants file), the
 //!   constant-time compare, and the [`auth::RequestGate`] in front of every RPC: draining,
 //!   over the connection limit, token.
