@@ -8,7 +8,7 @@
 //!   `RESOURCE_EXHAUSTED` at their headers. Their one message is 1 KiB at most and must arrive
 //!   within 10 s of the call (`codec::intake`).
 //! - Each DinerDash call that passed the token check ([`Admit`]) is charged
-//!   [`CALL_BYTES`](crate::codec::intake::CALL_BYTES) against the intake bound for as long as it
+//!   [`CALL_BYTES`] against the intake bound for as long as it
 //!   is open, and one identity (a tenant, or the shared identity) may hold at most
 //!   [`IDENTITY_SHARE`] of the calls that bound holds; more are refused `RESOURCE_EXHAUSTED`
 //!   before their message is read. Only these calls count as in flight for shedding, and the
