@@ -206,6 +206,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
     @property
+    def fleet(self) -> Fleet:
+        """The servers and sessions this env steps (:class:`~dinerdash._fleet.Fleet`; its
+        ``cores`` are the sessions, in environment order, each with its ``transport``). For the
+        package's bench and the tests that look inside a step; not a stable API."""
+        return self._fleet
+
+    @property
     def _cores(self) -> list[SessionCore]:
         """The fleet's sessions, in environment order."""
         return self._fleet.cores
@@ -376,9 +383,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_idle("step()")
         self._check_open("step()")
         if self._fleet.blocking():
-            return self._decode_step(self._fleet.step(wire))
+            return self.decode_step(self._fleet.step(wire))
         self._start(wire)
-        return self._decode_step(self._finish())
+        return self.decode_step(self._finish())
 
     def step_async(self, actions: Any) -> None:
         """Sends this step's ``actions`` to the server(s) and returns at once; :meth:`step_wait`
@@ -414,7 +421,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                     f"step_wait(): no reply within {timeout:g} s; the step is still "
                     "pending, call step_wait() again"
                 )
-        return self._decode_step(self._finish())
+        return self.decode_step(self._finish())
 
     def _check_idle(self, what: str) -> None:
         if self._pending:
@@ -443,7 +450,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         return join(self._fleet.batches())["action_masks"].copy()
 
-    def _decode_step(self, batches: list[Batch]):
+    def decode_step(self, batches: list[Batch]):
+        """The step's ``(obs, rewards, terminated, truncated, info)`` from the sessions' replies
+        (``batches``, in environment order): what :meth:`step` and :meth:`step_wait` end in. It
+        advances the env's episode seeds, so only the bench calls it besides them, to time it."""
         n = self.num_envs
         batch = join(batches)
         everyone = self._everyone

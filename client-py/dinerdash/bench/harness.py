@@ -170,18 +170,18 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
             total = 0.0
             for _ in range(steps):
                 envs.step(rng.integers(0, NUM_ACTIONS, size=num_envs))
-                batches = [core.last for core in envs._cores]
+                batches = [core.last for core in envs.fleet.cores]
                 start = time.perf_counter()
-                envs._decode_step(batches)
+                envs.decode_step(batches)
                 total += time.perf_counter() - start
             return total / steps * 1e6
         replies = []
         for _ in range(steps):
             envs.step(rng.integers(0, NUM_ACTIONS, size=num_envs))
-            replies.append([core.last.to_pb().SerializeToString() for core in envs._cores])
+            replies.append([core.last.to_pb().SerializeToString() for core in envs.fleet.cores])
         start = time.perf_counter()
         for raw in replies:
-            envs._decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
+            envs.decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
         return (time.perf_counter() - start) / steps * 1e6
     finally:
         envs.close()
@@ -202,7 +202,7 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
     envs = DinerDashVectorEnv(num_envs, address, transport="shm")
     try:
         envs.reset(seed=0)
-        fleet, present = envs._fleet, np.ones(num_envs, dtype=np.bool_)
+        fleet, present = envs.fleet, np.ones(num_envs, dtype=np.bool_)
         names = ("observations", "rewards", "terminated", "truncated", "action_masks")
         names += ("scores", "lost", "ticks", "seeds")
         actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, (steps, num_envs), np.int32)
@@ -246,13 +246,13 @@ def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
     envs = DinerDashVectorEnv(num_envs, address, transport="shm")
     try:
         envs.reset(seed=0)
-        (core,) = envs._cores
+        (core,) = envs.fleet.cores
         transport, channel = core.transport, core.transport.channel
         receive, waited = transport.receive, [0.0]
 
         def timed():
             batch = receive()
-            waited[0] += time.perf_counter() - channel._sent
+            waited[0] += time.perf_counter() - channel.sent
             return batch
 
         transport.receive = timed  # this env's only: an instance attribute
