@@ -42,8 +42,6 @@ from ._arguments import (
     RENDER_MODES,
     Config,
     check_options,
-    check_render_mode,
-    expert_fields,
     make_arrivals,
     make_config,
 )
@@ -54,7 +52,6 @@ from ._proto import pb
 from ._session import (
     SessionCore,
     SessionOwner,
-    Settings,
     check_actions,
 )
 from .connection import ConnectOptions
@@ -156,17 +153,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             "autoreset_mode": mode,
         }
         self.autoreset_mode = mode
-        self.render_mode = check_render_mode(render_mode)
         self.num_envs = int(num_envs)
-        expert_request = expert_fields(expert)
-        self.expert = expert_request["expert_actions"]
-        self._options = ConnectOptions.merged(
-            connect, "DinerDashVectorEnv", address=address, **connection
-        )
-        self.reconnect = self._options.reconnect
-        self.reconnect_timeout = self._options.reconnect_timeout
-        self.failover_after = self._options.failover_after
-        self.ansi_color = ansi_color
+        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
         config = make_config(config)
         if max_episode_steps is not None:
             cfg = pb.GameConfig()
@@ -174,14 +162,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 cfg.CopyFrom(config)
             cfg.time_limit = int(max_episode_steps)
             config = cfg
-        self._settings = Settings(
+        self.failover_after = self._options.failover_after
+        self._settings = self._settings_for(
             num_envs=self.num_envs,
             autoreset_mode=mode,
             config=config,
-            expert=self.expert,
-            expert_policy=expert_request["expert_policy"],
-            reconnect=self.reconnect,
-            reconnect_timeout=self.reconnect_timeout,
             failover_after=self.failover_after,
         )
         self._open()
@@ -494,10 +479,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return obs, rewards, terminated, truncated, info
 
     def render(self) -> tuple[Any, ...] | None:
-        if self.render_mode is None:
-            gym.logger.warn(
-                "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
-            )
+        if not self._renders():
             return None
         self._check_idle("render()")
         if self.render_mode == "ansi":
