@@ -344,3 +344,58 @@ def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> Non
         "new.start",
         "new.spec.update()",
     ], found
+
+
+def _unread_internal_names(root: Path) -> list[str]:
+    """The package-internal module-level names (a function, class or assignment named ``_x``,
+    or any in a private module ``_x.py``/package ``_x/``) that no code of the package reads:
+    by name, anywhere in the package (a use under another object of the same name hides one;
+    the check errs towards silence, never towards a false alarm)."""
+    paths = [p for p in sorted(root.rglob("*.py")) if "_proto" not in p.parts]
+    read: set[str] = set()
+    defined: list[tuple[str, str]] = []
+    for path in paths:
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Load):
+                read.add(node.id)
+            elif isinstance(node, ast.Attribute):
+                read.add(node.attr)
+            elif isinstance(node, ast.alias):
+                read.add(node.name.rpartition(".")[2])
+        parts = path.relative_to(root).parts
+        internal = any(p.startswith("_") and not p.startswith("__") for p in parts)
+        for node in tree.body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                names = [node.name]
+            elif isinstance(node, ast.Assign):
+                names = [t.id for t in node.targets if isinstance(t, ast.Name)]
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                names = [node.target.id]
+            else:
+                names = []
+            defined += [
+                (f"{path.relative_to(root)}:{node.lineno}", name)
+                for name in names
+                if not name.startswith("__") and (internal or name.startswith("_"))
+            ]
+    return [f"{where}: {name}" for where, name in defined if name not in read]
+
+
+def test_the_package_holds_no_test_only_code() -> None:
+    """Read with :mod:`ast`: every package-internal module-level name of the client is read by
+    the client itself. One only tests read (as ``_shm._CHANNELS`` was) belongs in ``tests/``
+    (or in :mod:`dinerdash.testing`, public, when it helps users test), one nobody reads goes."""
+    found = _unread_internal_names(PACKAGES["dinerdash"])
+    assert not found, "internal names the package never reads: " + "; ".join(found)
+
+
+def test_the_test_only_check_finds_an_unread_internal_name(tmp_path: Path) -> None:
+    (tmp_path / "_inner.py").write_text("def used():\n    pass\nTESTS_ONLY = 1\n")
+    (tmp_path / "outer.py").write_text(
+        "from ._inner import used\n_unread = 2\nPUBLIC = 3\n\ndef f():\n    used()\n"
+    )
+    assert [w.split(": ", 1)[1] for w in _unread_internal_names(tmp_path)] == [
+        "TESTS_ONLY",
+        "_unread",
+    ]

@@ -75,7 +75,7 @@ def test_the_region_is_used_and_refuses_bad_actions_as_grpc_does(server) -> None
         refused = {}
         for transport, env in envs.items():
             env.reset(seed=1)
-            core = env._cores[0]
+            core = env.fleet.cores[0]
             # Past the client's own check, as a client of another language could send them.
             bad = np.array([0, 57, 0], dtype="<i4").tobytes()
             with pytest.raises(InvalidArgument) as e:
@@ -348,7 +348,7 @@ def test_a_doorbell_answered_by_another_process_is_told_nothing(
     try:
         env.reset(seed=0)
         core = env._core
-        assert core in _shm._CHANNELS
+        assert env.transports == {server.address: "shm"}
         # The server's announced pid, but another process answers under the doorbell's name
         # (this test's: as a process that took the name of a server gone would).
         core.offer = dataclasses.replace(core.offer, doorbell=name)
@@ -359,7 +359,7 @@ def test_a_doorbell_answered_by_another_process_is_told_nothing(
                     core.attach()
             else:
                 core.attach()
-        assert core not in _shm._CHANNELS
+        assert env.transports == {server.address: "grpc"}
         if transport == "auto":
             assert (
                 f"the doorbell is not the server's: the doorbell {name!r} is answered by pid "
@@ -429,7 +429,7 @@ def test_a_doorbell_of_another_user_is_told_nothing(server, caplog) -> None:
         core.offer = dataclasses.replace(core.offer, doorbell=name, pid=fake.pid)
         with caplog.at_level(logging.DEBUG, logger="dinerdash"):
             core.attach()
-        assert core not in _shm._CHANNELS
+        assert env.transports == {server.address: "grpc"}
         assert f"is answered by uid 65534, not this user (uid {os.geteuid()})" in caplog.text
         assert fake.stdout.readline().strip() == b"nothing"
         env.step(0)
@@ -474,7 +474,7 @@ def test_a_forked_session_attaches_with_its_own_secret(server) -> None:
         for _ in range(3):
             (obs, reward, *_), (twin, twin_reward, *_) = env.step(1), child.step(1)
             assert np.array_equal(obs, twin) and reward == twin_reward
-        assert child._core in _shm._CHANNELS
+        assert child.transports == {server.address: "shm"}
     finally:
         if child is not None:
             child.close()

@@ -231,7 +231,7 @@ def test_over_shared_memory_step_async_rings_and_starts_no_thread(address: str) 
         for envs in pair:
             envs.step_async(np.zeros(3, dtype=np.int64))
         for envs in pair:  # both replies are in, neither yet collected
-            (core,) = envs._cores
+            (core,) = envs.fleet.cores
             assert core.rung is not None and core.caller is None
             assert core.transport.ready(30.0)
         for envs in pair:

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from dinerdash import DinerDashEnv, DinerDashVectorEnv, _shm
+from dinerdash import DinerDashEnv, DinerDashVectorEnv
 from gymnasium.vector import AutoresetMode
 
 from .test_shm import regions
@@ -68,7 +68,7 @@ def test_a_single_env_takes_shared_memory_and_stays_on_it(server) -> None:
 def _hang_up(env: DinerDashVectorEnv) -> None:
     """Makes the server give up its side of the env's doorbell: the doorbell is rung without a
     reply ever being read, until the server hangs up rather than wait."""
-    channel = _shm._CHANNELS[env._cores[0]]
+    channel = env.fleet.cores[0].transport.channel
     channel.sock.setblocking(False)
     deadline = time.monotonic() + PATIENCE
     while True:

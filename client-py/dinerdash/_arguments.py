@@ -15,7 +15,6 @@ from ._proto import pb
 CONFIG_FIELDS = tuple(f.name for f in pb.GameConfig.DESCRIPTOR.fields)
 
 Config = Mapping[str, int] | pb.GameConfig | None
-Arrivals = Sequence[tuple[int, int]] | Sequence[Mapping[str, int]]
 
 
 #: The ``expert=`` values that name a server-side expert, and the policy the server plays for them.

@@ -26,16 +26,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import grpc
+import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
 from . import _shm, _transport
-from ._arguments import config_dict
+from ._arguments import check_render_mode, config_dict, expert_fields
 from ._batch import Batch, interrupt
 from ._endpoint import Endpoint
 from ._proto import pb
 from ._step_thread import Caller
-from .connection import Connection
+from .connection import Connection, ConnectOptions
 from .errors import (
     InvalidArgument,
     NoServerLeft,
@@ -131,6 +132,50 @@ class SessionOwner:
 
     _endpoint: Endpoint
     spec_proto: pb.Spec
+
+    def _renders(self) -> bool:
+        """Whether ``render()`` draws: with no ``render_mode`` it warns (as Gymnasium's envs do)
+        and returns ``None``."""
+        if self.render_mode is None:
+            gym.logger.warn(
+                "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
+            )
+            return False
+        return True
+
+    def _take_arguments(
+        self,
+        address: Any,
+        expert: bool | str,
+        render_mode: str | None,
+        ansi_color: bool,
+        connect: ConnectOptions | None,
+        connection: dict[str, Any],
+    ) -> None:
+        """Checks and keeps the constructor's arguments both envs take: ``render_mode``,
+        ``expert``, ``ansi_color`` and the merged :class:`ConnectOptions` (errors in the name of
+        the env's class, as Python's own)."""
+        self.render_mode = check_render_mode(render_mode)
+        expert_request = expert_fields(expert)
+        self.expert = expert_request["expert_actions"]
+        self._expert_policy = expert_request["expert_policy"]
+        self._options = options = ConnectOptions.merged(
+            connect, type(self).__name__, address=address, **connection
+        )
+        self.reconnect = options.reconnect
+        self.reconnect_timeout = options.reconnect_timeout
+        self.ansi_color = ansi_color
+
+    def _settings_for(self, **settings: Any) -> Settings:
+        """The :class:`Settings` of the env's cores: the arguments :meth:`_take_arguments` kept
+        and ``settings`` (``num_envs``, ``autoreset_mode``, ``config``, ``failover_after``)."""
+        return Settings(
+            expert=self.expert,
+            expert_policy=self._expert_policy,
+            reconnect=self.reconnect,
+            reconnect_timeout=self.reconnect_timeout,
+            **settings,
+        )
 
     @property
     def server(self):

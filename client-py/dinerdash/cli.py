@@ -174,7 +174,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
-    from .evaluation import Progress, collect, write_minari
+    from .evaluation import Progress, collect
 
     if args.from_play:
         return _cmd_collect_play(args)
@@ -190,12 +190,19 @@ def _cmd_collect(args: argparse.Namespace) -> int:
         **connection_keywords(args),
     )
     progress.close()
+    return _write_collected(collected, "episodes", args.dataset_id or f"dinerdash/{args.policy}-v0")
+
+
+def _write_collected(collected: Any, unit: str, dataset_id: str) -> int:
+    """Says what ``collect`` wrote (the ``.npz``: its ``unit``, steps and score) and writes its
+    Minari dataset ``dataset_id`` beside it (``minari`` is optional: a missing one is said)."""
+    from .evaluation import write_minari
+
     scores = collected.scores
     print(
-        f"wrote {collected.path}: {len(collected.episodes)} episodes, {collected.steps} steps, "
+        f"wrote {collected.path}: {len(collected.episodes)} {unit}, {collected.steps} steps, "
         f"score {scores.mean():.1f} ± {scores.std():.1f}"
     )
-    dataset_id = args.dataset_id or f"dinerdash/{args.policy}-v0"
     try:
         minari_path = write_minari(collected, dataset_id)
     except Exception as e:  # minari is optional: say why its dataset is missing, keep the .npz
@@ -212,7 +219,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
 def _cmd_collect_play(args: argparse.Namespace) -> int:
     """``collect --from-play REC.json ...``: the recordings of /play games, replayed."""
-    from .evaluation import Progress, write_minari
+    from .evaluation import Progress
     from .play import RecordingError, collect_from_play
 
     progress = Progress(len(args.from_play), "replay")
@@ -229,20 +236,7 @@ def _cmd_collect_play(args: argparse.Namespace) -> int:
         print(f"error: {e} (nothing written)", file=sys.stderr)
         return 1
     progress.close()
-    scores = collected.scores
-    print(
-        f"wrote {collected.path}: {len(collected.episodes)} games, {collected.steps} steps, "
-        f"score {scores.mean():.1f} ± {scores.std():.1f}"
-    )
-    dataset_id = args.dataset_id or "dinerdash/play-v0"
-    try:
-        minari_path = write_minari(collected, dataset_id)
-    except Exception as e:  # minari is optional: say why its dataset is missing, keep the .npz
-        print(f"error: could not write the Minari dataset: {e!r}", file=sys.stderr)
-        return 1
-    if minari_path is not None:
-        print(f"wrote Minari dataset {dataset_id} to {minari_path}")
-    return 0
+    return _write_collected(collected, "games", args.dataset_id or "dinerdash/play-v0")
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

@@ -21,15 +21,13 @@ from ._arguments import (
     RENDER_MODES,
     Config,
     check_options,
-    check_render_mode,
-    expert_fields,
     make_arrivals,
     make_config,
 )
 from ._batch import decode_one, outcome_one
 from ._endpoint import Endpoint
 from ._proto import pb
-from ._session import SessionCore, SessionOwner, Settings, check_actions
+from ._session import SessionCore, SessionOwner, check_actions
 from .connection import Connection, ConnectOptions
 from .errors import EnvClosed, InvalidArgument, SessionNotFound
 from .game import NUM_ACTIONS, observation_space
@@ -190,23 +188,9 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         connect: ConnectOptions | None = None,
         **connection: Any,
     ) -> None:
-        self.render_mode = check_render_mode(render_mode)
-        expert_request = expert_fields(expert)
-        self.expert = expert_request["expert_actions"]
-        self._options = ConnectOptions.merged(
-            connect, "DinerDashEnv", address=address, **connection
-        )
-        self.reconnect = self._options.reconnect
-        self.reconnect_timeout = self._options.reconnect_timeout
-        self.ansi_color = ansi_color
-        self._settings = Settings(
-            num_envs=1,
-            autoreset_mode=AutoresetMode.DISABLED,
-            config=make_config(config),
-            expert=self.expert,
-            expert_policy=expert_request["expert_policy"],
-            reconnect=self.reconnect,
-            reconnect_timeout=self.reconnect_timeout,
+        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
+        self._settings = self._settings_for(
+            num_envs=1, autoreset_mode=AutoresetMode.DISABLED, config=make_config(config)
         )
         self._last_obs: np.ndarray | None = None
         self._last_info: dict[str, Any] = {}
@@ -318,10 +302,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return self._last_info["action_mask"].copy()
 
     def render(self) -> str | np.ndarray | None:
-        if self.render_mode is None:
-            gym.logger.warn(
-                "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
-            )
+        if not self._renders():
             return None
         self._check_open("render()")
         if self.render_mode == "ansi":

@@ -42,8 +42,6 @@ from ._arguments import (
     RENDER_MODES,
     Config,
     check_options,
-    check_render_mode,
-    expert_fields,
     make_arrivals,
     make_config,
 )
@@ -54,7 +52,6 @@ from ._proto import pb
 from ._session import (
     SessionCore,
     SessionOwner,
-    Settings,
     check_actions,
 )
 from .connection import ConnectOptions
@@ -156,17 +153,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             "autoreset_mode": mode,
         }
         self.autoreset_mode = mode
-        self.render_mode = check_render_mode(render_mode)
         self.num_envs = int(num_envs)
-        expert_request = expert_fields(expert)
-        self.expert = expert_request["expert_actions"]
-        self._options = ConnectOptions.merged(
-            connect, "DinerDashVectorEnv", address=address, **connection
-        )
-        self.reconnect = self._options.reconnect
-        self.reconnect_timeout = self._options.reconnect_timeout
-        self.failover_after = self._options.failover_after
-        self.ansi_color = ansi_color
+        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
         config = make_config(config)
         if max_episode_steps is not None:
             cfg = pb.GameConfig()
@@ -174,14 +162,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 cfg.CopyFrom(config)
             cfg.time_limit = int(max_episode_steps)
             config = cfg
-        self._settings = Settings(
+        self.failover_after = self._options.failover_after
+        self._settings = self._settings_for(
             num_envs=self.num_envs,
             autoreset_mode=mode,
             config=config,
-            expert=self.expert,
-            expert_policy=expert_request["expert_policy"],
-            reconnect=self.reconnect,
-            reconnect_timeout=self.reconnect_timeout,
             failover_after=self.failover_after,
         )
         self._open()
@@ -204,6 +189,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._everyone = np.ones(self.num_envs, np.bool_)  # copied for each step's `_key` masks
         self._closed = False
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
+
+    @property
+    def fleet(self) -> Fleet:
+        """The servers and sessions this env steps (:class:`~dinerdash._fleet.Fleet`; its
+        ``cores`` are the sessions, in environment order, each with its ``transport``). For the
+        package's bench and the tests that look inside a step; not a stable API."""
+        return self._fleet
 
     @property
     def _cores(self) -> list[SessionCore]:
@@ -376,9 +368,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_idle("step()")
         self._check_open("step()")
         if self._fleet.blocking():
-            return self._decode_step(self._fleet.step(wire))
+            return self.decode_step(self._fleet.step(wire))
         self._start(wire)
-        return self._decode_step(self._finish())
+        return self.decode_step(self._finish())
 
     def step_async(self, actions: Any) -> None:
         """Sends this step's ``actions`` to the server(s) and returns at once; :meth:`step_wait`
@@ -414,7 +406,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                     f"step_wait(): no reply within {timeout:g} s; the step is still "
                     "pending, call step_wait() again"
                 )
-        return self._decode_step(self._finish())
+        return self.decode_step(self._finish())
 
     def _check_idle(self, what: str) -> None:
         if self._pending:
@@ -443,7 +435,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         return join(self._fleet.batches())["action_masks"].copy()
 
-    def _decode_step(self, batches: list[Batch]):
+    def decode_step(self, batches: list[Batch]):
+        """The step's ``(obs, rewards, terminated, truncated, info)`` from the sessions' replies
+        (``batches``, in environment order): what :meth:`step` and :meth:`step_wait` end in. It
+        advances the env's episode seeds, so only the bench calls it besides them, to time it."""
         n = self.num_envs
         batch = join(batches)
         everyone = self._everyone
@@ -484,10 +479,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return obs, rewards, terminated, truncated, info
 
     def render(self) -> tuple[Any, ...] | None:
-        if self.render_mode is None:
-            gym.logger.warn(
-                "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
-            )
+        if not self._renders():
             return None
         self._check_idle("render()")
         if self.render_mode == "ansi":

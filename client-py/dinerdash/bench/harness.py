@@ -43,7 +43,16 @@ __all__ = ["ceiling", "ceiling_lines", "run", "scaling", "tcp_floor", "transport
 
 # The echo side of the TCP floor: a child process, so that the ping-pong crosses processes (and
 # cores) as a call to a server does; it prints its port, then echoes until the socket closes.
-_ECHO = """
+#: The echo children's loop: what their socket ``c`` receives goes back, until it closes.
+_ECHO_LOOP = """
+while True:
+    d = c.recv(64)
+    if not d:
+        break
+    c.sendall(d)
+"""
+_ECHO = (
+    """
 import socket
 s = socket.socket()
 s.bind(("127.0.0.1", 0))
@@ -51,12 +60,31 @@ s.listen(1)
 print(s.getsockname()[1], flush=True)
 c, _ = s.accept()
 c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-while True:
-    d = c.recv(64)
-    if not d:
-        break
-    c.sendall(d)
 """
+    + _ECHO_LOOP
+)
+
+
+def _ping_pong(sock: socket.socket, round_trips: int) -> float:
+    """Microseconds of one round trip of a byte over ``sock`` to an echo child, after 200 to
+    warm up."""
+    for _ in range(200):
+        sock.sendall(b"x")
+        sock.recv(64)
+    start = time.perf_counter()
+    for _ in range(round_trips):
+        sock.sendall(b"x")
+        sock.recv(64)
+    return (time.perf_counter() - start) / round_trips * 1e6
+
+
+def _reap(child: subprocess.Popen) -> None:
+    """Waits for an echo child whose socket closed (killed if it does not end)."""
+    try:
+        child.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
 
 
 def tcp_floor(round_trips: int = 5000) -> float:
@@ -68,20 +96,9 @@ def tcp_floor(round_trips: int = 5000) -> float:
         port = int(child.stdout.readline())
         with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            for _ in range(200):  # warm-up
-                sock.sendall(b"x")
-                sock.recv(64)
-            start = time.perf_counter()
-            for _ in range(round_trips):
-                sock.sendall(b"x")
-                sock.recv(64)
-            return (time.perf_counter() - start) / round_trips * 1e6
+            return _ping_pong(sock, round_trips)
     finally:
-        try:
-            child.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
+        _reap(child)
 
 
 def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
@@ -170,18 +187,18 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
             total = 0.0
             for _ in range(steps):
                 envs.step(rng.integers(0, NUM_ACTIONS, size=num_envs))
-                batches = [core.last for core in envs._cores]
+                batches = [core.last for core in envs.fleet.cores]
                 start = time.perf_counter()
-                envs._decode_step(batches)
+                envs.decode_step(batches)
                 total += time.perf_counter() - start
             return total / steps * 1e6
         replies = []
         for _ in range(steps):
             envs.step(rng.integers(0, NUM_ACTIONS, size=num_envs))
-            replies.append([core.last.to_pb().SerializeToString() for core in envs._cores])
+            replies.append([core.last.to_pb().SerializeToString() for core in envs.fleet.cores])
         start = time.perf_counter()
         for raw in replies:
-            envs._decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
+            envs.decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
         return (time.perf_counter() - start) / steps * 1e6
     finally:
         envs.close()
@@ -202,7 +219,7 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
     envs = DinerDashVectorEnv(num_envs, address, transport="shm")
     try:
         envs.reset(seed=0)
-        fleet, present = envs._fleet, np.ones(num_envs, dtype=np.bool_)
+        fleet, present = envs.fleet, np.ones(num_envs, dtype=np.bool_)
         names = ("observations", "rewards", "terminated", "truncated", "action_masks")
         names += ("scores", "lost", "ticks", "seeds")
         actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, (steps, num_envs), np.int32)
@@ -246,13 +263,13 @@ def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
     envs = DinerDashVectorEnv(num_envs, address, transport="shm")
     try:
         envs.reset(seed=0)
-        (core,) = envs._cores
+        (core,) = envs.fleet.cores
         transport, channel = core.transport, core.transport.channel
         receive, waited = transport.receive, [0.0]
 
         def timed():
             batch = receive()
-            waited[0] += time.perf_counter() - channel._sent
+            waited[0] += time.perf_counter() - channel.sent
             return batch
 
         transport.receive = timed  # this env's only: an instance attribute
@@ -312,15 +329,7 @@ def ceiling(sizes: list[int], seconds: float = 2.0) -> dict[int, tuple[float, fl
     return {n: (local, grpc) for n, _, _, local, grpc in ceiling_lines(sizes, seconds)}
 
 
-_SEQPACKET_ECHO = """
-import socket, sys
-s = socket.socket(fileno=int(sys.argv[1]))
-while True:
-    d = s.recv(64)
-    if not d:
-        break
-    s.send(d)
-"""
+_SEQPACKET_ECHO = "import socket, sys\nc = socket.socket(fileno=int(sys.argv[1]))\n" + _ECHO_LOOP
 
 
 def doorbell_floor(round_trips: int = 5000) -> float:
@@ -334,21 +343,10 @@ def doorbell_floor(round_trips: int = 5000) -> float:
     )
     theirs.close()
     try:
-        for _ in range(200):
-            mine.send(b"x")
-            mine.recv(64)
-        start = time.perf_counter()
-        for _ in range(round_trips):
-            mine.send(b"x")
-            mine.recv(64)
-        return (time.perf_counter() - start) / round_trips * 1e6
+        return _ping_pong(mine, round_trips)
     finally:
         mine.close()
-        try:
-            child.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
+        _reap(child)
 
 
 def transports(

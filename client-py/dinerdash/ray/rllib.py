@@ -74,40 +74,11 @@ def _dict_space(observations: spaces.Box, num_actions: int) -> spaces.Dict:
     )
 
 
-class MaskedObservation(gym.Wrapper):
-    """A :class:`~dinerdash.DinerDashEnv` whose observation is RLlib's masking ``Dict``:
-    ``{"observations": (40,) float32, "action_mask": (57,) float32 of 0/1}`` (the mask of the
-    same state, ``info["action_mask"]``, which the info then no longer carries)."""
+class _Masking:
+    """``reset()`` and ``step()`` of both wrappers: the observation becomes RLlib's masking
+    ``Dict`` and the info gives up its ``action_mask`` (and a vector env's ``_action_mask``)."""
 
-    def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
-        self.observation_space = _dict_space(env.observation_space, int(env.action_space.n))
-
-    @staticmethod
-    def _masked(obs: np.ndarray, info: dict[str, Any]) -> dict[str, np.ndarray]:
-        mask = info.pop("action_mask")
-        return {"observations": obs, "action_mask": mask.astype(np.float32)}
-
-    def reset(self, **kwargs: Any):
-        obs, info = self.env.reset(**kwargs)
-        return self._masked(obs, info), info
-
-    def step(self, action: Any):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        return self._masked(obs, info), reward, terminated, truncated, info
-
-
-class VectorMaskedObservation(VectorWrapper):
-    """The same ``Dict`` observation for a :class:`~dinerdash.DinerDashVectorEnv`: every value
-    with a leading axis of ``num_envs``."""
-
-    def __init__(self, env: DinerDashVectorEnv) -> None:
-        super().__init__(env)
-        n = int(env.single_action_space.n)
-        self.single_observation_space = _dict_space(env.single_observation_space, n)
-        self.observation_space = gym.vector.utils.batch_space(
-            self.single_observation_space, env.num_envs
-        )
+    env: Any
 
     @staticmethod
     def _masked(obs: np.ndarray, info: dict[str, Any]) -> dict[str, np.ndarray]:
@@ -119,9 +90,32 @@ class VectorMaskedObservation(VectorWrapper):
         obs, info = self.env.reset(**kwargs)
         return self._masked(obs, info), info
 
-    def step(self, actions: Any):
-        obs, rewards, terminated, truncated, info = self.env.step(actions)
-        return self._masked(obs, info), rewards, terminated, truncated, info
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self._masked(obs, info), reward, terminated, truncated, info
+
+
+class MaskedObservation(_Masking, gym.Wrapper):
+    """A :class:`~dinerdash.DinerDashEnv` whose observation is RLlib's masking ``Dict``:
+    ``{"observations": (40,) float32, "action_mask": (57,) float32 of 0/1}`` (the mask of the
+    same state, ``info["action_mask"]``, which the info then no longer carries)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.observation_space = _dict_space(env.observation_space, int(env.action_space.n))
+
+
+class VectorMaskedObservation(_Masking, VectorWrapper):
+    """The same ``Dict`` observation for a :class:`~dinerdash.DinerDashVectorEnv`: every value
+    with a leading axis of ``num_envs``."""
+
+    def __init__(self, env: DinerDashVectorEnv) -> None:
+        super().__init__(env)
+        n = int(env.single_action_space.n)
+        self.single_observation_space = _dict_space(env.single_observation_space, n)
+        self.observation_space = gym.vector.utils.batch_space(
+            self.single_observation_space, env.num_envs
+        )
 
 
 def _runner_index(config: Mapping[str, Any]) -> tuple[int, int]:
