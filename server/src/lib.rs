@@ -81,6 +81,30 @@ pub mod pb {
     /// The encoded descriptor set of `dinerdash.proto`, served by gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] =
         include_bytes!(concat!(env!("OUT_DIR"), "/dinerdash_descriptor.bin"));
+
+    impl GameConfig {
+        /// The game configuration this message asks for: absent fields keep ruleset `v0`'s (not
+        /// yet validated). The gRPC service and the web endpoint's games both read it so.
+        pub fn config(&self) -> crate::sim::Config {
+            let d = crate::sim::Config::default();
+            crate::sim::Config {
+                arrival_interval: self.arrival_interval.unwrap_or(d.arrival_interval),
+                patience: [
+                    self.patience_type1.unwrap_or(d.patience[0]),
+                    self.patience_type2.unwrap_or(d.patience[1]),
+                ],
+                decay: [
+                    self.decay_type1.unwrap_or(d.decay[0]),
+                    self.decay_type2.unwrap_or(d.decay[1]),
+                ],
+                reading_ticks: self.reading_ticks.unwrap_or(d.reading_ticks),
+                cooking_ticks: self.cooking_ticks.unwrap_or(d.cooking_ticks),
+                eating_ticks: self.eating_ticks.unwrap_or(d.eating_ticks),
+                lives: self.lives.unwrap_or(d.lives),
+                time_limit: self.time_limit.unwrap_or(d.time_limit),
+            }
+        }
+    }
 }
 
 /// This server's version, reported in `Spec` and `ServerInfo`.

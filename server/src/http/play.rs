@@ -21,6 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Viewer;
 use crate::budget::{Charge, Share, Tenant};
+use crate::pb;
 use crate::policy::expert_action;
 use crate::session::{
     Autoreset, Caller, ExpertActions, FoundSession, Owner, ResetArgs, SessionError, SessionOptions,
@@ -88,8 +89,7 @@ impl From<SessionError> for PlayError {
 
 /// A game's configuration as JSON and as the new-game query, in the protocol's `GameConfig`
 /// field names (what the Python client's `config` takes, so that a recording's `config` is one),
-/// absent fields the ruleset's. (The web endpoint sits below the gRPC service, so it does not
-/// borrow the service's conversion of the message itself.)
+/// absent fields the ruleset's, as [`pb::GameConfig::config`] reads them.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ConfigJson {
@@ -138,23 +138,19 @@ impl ConfigJson {
 
     /// The configuration, absent fields the ruleset's (not yet validated).
     fn config(&self) -> Config {
-        let d = Config::default();
-        Config {
-            arrival_interval: self.arrival_interval.unwrap_or(d.arrival_interval),
-            patience: [
-                self.patience_type1.unwrap_or(d.patience[0]),
-                self.patience_type2.unwrap_or(d.patience[1]),
-            ],
-            decay: [
-                self.decay_type1.unwrap_or(d.decay[0]),
-                self.decay_type2.unwrap_or(d.decay[1]),
-            ],
-            reading_ticks: self.reading_ticks.unwrap_or(d.reading_ticks),
-            cooking_ticks: self.cooking_ticks.unwrap_or(d.cooking_ticks),
-            eating_ticks: self.eating_ticks.unwrap_or(d.eating_ticks),
-            lives: self.lives.unwrap_or(d.lives),
-            time_limit: self.time_limit.unwrap_or(d.time_limit),
+        pb::GameConfig {
+            arrival_interval: self.arrival_interval,
+            patience_type1: self.patience_type1,
+            patience_type2: self.patience_type2,
+            decay_type1: self.decay_type1,
+            decay_type2: self.decay_type2,
+            reading_ticks: self.reading_ticks,
+            cooking_ticks: self.cooking_ticks,
+            eating_ticks: self.eating_ticks,
+            lives: self.lives,
+            time_limit: self.time_limit,
         }
+        .config()
     }
 
     /// Sets field `name` from `value`.

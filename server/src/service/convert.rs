@@ -12,26 +12,7 @@ use crate::sim::{self, Config, NUM_ACTIONS, OBSERVATION_SIZE};
 
 /// The game configuration of a request: absent fields (or an absent message) keep `v0`.
 pub(super) fn config_from(config: Option<&pb::GameConfig>) -> Config {
-    let d = Config::default();
-    let Some(c) = config else {
-        return d;
-    };
-    Config {
-        arrival_interval: c.arrival_interval.unwrap_or(d.arrival_interval),
-        patience: [
-            c.patience_type1.unwrap_or(d.patience[0]),
-            c.patience_type2.unwrap_or(d.patience[1]),
-        ],
-        decay: [
-            c.decay_type1.unwrap_or(d.decay[0]),
-            c.decay_type2.unwrap_or(d.decay[1]),
-        ],
-        reading_ticks: c.reading_ticks.unwrap_or(d.reading_ticks),
-        cooking_ticks: c.cooking_ticks.unwrap_or(d.cooking_ticks),
-        eating_ticks: c.eating_ticks.unwrap_or(d.eating_ticks),
-        lives: c.lives.unwrap_or(d.lives),
-        time_limit: c.time_limit.unwrap_or(d.time_limit),
-    }
+    config.map_or_else(Config::default, pb::GameConfig::config)
 }
 
 /// A configuration with every field present.
