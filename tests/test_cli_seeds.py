@@ -27,6 +27,8 @@ def test_evaluate_defaults_to_the_evaluation_seeds(
     [
         ("evaluate", ["(default: 1000)", "(default: 100)", "(default: expert)"]),
         ("collect", ["(default: 0)", "(default: 274)", "below the evaluation seeds 1000..1099"]),
+        ("bench", ["(default: 20000)", "(default: 256)", "(default: 3)"]),
+        ("watch", ["(default: 0)"]),
     ],
 )
 def test_help_shows_the_defaults(

@@ -357,10 +357,12 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_collect)
 
     p = sub.add_parser(
-        "bench", help="steps/s of a single env and of make_vec, beside the machine's floors"
+        "bench",
+        help="steps/s of a single env and of make_vec, beside the machine's floors",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--steps", type=int, default=20_000, help="single-env steps (0: skip)")
-    p.add_argument("--num-envs", type=int, default=256)
+    p.add_argument("--num-envs", type=int, default=256, help="environments of the vector env")
     p.add_argument("--vec-steps", type=int, default=2_000, help="vector steps (0: skip)")
     p.add_argument(
         "--pipeline",
@@ -394,13 +396,13 @@ def _parser() -> argparse.ArgumentParser:
         "--rounds",
         type=_positive_int,
         default=3,
-        help="rounds of the transports table, taking turns; each figure is the best (default 3)",
+        help="rounds of the transports table, taking turns; each figure is the best",
     )
     p.add_argument(
         "--ceiling-seconds",
         type=_positive_float,
         default=1.0,
-        help="seconds of each measurement of the server's own rates (default 1)",
+        help="seconds of each measurement of the server's own rates",
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_bench)
@@ -409,6 +411,7 @@ def _parser() -> argparse.ArgumentParser:
         "watch",
         help="the URL of a server's web pages (its live sessions, any environment playing); "
         "opens a browser when there is one",
+        formatter_class=DefaultsHelpFormatter,
         description="Prints the URL of the web pages of the server at --address (default: "
         "DINERDASH_ADDRESS, else 127.0.0.1:50051; it must run with --http-port).",
     )
