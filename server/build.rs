@@ -19,6 +19,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .codec_path("crate::codec::StrictCodec")
         // Its Debug is written by hand (service/convert.rs): it must not print shm_secret.
         .skip_debug([".dinerdash.v1.CreateSessionResponse"])
+        // The web endpoint's games read and write a configuration as JSON in these names.
+        .type_attribute(
+            ".dinerdash.v1.GameConfig",
+            "#[derive(serde::Serialize, serde::Deserialize)] #[serde(deny_unknown_fields)]",
+        )
         .emit_rerun_if_changed(false)
         .compile_fds(fds)?;
     Ok(())

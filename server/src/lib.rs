@@ -83,6 +83,22 @@ pub mod pb {
         include_bytes!(concat!(env!("OUT_DIR"), "/dinerdash_descriptor.bin"));
 
     impl GameConfig {
+        /// `config` with every field present.
+        pub fn of(c: &crate::sim::Config) -> GameConfig {
+            GameConfig {
+                arrival_interval: Some(c.arrival_interval),
+                patience_type1: Some(c.patience[0]),
+                patience_type2: Some(c.patience[1]),
+                decay_type1: Some(c.decay[0]),
+                decay_type2: Some(c.decay[1]),
+                reading_ticks: Some(c.reading_ticks),
+                cooking_ticks: Some(c.cooking_ticks),
+                eating_ticks: Some(c.eating_ticks),
+                lives: Some(c.lives),
+                time_limit: Some(c.time_limit),
+            }
+        }
+
         /// The game configuration this message asks for: absent fields keep ruleset `v0`'s (not
         /// yet validated). The gRPC service and the web endpoint's games both read it so.
         pub fn config(&self) -> crate::sim::Config {

@@ -87,25 +87,10 @@ impl From<SessionError> for PlayError {
     }
 }
 
-/// A game's configuration as JSON and as the new-game query, in the protocol's `GameConfig`
-/// field names (what the Python client's `config` takes, so that a recording's `config` is one),
-/// absent fields the ruleset's, as [`pb::GameConfig::config`] reads them.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ConfigJson {
-    arrival_interval: Option<u32>,
-    patience_type1: Option<u32>,
-    patience_type2: Option<u32>,
-    decay_type1: Option<u32>,
-    decay_type2: Option<u32>,
-    reading_ticks: Option<u32>,
-    cooking_ticks: Option<u32>,
-    eating_ticks: Option<u32>,
-    lives: Option<u32>,
-    time_limit: Option<u32>,
-}
-
-impl ConfigJson {
+/// A game's configuration as JSON and as the new-game query: the protocol's `GameConfig` (its
+/// field names are what the Python client's `config` takes, so that a recording's `config` is
+/// one), absent fields the ruleset's ([`pb::GameConfig::config`]).
+impl pb::GameConfig {
     /// The field names, for the new-game query.
     const FIELDS: [&'static str; 10] = [
         "arrival_interval",
@@ -119,39 +104,6 @@ impl ConfigJson {
         "lives",
         "time_limit",
     ];
-
-    /// Every field of `config`.
-    fn of(c: &Config) -> ConfigJson {
-        ConfigJson {
-            arrival_interval: Some(c.arrival_interval),
-            patience_type1: Some(c.patience[0]),
-            patience_type2: Some(c.patience[1]),
-            decay_type1: Some(c.decay[0]),
-            decay_type2: Some(c.decay[1]),
-            reading_ticks: Some(c.reading_ticks),
-            cooking_ticks: Some(c.cooking_ticks),
-            eating_ticks: Some(c.eating_ticks),
-            lives: Some(c.lives),
-            time_limit: Some(c.time_limit),
-        }
-    }
-
-    /// The configuration, absent fields the ruleset's (not yet validated).
-    fn config(&self) -> Config {
-        pb::GameConfig {
-            arrival_interval: self.arrival_interval,
-            patience_type1: self.patience_type1,
-            patience_type2: self.patience_type2,
-            decay_type1: self.decay_type1,
-            decay_type2: self.decay_type2,
-            reading_ticks: self.reading_ticks,
-            cooking_ticks: self.cooking_ticks,
-            eating_ticks: self.eating_ticks,
-            lives: self.lives,
-            time_limit: self.time_limit,
-        }
-        .config()
-    }
 
     /// Sets field `name` from `value`.
     fn set(&mut self, name: &str, value: &str) -> Result<(), PlayError> {
@@ -189,7 +141,7 @@ impl NewGame {
     /// The new game the query `params` asks for: `seed` and `GameConfig` fields; anything else
     /// is refused, naming what is accepted.
     pub fn from_query(params: &HashMap<String, String>) -> Result<NewGame, PlayError> {
-        let mut config = ConfigJson::default();
+        let mut config = pb::GameConfig::default();
         let mut seed = None;
         for (name, value) in params {
             if name == "seed" {
@@ -201,13 +153,13 @@ impl NewGame {
                         "seed must be a whole number in 0..=2^64-1, got {value:?}"
                     ))
                 })?);
-            } else if ConfigJson::FIELDS.contains(&name.as_str()) {
+            } else if pb::GameConfig::FIELDS.contains(&name.as_str()) {
                 config.set(name, value)?;
             } else {
                 let shown: String = name.chars().take(32).collect();
                 return Err(PlayError::BadRequest(format!(
                     "unknown parameter {shown:?}: a game takes seed and the GameConfig fields {}",
-                    ConfigJson::FIELDS.join(", ")
+                    pb::GameConfig::FIELDS.join(", ")
                 )));
             }
         }
@@ -323,7 +275,7 @@ impl Default for Plays {
 struct StateJson<'a> {
     session_id: &'a str,
     seed: u64,
-    config: ConfigJson,
+    config: pb::GameConfig,
     ruleset: &'static str,
     obs: Vec<i8>,
     tick: u32,
@@ -360,7 +312,7 @@ struct RecordingJson<'a> {
     server_version: &'static str,
     session_id: &'a str,
     seed: u64,
-    config: ConfigJson,
+    config: pb::GameConfig,
     actions: &'a [u8],
     score: i64,
     steps: usize,
@@ -534,7 +486,7 @@ impl Plays {
             server_version: crate::SERVER_VERSION,
             session_id: &game.id,
             seed: game.seed,
-            config: ConfigJson::of(&game.config),
+            config: pb::GameConfig::of(&game.config),
             actions: &record.actions,
             score: record.score,
             steps: record.actions.len(),
@@ -574,7 +526,7 @@ fn state(game: &Game, record: &Record, found: Option<&FoundSession>) -> String {
     let json = StateJson {
         session_id: &game.id,
         seed: game.seed,
-        config: ConfigJson::of(&game.config),
+        config: pb::GameConfig::of(&game.config),
         ruleset: sim::RULESET,
         obs: now.map(|r| r.observation().to_vec()).unwrap_or_default(),
         tick: now.map_or(record.actions.len() as u32, |r| r.tick()),

@@ -15,22 +15,6 @@ pub(super) fn config_from(config: Option<&pb::GameConfig>) -> Config {
     config.map_or_else(Config::default, pb::GameConfig::config)
 }
 
-/// A configuration with every field present.
-fn config_to(c: &Config) -> pb::GameConfig {
-    pb::GameConfig {
-        arrival_interval: Some(c.arrival_interval),
-        patience_type1: Some(c.patience[0]),
-        patience_type2: Some(c.patience[1]),
-        decay_type1: Some(c.decay[0]),
-        decay_type2: Some(c.decay[1]),
-        reading_ticks: Some(c.reading_ticks),
-        cooking_ticks: Some(c.cooking_ticks),
-        eating_ticks: Some(c.eating_ticks),
-        lives: Some(c.lives),
-        time_limit: Some(c.time_limit),
-    }
-}
-
 fn autoreset_to(mode: Autoreset) -> pb::AutoresetMode {
     match mode {
         Autoreset::NextStep => pb::AutoresetMode::NextStep,
@@ -156,7 +140,7 @@ fn spec_to(spec: &SessionSpec) -> pb::Spec {
         ruleset: sim::RULESET.into(),
         server_version: crate::SERVER_VERSION.into(),
         autoreset_mode: autoreset_to(spec.options.autoreset).into(),
-        config: Some(config_to(&spec.config)),
+        config: Some(pb::GameConfig::of(&spec.config)),
         action_masks: spec.options.action_masks,
         expert_actions: spec.options.expert_actions.enabled(),
         expert_policy: match spec.options.expert_actions {
