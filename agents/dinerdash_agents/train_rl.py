@@ -354,10 +354,10 @@ def _run(
     """Iterations on ``envs`` until the trainer has done them all, each added to the curve and
     the live curves, checkpointing every :data:`CHECKPOINT_EVERY` seconds; a lost server
     checkpoints and raises :class:`AgentsError`."""
-    # The bar counts environment steps, so that its rate is env-steps/s.
-    bar = Progress(trainer.iterations * trainer.per_iteration, algorithm) if progress else None
-    if bar is not None:
-        bar.update(trainer.steps)
+    # The bar counts this process's environment steps (a resumed run's earlier ones aside), so
+    # that its rate is env-steps/s.
+    remaining = trainer.iterations * trainer.per_iteration - trainer.steps
+    bar = Progress(remaining, algorithm) if progress else None
     last_save = time.monotonic()
     try:
         trainer.attach(envs)

@@ -115,7 +115,7 @@ def test_the_gail_discriminator_separates_expert_pairs_from_random_ones(expert_d
     assert accuracy > 0.8, accuracy
 
 
-def test_resume_continues_from_the_saved_step_count(server_address: str, tmp_path: Path):
+def test_resume_continues_from_the_saved_step_count(server_address: str, tmp_path: Path, capsys):
     out = tmp_path / "run"
     small = ["--num-envs", "8", "--address", server_address, "--out", str(out)]
     assert agents_main(["train", "ppo-masked", "--steps", "1500", *small]) == 0
@@ -126,7 +126,13 @@ def test_resume_continues_from_the_saved_step_count(server_address: str, tmp_pat
     assert len((out / "curve.csv").read_text().splitlines()) == 1 + 3
 
     resume = ["train", "ppo-masked", "--steps", "2500", "--resume", str(out), *small]
+    capsys.readouterr()
     assert agents_main(resume) == 0
+    # The resumed process's bar counts only its own steps, so that its rate is not inflated by
+    # the earlier process's (it once showed 10^15 env-steps/s).
+    bar = capsys.readouterr().err
+    assert f" {2 * per_iteration}/{2 * per_iteration} " in bar
+    assert f"/{5 * per_iteration} " not in bar
     second = json.loads((out / "checkpoint.json").read_text())
     assert second["data"]["environment_steps"] == 5 * per_iteration
     assert second["training"]["iterations"] == 5
