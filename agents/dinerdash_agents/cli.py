@@ -6,6 +6,7 @@ experiment end to end.
     python -m dinerdash_agents train bc --demos demos/dinerdash_expert.npz --out runs/bc
     python -m dinerdash_agents evaluate runs/bc --episodes 100 --seed 1000 --json
     python -m dinerdash_agents paper --out docs/results
+    python -m dinerdash_agents recipe --seed 0 --out runs/recipe-0
     python -m dinerdash_agents bench-ppo --num-envs 256 --iterations 10
 
 Every command that talks to a server takes ``--address host:port`` (several separated by
@@ -15,7 +16,8 @@ as there (:mod:`dinerdash.cli`, which both programs share).
 
 The commands are shells over :mod:`~dinerdash_agents.train_imitation`,
 :mod:`~dinerdash_agents.train_rl`, :mod:`~dinerdash_agents.evaluate`,
-:mod:`~dinerdash_agents.paper` and :mod:`~dinerdash_agents.bench`.
+:mod:`~dinerdash_agents.paper`, :mod:`~dinerdash_agents.recipe` and
+:mod:`~dinerdash_agents.bench`.
 """
 
 from __future__ import annotations
@@ -253,6 +255,15 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_recipe(args: argparse.Namespace) -> int:
+    from .recipe import run_recipe
+
+    record = run_recipe(args.out, seed=args.seed, ppo_steps=args.ppo_steps, connect=_connect(args))
+    stages = ", ".join(f"{name} {seconds:,.0f} s" for name, seconds in record["stages"].items())
+    print(f"wrote {args.out}: training seed {args.seed}, {stages} ({record['seconds']:,.0f} s)")
+    return 0
+
+
 def _cmd_bench_ppo(args: argparse.Namespace) -> int:
     import json
 
@@ -272,6 +283,7 @@ def _cmd_bench_ppo(args: argparse.Namespace) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from .recipe import PPO_STEPS
     from .train_rl import PIPELINE
 
     parser = argparse.ArgumentParser(
@@ -449,6 +461,23 @@ def _parser() -> argparse.ArgumentParser:
     )
     add_connection_arguments(p)
     p.set_defaults(func=_cmd_paper)
+
+    p = sub.add_parser(
+        "recipe",
+        help="the best learned policy's whole recipe for one training seed: DAgger from the "
+        "planner with memory features, then PPO from it (docs/agents.md)",
+        formatter_class=DefaultsHelpFormatter,
+    )
+    p.add_argument("--out", required=True, help="directory of the two stages' checkpoints")
+    p.add_argument("--seed", type=int, default=0, help="training seed of both stages")
+    p.add_argument(
+        "--ppo-steps",
+        type=int,
+        default=PPO_STEPS,
+        help="environment steps of the PPO stage (a stopped run is resumed to them)",
+    )
+    add_connection_arguments(p)
+    p.set_defaults(func=_cmd_recipe)
 
     p = sub.add_parser(
         "bench-ppo",
