@@ -1,29 +1,5 @@
-"""``LocalCluster``: n real ``dinerdash-server`` processes on 127.0.0.1, and the ways to lose them.
-
-Each server is a :class:`~dinerdash.server.LocalServer` (the same binary lookup: the ``binary``
-argument, ``DINERDASH_SERVER``, the ``dinerdash-server`` wheel, ``PATH``, the workspace's release
-build) listening on a port it picked itself; where ``setpriv`` is installed it dies with the
-thread that started it (``dinerdash.server._death_signal``), a thread of the cluster's own. A
-server keeps its index and its address for the whole life of the cluster:
-:meth:`LocalCluster.restart` starts it again on the same port, as a supervisor (systemd,
-Kubernetes, Ray) would.
-
-The faults are signals, so they are what a real machine does:
-
-================  ============  ================================================================
-method            signal        what a client sees
-================  ============  ================================================================
-``kill(i)``       ``SIGKILL``   a crash: connections reset, new ones refused
-``hang(i)``       ``SIGSTOP``   a hung process: connections stay up, nothing answers, not even
-                                HTTP/2 pings; ``resume(i)`` (``SIGCONT``) lets it go on
-``drain(i)``      ``SIGTERM``   a planned stop (a rolling update): what the server does on
-                                ``SIGTERM``, at once; ``wait(i)`` for it to exit
-``restart(i)``    ...           stops it (``SIGTERM`` and wait, or ``SIGKILL``), then the same
-                                port again
-================  ============  ================================================================
-
-Leaving the ``with`` block stops every server, hung ones included (they are resumed first):
-terminate, wait, kill.
+"""``LocalCluster``: n real ``dinerdash-server`` processes on 127.0.0.1, and the ways to lose
+them: signals, as a real machine does (docs/client.md#testing-your-own-training-code).
 """
 
 from __future__ import annotations
@@ -36,21 +12,17 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from ..errors import LocalServerError
 from ..server import LocalServer, find_server_binary, server_args
 
 __all__ = ["LocalCluster", "server_args"]
 
-#: Seconds a restarted server keeps trying its old port: a port just freed by a killed process
-#: can stay taken for a moment.
+#: Seconds a restarted server keeps trying its old port, which a killed process may still hold.
 REBIND_TIMEOUT = 10.0
 
 
 def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
-    """Waits until every thread of process ``pid`` is stopped: a signal is delivered after
-    ``kill`` returns, and a thread of the server on another core (a shared-memory session's,
-    polling for its next Step) may answer a call in between, even once the process's first
-    thread shows stopped. Linux only (``/proc``); elsewhere a short sleep."""
+    """Waits until every thread of process ``pid`` is stopped (a signal lands after ``kill``
+    returns, and a thread on another core may answer meanwhile). Linux only; elsewhere a sleep."""
     tasks = Path(f"/proc/{pid}/task")
     if not tasks.exists():
         time.sleep(0.1)
@@ -72,8 +44,8 @@ def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
 
 
 def _ready(address: str, timeout: float) -> None:
-    """Waits until the server at ``address`` answers a call: it printed its port once bound, and
-    installs its signal handlers only once it serves (a ``SIGTERM`` before would kill it)."""
+    """Waits until the server at ``address`` answers a call: its signal handlers are installed
+    only once it serves (a ``SIGTERM`` before would kill it)."""
     from ..connection import Connection
     from ..errors import ServiceError
 
@@ -84,18 +56,8 @@ def _ready(address: str, timeout: float) -> None:
 
 
 class LocalCluster:
-    """``n`` ``dinerdash-server`` processes on ``127.0.0.1``, for integration tests and chaos runs.
-
-    ::
-
-        from dinerdash.testing import LocalCluster
-
-        with LocalCluster(3, max_sessions=8) as cluster:
-            envs = DinerDashVectorEnv(6, cluster.addresses, reconnect=True, failover_after=2)
-            envs.reset(seed=0)
-            cluster.hang(1)          # SIGSTOP: its connections stay up, nothing answers
-            ...
-            cluster.resume(1)
+    """``n`` ``dinerdash-server`` processes on ``127.0.0.1``, for integration tests and chaos runs;
+    a server keeps its index and address for the cluster's life.
 
     Args:
         n: servers to start.
@@ -118,17 +80,12 @@ class LocalCluster:
     ) -> None:
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise ValueError(f"n: expected a number of servers >= 0, got {n!r}")
-        for reserved in ("host", "port"):
-            if reserved in server_flags:
-                raise ValueError(
-                    f"{reserved}: a LocalCluster's servers listen on 127.0.0.1 and a port each "
-                    "picks itself"
-                )
+        chosen = "a LocalCluster's servers listen on 127.0.0.1 and a port each picks itself"
+        self.args = server_args(server_flags, {"host": chosen, "port": chosen})
         self.binary = find_server_binary(binary)
         self.startup_timeout = startup_timeout
         self.stop_timeout = stop_timeout
         self.server_flags = dict(server_flags)
-        self.args = server_args(self.server_flags)
         #: The servers, one per index; a restarted server is a new object at the same index.
         self.servers: list[LocalServer] = []
         self._addresses: list[str] = []
@@ -153,8 +110,7 @@ class LocalCluster:
         return len(self.servers)
 
     def _start(self, port: int) -> LocalServer:
-        # Started from the cluster's own thread: on Linux a server dies with the thread that
-        # started it (--pdeathsig), and a caller's thread (a chaos monkey's) may end first.
+        # From the cluster's own thread: a server dies with the thread that started it.
         return self._launcher.submit(self._launch, port).result()
 
     def _launch(self, port: int) -> LocalServer:
@@ -164,6 +120,7 @@ class LocalCluster:
             args=self.args,
             startup_timeout=self.startup_timeout,
             stop_timeout=self.stop_timeout,
+            rebind_timeout=REBIND_TIMEOUT,
         )
         try:
             _ready(server.address, self.startup_timeout)
@@ -179,11 +136,8 @@ class LocalCluster:
         self._addresses.append(server.address)
         return len(self.servers) - 1
 
-    def _process(self, i: int):
-        process = self.servers[i].process
-        if process is None:  # pragma: no cover - LocalServer always has one after start
-            raise LocalServerError(f"server {i} ({self._addresses[i]}) was never started")
-        return process
+    def _process(self, i: int) -> subprocess.Popen:
+        return self.servers[i].process
 
     def pid(self, i: int) -> int:
         """The process id of server ``i`` (a restarted server has a new one)."""
@@ -270,17 +224,7 @@ class LocalCluster:
             else:
                 self.kill(i)
         self.servers[i].stop()  # closes its stderr file; the process is gone already
-        port = int(self._addresses[i].rsplit(":", 1)[1])
-        deadline = time.monotonic() + REBIND_TIMEOUT
-        while True:
-            try:
-                server = self._start(port)
-                break
-            except LocalServerError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
-        self.servers[i] = server
+        self.servers[i] = self._start(int(self._addresses[i].rsplit(":", 1)[1]))
         self._hung.discard(i)
 
     def close(self) -> None:

@@ -1,25 +1,6 @@
-"""``FaultProxy``: a TCP proxy on 127.0.0.1 that puts network faults between a client and a server.
-
-The client connects to :attr:`FaultProxy.address`; each connection is forwarded to ``target``
-until a fault is turned on:
-
-=================  =============================================================================
-``latency(s)``     every chunk of bytes is delivered ``s`` seconds after it arrived, both ways
-                   (order kept; throughput is not limited): a far or congested network
-``blackhole()``    connections stay open and new ones are accepted, but every byte, both ways,
-                   is swallowed: a network that drops packets without a reset, a paused VM
-``reset()``        every open connection is closed with a TCP reset (``SO_LINGER`` 0), once;
-                   new connections work: a middlebox or a peer that lost its state
-``cut()``          every open connection is reset, and new ones are accepted and reset at once
-                   (the port stays the proxy's) until :meth:`~FaultProxy.heal`: a partition
-``heal()``         back to plain forwarding. Connections that lost bytes to a black hole are
-                   reset (their streams have holes, as a TCP connection that timed out)
-=================  =============================================================================
-
-The proxy is stdlib only: an asyncio event loop in a daemon thread; the methods may be called from
-any thread and take effect before they return. :attr:`FaultProxy.bytes_from_clients` counts the
-bytes read from clients (delivered or swallowed): a test waits for it to grow past its value before
-a call to know that the call reached the proxy, rather than sleeping.
+"""``FaultProxy``: a TCP proxy on 127.0.0.1 that puts network faults between a client and a server
+(docs/client.md#testing-your-own-training-code). Stdlib only: an asyncio event loop in a daemon
+thread; the methods may be called from any thread and take effect before they return.
 """
 
 from __future__ import annotations
@@ -223,23 +204,7 @@ class _Link:
 
 class FaultProxy:
     """A TCP proxy from ``127.0.0.1:PORT`` (:attr:`address`) to ``target`` (``"host:port"``) whose
-    faults can be switched on and off while clients use it (see the module's table).
-
-    ::
-
-        with LocalCluster(1) as cluster, FaultProxy(cluster.addresses[0]) as proxy:
-            env = gymnasium.make("dinerdash:DinerDash-v0", address=proxy.address)
-            proxy.latency(0.05)   # 50 ms each way
-            proxy.blackhole()     # nothing gets through, nothing is closed
-            proxy.heal()
-
-    :attr:`bytes_from_clients` (read-only) counts every byte read from a client's connection,
-    whatever the mode (forwarded, delayed or swallowed by a black hole). A call has reached the
-    proxy once the count has grown past its value before the call was sent: e.g. to reset a
-    connection while a call is in flight, read the count, start the call, wait (bounded) until the
-    count grows, then :meth:`reset`. Bytes the client sends on its own (HTTP/2 pings, window
-    updates) count too: read the count after the connection's earlier calls have returned.
-    """
+    faults can be switched on and off while clients use it."""
 
     def __init__(self, target: str, *, host: str = "127.0.0.1", port: int = 0) -> None:
         target_host, _, target_port = target.rpartition(":")
@@ -293,8 +258,9 @@ class FaultProxy:
 
     @property
     def bytes_from_clients(self) -> int:
-        """Bytes read from clients' connections since the proxy started, forwarded or not
-        (see the class's doc); never decreases."""
+        """Bytes read from clients' connections since the proxy started, forwarded, delayed or
+        swallowed; never decreases. A call has reached the proxy once the count grew past its
+        value before the call (HTTP/2 pings count too: read it after earlier calls returned)."""
         return self._from_clients
 
     def _count_from_client(self, n: int) -> None:
