@@ -1,8 +1,5 @@
-"""Server-side rollouts: whole episodes played by the server's expert or random policy and
-streamed back, one message per episode (the ``Rollout`` RPC).
-
-This is the fast way to collect expert demonstrations or to evaluate the reference policies: no
-round trip per step.
+"""Server-side rollouts (the ``Rollout`` RPC): whole episodes played by the server's policies and
+streamed back, one message per episode, with no round trip per step.
 """
 
 from __future__ import annotations

@@ -15,14 +15,13 @@ import tempfile
 import threading
 import time
 import weakref
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from .errors import LocalServerError, ServerBinaryNotFound
 
-__all__ = ["LocalServer", "find_server_binary", "local_server_unless_addressed", "server_args"]
+__all__ = ["LocalServer", "find_server_binary", "server_args"]
 
 
 def server_args(flags: Mapping[str, Any], chosen: Mapping[str, str] | None = None) -> list[str]:
@@ -283,18 +282,3 @@ def _pump(stream, lines: queue.Queue) -> None:
     except (OSError, ValueError):
         pass
     lines.put(None)
-
-
-@contextmanager
-def local_server_unless_addressed(
-    address: str | list[str] | None,
-) -> Iterator[tuple[str | list[str] | None, LocalServer | None]]:
-    """``(address, server)`` for a command that plays against ``address``: as given, with no
-    server started, when ``address`` or ``DINERDASH_ADDRESS`` names one; else the address of a
-    :class:`LocalServer` started here and stopped on exit. Start it before any JAX work: forking
-    a process while JAX's threads run is unsafe."""
-    if address is not None or os.environ.get("DINERDASH_ADDRESS"):
-        yield address, None
-        return
-    with LocalServer() as server:
-        yield server.address, server
