@@ -89,18 +89,10 @@ def rollout(
     **connection: Any,
 ) -> Iterator[Episode]:
     """Plays ``policy`` (``"expert"``, ``"random"`` or ``"planner"``) on the server, one episode
-    per seed, and yields the :class:`Episode` objects in seed order as they arrive.
-
-    Give either ``seeds`` or ``episodes`` (seeds ``seed .. seed + episodes - 1``). Long seed lists
-    are sent in chunks of the server's ``max_rollout_episodes``. Without ``address`` (and
-    ``DINERDASH_ADDRESS``) a local server is started for the duration of the iteration.
-    ``connect`` (a :class:`~dinerdash.ConnectOptions`) and the connection keywords (``token``,
-    ``timeout``, ``tls``, ``tls_ca``, ...) are as for the environments (the stream itself has no
-    overall deadline; keepalive pings notice a dead server)::
-
-        for ep in dinerdash.rollout("expert", episodes=10):
-            print(ep.seed, ep.score, ep.steps)
-    """
+    per seed (``seeds``, or ``seed .. seed + episodes - 1``), and yields the :class:`Episode`
+    objects in seed order as they arrive, in chunks of the server's ``max_rollout_episodes``.
+    ``address``, ``connect`` and the connection keywords are the environments' (the stream has no
+    overall deadline; keepalive pings notice a dead server)."""
     if policy not in _POLICIES:
         raise ValueError(f"policy must be one of {sorted(_POLICIES)}, got {policy!r}")
     if seeds is None:

@@ -134,13 +134,8 @@ def _stop_process(proc: subprocess.Popen, timeout: float) -> None:
 
 
 class LocalServer:
-    """A ``dinerdash-server`` child process on ``127.0.0.1`` and a port the server picks.
-
-    Use it as a context manager, or call :meth:`stop` (also run when the object is collected and
-    at interpreter exit)::
-
-        with LocalServer() as server:
-            env = gymnasium.make("dinerdash:DinerDash-v0", address=server.address)
+    """A ``dinerdash-server`` child process on ``127.0.0.1`` and a port the server picks; a
+    context manager, or call :meth:`stop` (also run when collected and at interpreter exit).
 
     Args:
         binary: path of the binary (default: see :func:`find_server_binary`).

@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import closing
 from typing import Any
 
 import numpy as np
@@ -99,8 +100,7 @@ def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
 def _single(address: str | None, steps: int, **connection: Any) -> float:
     from ..env import DinerDashEnv
 
-    env = DinerDashEnv(address, **connection)
-    try:
+    with DinerDashEnv(address, **connection) as env:
         actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, size=steps)
         env.reset(seed=0)
         start = time.perf_counter()
@@ -109,8 +109,6 @@ def _single(address: str | None, steps: int, **connection: Any) -> float:
             if terminated or truncated:
                 env.reset()
         return steps / (time.perf_counter() - start)
-    finally:
-        env.close()
 
 
 def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: Any) -> float:
@@ -155,8 +153,7 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
     from .._proto import pb
     from ..vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address, **connection)
-    try:
+    with closing(DinerDashVectorEnv(num_envs, address, **connection)) as envs:
         rng = np.random.default_rng(0)
         envs.reset(seed=0)
         if connection.get("transport") == "shm":
@@ -176,8 +173,6 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         for raw in replies:
             envs.decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
         return (time.perf_counter() - start) / steps * 1e6
-    finally:
-        envs.close()
 
 
 def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
@@ -187,8 +182,7 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
     from .._batch import join
     from ..vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address, transport="shm")
-    try:
+    with closing(DinerDashVectorEnv(num_envs, address, transport="shm")) as envs:
         envs.reset(seed=0)
         fleet, present = envs.fleet, np.ones(num_envs, dtype=np.bool_)
         names = ("observations", "rewards", "terminated", "truncated", "action_masks")
@@ -219,8 +213,6 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
             terminated.copy(), truncated.copy()
             times[-1] += time.perf_counter() - start
         return float(np.percentile(times, 10)) * 1e6
-    finally:
-        envs.close()
 
 
 def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
@@ -228,8 +220,7 @@ def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
     doorbell's ring to the reply)``: the rest is this client's own work."""
     from ..vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address, transport="shm")
-    try:
+    with closing(DinerDashVectorEnv(num_envs, address, transport="shm")) as envs:
         envs.reset(seed=0)
         (core,) = envs.fleet.cores
         transport, channel = core.transport, core.transport.channel
@@ -249,8 +240,6 @@ def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
         for a in actions[100:]:
             envs.step(a)
         return (time.perf_counter() - start) / steps * 1e6, waited[0] / steps * 1e6
-    finally:
-        envs.close()
 
 
 def ceiling_lines(
@@ -545,7 +534,6 @@ def run(
                 f"make_vec N={n:<8}: {rate:12,.0f} env-steps/s   ({vec_steps} step() calls, "
                 f"{replicas} server(s); {times(rate)})"
             )
-        if vec_steps > 0:
             micros = _decode(address, n, **connection)
             print(
                 f"decode N={n:<10}: {micros:12,.1f} us/step       (parse the reply, build the "

@@ -146,25 +146,13 @@ def start_servers(
     token: str | None = None,
     **server_flags: Any,
 ) -> ServerPool:
-    """Starts ``dinerdash-server`` processes on the Ray cluster and returns their
-    :class:`ServerPool` once every one listens.
+    """Starts ``dinerdash-server`` processes on the Ray cluster, each under an actor pinned to its
+    node and reserving no CPU, and returns their :class:`ServerPool` once every one listens.
 
-    Each server runs under its own actor, pinned to its node (so that a restart lands on the same
-    node and port), reserving no CPU.
-
-    Args:
-        per_node: servers on each node. The nodes are those with the custom resource
-            :data:`SERVER_RESOURCE`, or, when none has it, every alive node.
-        num_servers: the number of servers in all, dealt over the nodes in turn (overrides
-            ``per_node``).
-        token: the servers require ``authorization: Bearer <token>`` (``--auth-token``); give
-            the clients the same ``token``.
-        server_flags: more server flags, ``max_sessions=20000`` for ``--max-sessions 20000``
-            (``True`` for a bare flag).
-
-    Raises:
-        ServerPoolError: no node, or a server that did not start (the message says why: no
-            binary on that node, a bad flag ...).
+    ``per_node`` servers on each node with :data:`SERVER_RESOURCE` (or, when none has it, on
+    every alive node), or ``num_servers`` dealt over them in turn; ``token``: the servers' auth
+    token (give the clients the same); ``server_flags``: ``max_sessions=20000`` for
+    ``--max-sessions 20000``. :class:`ServerPoolError`: no node, or a server that did not start.
     """
     if not ray.is_initialized():
         ray.init()

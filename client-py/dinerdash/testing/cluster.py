@@ -162,15 +162,14 @@ class LocalCluster:
         return True
 
     def kill(self, i: int) -> None:
-        """``SIGKILL``: server ``i`` dies as in a crash, with no graceful shutdown. Returns when it
-        is gone."""
+        """``SIGKILL``: server ``i`` crashes; returns when it is gone."""
         self._signal(i, signal.SIGKILL)
         self._process(i).wait()
         self._hung.discard(i)
 
     def hang(self, i: int) -> None:
-        """``SIGSTOP``: server ``i`` stops answering anything while its connections stay open (a
-        stuck process, a paused VM); returns once it is stopped. :meth:`resume` lets it go on."""
+        """``SIGSTOP``: server ``i`` answers nothing while its connections stay open; returns once
+        it is stopped."""
         if self._signal(i, signal.SIGSTOP):
             self._hung.add(i)
             _wait_stopped(self.pid(i))
@@ -181,15 +180,13 @@ class LocalCluster:
         self._hung.discard(i)
 
     def drain(self, i: int) -> None:
-        """``SIGTERM``, returning at once: server ``i`` does what it does on a planned stop (with
-        ``--drain-timeout``: refuses new sessions, serves its sessions until the deadline, then
-        exits). :meth:`wait` waits for it to exit."""
+        """``SIGTERM``, returning at once: server ``i``'s planned stop (:meth:`wait` for it)."""
         self.resume(i)  # a stopped process would only see the signal once resumed
         self._signal(i, signal.SIGTERM)
 
     def wait(self, i: int, timeout: float | None = None) -> int:
-        """Waits for server ``i``'s process to exit; returns its exit status (negative: the
-        signal that ended it). :class:`TimeoutError` past ``timeout`` seconds."""
+        """Server ``i``'s exit status once it exits (negative: a signal); :class:`TimeoutError`
+        past ``timeout`` seconds."""
         try:
             return self._process(i).wait(timeout)
         except subprocess.TimeoutExpired:
@@ -198,22 +195,16 @@ class LocalCluster:
             ) from None
 
     def stop(self, i: int) -> None:
-        """Stops server ``i`` (resumed first if hung): terminate, wait, kill. It can be started
-        again with :meth:`restart`."""
+        """Stops server ``i`` (resumed first if hung): terminate, wait, kill."""
         self.resume(i)
         self.servers[i].stop()
 
     def restart(
         self, i: int, *, wait_drain: bool = True, drain_timeout: float | None = None
     ) -> None:
-        """Stops server ``i`` if it runs and starts it again on the same port; returns once the new
-        process listens (calls to the address work again).
-
-        ``wait_drain=True``: a planned restart, ``SIGTERM`` and wait for the server to exit on its
-        own (its drain, at most ``drain_timeout`` seconds, then ``SIGKILL``; default: no limit).
-        ``wait_drain=False``: a crash and a supervisor's restart, ``SIGKILL`` at once. A server
-        that is not running (killed, drained) is simply started again.
-        """
+        """Stops server ``i`` if it runs (``wait_drain``: ``SIGTERM`` and wait, ``SIGKILL`` past
+        ``drain_timeout`` seconds; else ``SIGKILL`` at once) and starts it again on the same port;
+        returns once it serves."""
         if self.is_running(i):
             if wait_drain:
                 self.drain(i)
@@ -228,8 +219,7 @@ class LocalCluster:
         self._hung.discard(i)
 
     def close(self) -> None:
-        """Stops every server, hung ones included: resume, terminate, wait, kill. Safe to call
-        twice."""
+        """Stops every server, hung ones included; safe to call twice."""
         try:
             for i, server in enumerate(self.servers):
                 try:
