@@ -264,8 +264,7 @@ class FaultProxy:
         return self._from_clients
 
     def _count_from_client(self, n: int) -> None:
-        """Called on the proxy's loop for each chunk a client sent."""
-        self._from_clients += n
+        self._from_clients += n  # on the proxy's loop
 
     @property
     def mode(self) -> str:
@@ -276,36 +275,22 @@ class FaultProxy:
         """Delays every chunk by ``seconds`` in each direction from now on (0: none)."""
         if not seconds >= 0:
             raise ValueError(f"latency: expected seconds >= 0, got {seconds!r}")
-
-        def set_latency() -> None:
-            self._latency = float(seconds)
-
-        self._call(set_latency)
+        self._call(lambda: setattr(self, "_latency", float(seconds)))
 
     def blackhole(self) -> None:
         """Swallows every byte both ways; connections stay open, new ones are accepted."""
-
-        def on() -> None:
-            self._mode = _BLACKHOLE
-
-        self._call(on)
+        self._call(lambda: setattr(self, "_mode", _BLACKHOLE))
 
     def reset(self) -> None:
         """Closes every open connection with a TCP reset, both sides; new connections work."""
-
-        def reset_all() -> None:
-            for link in list(self._links):
-                link.reset()
-
-        self._call(reset_all)
+        self._call(self._reset_links)
 
     def cut(self) -> None:
         """Resets every open connection and every new one until :meth:`heal`."""
 
         def on() -> None:
             self._mode = _CUT
-            for link in list(self._links):
-                link.reset()
+            self._reset_links()
 
         self._call(on)
 
@@ -314,13 +299,16 @@ class FaultProxy:
         :meth:`blackhole` are reset."""
 
         def off() -> None:
-            self._mode = _NORMAL
-            self._latency = 0.0
-            for link in list(self._links):
-                if link.swallowed:
-                    link.reset()
+            self._mode, self._latency = _NORMAL, 0.0
+            self._reset_links(lambda link: link.swallowed)
 
         self._call(off)
+
+    def _reset_links(self, which: Callable[[_Link], bool] = lambda link: True) -> None:
+        """Resets the links ``which`` picks (on the proxy's loop)."""
+        for link in list(self._links):
+            if which(link):
+                link.reset()
 
     def close(self) -> None:
         """Stops listening and resets every connection; safe to call twice."""
@@ -330,8 +318,7 @@ class FaultProxy:
         async def shutdown() -> None:
             if self._server is not None:
                 self._server.close()
-            for link in list(self._links):
-                link.reset()
+            self._reset_links()
             await asyncio.sleep(0)  # let the aborts run
 
         try:
