@@ -256,11 +256,12 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m dinerdash", description=summary(__doc__))
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser(
-        "evaluate",
-        help="mean ± sd score of a policy over seeded episodes",
-        formatter_class=DefaultsHelpFormatter,
-    )
+    def command(name: str, func: Callable[[argparse.Namespace], int], **kwargs: Any):
+        p = sub.add_parser(name, formatter_class=DefaultsHelpFormatter, **kwargs)
+        p.set_defaults(func=func)
+        return p
+
+    p = command("evaluate", _cmd_evaluate, help="mean ± sd score of a policy over seeded episodes")
     p.add_argument(
         "--policy", choices=["expert", "random", "planner"], default="expert", help="who plays"
     )
@@ -287,13 +288,11 @@ def _parser() -> argparse.ArgumentParser:
         "rollout: let the server play whole episodes",
     )
     p.add_argument("--json", action="store_true", help="also print the per-episode scores as JSON")
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser(
+    p = command(
         "collect",
+        _cmd_collect,
         help="expert demonstrations (.npz; a Minari dataset when installed)",
-        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument(
         "--policy",
@@ -323,13 +322,11 @@ def _parser() -> argparse.ArgumentParser:
         help="instead of the expert: replay these recordings of /play games (dinerdash_play.npz, "
         "Minari dinerdash/play-v0); --policy and --episodes are then ignored",
     )
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_collect)
 
-    p = sub.add_parser(
+    p = command(
         "bench",
+        _cmd_bench,
         help="steps/s of a single env and of make_vec, beside the machine's floors",
-        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--steps", type=int, default=20_000, help="single-env steps (0: skip)")
     p.add_argument("--num-envs", type=int, default=256, help="environments of the vector env")
@@ -374,22 +371,20 @@ def _parser() -> argparse.ArgumentParser:
         default=1.0,
         help="seconds of each measurement of the server's own rates",
     )
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_bench)
 
-    p = sub.add_parser(
+    p = command(
         "watch",
+        _cmd_watch,
         help="the URL of a server's web pages (its live sessions, any environment playing); "
         "opens a browser when there is one",
-        formatter_class=DefaultsHelpFormatter,
         description="Prints the URL of the web pages of the server at --address (default: "
         "DINERDASH_ADDRESS, else 127.0.0.1:50051; it must run with --http-port).",
     )
     p.add_argument("--session", help="one session's ID: the URL of its watch page")
     p.add_argument("--env", type=int, default=0, help="the environment of --session to show")
     p.add_argument("--no-browser", action="store_true", help="only print the URL")
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_watch)
+    for p in sub.choices.values():
+        add_connection_arguments(p)
     return parser
 
 
