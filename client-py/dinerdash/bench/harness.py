@@ -20,26 +20,17 @@ from ..game import NUM_ACTIONS
 
 __all__ = ["ceiling_lines", "run", "scaling", "tcp_floor", "transports"]
 
-#: The echo children's loop (a child process: the ping-pong crosses processes as a call does).
-_ECHO_LOOP = """
+#: The echo child: what its socket (the descriptor in ``argv[1]``) receives goes back, until it
+#: closes; a child process, so that the ping-pong crosses processes as a call to a server does.
+_ECHO = """
+import socket, sys
+c = socket.socket(fileno=int(sys.argv[1]))
 while True:
     d = c.recv(64)
     if not d:
         break
     c.sendall(d)
 """
-_ECHO = (
-    """
-import socket
-s = socket.socket()
-s.bind(("127.0.0.1", 0))
-s.listen(1)
-print(s.getsockname()[1], flush=True)
-c, _ = s.accept()
-c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-"""
-    + _ECHO_LOOP
-)
 
 
 def _ping_pong(sock: socket.socket, round_trips: int) -> float:
@@ -54,27 +45,39 @@ def _ping_pong(sock: socket.socket, round_trips: int) -> float:
     return (time.perf_counter() - start) / round_trips * 1e6
 
 
-def _reap(child: subprocess.Popen) -> None:
-    """Waits for an echo child whose socket closed (killed if it does not end)."""
+def _floor(mine: socket.socket, theirs: socket.socket, round_trips: int) -> float:
+    """Microseconds of one round trip of a byte over ``mine`` to a child echoing on ``theirs``."""
+    child = subprocess.Popen(
+        [sys.executable, "-c", _ECHO, str(theirs.fileno())],
+        pass_fds=[theirs.fileno()],
+        stdin=subprocess.DEVNULL,
+    )
+    theirs.close()
     try:
-        child.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        child.kill()
-        child.wait()
+        with mine:
+            return _ping_pong(mine, round_trips)
+    finally:
+        try:
+            child.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
 
 
 def tcp_floor(round_trips: int = 5000) -> float:
     """Microseconds of one loopback TCP round trip (one byte each way) to a child process."""
-    child = subprocess.Popen(
-        [sys.executable, "-c", _ECHO], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True
-    )
-    try:
-        port = int(child.stdout.readline())
-        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            return _ping_pong(sock, round_trips)
-    finally:
-        _reap(child)
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        mine = socket.create_connection(server.getsockname(), timeout=10)
+        theirs, _ = server.accept()
+    for sock in (mine, theirs):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return _floor(mine, theirs, round_trips)
+
+
+def doorbell_floor(round_trips: int = 5000) -> float:
+    """Microseconds of one Unix ``SOCK_SEQPACKET`` round trip (one byte each way) to a child
+    process: the least a shared-memory Step costs here, as :func:`tcp_floor` is gRPC's."""
+    return _floor(*socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET), round_trips)
 
 
 def _first(address: str | list[str] | None) -> str | None:
@@ -277,26 +280,6 @@ def ceiling_lines(
             n, t, label, local, grpc = line.split()
             lines.append((int(n), int(t), label, float(local), float(grpc)))
     return lines
-
-
-_SEQPACKET_ECHO = "import socket, sys\nc = socket.socket(fileno=int(sys.argv[1]))\n" + _ECHO_LOOP
-
-
-def doorbell_floor(round_trips: int = 5000) -> float:
-    """Microseconds of one Unix ``SOCK_SEQPACKET`` round trip (one byte each way) to a child
-    process: the least a shared-memory Step costs here, as :func:`tcp_floor` is gRPC's."""
-    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    child = subprocess.Popen(
-        [sys.executable, "-c", _SEQPACKET_ECHO, str(theirs.fileno())],
-        pass_fds=[theirs.fileno()],
-        stdin=subprocess.DEVNULL,
-    )
-    theirs.close()
-    try:
-        return _ping_pong(mine, round_trips)
-    finally:
-        mine.close()
-        _reap(child)
 
 
 def transports(
