@@ -58,25 +58,23 @@ _BUILD_HINT = (
 def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
     """The ``dinerdash-server`` binary to start, or :class:`ServerBinaryNotFound` saying how to
     get one."""
-    tried = []
     if binary is not None:
-        candidates = [("binary argument", Path(binary))]
+        candidates = [("binary argument", binary)]
     else:
-        candidates = []
-        env = os.environ.get("DINERDASH_SERVER")
-        if env:
-            candidates.append(("DINERDASH_SERVER", Path(env)))
-        wheel = _wheel_binary()
-        if wheel is not None:
-            candidates.append(("dinerdash-server package", wheel))
-        on_path = shutil.which("dinerdash-server")
-        if on_path:
-            candidates.append(("PATH", Path(on_path)))
         # client-py/dinerdash/server.py -> the workspace root holds target/release.
         workspace = Path(__file__).resolve().parent.parent.parent
         exe = "dinerdash-server.exe" if os.name == "nt" else "dinerdash-server"
-        candidates.append(("workspace", workspace / "target" / "release" / exe))
-    for origin, path in candidates:
+        candidates = [
+            ("DINERDASH_SERVER", os.environ.get("DINERDASH_SERVER") or None),
+            ("dinerdash-server package", _wheel_binary()),
+            ("PATH", shutil.which("dinerdash-server")),
+            ("workspace", workspace / "target" / "release" / exe),
+        ]
+    tried = []
+    for origin, where in candidates:
+        if where is None:
+            continue
+        path = Path(where)
         if path.is_file() and os.access(path, os.X_OK):
             return path
         tried.append(f"{path} ({origin})")
