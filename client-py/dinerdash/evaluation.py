@@ -142,10 +142,9 @@ def evaluate_through_env(
     progress: Progress | None = None,
     **connection: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Plays ``policy`` (``"expert"``, ``"planner"`` or ``"random"``) through the client's vector
-    env of up to ``num_envs`` environments, episode ``i`` reset with ``seed + i``; returns the
-    final scores and the lengths. The experts' actions are ``info["expert_action"]``; the random
-    policy draws uniformly from every action on the client."""
+    """Plays ``policy`` (``"expert"``, ``"planner"``: ``info["expert_action"]``; ``"random"``:
+    uniform over every action) through a vector env of up to ``num_envs`` environments, episode
+    ``i`` reset with ``seed + i``; returns the final scores and the lengths."""
     from .vector import DinerDashVectorEnv
 
     if policy not in (*EXPERTS, "random"):
@@ -326,10 +325,9 @@ _ALGORITHMS = {
 
 
 def write_minari(collected: Collected, dataset_id: str | None = None) -> Path | None:
-    """The collected episodes as the Minari dataset ``dataset_id`` (default
-    ``dinerdash/<policy>-v0``), when ``minari`` is importable (else ``None``); its files go under
-    ``minari/`` beside the ``.npz`` unless ``MINARI_DATASETS_PATH`` says otherwise. Returns the
-    datasets' root directory."""
+    """Writes the collected episodes as the Minari dataset ``dataset_id`` (default
+    ``dinerdash/<policy>-v0``) under ``minari/`` beside the ``.npz`` (or ``MINARI_DATASETS_PATH``)
+    and returns that root; ``None`` when ``minari`` is not installed."""
     try:
         import minari  # noqa: F401
     except ImportError:

@@ -23,19 +23,11 @@ _POLICIES = {"expert": pb.POLICY_EXPERT, "random": pb.POLICY_RANDOM, "planner": 
 
 @dataclass(frozen=True)
 class Episode:
-    """One episode of ``steps`` steps, as played on the server.
-
-    Attributes:
-        seed: the reset seed (``reset(seed=seed)`` replays it).
-        observations: ``(steps + 1, 40) float32``: the reset observation, then one per step.
-        actions: ``(steps,) int64``: the action taken at each step.
-        rewards: ``(steps,) float64``.
-        expert_actions: ``(steps,) int64``: the expert's choice in the state before each step.
-        action_masks: ``(steps + 1, 57) bool`` when asked for (the mask before each step, then of
-            the final state), else ``None``.
-        score, lost: the episode's final score and groups lost.
-        terminated, truncated: how it ended (truncated: ``max_steps`` reached).
-    """
+    """One episode of ``steps`` steps, as played on the server from ``seed``: ``observations``
+    ``(steps + 1, 40) float32`` (the reset's, then one per step), ``actions``, ``rewards`` and
+    ``expert_actions`` (the expert's choice before each step) ``(steps,)``, ``action_masks``
+    ``(steps + 1, 57) bool`` when asked for, the final ``score`` and ``lost``, and how it ended
+    (``truncated``: ``max_steps`` reached)."""
 
     seed: int
     observations: np.ndarray
