@@ -21,16 +21,21 @@ from typing import Any
 
 from .errors import LocalServerError, ServerBinaryNotFound
 
-__all__ = ["LocalServer", "find_server_binary", "server_args"]
+__all__ = ["FlagChosenByCaller", "LocalServer", "find_server_binary", "server_args"]
+
+
+class FlagChosenByCaller(TypeError, ValueError):
+    """A server flag given to a caller that chooses it itself (a ``TypeError`` as for a keyword
+    the caller does not take, and a ``ValueError`` as ``LocalCluster`` always raised)."""
 
 
 def server_args(flags: Mapping[str, Any], chosen: Mapping[str, str] | None = None) -> list[str]:
     """Command-line arguments from keywords: ``max_sessions=8`` is ``--max-sessions 8``; ``True``
     is the bare flag; ``None`` and ``False`` leave the flag out; a list or tuple repeats it. A flag
-    named in ``chosen`` is refused (:class:`ValueError`) with its message: the caller chooses it."""
+    named in ``chosen`` is refused (:class:`FlagChosenByCaller`) with its message."""
     for name in flags:
         if chosen and name.replace("-", "_") in chosen:
-            raise ValueError(f"{name}: {chosen[name.replace('-', '_')]}")
+            raise FlagChosenByCaller(f"{name}: {chosen[name.replace('-', '_')]}")
     args: list[str] = []
     for name, value in flags.items():
         flag = "--" + name.replace("_", "-")
