@@ -12,6 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from ..connection import Connection, split_host_port
+from ..errors import ServiceError
 from ..server import LocalServer, find_server_binary, server_args
 
 __all__ = ["LocalCluster", "server_args"]
@@ -46,9 +48,6 @@ def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
 def _ready(address: str, timeout: float) -> None:
     """Waits until the server at ``address`` answers a call: its signal handlers are installed
     only once it serves (a ``SIGTERM`` before would kill it)."""
-    from ..connection import Connection
-    from ..errors import ServiceError
-
     try:
         Connection(address, connect_timeout=timeout).close()
     except ServiceError:  # any answer (TLS, a token needed) will do; no answer fails later calls
@@ -215,7 +214,7 @@ class LocalCluster:
             else:
                 self.kill(i)
         self.servers[i].stop()  # closes its stderr file; the process is gone already
-        self.servers[i] = self._start(int(self._addresses[i].rsplit(":", 1)[1]))
+        self.servers[i] = self._start(split_host_port(self._addresses[i])[1])
         self._hung.discard(i)
 
     def close(self) -> None:
