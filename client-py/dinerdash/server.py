@@ -1,6 +1,6 @@
 """A local ``dinerdash-server`` subprocess (:class:`LocalServer`): the embedded default when no
 address is given, and the servers of ``dinerdash.testing`` and ``dinerdash.ray``; where its binary
-is found and how it is stopped: docs/client.md#connecting.
+is found and how it is stopped: docs/install.md#where-the-client-finds-the-server-binary.
 """
 
 from __future__ import annotations
