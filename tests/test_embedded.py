@@ -12,7 +12,6 @@ import dinerdash
 import gymnasium
 import pytest
 from dinerdash import LocalServer, ServerBinaryNotFound
-from dinerdash.server import local_server_unless_addressed
 
 from .conftest import server_binary
 
@@ -112,22 +111,6 @@ def test_rollout_starts_and_stops_its_own_server(binary_env, address: str) -> No
     reference = list(dinerdash.rollout("expert", episodes=2, address=address))
     assert [(ep.score, ep.steps) for ep in episodes] == [(ep.score, ep.steps) for ep in reference]
     assert all(ep.score > 0 for ep in episodes)
-
-
-def test_commands_start_a_server_only_without_an_address(
-    binary_env, address: str, monkeypatch
-) -> None:
-    monkeypatch.delenv("DINERDASH_ADDRESS", raising=False)
-    with local_server_unless_addressed(address) as (given, server):
-        assert given == address and server is None
-    with local_server_unless_addressed(None) as (local, server):
-        assert isinstance(server, LocalServer) and server.is_running()
-        assert local == server.address
-        pid = server.pid
-    assert gone(pid) and pid not in children_named_server()
-    monkeypatch.setenv("DINERDASH_ADDRESS", address)
-    with local_server_unless_addressed(None) as (named, server):
-        assert named is None and server is None  # the env var names the server
 
 
 def test_dinerdash_address_is_used_instead(binary_env, address: str, monkeypatch) -> None:

@@ -1,11 +1,6 @@
 """gRPC process settings, applied before ``grpc`` is first imported (this module is imported
-first by the package).
-
-grpcio runs the synchronous client's calls on its EventEngine client by default. Measured on the
-project's 2-core machine, one small unary call (a single-environment Step) costs about a quarter
-more CPU that way than on gRPC's classic I/O manager, and a Step is nothing but one such call. So,
-unless the process already chose (``GRPC_EXPERIMENTS`` set) or already imported ``grpc``, the
-client turns that experiment off. ``DINERDASH_GRPC_TUNING=0`` leaves gRPC's defaults alone.
+first by the package): the client turns grpcio's EventEngine client off unless the process chose
+(``GRPC_EXPERIMENTS``) or ``DINERDASH_GRPC_TUNING=0`` (why: docs/client.md#connecting).
 """
 
 from __future__ import annotations

@@ -1,9 +1,5 @@
-"""The client's version, and the warning when it meets a server of another major/minor version.
-
-The three distributions (``dinerdash``, ``dinerdash-server``, ``dinerdash-agents``) share one
-version (``scripts/version.py``). A client and a server of the same major and minor version speak
-the same protocol and rules; across them, replies may lack fields or mean other things, so the
-client says so once per server version (:class:`ServerVersionWarning`), and goes on.
+"""The client's version, and the warning when it meets a server of another major/minor version
+(docs/install.md#versions).
 """
 
 from __future__ import annotations
@@ -36,8 +32,8 @@ def _major_minor(text: str) -> tuple[int, int] | None:
 
 def warn_if_other_version(server_version: str, address: str, client_version: str | None = None):
     """Warns (once per server version in this process) when ``server_version`` differs from the
-    client's in major or minor. Unparseable versions, and a client run from a source tree without
-    an install (``0.0.0``), are not compared."""
+    client's in major or minor; unparseable versions and a source tree's ``0.0.0`` are not
+    compared."""
     client_version = __version__ if client_version is None else client_version
     ours, theirs = _major_minor(client_version), _major_minor(server_version)
     if ours is None or theirs is None or ours == theirs or client_version == "0.0.0":

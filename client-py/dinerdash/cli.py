@@ -1,31 +1,11 @@
 """``python -m dinerdash``: evaluate a policy, collect expert demonstrations, measure speed,
 watch a server's sessions in a browser.
 
-::
-
-    python -m dinerdash evaluate --policy expert --episodes 100   # or --policy planner
-    python -m dinerdash collect --episodes 274 --out demos/       # --policy planner: its demos
-    python -m dinerdash bench
-    python -m dinerdash watch --address 127.0.0.1:50051           # the URL of its web pages
-
-Every command takes ``--address host:port`` (several separated by commas); without it (and
-without ``DINERDASH_ADDRESS``) a local ``dinerdash-server`` is started and stopped. ``--tls`` (the
-system's roots) or ``--tls-ca PATH`` (``DINERDASH_TLS_CA``) connect to a server that serves TLS;
-``--timeout`` (``DINERDASH_TIMEOUT``) is every call's deadline in seconds.
-
-The commands are shells over :mod:`dinerdash.evaluation` and :mod:`dinerdash.bench`. What every
-``python -m`` command of the project shares, ``dinerdash``'s and the agents', is here too: the
-connection arguments and how a parsed command runs::
-
-    def play(args: argparse.Namespace) -> int:
-        env = DinerDashEnv(args.address, **connection_keywords(args))
-        ...
-        return 0
-
-    parser = argparse.ArgumentParser()
-    add_connection_arguments(parser)  # --address, --tls, --tls-ca, --timeout
-    parser.set_defaults(func=play)
-    raise SystemExit(run_command(parser.parse_args()))
+Every command takes ``--address host:port`` (several separated by commas; default:
+``DINERDASH_ADDRESS``, else a local server), ``--tls``, ``--tls-ca`` and ``--timeout``
+(docs/client.md#the-expert-the-planner-and-the-command-line). What every ``python -m`` command of
+the project shares, the agents' too, is here: :func:`add_connection_arguments`,
+:func:`connection_keywords` and :func:`run_command`.
 """
 
 from __future__ import annotations
@@ -174,23 +154,35 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
+    """``collect``: the expert's episodes, or (``--from-play``) the recordings of /play games
+    replayed; then :func:`_write_collected`."""
     from .evaluation import Progress, collect
+    from .play import RecordingError, collect_from_play
 
-    if args.from_play:
-        return _cmd_collect_play(args)
-    progress = Progress(args.episodes, "collect")
-    collected = collect(
-        args.out,
-        policy=args.policy,
-        episodes=args.episodes,
-        seed=args.seed,
-        address=args.address,
-        max_steps=args.max_steps,
-        progress=progress,
-        **connection_keywords(args),
+    where = {"address": args.address, **connection_keywords(args)}
+    progress = Progress(
+        len(args.from_play or ()) or args.episodes, "replay" if args.from_play else "collect"
     )
+    try:
+        if args.from_play:
+            collected = collect_from_play(args.from_play, args.out, progress=progress, **where)
+        else:
+            collected = collect(
+                args.out,
+                policy=args.policy,
+                episodes=args.episodes,
+                seed=args.seed,
+                max_steps=args.max_steps,
+                progress=progress,
+                **where,
+            )
+    except RecordingError as e:
+        progress.close()
+        print(f"error: {e} (nothing written)", file=sys.stderr)
+        return 1
     progress.close()
-    return _write_collected(collected, "episodes", args.dataset_id or f"dinerdash/{args.policy}-v0")
+    unit, dataset_id = ("games", "play") if args.from_play else ("episodes", args.policy)
+    return _write_collected(collected, unit, args.dataset_id or f"dinerdash/{dataset_id}-v0")
 
 
 def _write_collected(collected: Any, unit: str, dataset_id: str) -> int:
@@ -215,28 +207,6 @@ def _write_collected(collected: Any, unit: str, dataset_id: str) -> int:
             "minari is not installed: skipped the Minari dataset (pip install 'dinerdash[minari]')"
         )
     return 0
-
-
-def _cmd_collect_play(args: argparse.Namespace) -> int:
-    """``collect --from-play REC.json ...``: the recordings of /play games, replayed."""
-    from .evaluation import Progress
-    from .play import RecordingError, collect_from_play
-
-    progress = Progress(len(args.from_play), "replay")
-    try:
-        collected = collect_from_play(
-            args.from_play,
-            args.out,
-            address=args.address,
-            progress=progress,
-            **connection_keywords(args),
-        )
-    except RecordingError as e:
-        progress.close()
-        print(f"error: {e} (nothing written)", file=sys.stderr)
-        return 1
-    progress.close()
-    return _write_collected(collected, "games", args.dataset_id or "dinerdash/play-v0")
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -286,11 +256,12 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m dinerdash", description=summary(__doc__))
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser(
-        "evaluate",
-        help="mean ± sd score of a policy over seeded episodes",
-        formatter_class=DefaultsHelpFormatter,
-    )
+    def command(name: str, func: Callable[[argparse.Namespace], int], **kwargs: Any):
+        p = sub.add_parser(name, formatter_class=DefaultsHelpFormatter, **kwargs)
+        p.set_defaults(func=func)
+        return p
+
+    p = command("evaluate", _cmd_evaluate, help="mean ± sd score of a policy over seeded episodes")
     p.add_argument(
         "--policy", choices=["expert", "random", "planner"], default="expert", help="who plays"
     )
@@ -317,13 +288,11 @@ def _parser() -> argparse.ArgumentParser:
         "rollout: let the server play whole episodes",
     )
     p.add_argument("--json", action="store_true", help="also print the per-episode scores as JSON")
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser(
+    p = command(
         "collect",
+        _cmd_collect,
         help="expert demonstrations (.npz; a Minari dataset when installed)",
-        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument(
         "--policy",
@@ -353,13 +322,11 @@ def _parser() -> argparse.ArgumentParser:
         help="instead of the expert: replay these recordings of /play games (dinerdash_play.npz, "
         "Minari dinerdash/play-v0); --policy and --episodes are then ignored",
     )
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_collect)
 
-    p = sub.add_parser(
+    p = command(
         "bench",
+        _cmd_bench,
         help="steps/s of a single env and of make_vec, beside the machine's floors",
-        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--steps", type=int, default=20_000, help="single-env steps (0: skip)")
     p.add_argument("--num-envs", type=int, default=256, help="environments of the vector env")
@@ -404,22 +371,20 @@ def _parser() -> argparse.ArgumentParser:
         default=1.0,
         help="seconds of each measurement of the server's own rates",
     )
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_bench)
 
-    p = sub.add_parser(
+    p = command(
         "watch",
+        _cmd_watch,
         help="the URL of a server's web pages (its live sessions, any environment playing); "
         "opens a browser when there is one",
-        formatter_class=DefaultsHelpFormatter,
         description="Prints the URL of the web pages of the server at --address (default: "
         "DINERDASH_ADDRESS, else 127.0.0.1:50051; it must run with --http-port).",
     )
     p.add_argument("--session", help="one session's ID: the URL of its watch page")
     p.add_argument("--env", type=int, default=0, help="the environment of --session to show")
     p.add_argument("--no-browser", action="store_true", help="only print the URL")
-    add_connection_arguments(p)
-    p.set_defaults(func=_cmd_watch)
+    for p in sub.choices.values():
+        add_connection_arguments(p)
     return parser
 
 

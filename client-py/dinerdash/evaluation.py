@@ -1,24 +1,7 @@
 """Seeded evaluation and demonstration collection: the library under ``python -m dinerdash
-evaluate`` and ``collect`` (and under the agents' commands, which play their checkpoints the same
-way).
-
-::
-
-    from dinerdash.evaluation import collect, evaluate_through_env, print_evaluation
-
-    scores, lengths = evaluate_through_env("expert", 100, seed=0)   # episode i: seed + i
-    demos = collect("demos/", episodes=274)                          # demos/dinerdash_expert.npz
-
-- :func:`play_seeded`: any policy ``act(obs, info)`` on a vector env, episode ``i`` reset with
-  ``seed + i``; every evaluation plays through it, so the same seeds give the same episodes.
-- :func:`evaluate_through_env` (the client's vector env) and :func:`evaluate_by_rollout` (the
-  server plays whole episodes): the server's policies, expert, planner or random.
-- :func:`collect` writes the ``.npz`` of an expert's episodes, :func:`write_minari` the same as a
-  Minari dataset (when ``minari`` is installed).
-- :func:`print_evaluation` prints what ``evaluate`` prints; :class:`Progress` is the progress bar.
-
-``**connection`` is any connection keyword of the environments and :func:`~dinerdash.rollout`
-(``timeout``, ``tls``, ``tls_ca``, ``token``, ``connect_timeout``, ``server_binary``).
+evaluate`` and ``collect`` and the agents' commands. Every evaluation plays through
+:func:`play_seeded` (episode ``i`` reset with ``seed + i``), so the same seeds give the same
+episodes; ``**connection`` is any connection keyword of the environments.
 """
 
 from __future__ import annotations
@@ -29,7 +12,7 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -122,9 +105,7 @@ def play_seeded(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Plays ``act(obs, info)`` on the vector env ``envs`` for ``episodes`` episodes, episode
     ``i`` reset with ``seed + i`` (batches of ``envs.num_envs``), each cut at ``max_steps``;
-    returns the final scores and the lengths. Every evaluation (the expert, random play, a
-    trained agent's checkpoint) plays through this loop, so the same seeds give the same
-    episodes."""
+    returns the final scores and the lengths."""
     n = envs.num_envs
     scores = np.zeros(episodes, dtype=np.int64)
     lengths = np.zeros(episodes, dtype=np.int64)
@@ -161,10 +142,9 @@ def evaluate_through_env(
     progress: Progress | None = None,
     **connection: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Plays ``policy`` (``"expert"``, ``"planner"`` or ``"random"``) through the client's vector
-    env of up to ``num_envs`` environments, episode ``i`` reset with ``seed + i``; returns the
-    final scores and the lengths. The experts' actions are ``info["expert_action"]``; the random
-    policy draws uniformly from every action on the client."""
+    """Plays ``policy`` (``"expert"``, ``"planner"``: ``info["expert_action"]``; ``"random"``:
+    uniform over every action) through a vector env of up to ``num_envs`` environments, episode
+    ``i`` reset with ``seed + i``; returns the final scores and the lengths."""
     from .vector import DinerDashVectorEnv
 
     if policy not in (*EXPERTS, "random"):
@@ -197,11 +177,10 @@ def evaluate_by_rollout(
     """Lets the server play ``policy`` for ``episodes`` whole episodes (seeds ``seed ..``) with
     :func:`~dinerdash.rollout`; returns the final scores and the lengths, as
     :func:`evaluate_through_env` does."""
-    from .rollout import rollout
-
     scores, lengths = [], []
-    for ep in rollout(
+    for ep in _played(
         policy,
+        progress,
         episodes=episodes,
         seed=seed,
         address=address,
@@ -210,9 +189,17 @@ def evaluate_by_rollout(
     ):
         scores.append(ep.score)
         lengths.append(ep.steps)
+    return np.array(scores, dtype=np.int64), np.array(lengths, dtype=np.int64)
+
+
+def _played(policy: str, progress: Progress | None, **rollout_args: Any) -> Iterator[Episode]:
+    """:func:`~dinerdash.rollout`'s episodes, each counted on ``progress``."""
+    from .rollout import rollout
+
+    for ep in rollout(policy, **rollout_args):
+        yield ep
         if progress is not None:
             progress.update()
-    return np.array(scores, dtype=np.int64), np.array(lengths, dtype=np.int64)
 
 
 def print_evaluation(
@@ -287,25 +274,22 @@ def collect(
     ``next_observations``, ``actions``, ``rewards``, ``terminations``, ``truncations``,
     ``action_masks``) and per episode ``episode_lengths``, ``episode_starts``, ``seeds`` and
     ``scores``."""
-    from .rollout import rollout
-
     if policy not in EXPERTS:
         raise ValueError(f"policy must be one of {sorted(EXPERTS)}, got {policy!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    played = []
-    for ep in rollout(
-        policy,
-        episodes=episodes,
-        seed=seed,
-        address=address,
-        max_steps=max_steps,
-        action_masks=True,
-        **connection,
-    ):
-        played.append(ep)
-        if progress is not None:
-            progress.update()
+    played = list(
+        _played(
+            policy,
+            progress,
+            episodes=episodes,
+            seed=seed,
+            address=address,
+            max_steps=max_steps,
+            action_masks=True,
+            **connection,
+        )
+    )
     path = out / f"dinerdash_{policy}.npz"
     write_npz(path, played)
     return Collected(path, policy, played)
@@ -341,10 +325,9 @@ _ALGORITHMS = {
 
 
 def write_minari(collected: Collected, dataset_id: str | None = None) -> Path | None:
-    """The collected episodes as the Minari dataset ``dataset_id`` (default
-    ``dinerdash/<policy>-v0``), when ``minari`` is importable (else ``None``); its files go under
-    ``minari/`` beside the ``.npz`` unless ``MINARI_DATASETS_PATH`` says otherwise. Returns the
-    datasets' root directory."""
+    """Writes the collected episodes as the Minari dataset ``dataset_id`` (default
+    ``dinerdash/<policy>-v0``) under ``minari/`` beside the ``.npz`` (or ``MINARI_DATASETS_PATH``)
+    and returns that root; ``None`` when ``minari`` is not installed."""
     try:
         import minari  # noqa: F401
     except ImportError:

@@ -1,14 +1,8 @@
-"""Games played on the server's ``/play`` page, as demonstrations.
-
-A recording (``GET /api/play/<session_id>/recording``, the page's download link) is JSON: its
-``format`` (``dinerdash-play/1``), ``ruleset``, ``seed``, ``config`` and every action in order,
-with the game's ``score``, ``steps``, ``lost`` and ``finished``. The game is deterministic, so
-replaying the actions from the seed through any server of the same ruleset gives the game back,
-every observation and mask with it: :func:`replay` does that through a :class:`DinerDashEnv`,
-and :func:`collect_from_play` writes the replays as ``collect`` writes the expert's episodes.
-
-A recording that is malformed, of another ruleset, or that does not replay to its score is
-refused with a :class:`RecordingError` naming the file and the step, before anything is written.
+"""Games played on the server's ``/play`` page, as demonstrations: a recording (JSON, its format
+in docs/play.md) is replayed from its seed through a server of its ruleset (:func:`replay`), and
+:func:`collect_from_play` writes the replays as ``collect`` writes the expert's episodes. A
+recording that is malformed, of another ruleset, or that does not replay to its score is refused
+with a :class:`RecordingError` naming the file and the step, before anything is written.
 """
 
 from __future__ import annotations
@@ -21,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ._arguments import CONFIG_FIELDS
 from .game import NUM_ACTIONS
 from .rollout import Episode
 
@@ -28,19 +23,6 @@ __all__ = ["FORMAT", "RecordingError", "collect_from_play", "load_recording", "r
 
 #: The recording format this client reads.
 FORMAT = "dinerdash-play/1"
-#: The GameConfig fields a recording's ``config`` may hold.
-CONFIG_FIELDS = (
-    "arrival_interval",
-    "patience_type1",
-    "patience_type2",
-    "decay_type1",
-    "decay_type2",
-    "reading_ticks",
-    "cooking_ticks",
-    "eating_ticks",
-    "lives",
-    "time_limit",
-)
 
 
 class RecordingError(ValueError):

@@ -1,20 +1,7 @@
-"""The ``rgb_array`` render mode: a picture of the restaurant drawn with numpy alone.
-
-Everything is read from the observation (docs/rules.md section 6) plus the score and lives from the
-info, so any observation can be drawn, including ones stored in a dataset::
-
-    +--------------------------------------------------+
-    | SCORE 1234                         lives ###..    |
-    | queue |  table 1   table 2   table 3  | counters  |
-    |  g1   |  table 4   table 5   table 6  |  [ ][ ]   |
-    |  ...  |              hands [ ][ ]                 |
-    +--------------------------------------------------+
-
-Tables are coloured by status, with their chairs (capacity) and the seated group's patience bar;
-waiting groups show their size as heads and their patience as a bar; counters hold the dishes of
-the tables whose food is ready; hands show orders, food and dishes with their table number.
-The observation says which tables' food is on the counter but not in which slot: the filled
-slots are drawn in table order.
+"""The ``rgb_array`` render mode: a picture of the restaurant drawn with numpy alone, from the
+observation (docs/rules.md section 6) plus the score and lives, so any observation can be drawn,
+a dataset's too. The observation says which tables' food is on a counter, not in which slot: the
+filled slots are drawn in table order.
 """
 
 from __future__ import annotations

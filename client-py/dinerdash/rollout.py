@@ -1,8 +1,5 @@
-"""Server-side rollouts: whole episodes played by the server's expert or random policy and
-streamed back, one message per episode (the ``Rollout`` RPC).
-
-This is the fast way to collect expert demonstrations or to evaluate the reference policies: no
-round trip per step.
+"""Server-side rollouts (the ``Rollout`` RPC): whole episodes played by the server's policies and
+streamed back, one message per episode, with no round trip per step.
 """
 
 from __future__ import annotations
@@ -26,19 +23,11 @@ _POLICIES = {"expert": pb.POLICY_EXPERT, "random": pb.POLICY_RANDOM, "planner": 
 
 @dataclass(frozen=True)
 class Episode:
-    """One episode of ``steps`` steps, as played on the server.
-
-    Attributes:
-        seed: the reset seed (``reset(seed=seed)`` replays it).
-        observations: ``(steps + 1, 40) float32``: the reset observation, then one per step.
-        actions: ``(steps,) int64``: the action taken at each step.
-        rewards: ``(steps,) float64``.
-        expert_actions: ``(steps,) int64``: the expert's choice in the state before each step.
-        action_masks: ``(steps + 1, 57) bool`` when asked for (the mask before each step, then of
-            the final state), else ``None``.
-        score, lost: the episode's final score and groups lost.
-        terminated, truncated: how it ended (truncated: ``max_steps`` reached).
-    """
+    """One episode of ``steps`` steps, as played on the server from ``seed``: ``observations``
+    ``(steps + 1, 40) float32`` (the reset's, then one per step), ``actions``, ``rewards`` and
+    ``expert_actions`` (the expert's choice before each step) ``(steps,)``, ``action_masks``
+    ``(steps + 1, 57) bool`` when asked for, the final ``score`` and ``lost``, and how it ended
+    (``truncated``: ``max_steps`` reached)."""
 
     seed: int
     observations: np.ndarray
@@ -92,18 +81,10 @@ def rollout(
     **connection: Any,
 ) -> Iterator[Episode]:
     """Plays ``policy`` (``"expert"``, ``"random"`` or ``"planner"``) on the server, one episode
-    per seed, and yields the :class:`Episode` objects in seed order as they arrive.
-
-    Give either ``seeds`` or ``episodes`` (seeds ``seed .. seed + episodes - 1``). Long seed lists
-    are sent in chunks of the server's ``max_rollout_episodes``. Without ``address`` (and
-    ``DINERDASH_ADDRESS``) a local server is started for the duration of the iteration.
-    ``connect`` (a :class:`~dinerdash.ConnectOptions`) and the connection keywords (``token``,
-    ``timeout``, ``tls``, ``tls_ca``, ...) are as for the environments (the stream itself has no
-    overall deadline; keepalive pings notice a dead server)::
-
-        for ep in dinerdash.rollout("expert", episodes=10):
-            print(ep.seed, ep.score, ep.steps)
-    """
+    per seed (``seeds``, or ``seed .. seed + episodes - 1``), and yields the :class:`Episode`
+    objects in seed order as they arrive, in chunks of the server's ``max_rollout_episodes``.
+    ``address``, ``connect`` and the connection keywords are the environments' (the stream has no
+    overall deadline; keepalive pings notice a dead server)."""
     if policy not in _POLICIES:
         raise ValueError(f"policy must be one of {sorted(_POLICIES)}, got {policy!r}")
     if seeds is None:

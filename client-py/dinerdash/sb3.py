@@ -1,19 +1,7 @@
-"""stable-baselines3 on one batched session: :func:`make_vec_env` (needs the ``dinerdash[sb3]``
-extra).
-
-SB3's own ``make_vec_env`` wraps single environments in a ``DummyVecEnv``, which makes one round
-trip to the server per environment per step. :class:`DinerDashSB3VecEnv` is an SB3 ``VecEnv``
-over one :class:`~dinerdash.DinerDashVectorEnv` instead: one Step call per server carries every
-environment's action. It speaks SB3's conventions: episodes reset automatically in the step that
-ends them (the ended one's last observation is ``infos[i]["terminal_observation"]``, a time limit
-sets ``infos[i]["TimeLimit.truncated"]``), seeds given by ``seed()`` apply at the next reset, and
-``env_method("action_masks")`` gives the masks sb3-contrib's MaskablePPO asks for::
-
-    from sb3_contrib import MaskablePPO
-    from dinerdash.sb3 import make_vec_env
-
-    env = make_vec_env(8, address="localhost:50051", max_episode_steps=2000)
-    model = MaskablePPO("MlpPolicy", env).learn(100_000)
+"""stable-baselines3 on one batched session: :func:`make_vec_env` (the ``dinerdash[sb3]`` extra),
+an SB3 ``VecEnv`` over one :class:`~dinerdash.DinerDashVectorEnv` (one Step call per server per
+step, where SB3's ``DummyVecEnv`` makes one per environment) that speaks SB3's conventions
+(docs/client.md#training-with-stable-baselines3).
 """
 
 from __future__ import annotations
@@ -166,14 +154,9 @@ def make_vec_env(
     monitor: bool = True,
     **env_kwargs: Any,
 ) -> VecEnv:
-    """An SB3 ``VecEnv`` of ``num_envs`` environments in one batched session per server.
-
-    ``address`` and ``env_kwargs`` are those of :class:`~dinerdash.DinerDashVectorEnv` (e.g.
-    ``max_episode_steps``, ``config``, ``expert``, ``timeout``, ``tls_ca``); the autoreset mode
-    is SB3's (SAME_STEP). With ``monitor`` (default) it is wrapped in SB3's ``VecMonitor``, as
-    SB3's own ``make_vec_env`` wraps each environment in a ``Monitor``, so that episode returns
-    and lengths are logged.
-    """
+    """An SB3 ``VecEnv`` of ``num_envs`` environments in one batched session per server:
+    ``address`` and ``env_kwargs`` are :class:`~dinerdash.DinerDashVectorEnv`'s, the autoreset
+    mode SB3's (SAME_STEP); with ``monitor``, wrapped in SB3's ``VecMonitor``."""
     if "autoreset_mode" in env_kwargs:
         raise TypeError("make_vec_env: the autoreset mode is SB3's (SAME_STEP); do not pass one")
     venv = DinerDashVectorEnv(

@@ -1,14 +1,6 @@
-"""A local ``dinerdash-server`` subprocess: the embedded default when no address is given.
-
-:class:`LocalServer` starts the binary on a free port (``--port 0``), waits for the line
-``dinerdash-server listening on HOST:PORT`` (with a timeout and a readable error), and always stops
-it: SIGTERM (repeated, since the first one only starts the server's drain), wait, then kill. On
-Linux the child also gets ``PR_SET_PDEATHSIG``, so it dies with the Python process even when that
-one is killed without a chance to clean up.
-
-The binary is, in this order: the ``binary`` argument, ``DINERDASH_SERVER``, the binary of the
-installed ``dinerdash-server`` wheel (``pip install 'dinerdash[server]'``), ``dinerdash-server`` on
-``PATH``, or the release build of the workspace this package was installed from.
+"""A local ``dinerdash-server`` subprocess (:class:`LocalServer`): the embedded default when no
+address is given, and the servers of ``dinerdash.testing`` and ``dinerdash.ray``; where its binary
+is found and how it is stopped: docs/install.md#where-the-client-finds-the-server-binary.
 """
 
 from __future__ import annotations
@@ -23,19 +15,27 @@ import tempfile
 import threading
 import time
 import weakref
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from .errors import LocalServerError, ServerBinaryNotFound
 
-__all__ = ["LocalServer", "find_server_binary", "local_server_unless_addressed", "server_args"]
+__all__ = ["FlagChosenByCaller", "LocalServer", "find_server_binary", "server_args"]
 
 
-def server_args(flags: Mapping[str, Any]) -> list[str]:
+class FlagChosenByCaller(TypeError, ValueError):
+    """A server flag given to a caller that chooses it itself (a ``TypeError`` as for a keyword
+    the caller does not take, and a ``ValueError`` as ``LocalCluster`` always raised)."""
+
+
+def server_args(flags: Mapping[str, Any], chosen: Mapping[str, str] | None = None) -> list[str]:
     """Command-line arguments from keywords: ``max_sessions=8`` is ``--max-sessions 8``; ``True``
-    is the bare flag; ``None`` and ``False`` leave the flag out; a list or tuple repeats it."""
+    is the bare flag; ``None`` and ``False`` leave the flag out; a list or tuple repeats it. A flag
+    named in ``chosen`` is refused (:class:`FlagChosenByCaller`) with its message."""
+    for name in flags:
+        if chosen and name.replace("-", "_") in chosen:
+            raise FlagChosenByCaller(f"{name}: {chosen[name.replace('-', '_')]}")
     args: list[str] = []
     for name, value in flags.items():
         flag = "--" + name.replace("_", "-")
@@ -63,25 +63,23 @@ _BUILD_HINT = (
 def find_server_binary(binary: str | os.PathLike[str] | None = None) -> Path:
     """The ``dinerdash-server`` binary to start, or :class:`ServerBinaryNotFound` saying how to
     get one."""
-    tried = []
     if binary is not None:
-        candidates = [("binary argument", Path(binary))]
+        candidates = [("binary argument", binary)]
     else:
-        candidates = []
-        env = os.environ.get("DINERDASH_SERVER")
-        if env:
-            candidates.append(("DINERDASH_SERVER", Path(env)))
-        wheel = _wheel_binary()
-        if wheel is not None:
-            candidates.append(("dinerdash-server package", wheel))
-        on_path = shutil.which("dinerdash-server")
-        if on_path:
-            candidates.append(("PATH", Path(on_path)))
         # client-py/dinerdash/server.py -> the workspace root holds target/release.
         workspace = Path(__file__).resolve().parent.parent.parent
         exe = "dinerdash-server.exe" if os.name == "nt" else "dinerdash-server"
-        candidates.append(("workspace", workspace / "target" / "release" / exe))
-    for origin, path in candidates:
+        candidates = [
+            ("DINERDASH_SERVER", os.environ.get("DINERDASH_SERVER") or None),
+            ("dinerdash-server package", _wheel_binary()),
+            ("PATH", shutil.which("dinerdash-server")),
+            ("workspace", workspace / "target" / "release" / exe),
+        ]
+    tried = []
+    for origin, where in candidates:
+        if where is None:
+            continue
+        path = Path(where)
         if path.is_file() and os.access(path, os.X_OK):
             return path
         tried.append(f"{path} ({origin})")
@@ -106,12 +104,8 @@ def _wheel_binary() -> Path | None:
 
 def _death_signal() -> list[str]:
     """The command prefix that makes the server die with the thread that started it: ``setpriv
-    --pdeathsig TERM`` where there is one (Linux, util-linux), else nothing.
-
-    Not a ``preexec_fn`` calling ``prctl``: with one, Python must ``fork`` and run code in the
-    child, and gRPC's ``pthread_atfork`` handlers wait for its threads first, for ever in a
-    process whose channels are reconnecting to a server that died (grpc/grpc#37259). Without one,
-    Python spawns with ``vfork``, which runs no handlers."""
+    --pdeathsig TERM`` where there is one (Linux), else nothing; not a ``preexec_fn`` (why:
+    docs/install.md#where-the-client-finds-the-server-binary)."""
     if not sys.platform.startswith("linux"):
         return []
     setpriv = shutil.which("setpriv")
@@ -119,12 +113,10 @@ def _death_signal() -> list[str]:
 
 
 #: ``--max-envs-per-session`` of a local server unless its ``args`` set one: the most the flag
-#: allows, so that whatever ``num_envs`` a trainer asks of the server it started is admitted (the
-#: server is this client's alone; its memory budget still bounds the sessions).
+#: allows (the server is this client's alone; its memory budget still bounds the sessions).
 LOCAL_MAX_ENVS_PER_SESSION = 65_536
 
-#: Seconds between the SIGTERMs that stop a server: its first one starts a drain that serves the
-#: sessions left for up to ``--drain-timeout``; the next one, once that was handled, ends it.
+#: Seconds between the SIGTERMs that stop a server (the first starts its drain, the next ends it).
 _SIGTERM_EVERY = 0.2
 
 
@@ -145,13 +137,8 @@ def _stop_process(proc: subprocess.Popen, timeout: float) -> None:
 
 
 class LocalServer:
-    """A ``dinerdash-server`` child process on ``127.0.0.1`` and a port the server picks.
-
-    Use it as a context manager, or call :meth:`stop` (also run when the object is collected and
-    at interpreter exit)::
-
-        with LocalServer() as server:
-            env = gymnasium.make("dinerdash:DinerDash-v0", address=server.address)
+    """A ``dinerdash-server`` child process on ``127.0.0.1`` and a port the server picks; a
+    context manager, or call :meth:`stop` (also run when collected and at interpreter exit).
 
     Args:
         binary: path of the binary (default: see :func:`find_server_binary`).
@@ -161,6 +148,8 @@ class LocalServer:
             unless they set ``--max-envs-per-session``, it is :data:`LOCAL_MAX_ENVS_PER_SESSION`.
         startup_timeout: seconds to wait for the ``listening on`` line.
         stop_timeout: seconds between terminate and kill.
+        rebind_timeout: seconds to keep trying a given ``port`` that a stopped server has not
+            let go of yet (a restart on the same port).
     """
 
     def __init__(
@@ -172,6 +161,7 @@ class LocalServer:
         args: Sequence[str] = (),
         startup_timeout: float = 30.0,
         stop_timeout: float = 10.0,
+        rebind_timeout: float = 0.0,
     ) -> None:
         self.binary = find_server_binary(binary)
         self.host = host
@@ -183,7 +173,15 @@ class LocalServer:
         self.process: subprocess.Popen | None = None
         self._stderr = None
         self._finalizer: weakref.finalize | None = None
-        self.start()
+        deadline = time.monotonic() + rebind_timeout
+        while True:
+            try:
+                self.start()
+                break
+            except LocalServerError:
+                if not port or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
 
     @property
     def pid(self) -> int | None:
@@ -282,18 +280,3 @@ def _pump(stream, lines: queue.Queue) -> None:
     except (OSError, ValueError):
         pass
     lines.put(None)
-
-
-@contextmanager
-def local_server_unless_addressed(
-    address: str | list[str] | None,
-) -> Iterator[tuple[str | list[str] | None, LocalServer | None]]:
-    """``(address, server)`` for a command that plays against ``address``: as given, with no
-    server started, when ``address`` or ``DINERDASH_ADDRESS`` names one; else the address of a
-    :class:`LocalServer` started here and stopped on exit. Start it before any JAX work: forking
-    a process while JAX's threads run is unsafe."""
-    if address is not None or os.environ.get("DINERDASH_ADDRESS"):
-        yield address, None
-        return
-    with LocalServer() as server:
-        yield server.address, server

@@ -2,9 +2,8 @@
 reference, measured in one run.
 
 Layout:
-    harness  the measurements and the ``bench`` command's report (:func:`run`)
-    reference  the rules in plain Python: the reference the rates are measured against (the
-               Gymnasium environments never use it; they step the server's simulator)
+    harness    the measurements and the ``bench`` command's report (:func:`run`)
+    reference  the rules in plain Python: the reference the rates are measured against
 """
 
 from __future__ import annotations

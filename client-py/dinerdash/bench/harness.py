@@ -1,29 +1,7 @@
 """The measurements of ``python -m dinerdash bench``: what stepping through the client costs,
-beside the floors of the machine it runs on, all measured in one run so that anyone can rerun the
-comparison.
-
-- **Loopback TCP floor**: a one-byte ping-pong between this process and a child Python process
-  (``TCP_NODELAY``), the least any request/reply between two processes costs here.
-- **Reference**: :mod:`dinerdash.bench.reference`, the rules in plain Python, stepped with uniformly
-  random actions in this process: the benchmark's own way of running the game, and the unit of
-  every ``x`` below.
-- **gRPC round trip** (a bare ``ServerInfo``), a **single env**, a **vector env** of N stepped with
-  ``step()``, and with ``--pipeline`` **two vector envs** of N with one step always on the wire
-  (``step_async`` on one while ``step_wait`` collects the other).
-- With the ``sb3`` extra: SB3's ``DummyVecEnv`` of single envs against
-  :func:`dinerdash.sb3.make_vec_env`.
-- **Transports** (:func:`transports`): the single env, N = 256 and N = 1024 stepped by this
-  client over gRPC and over shared memory (``transport=``), beside the server's own rates on
-  this machine (``dinerdash-server ceiling``: in process, and through a Rust gRPC client), the
-  limit any client can reach; with ``--pipeline`` two vector envs of N = 256 pipelined on each
-  transport; the client's decode time of one N = 256 reply on each; and the share of the
-  in-process rate no Python client can pass at N = 256 (:func:`_python_floor`).
-- **Scaling** (:func:`scaling`): the server's ceiling for N = 256 and N = 4096 (and N = 256 with
-  planner labels) on one stepping thread and on one per core (``ceiling --threads``), beside this
-  client's vector env of the same N over gRPC and shared memory on the local server.
-
-The lines above the transports table step with the ``transport`` the connection keywords give
-(gRPC unless told otherwise), so that they stay comparable with earlier runs.
+beside the floors of the machine it runs on (loopback TCP, the shared-memory doorbell), the
+plain-Python reference and the server's own rates, all measured in one run; what each line means:
+docs/benchmarks.md#the-python-client.
 """
 
 from __future__ import annotations
@@ -33,41 +11,30 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import closing
 from typing import Any
 
 import numpy as np
 
 from ..game import NUM_ACTIONS
 
-__all__ = ["ceiling", "ceiling_lines", "run", "scaling", "tcp_floor", "transports"]
+__all__ = ["ceiling_lines", "run", "scaling", "tcp_floor", "transports"]
 
-# The echo side of the TCP floor: a child process, so that the ping-pong crosses processes (and
-# cores) as a call to a server does; it prints its port, then echoes until the socket closes.
-#: The echo children's loop: what their socket ``c`` receives goes back, until it closes.
-_ECHO_LOOP = """
+#: The echo child: what its socket (the descriptor in ``argv[1]``) receives goes back, until it
+#: closes; a child process, so that the ping-pong crosses processes as a call to a server does.
+_ECHO = """
+import socket, sys
+c = socket.socket(fileno=int(sys.argv[1]))
 while True:
     d = c.recv(64)
     if not d:
         break
     c.sendall(d)
 """
-_ECHO = (
-    """
-import socket
-s = socket.socket()
-s.bind(("127.0.0.1", 0))
-s.listen(1)
-print(s.getsockname()[1], flush=True)
-c, _ = s.accept()
-c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-"""
-    + _ECHO_LOOP
-)
 
 
 def _ping_pong(sock: socket.socket, round_trips: int) -> float:
-    """Microseconds of one round trip of a byte over ``sock`` to an echo child, after 200 to
-    warm up."""
+    """Microseconds of one round trip of a byte over ``sock`` to an echo child (after 200)."""
     for _ in range(200):
         sock.sendall(b"x")
         sock.recv(64)
@@ -78,27 +45,43 @@ def _ping_pong(sock: socket.socket, round_trips: int) -> float:
     return (time.perf_counter() - start) / round_trips * 1e6
 
 
-def _reap(child: subprocess.Popen) -> None:
-    """Waits for an echo child whose socket closed (killed if it does not end)."""
+def _floor(mine: socket.socket, theirs: socket.socket, round_trips: int) -> float:
+    """Microseconds of one round trip of a byte over ``mine`` to a child echoing on ``theirs``."""
+    child = subprocess.Popen(
+        [sys.executable, "-c", _ECHO, str(theirs.fileno())],
+        pass_fds=[theirs.fileno()],
+        stdin=subprocess.DEVNULL,
+    )
+    theirs.close()
     try:
-        child.wait(timeout=5)
-    except subprocess.TimeoutExpired:
-        child.kill()
-        child.wait()
+        with mine:
+            return _ping_pong(mine, round_trips)
+    finally:
+        try:
+            child.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
 
 
 def tcp_floor(round_trips: int = 5000) -> float:
     """Microseconds of one loopback TCP round trip (one byte each way) to a child process."""
-    child = subprocess.Popen(
-        [sys.executable, "-c", _ECHO], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True
-    )
-    try:
-        port = int(child.stdout.readline())
-        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            return _ping_pong(sock, round_trips)
-    finally:
-        _reap(child)
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        mine = socket.create_connection(server.getsockname(), timeout=10)
+        theirs, _ = server.accept()
+    for sock in (mine, theirs):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    return _floor(mine, theirs, round_trips)
+
+
+def doorbell_floor(round_trips: int = 5000) -> float:
+    """Microseconds of one Unix ``SOCK_SEQPACKET`` round trip (one byte each way) to a child
+    process: the least a shared-memory Step costs here, as :func:`tcp_floor` is gRPC's."""
+    return _floor(*socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET), round_trips)
+
+
+def _first(address: str | list[str] | None) -> str | None:
+    return address[0] if isinstance(address, list) else address
 
 
 def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
@@ -120,8 +103,7 @@ def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
 def _single(address: str | None, steps: int, **connection: Any) -> float:
     from ..env import DinerDashEnv
 
-    env = DinerDashEnv(address, **connection)
-    try:
+    with DinerDashEnv(address, **connection) as env:
         actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, size=steps)
         env.reset(seed=0)
         start = time.perf_counter()
@@ -130,8 +112,6 @@ def _single(address: str | None, steps: int, **connection: Any) -> float:
             if terminated or truncated:
                 env.reset()
         return steps / (time.perf_counter() - start)
-    finally:
-        env.close()
 
 
 def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: Any) -> float:
@@ -171,16 +151,12 @@ def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: A
 
 def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> float:
     """Microseconds the client spends on one Step reply of ``num_envs`` environments once it has
-    arrived: over gRPC, parsing the Batch message, reading it into a
-    :class:`~dinerdash._batch.Batch` and building the numpy arrays and infos; over shared memory
-    (``transport="shm"``), the same from the region's views (no message to parse). Measured on
-    the replies of ``steps`` random steps (episodes ending and resetting among them)."""
+    arrived (gRPC: parse it too; shared memory: from the region), over ``steps`` random steps."""
     from .._batch import Batch
     from .._proto import pb
     from ..vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address, **connection)
-    try:
+    with closing(DinerDashVectorEnv(num_envs, address, **connection)) as envs:
         rng = np.random.default_rng(0)
         envs.reset(seed=0)
         if connection.get("transport") == "shm":
@@ -200,24 +176,16 @@ def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> floa
         for raw in replies:
             envs.decode_step([Batch.from_pb(pb.Batch.FromString(r)) for r in raw])
         return (time.perf_counter() - start) / steps * 1e6
-    finally:
-        envs.close()
 
 
 def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
-    """Microseconds of the least work any Python client of this env does for one step of
-    ``num_envs`` environments over shared memory, beside the server's Step: writing the actions
-    and one numpy call for each array a step returns (float32 observations, float64 rewards, the
-    flags) and for each info array, with one ``_key`` mask for all, as Gymnasium's contract and
-    the env's infos require (a returned array is the caller's own), on each reply as it arrives
-    from the server's core. Timed around that work alone: no checks, no bookkeeping, no expert
-    actions, nothing of the doorbell; and of the times of the steps, the 10th percentile. So the
-    share of the in-process rate it leaves is more than any real client can reach."""
+    """Microseconds of the least work any Python client does for one shared-memory step of
+    ``num_envs`` environments beside the server's Step, the 10th percentile of the steps
+    (docs/benchmarks.md: "What any Python client could reach")."""
     from .._batch import join
     from ..vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address, transport="shm")
-    try:
+    with closing(DinerDashVectorEnv(num_envs, address, transport="shm")) as envs:
         envs.reset(seed=0)
         fleet, present = envs.fleet, np.ones(num_envs, dtype=np.bool_)
         names = ("observations", "rewards", "terminated", "truncated", "action_masks")
@@ -241,27 +209,21 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
                 "tick": ticks.astype(np.int64),
                 "seed": seeds.astype(np.int64),
             }
-            # One mask shared by every ``_key`` (the env copies one for each): fewer copies.
             shown = present.copy()
             for key in list(info):
                 info["_" + key] = shown
             obs.astype(np.float32), rewards.astype(np.float64)
             terminated.copy(), truncated.copy()
             times[-1] += time.perf_counter() - start
-        # The 10th percentile: a burst of load elsewhere on the machine must not raise the floor.
         return float(np.percentile(times, 10)) * 1e6
-    finally:
-        envs.close()
 
 
 def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
-    """Where a shared-memory Step of ``num_envs`` environments goes: ``(microseconds a step()
-    takes, microseconds of it from the doorbell's ring to the reply)``; the rest is this
-    client's own work (the actions' check, the decode, the env's bookkeeping)."""
+    """``(microseconds a shared-memory step() of ``num_envs`` takes, microseconds of it from the
+    doorbell's ring to the reply)``: the rest is this client's own work."""
     from ..vector import DinerDashVectorEnv
 
-    envs = DinerDashVectorEnv(num_envs, address, transport="shm")
-    try:
+    with closing(DinerDashVectorEnv(num_envs, address, transport="shm")) as envs:
         envs.reset(seed=0)
         (core,) = envs.fleet.cores
         transport, channel = core.transport, core.transport.channel
@@ -281,8 +243,6 @@ def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
         for a in actions[100:]:
             envs.step(a)
         return (time.perf_counter() - start) / steps * 1e6, waited[0] / steps * 1e6
-    finally:
-        envs.close()
 
 
 def ceiling_lines(
@@ -291,10 +251,10 @@ def ceiling_lines(
     threads: list[int] | None = None,
     labels: str = "none",
 ) -> list[tuple[int, int, str, float, float]]:
-    """The server's own env-steps/s for a session of each N of ``sizes`` with ``labels``
-    (``none``, ``expert`` or ``planner``) on each number of stepping ``threads`` (default: one
-    per core), measured by its binary on this machine: one ``(N, threads, labels, in process,
-    Rust gRPC client)`` per line of ``dinerdash-server ceiling``."""
+    """The server's own env-steps/s for a session of each N of ``sizes`` with ``labels`` on each
+    number of stepping ``threads`` (default: one per core), measured by its binary here: one
+    ``(N, threads, labels, in process, Rust gRPC client)`` per line of ``dinerdash-server
+    ceiling``."""
     from ..server import find_server_binary
 
     threads = list(threads or [])
@@ -322,33 +282,6 @@ def ceiling_lines(
     return lines
 
 
-def ceiling(sizes: list[int], seconds: float = 2.0) -> dict[int, tuple[float, float]]:
-    """The server's own env-steps/s for a session of each N of ``sizes`` (no labels, one
-    stepping thread per core), measured by its binary on this machine: ``{N: (in process, Rust
-    gRPC client)}``."""
-    return {n: (local, grpc) for n, _, _, local, grpc in ceiling_lines(sizes, seconds)}
-
-
-_SEQPACKET_ECHO = "import socket, sys\nc = socket.socket(fileno=int(sys.argv[1]))\n" + _ECHO_LOOP
-
-
-def doorbell_floor(round_trips: int = 5000) -> float:
-    """Microseconds of one Unix ``SOCK_SEQPACKET`` round trip (one byte each way) to a child
-    process: the least a shared-memory Step costs here, as :func:`tcp_floor` is gRPC's."""
-    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    child = subprocess.Popen(
-        [sys.executable, "-c", _SEQPACKET_ECHO, str(theirs.fileno())],
-        pass_fds=[theirs.fileno()],
-        stdin=subprocess.DEVNULL,
-    )
-    theirs.close()
-    try:
-        return _ping_pong(mine, round_trips)
-    finally:
-        mine.close()
-        _reap(child)
-
-
 def transports(
     address: str | list[str],
     steps: int,
@@ -358,14 +291,11 @@ def transports(
     pipeline: bool = False,
     ceiling_seconds: float = 1.0,
 ) -> None:
-    """Prints the transports table: this client over gRPC and over shared memory, and the
-    server's ceiling, for the single env and a vector env of each N of ``sizes``; with
-    ``pipeline``, two vector envs of the first N stepped alternately (``step_async`` /
-    ``step_wait``) on each transport, beside one; and the time the client spends decoding one
-    reply of the first N on each transport. Each figure is the best of ``rounds`` rounds that
-    take turns, so that a burst of load elsewhere on the machine during one measurement does not
-    decide the comparison."""
-    first = address[0] if isinstance(address, list) else address
+    """Prints the transports table: this client over gRPC and over shared memory beside the
+    server's ceiling, for the single env and a vector env of each N of ``sizes`` (and with
+    ``pipeline`` two pipelined vector envs of the first N); each figure the best of ``rounds``
+    rounds that take turns."""
+    first = _first(address)
     rows = [1] if steps > 0 else []
     rows += list(sizes) if vec_steps > 0 else []
     best: dict[tuple[str, int], float] = {}
@@ -377,7 +307,7 @@ def transports(
     floor = doorbell_floor()
     print(f"doorbell floor     : {floor:12,.1f} us/round trip  (Unix SEQPACKET, two processes)")
     for _ in range(rounds):
-        for n, (local, rust) in ceiling(rows, seconds=ceiling_seconds).items():
+        for n, _, _, local, rust in ceiling_lines(rows, seconds=ceiling_seconds):
             keep(("local", n), local)
             keep(("rust", n), rust)
         for n in rows:
@@ -449,11 +379,10 @@ def scaling(
     planner_sizes: tuple[int, ...] = (256,),
     ceiling_seconds: float = 1.0,
 ) -> None:
-    """Prints the scaling table: the server's ceiling (in process, Rust gRPC client) for each N
-    on one stepping thread and on one per core, beside this client's vector env of that N over
-    gRPC and shared memory (the server at ``address``, stepping as it was started). Planner
-    labels cost ~0.1 ms a decision: those rows step a tenth as many times."""
-    first = address[0] if isinstance(address, list) else address
+    """Prints the scaling table: the server's ceiling for each N on one stepping thread and on one
+    per core, beside this client's vector env of that N over gRPC and shared memory; the planner
+    rows (~0.1 ms a decision) step a tenth as many times."""
+    first = _first(address)
     cores = os.cpu_count() or 1
     threads = sorted({1, cores})
     print(
@@ -488,8 +417,7 @@ def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
 
 def _sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, float]:
     """Env-steps/s of SB3's ``DummyVecEnv`` of ``num_envs`` single envs and of
-    :func:`dinerdash.sb3.make_vec_env`, both stepped with random legal actions (the masks read
-    through ``env_method("action_masks")``, as MaskablePPO reads them)."""
+    :func:`dinerdash.sb3.make_vec_env`, both with random legal actions read as MaskablePPO does."""
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from ..env import DinerDashEnv
@@ -508,7 +436,7 @@ def _sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, 
         finally:
             vec.close()
 
-    first = address[0] if isinstance(address, list) else address
+    first = _first(address)
     dummy = run(
         DummyVecEnv(
             [lambda: DinerDashEnv(first, **connection) for _ in range(num_envs)]  # type: ignore[misc]
@@ -537,8 +465,8 @@ def run(
 ) -> None:
     """The ``bench`` command: prints one line per measurement. Without ``address`` (and
     ``DINERDASH_ADDRESS``) it starts ``servers`` local servers; a step count of 0 skips its
-    measurement; ``connection``: ``timeout``, ``tls``, ``tls_ca`` of every client, and
-    ``transport`` (default ``"grpc"``) of the lines before the transports table."""
+    measurement; ``connection``'s ``transport`` (default ``"grpc"``) is that of the lines before
+    the transports table."""
     from ..server import LocalServer
 
     connection.setdefault("transport", "grpc")
@@ -567,7 +495,7 @@ def run(
         if address is None and not os.environ.get("DINERDASH_ADDRESS"):
             started = [LocalServer() for _ in range(servers)]
             address = [s.address for s in started]
-        first = address[0] if isinstance(address, list) else address
+        first = _first(address)
         shown = address if address is not None else os.environ["DINERDASH_ADDRESS"]
         print(f"servers: {shown}; {os.cpu_count()} cores")
         n = num_envs
@@ -589,7 +517,6 @@ def run(
                 f"make_vec N={n:<8}: {rate:12,.0f} env-steps/s   ({vec_steps} step() calls, "
                 f"{replicas} server(s); {times(rate)})"
             )
-        if vec_steps > 0:
             micros = _decode(address, n, **connection)
             print(
                 f"decode N={n:<10}: {micros:12,.1f} us/step       (parse the reply, build the "

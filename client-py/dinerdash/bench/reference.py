@@ -1,27 +1,9 @@
-"""A plain-Python simulator of Diner Dash, ruleset ``v0``: the baseline of ``python -m dinerdash
-bench``.
-
-The server's speed targets are multiples of "the reference simulator's in-process random
-steps/s, measured in the same run". The reference is the small Python simulator of the published
-benchmark, which this repository does not ship; this module stands in for it. It implements the
-rules of ``docs/rules.md`` (a port of the Rust simulator in ``server/src/sim/``) the way a
-straightforward Python game is written: objects for groups and tables, lists for the queue,
-counters, hands and pending orders, ``random.Random`` (CPython's MT19937, which the rules seed
-exactly like ``random.seed(S)``), no numpy and no tricks, neither tuned nor slowed down, so that
-its speed is that of a Python simulator of this game. ``tests/test_reference.py`` replays every
-recorded reference trajectory (``tests/data/conformance/``) through it and matches every step,
-including the expert's choices.
-
-The Gymnasium environments never use it: they step the Rust simulator through the server.
-
-::
-
-    from dinerdash.bench.reference import Game, random_steps_per_second
-
-    game = Game()
-    obs = game.reset(seed=0)           # 40 ints (docs/rules.md §6)
-    obs, reward, done = game.step(game.expert_action())
-    random_steps_per_second(200_000)   # uniformly random actions, reset at episode end
+"""A plain-Python simulator of Diner Dash, ruleset ``v0`` (a port of ``server/src/sim/``): the
+baseline of ``python -m dinerdash bench``, written as a straightforward Python game is (objects,
+lists, ``random.Random``; no numpy, neither tuned nor slowed down), so that its speed is a Python
+simulator's (docs/benchmarks.md#the-python-client). ``tests/test_reference.py`` matches it step
+for step, the expert's choices included, against the recorded reference trajectories. The
+Gymnasium environments never use it.
 """
 
 from __future__ import annotations

@@ -1,33 +1,8 @@
-"""Ray and RLlib: servers placed by Ray, one batched session per EnvRunner, masked PPO (needs the
-``dinerdash[ray]`` extra)::
-
-    import ray
-    from dinerdash.ray import masked_ppo, start_servers
-
-    ray.init()                                   # or ray.init(address="auto") on a cluster
-    with start_servers() as pool:                # one dinerdash-server per Ray node
-        algo = masked_ppo(pool.addresses).build_algo()
-        for _ in range(100):
-            algo.train()
-
-- :func:`start_servers` (``_servers``) runs each ``dinerdash-server`` under a Ray actor pinned to
-  its node, on the node's IP and a free port. A server that dies (its process or its actor) is
-  restarted by Ray on the same port, so clients with ``reconnect=True`` find it again.
-  :class:`ServerPool`: ``pool.addresses``, ``pool.close()``, a context manager.
-- :func:`register` (``rllib``) registers the RLlib environment ``"DinerDash-v0"``: one batched
-  :class:`~dinerdash.DinerDashVectorEnv` per EnvRunner (``env_config``: ``address``, ``token``,
-  ``timeout``, ``reconnect``, ``expert``, ``mask_observation``).
-- :func:`masked_ppo` (``rllib``): an RLlib PPO config (new API stack) on that environment with
-  :class:`MaskedPPOTorchRLModule`, which never samples an illegal action.
-
-The binary: each actor looks for ``dinerdash-server`` on its own node as the embedded default
-does (:func:`dinerdash.server.find_server_binary`: ``DINERDASH_SERVER``, the ``dinerdash-server``
-wheel, ``PATH``). On a real cluster either install ``dinerdash[ray,server]`` on every node, or
-point every node at a binary: ``ray.init(runtime_env={"env_vars": {"DINERDASH_SERVER": path}})``
-with ``path`` valid on every node.
-
-The RLlib half is imported on first use: the servers' actors import only ``_servers``, without
-RLlib and torch (whose import takes seconds in every actor process).
+"""Ray and RLlib (the ``dinerdash[ray]`` extra; docs/clusters.md#ray): :func:`start_servers`
+(``_servers``) runs each ``dinerdash-server`` under a Ray actor pinned to its node; :func:`register`
+and :func:`masked_ppo` (``rllib``) give each EnvRunner one batched session and an RLlib PPO that
+never samples an illegal action. The RLlib half is imported on first use, so that the servers'
+actors start without RLlib and torch.
 """
 
 from __future__ import annotations

@@ -1,13 +1,6 @@
 """``dinerdash-server`` processes placed on a Ray cluster by Ray actors: :func:`start_servers` and
-its :class:`ServerPool`.
-
-Each server runs under an actor pinned to its node (a hard node affinity) and listens on the
-node's IP on a port it picks. Its port is kept in a file on the node, named by the server, so
-that when the server dies (its process or its actor), the actor Ray restarts starts it again on
-the same node and port, and clients with ``reconnect=True`` find it at the address they know.
-
-Only Ray and :mod:`dinerdash.server` are imported here, so that the actors' processes start
-without RLlib and torch.
+its :class:`ServerPool` (docs/clusters.md#servers-start_servers). Only Ray and
+:mod:`dinerdash.server` are imported here, so that the actors start without RLlib and torch.
 """
 
 from __future__ import annotations
@@ -16,9 +9,7 @@ import os
 import sys
 import tempfile
 import threading
-import time
 import uuid
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,10 +38,9 @@ class ServerPoolError(LocalServerError):
 
 
 class _ServerActor:
-    """One ``dinerdash-server`` on this actor's node. Its port is kept in a file named by the
-    server's key, so that the actor Ray restarts after a crash starts the server on the same
-    port. When the server process exits without :meth:`stop`, the actor exits too, so that Ray
-    restarts both."""
+    """One ``dinerdash-server`` on this actor's node, on the port kept in a file named by its key
+    (so that the actor Ray restarts starts it on the same port). When the server exits without
+    :meth:`stop`, the actor exits too, so that Ray restarts both."""
 
     def __init__(self, key: str, token: str | None, args: list[str]) -> None:
         self._stopping = False
@@ -59,17 +49,12 @@ class _ServerActor:
         if token is not None:
             # Through the environment, not the command line: ps shows no token.
             os.environ["DINERDASH_AUTH_TOKEN"] = token
-        host = ray.util.get_node_ip_address()
-        deadline = time.monotonic() + _PORT_RETRY_SECONDS
-        while True:
-            try:
-                self._server = LocalServer(host=host, port=port, args=args)
-                break
-            except LocalServerError:
-                # A restart: the killed server's port may not be free yet.
-                if port == 0 or time.monotonic() > deadline:
-                    raise
-                time.sleep(0.2)
+        self._server = LocalServer(
+            host=ray.util.get_node_ip_address(),
+            port=port,
+            args=args,
+            rebind_timeout=_PORT_RETRY_SECONDS,
+        )
         self._port_file.parent.mkdir(parents=True, exist_ok=True)
         self._port_file.write_text(self._server.address.rsplit(":", 1)[1])
         threading.Thread(target=self._watch, name="dinerdash-server-watch", daemon=True).start()
@@ -99,17 +84,6 @@ class _ServerActor:
         self._stopping = True
         self._server.stop()
         self._port_file.unlink(missing_ok=True)
-
-
-def _server_flags(flags: Mapping[str, Any]) -> list[str]:
-    """:func:`~dinerdash.server.server_args` of ``flags``, less those the pool chooses."""
-    for name in flags:
-        if name.replace("-", "_") in ("host", "port", "auth_token"):
-            raise TypeError(
-                f"start_servers(): {name}= is chosen by the pool (the node's address, a free "
-                "port, token=)"
-            )
-    return server_args(flags)
 
 
 def _server_nodes() -> list[dict[str, Any]]:
@@ -172,32 +146,20 @@ def start_servers(
     token: str | None = None,
     **server_flags: Any,
 ) -> ServerPool:
-    """Starts ``dinerdash-server`` processes on the Ray cluster and returns their
-    :class:`ServerPool` once every one listens.
+    """Starts ``dinerdash-server`` processes on the Ray cluster, each under an actor pinned to its
+    node and reserving no CPU, and returns their :class:`ServerPool` once every one listens.
 
-    Each server runs under its own actor, pinned to its node (a hard node affinity, so that a
-    restart lands on the same node and the same port). The servers' CPUs are not reserved from
-    Ray (the actors ask for 0 CPUs): Ray's CPUs stay for EnvRunners and learners.
-
-    Args:
-        per_node: servers on each node. The nodes are those with the custom resource
-            :data:`SERVER_RESOURCE`, or, when none has it, every alive node.
-        num_servers: the number of servers in all, dealt over the nodes in turn (overrides
-            ``per_node``).
-        token: the servers require ``authorization: Bearer <token>`` (``--auth-token``); give
-            the clients the same ``token``.
-        server_flags: more server flags, ``max_sessions=20000`` for ``--max-sessions 20000``
-            (``True`` for a bare flag).
-
-    Raises:
-        ServerPoolError: no node, or a server that did not start (the message says why: no
-            binary on that node, a bad flag ...).
+    ``per_node`` servers on each node with :data:`SERVER_RESOURCE` (or, when none has it, on
+    every alive node), or ``num_servers`` dealt over them in turn; ``token``: the servers' auth
+    token (give the clients the same); ``server_flags``: ``max_sessions=20000`` for
+    ``--max-sessions 20000``. :class:`ServerPoolError`: no node, or a server that did not start.
     """
     if not ray.is_initialized():
         ray.init()
     if per_node < 1:
         raise ValueError(f"per_node must be at least 1, got {per_node}")
-    args = _server_flags(server_flags)
+    chosen = "chosen by the pool (the node's address, a free port, token=)"
+    args = server_args(server_flags, dict.fromkeys(("host", "port", "auth_token"), chosen))
     nodes = _server_nodes()
     if not nodes:
         raise ServerPoolError("start_servers(): the Ray cluster has no alive node")

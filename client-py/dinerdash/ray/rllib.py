@@ -1,11 +1,6 @@
 """RLlib on DinerDash: the environment ``"DinerDash-v0"`` (one batched session per EnvRunner, the
-action mask in a ``Dict`` observation), :class:`MaskedPPOTorchRLModule` and :func:`masked_ppo`.
-
-RLlib's default vectorization makes one ``gymnasium.make`` env per sub-environment: one session
-and one round trip per environment per step. With
-``gym_env_vectorize_mode=gym.VectorizeMode.VECTOR_ENTRY_POINT``, :func:`make_env` gives each
-EnvRunner one :class:`~dinerdash.DinerDashVectorEnv` of ``num_envs_per_env_runner``
-environments instead: one round trip per step for all of them.
+action mask in a ``Dict`` observation), :class:`MaskedPPOTorchRLModule` and :func:`masked_ppo`
+(docs/clusters.md#the-environment-register).
 """
 
 from __future__ import annotations
@@ -76,7 +71,7 @@ def _dict_space(observations: spaces.Box, num_actions: int) -> spaces.Dict:
 
 class _Masking:
     """``reset()`` and ``step()`` of both wrappers: the observation becomes RLlib's masking
-    ``Dict`` and the info gives up its ``action_mask`` (and a vector env's ``_action_mask``)."""
+    ``Dict`` and the info gives up its ``action_mask`` (and ``_action_mask``)."""
 
     env: Any
 
@@ -119,12 +114,9 @@ class VectorMaskedObservation(_Masking, VectorWrapper):
 
 
 def _runner_index(config: Mapping[str, Any]) -> tuple[int, int]:
-    """``(worker_index, num_workers)`` of the EnvRunner building this env.
-
-    RLlib 2.60 calls the vector entry point with ``env_ctx | {"num_envs": n}``, a plain dict
-    that has lost the ``EnvContext``'s ``worker_index``; the ``EnvContext`` itself is a local
-    of RLlib's callers (``SingleAgentEnvRunner.make_env`` and its entry-point lambda), read
-    from there. Outside RLlib: ``(0, 0)``."""
+    """``(worker_index, num_workers)`` of the EnvRunner building this env, read from the
+    ``EnvContext`` a local of RLlib's callers holds when ``config`` has lost it (RLlib 2.60's
+    vector entry point); outside RLlib ``(0, 0)``."""
     if isinstance(config, EnvContext):
         return config.worker_index, config.num_workers or 0
     frame = sys._getframe(1)
@@ -156,21 +148,10 @@ def _runner_addresses(
 
 
 def make_env(config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
-    """The entry point of the RLlib environment ``"DinerDash-v0"`` (see :func:`register`).
-
-    With ``num_envs`` in ``config`` (RLlib's ``VECTOR_ENTRY_POINT`` mode) one
-    :class:`~dinerdash.DinerDashVectorEnv` of that many environments; else one
-    :class:`~dinerdash.DinerDashEnv` (RLlib's default mode makes one per sub-environment).
-    Autoreset is ``NEXT_STEP``, RLlib's convention.
-
-    ``config`` keys (RLlib's ``env_config``): ``address`` (a server, or a list spread over the
-    EnvRunners by ``worker_index``: each gets its share), ``token``, ``timeout``, ``reconnect``
-    (default ``False``), ``expert`` (``True``/``"planner"``: ``info["expert_action"]``),
-    ``mask_observation`` (default ``True``: the ``Dict`` observation of
-    :class:`MaskedObservation`), ``failover_after`` and ``reconnect_timeout`` (as for
-    :class:`~dinerdash.DinerDashVectorEnv`: an EnvRunner whose share is several servers moves
-    a lost server's environments to the others, and takes the server back once it answers
-    again, e.g. after Ray restarted it on its node).
+    """The entry point of the RLlib environment ``"DinerDash-v0"``: with ``num_envs`` in
+    ``config`` (``VECTOR_ENTRY_POINT`` mode) one :class:`~dinerdash.DinerDashVectorEnv` of that
+    many environments, else one :class:`~dinerdash.DinerDashEnv`; autoreset ``NEXT_STEP``.
+    ``config``: the keys of :data:`ENV_CONFIG_KEYS` (docs/clusters.md#the-environment-register).
     """
     unknown = sorted(set(config) - {*ENV_CONFIG_KEYS, "num_envs"})
     if unknown:
@@ -203,9 +184,7 @@ def make_env(config: Mapping[str, Any]) -> gym.Env | gym.vector.VectorEnv:
 
 def register() -> None:
     """Registers the RLlib environment ``"DinerDash-v0"`` (:func:`make_env`) with Ray Tune's
-    registry, which every process of the cluster reads. Use it with
-    ``config.env_runners(gym_env_vectorize_mode=gym.VectorizeMode.VECTOR_ENTRY_POINT)`` for one
-    batched session per EnvRunner (:func:`masked_ppo` does)."""
+    registry, which every process of the cluster reads."""
     register_env(ENV_NAME, make_env)
 
 
@@ -219,15 +198,10 @@ VALUE_SCALE = 100.0
 
 
 class MaskedPPOTorchRLModule(DefaultPPOTorchRLModule):
-    """RLlib's default PPO module on the ``Dict`` observation of :class:`MaskedObservation`:
-    the networks see ``observations`` divided by the observation space's upper bounds, and
-    the logits of the actions ``action_mask`` forbids are :data:`ILLEGAL_LOGIT`, so that
-    exploration, inference and the PPO loss only ever weigh legal actions.
-
-    The value head's output is multiplied by ``model_config["value_scale"]`` (default
-    :data:`VALUE_SCALE`); :func:`masked_ppo` divides the value loss's coefficient and clip by
-    its square, which is PPO on rewards divided by the scale.
-    """
+    """RLlib's default PPO module on the ``Dict`` observation of :class:`MaskedObservation`: the
+    networks see ``observations`` divided by their upper bounds, illegal actions' logits are
+    :data:`ILLEGAL_LOGIT`, and the value head's output is multiplied by
+    ``model_config["value_scale"]`` (default :data:`VALUE_SCALE`)."""
 
     def __init__(self, *, observation_space: gym.Space | None = None, **kwargs: Any) -> None:
         if not isinstance(observation_space, spaces.Dict) or set(observation_space.spaces) != {
@@ -286,25 +260,11 @@ def masked_ppo(
     **ppo_overrides: Any,
 ) -> PPOConfig:
     """An RLlib PPO config (new API stack) that trains :class:`MaskedPPOTorchRLModule` on the
-    servers at ``addresses``: ``masked_ppo(pool.addresses).build().train()``.
-
-    ``num_env_runners`` EnvRunners, each with one batched session of
-    ``num_envs_per_env_runner`` environments (the servers spread over the EnvRunners, see
-    :func:`make_env`); a local learner (add ``.learners(num_learners=..,
-    num_gpus_per_learner=..)`` for remote ones). The hyper-parameters are those of the
-    agents' JAX PPO (``dinerdash_agents.ppo.PPOConfig``: a 128x128 tanh network, lr 3e-4,
-    gamma 0.995, lambda 0.95, clip 0.2, entropy 0.01, 2 epochs of 4 minibatches, 32 steps per
-    environment per batch).
-
-    The environments reconnect (``env_config`` ``reconnect=True``): a server that
-    :func:`start_servers` restarts is found again on its port, its episodes end truncated. An
-    EnvRunner with several servers moves a lost one's environments to its others after
-    ``failover_after`` (``env_config``; default 10 s) and, when Ray has restarted the server,
-    takes it back and moves environments onto it again (Snapshot and Restore: exact).
-
-    ``ppo_overrides``: any ``AlgorithmConfig`` setting, applied last (``lr=1e-4``,
-    ``train_batch_size_per_learner=...``); an ``env_config`` is merged into this one
-    (``env_config={"token": "...", "timeout": 30}``).
+    servers at ``addresses`` with the agents' JAX PPO's hyper-parameters:
+    ``masked_ppo(pool.addresses).build_algo().train()`` (docs/clusters.md#masked-ppo-masked_ppo).
+    ``num_env_runners`` EnvRunners, each with one batched session of ``num_envs_per_env_runner``
+    environments that reconnect; ``ppo_overrides``: any ``AlgorithmConfig`` setting, applied
+    last (an ``env_config`` is merged into this one).
     """
     register()
     env_config: dict[str, Any] = {

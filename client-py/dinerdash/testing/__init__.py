@@ -1,21 +1,10 @@
-"""Integration testing against real servers on localhost: for the project's tests and yours.
+"""Integration testing against real servers on localhost, for the project's tests and yours
+(docs/client.md#testing-your-own-training-code).
 
 Layout:
-    cluster   LocalCluster: n ``dinerdash-server`` processes on 127.0.0.1, killed, hung, resumed,
-              drained and restarted on the same port by signals
+    cluster   LocalCluster: n ``dinerdash-server`` processes on 127.0.0.1, and signals to lose them
     proxy     FaultProxy: a TCP proxy that adds latency, black-holes, resets or cuts connections
-    plugin    the pytest plugin (entry point ``pytest11``): the ``dinerdash_server``,
-              ``dinerdash_cluster`` and ``dinerdash_cluster_factory`` fixtures and the
-              ``dinerdash_cluster`` marker
-
-::
-
-    from dinerdash.testing import FaultProxy, LocalCluster
-
-    with LocalCluster(3) as cluster, FaultProxy(cluster.addresses[0]) as proxy:
-        envs = DinerDashVectorEnv(6, [proxy.address, *cluster.addresses[1:]], reconnect=True,
-                                  failover_after=2)
-        proxy.blackhole()
+    plugin    the pytest plugin (entry point ``pytest11``): its fixtures and marker
 """
 
 from __future__ import annotations

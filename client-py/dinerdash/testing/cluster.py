@@ -1,29 +1,5 @@
-"""``LocalCluster``: n real ``dinerdash-server`` processes on 127.0.0.1, and the ways to lose them.
-
-Each server is a :class:`~dinerdash.server.LocalServer` (the same binary lookup: the ``binary``
-argument, ``DINERDASH_SERVER``, the ``dinerdash-server`` wheel, ``PATH``, the workspace's release
-build) listening on a port it picked itself; where ``setpriv`` is installed it dies with the
-thread that started it (``dinerdash.server._death_signal``), a thread of the cluster's own. A
-server keeps its index and its address for the whole life of the cluster:
-:meth:`LocalCluster.restart` starts it again on the same port, as a supervisor (systemd,
-Kubernetes, Ray) would.
-
-The faults are signals, so they are what a real machine does:
-
-================  ============  ================================================================
-method            signal        what a client sees
-================  ============  ================================================================
-``kill(i)``       ``SIGKILL``   a crash: connections reset, new ones refused
-``hang(i)``       ``SIGSTOP``   a hung process: connections stay up, nothing answers, not even
-                                HTTP/2 pings; ``resume(i)`` (``SIGCONT``) lets it go on
-``drain(i)``      ``SIGTERM``   a planned stop (a rolling update): what the server does on
-                                ``SIGTERM``, at once; ``wait(i)`` for it to exit
-``restart(i)``    ...           stops it (``SIGTERM`` and wait, or ``SIGKILL``), then the same
-                                port again
-================  ============  ================================================================
-
-Leaving the ``with`` block stops every server, hung ones included (they are resumed first):
-terminate, wait, kill.
+"""``LocalCluster``: n real ``dinerdash-server`` processes on 127.0.0.1, and the ways to lose
+them: signals, as a real machine does (docs/client.md#testing-your-own-training-code).
 """
 
 from __future__ import annotations
@@ -36,21 +12,19 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from ..errors import LocalServerError
+from ..connection import Connection, split_host_port
+from ..errors import ServiceError
 from ..server import LocalServer, find_server_binary, server_args
 
 __all__ = ["LocalCluster", "server_args"]
 
-#: Seconds a restarted server keeps trying its old port: a port just freed by a killed process
-#: can stay taken for a moment.
+#: Seconds a restarted server keeps trying its old port, which a killed process may still hold.
 REBIND_TIMEOUT = 10.0
 
 
 def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
-    """Waits until every thread of process ``pid`` is stopped: a signal is delivered after
-    ``kill`` returns, and a thread of the server on another core (a shared-memory session's,
-    polling for its next Step) may answer a call in between, even once the process's first
-    thread shows stopped. Linux only (``/proc``); elsewhere a short sleep."""
+    """Waits until every thread of process ``pid`` is stopped (a signal lands after ``kill``
+    returns, and a thread on another core may answer meanwhile). Linux only; elsewhere a sleep."""
     tasks = Path(f"/proc/{pid}/task")
     if not tasks.exists():
         time.sleep(0.1)
@@ -72,11 +46,8 @@ def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
 
 
 def _ready(address: str, timeout: float) -> None:
-    """Waits until the server at ``address`` answers a call: it printed its port once bound, and
-    installs its signal handlers only once it serves (a ``SIGTERM`` before would kill it)."""
-    from ..connection import Connection
-    from ..errors import ServiceError
-
+    """Waits until the server at ``address`` answers a call: its signal handlers are installed
+    only once it serves (a ``SIGTERM`` before would kill it)."""
     try:
         Connection(address, connect_timeout=timeout).close()
     except ServiceError:  # any answer (TLS, a token needed) will do; no answer fails later calls
@@ -84,18 +55,8 @@ def _ready(address: str, timeout: float) -> None:
 
 
 class LocalCluster:
-    """``n`` ``dinerdash-server`` processes on ``127.0.0.1``, for integration tests and chaos runs.
-
-    ::
-
-        from dinerdash.testing import LocalCluster
-
-        with LocalCluster(3, max_sessions=8) as cluster:
-            envs = DinerDashVectorEnv(6, cluster.addresses, reconnect=True, failover_after=2)
-            envs.reset(seed=0)
-            cluster.hang(1)          # SIGSTOP: its connections stay up, nothing answers
-            ...
-            cluster.resume(1)
+    """``n`` ``dinerdash-server`` processes on ``127.0.0.1``, for integration tests and chaos runs;
+    a server keeps its index and address for the cluster's life.
 
     Args:
         n: servers to start.
@@ -118,17 +79,12 @@ class LocalCluster:
     ) -> None:
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise ValueError(f"n: expected a number of servers >= 0, got {n!r}")
-        for reserved in ("host", "port"):
-            if reserved in server_flags:
-                raise ValueError(
-                    f"{reserved}: a LocalCluster's servers listen on 127.0.0.1 and a port each "
-                    "picks itself"
-                )
+        chosen = "a LocalCluster's servers listen on 127.0.0.1 and a port each picks itself"
+        self.args = server_args(server_flags, {"host": chosen, "port": chosen})
         self.binary = find_server_binary(binary)
         self.startup_timeout = startup_timeout
         self.stop_timeout = stop_timeout
         self.server_flags = dict(server_flags)
-        self.args = server_args(self.server_flags)
         #: The servers, one per index; a restarted server is a new object at the same index.
         self.servers: list[LocalServer] = []
         self._addresses: list[str] = []
@@ -153,8 +109,7 @@ class LocalCluster:
         return len(self.servers)
 
     def _start(self, port: int) -> LocalServer:
-        # Started from the cluster's own thread: on Linux a server dies with the thread that
-        # started it (--pdeathsig), and a caller's thread (a chaos monkey's) may end first.
+        # From the cluster's own thread: a server dies with the thread that started it.
         return self._launcher.submit(self._launch, port).result()
 
     def _launch(self, port: int) -> LocalServer:
@@ -164,6 +119,7 @@ class LocalCluster:
             args=self.args,
             startup_timeout=self.startup_timeout,
             stop_timeout=self.stop_timeout,
+            rebind_timeout=REBIND_TIMEOUT,
         )
         try:
             _ready(server.address, self.startup_timeout)
@@ -179,11 +135,8 @@ class LocalCluster:
         self._addresses.append(server.address)
         return len(self.servers) - 1
 
-    def _process(self, i: int):
-        process = self.servers[i].process
-        if process is None:  # pragma: no cover - LocalServer always has one after start
-            raise LocalServerError(f"server {i} ({self._addresses[i]}) was never started")
-        return process
+    def _process(self, i: int) -> subprocess.Popen:
+        return self.servers[i].process
 
     def pid(self, i: int) -> int:
         """The process id of server ``i`` (a restarted server has a new one)."""
@@ -208,15 +161,14 @@ class LocalCluster:
         return True
 
     def kill(self, i: int) -> None:
-        """``SIGKILL``: server ``i`` dies as in a crash, with no graceful shutdown. Returns when it
-        is gone."""
+        """``SIGKILL``: server ``i`` crashes; returns when it is gone."""
         self._signal(i, signal.SIGKILL)
         self._process(i).wait()
         self._hung.discard(i)
 
     def hang(self, i: int) -> None:
-        """``SIGSTOP``: server ``i`` stops answering anything while its connections stay open (a
-        stuck process, a paused VM); returns once it is stopped. :meth:`resume` lets it go on."""
+        """``SIGSTOP``: server ``i`` answers nothing while its connections stay open; returns once
+        it is stopped."""
         if self._signal(i, signal.SIGSTOP):
             self._hung.add(i)
             _wait_stopped(self.pid(i))
@@ -227,15 +179,13 @@ class LocalCluster:
         self._hung.discard(i)
 
     def drain(self, i: int) -> None:
-        """``SIGTERM``, returning at once: server ``i`` does what it does on a planned stop (with
-        ``--drain-timeout``: refuses new sessions, serves its sessions until the deadline, then
-        exits). :meth:`wait` waits for it to exit."""
+        """``SIGTERM``, returning at once: server ``i``'s planned stop (:meth:`wait` for it)."""
         self.resume(i)  # a stopped process would only see the signal once resumed
         self._signal(i, signal.SIGTERM)
 
     def wait(self, i: int, timeout: float | None = None) -> int:
-        """Waits for server ``i``'s process to exit; returns its exit status (negative: the
-        signal that ended it). :class:`TimeoutError` past ``timeout`` seconds."""
+        """Server ``i``'s exit status once it exits (negative: a signal); :class:`TimeoutError`
+        past ``timeout`` seconds."""
         try:
             return self._process(i).wait(timeout)
         except subprocess.TimeoutExpired:
@@ -244,22 +194,16 @@ class LocalCluster:
             ) from None
 
     def stop(self, i: int) -> None:
-        """Stops server ``i`` (resumed first if hung): terminate, wait, kill. It can be started
-        again with :meth:`restart`."""
+        """Stops server ``i`` (resumed first if hung): terminate, wait, kill."""
         self.resume(i)
         self.servers[i].stop()
 
     def restart(
         self, i: int, *, wait_drain: bool = True, drain_timeout: float | None = None
     ) -> None:
-        """Stops server ``i`` if it runs and starts it again on the same port; returns once the new
-        process listens (calls to the address work again).
-
-        ``wait_drain=True``: a planned restart, ``SIGTERM`` and wait for the server to exit on its
-        own (its drain, at most ``drain_timeout`` seconds, then ``SIGKILL``; default: no limit).
-        ``wait_drain=False``: a crash and a supervisor's restart, ``SIGKILL`` at once. A server
-        that is not running (killed, drained) is simply started again.
-        """
+        """Stops server ``i`` if it runs (``wait_drain``: ``SIGTERM`` and wait, ``SIGKILL`` past
+        ``drain_timeout`` seconds; else ``SIGKILL`` at once) and starts it again on the same port;
+        returns once it serves."""
         if self.is_running(i):
             if wait_drain:
                 self.drain(i)
@@ -270,22 +214,11 @@ class LocalCluster:
             else:
                 self.kill(i)
         self.servers[i].stop()  # closes its stderr file; the process is gone already
-        port = int(self._addresses[i].rsplit(":", 1)[1])
-        deadline = time.monotonic() + REBIND_TIMEOUT
-        while True:
-            try:
-                server = self._start(port)
-                break
-            except LocalServerError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
-        self.servers[i] = server
+        self.servers[i] = self._start(split_host_port(self._addresses[i])[1])
         self._hung.discard(i)
 
     def close(self) -> None:
-        """Stops every server, hung ones included: resume, terminate, wait, kill. Safe to call
-        twice."""
+        """Stops every server, hung ones included; safe to call twice."""
         try:
             for i, server in enumerate(self.servers):
                 try:

@@ -1,26 +1,7 @@
-"""The pytest plugin of ``dinerdash.testing`` (entry point ``pytest11``: loaded by every pytest run
-where ``dinerdash`` is installed; ``-p no:dinerdash`` turns it off).
-
-Fixtures, each starting real ``dinerdash-server`` processes on 127.0.0.1 for one test and stopping
-them after it (the binary: ``DINERDASH_SERVER``, the ``dinerdash-server`` wheel, ``PATH``, ...):
-
-``dinerdash_server``
-    the address (``"127.0.0.1:PORT"``) of one server.
-``dinerdash_cluster``
-    a :class:`~dinerdash.testing.LocalCluster`; its size and server flags come from the marker
-    ``@pytest.mark.dinerdash_cluster(n=3, **server_flags)`` (default: 3 servers, no flags).
-``dinerdash_cluster_factory``
-    ``factory(n=3, **server_flags)`` starts another cluster; all are stopped after the test.
-
-::
-
-    @pytest.mark.dinerdash_cluster(2, max_sessions=8)
-    def test_training_survives_a_crash(dinerdash_cluster):
-        envs = DinerDashVectorEnv(4, dinerdash_cluster.addresses, reconnect=True,
-                                  failover_after=1)
-        envs.reset(seed=0)
-        dinerdash_cluster.kill(1)
-        envs.step(np.zeros(4, dtype=np.int64))
+"""The pytest plugin of ``dinerdash.testing`` (entry point ``pytest11``; ``-p no:dinerdash`` turns
+it off): the fixtures ``dinerdash_server``, ``dinerdash_cluster`` (sized and flagged by the marker
+``@pytest.mark.dinerdash_cluster(n=3, **server_flags)``) and ``dinerdash_cluster_factory``, each
+stopping the servers it started after the test (docs/client.md#testing-your-own-training-code).
 """
 
 from __future__ import annotations

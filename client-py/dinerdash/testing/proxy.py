@@ -1,25 +1,6 @@
-"""``FaultProxy``: a TCP proxy on 127.0.0.1 that puts network faults between a client and a server.
-
-The client connects to :attr:`FaultProxy.address`; each connection is forwarded to ``target``
-until a fault is turned on:
-
-=================  =============================================================================
-``latency(s)``     every chunk of bytes is delivered ``s`` seconds after it arrived, both ways
-                   (order kept; throughput is not limited): a far or congested network
-``blackhole()``    connections stay open and new ones are accepted, but every byte, both ways,
-                   is swallowed: a network that drops packets without a reset, a paused VM
-``reset()``        every open connection is closed with a TCP reset (``SO_LINGER`` 0), once;
-                   new connections work: a middlebox or a peer that lost its state
-``cut()``          every open connection is reset, and new ones are accepted and reset at once
-                   (the port stays the proxy's) until :meth:`~FaultProxy.heal`: a partition
-``heal()``         back to plain forwarding. Connections that lost bytes to a black hole are
-                   reset (their streams have holes, as a TCP connection that timed out)
-=================  =============================================================================
-
-The proxy is stdlib only: an asyncio event loop in a daemon thread; the methods may be called from
-any thread and take effect before they return. :attr:`FaultProxy.bytes_from_clients` counts the
-bytes read from clients (delivered or swallowed): a test waits for it to grow past its value before
-a call to know that the call reached the proxy, rather than sleeping.
+"""``FaultProxy``: a TCP proxy on 127.0.0.1 that puts network faults between a client and a server
+(docs/client.md#testing-your-own-training-code). Stdlib only: an asyncio event loop in a daemon
+thread; the methods may be called from any thread and take effect before they return.
 """
 
 from __future__ import annotations
@@ -223,23 +204,7 @@ class _Link:
 
 class FaultProxy:
     """A TCP proxy from ``127.0.0.1:PORT`` (:attr:`address`) to ``target`` (``"host:port"``) whose
-    faults can be switched on and off while clients use it (see the module's table).
-
-    ::
-
-        with LocalCluster(1) as cluster, FaultProxy(cluster.addresses[0]) as proxy:
-            env = gymnasium.make("dinerdash:DinerDash-v0", address=proxy.address)
-            proxy.latency(0.05)   # 50 ms each way
-            proxy.blackhole()     # nothing gets through, nothing is closed
-            proxy.heal()
-
-    :attr:`bytes_from_clients` (read-only) counts every byte read from a client's connection,
-    whatever the mode (forwarded, delayed or swallowed by a black hole). A call has reached the
-    proxy once the count has grown past its value before the call was sent: e.g. to reset a
-    connection while a call is in flight, read the count, start the call, wait (bounded) until the
-    count grows, then :meth:`reset`. Bytes the client sends on its own (HTTP/2 pings, window
-    updates) count too: read the count after the connection's earlier calls have returned.
-    """
+    faults can be switched on and off while clients use it."""
 
     def __init__(self, target: str, *, host: str = "127.0.0.1", port: int = 0) -> None:
         target_host, _, target_port = target.rpartition(":")
@@ -293,13 +258,13 @@ class FaultProxy:
 
     @property
     def bytes_from_clients(self) -> int:
-        """Bytes read from clients' connections since the proxy started, forwarded or not
-        (see the class's doc); never decreases."""
+        """Bytes read from clients' connections since the proxy started, forwarded, delayed or
+        swallowed; never decreases. A call has reached the proxy once the count grew past its
+        value before the call (HTTP/2 pings count too: read it after earlier calls returned)."""
         return self._from_clients
 
     def _count_from_client(self, n: int) -> None:
-        """Called on the proxy's loop for each chunk a client sent."""
-        self._from_clients += n
+        self._from_clients += n  # on the proxy's loop
 
     @property
     def mode(self) -> str:
@@ -310,36 +275,22 @@ class FaultProxy:
         """Delays every chunk by ``seconds`` in each direction from now on (0: none)."""
         if not seconds >= 0:
             raise ValueError(f"latency: expected seconds >= 0, got {seconds!r}")
-
-        def set_latency() -> None:
-            self._latency = float(seconds)
-
-        self._call(set_latency)
+        self._call(lambda: setattr(self, "_latency", float(seconds)))
 
     def blackhole(self) -> None:
         """Swallows every byte both ways; connections stay open, new ones are accepted."""
-
-        def on() -> None:
-            self._mode = _BLACKHOLE
-
-        self._call(on)
+        self._call(lambda: setattr(self, "_mode", _BLACKHOLE))
 
     def reset(self) -> None:
         """Closes every open connection with a TCP reset, both sides; new connections work."""
-
-        def reset_all() -> None:
-            for link in list(self._links):
-                link.reset()
-
-        self._call(reset_all)
+        self._call(self._reset_links)
 
     def cut(self) -> None:
         """Resets every open connection and every new one until :meth:`heal`."""
 
         def on() -> None:
             self._mode = _CUT
-            for link in list(self._links):
-                link.reset()
+            self._reset_links()
 
         self._call(on)
 
@@ -348,13 +299,16 @@ class FaultProxy:
         :meth:`blackhole` are reset."""
 
         def off() -> None:
-            self._mode = _NORMAL
-            self._latency = 0.0
-            for link in list(self._links):
-                if link.swallowed:
-                    link.reset()
+            self._mode, self._latency = _NORMAL, 0.0
+            self._reset_links(lambda link: link.swallowed)
 
         self._call(off)
+
+    def _reset_links(self, which: Callable[[_Link], bool] = lambda link: True) -> None:
+        """Resets the links ``which`` picks (on the proxy's loop)."""
+        for link in list(self._links):
+            if which(link):
+                link.reset()
 
     def close(self) -> None:
         """Stops listening and resets every connection; safe to call twice."""
@@ -364,8 +318,7 @@ class FaultProxy:
         async def shutdown() -> None:
             if self._server is not None:
                 self._server.close()
-            for link in list(self._links):
-                link.reset()
+            self._reset_links()
             await asyncio.sleep(0)  # let the aborts run
 
         try:
