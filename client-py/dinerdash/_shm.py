@@ -51,13 +51,7 @@ import numpy as np
 from ._batch import FIELDS as _SHAPES
 from ._batch import Batch
 from .connection import Connection, split_host_port
-from .errors import (
-    EnvClosed,
-    ServiceError,
-    ServiceTimeout,
-    ServiceTransportError,
-    error_for_status,
-)
+from .errors import ServiceError, ServiceTransportError
 
 __all__ = ["Channel", "Offer", "attach"]
 
@@ -165,7 +159,7 @@ class Channel:
         "_known",
         "_lengths",
         "_offsets",
-        "_quick",
+        "_spin_next",
         "address",
         "conn",
         "mm",
@@ -228,7 +222,7 @@ class Channel:
         #: replies mostly repeat them).
         self._known: tuple[bytes, dict[str, np.ndarray]] = (b"", {})
         #: Whether the last reply came within _SPIN: then the next one is polled for.
-        self._quick = False
+        self._spin_next = False
         #: When the last Step was sent (:func:`time.perf_counter`; the bench times from it).
         self.sent = 0.0
 
@@ -242,13 +236,7 @@ class Channel:
         code, size = struct.unpack_from("<II", reply, 1)
         message = bytes(reply[9 : 9 + size]).decode("utf-8", "replace")
         code = _CODES.get(code, grpc.StatusCode.UNKNOWN)
-        if code == grpc.StatusCode.UNAVAILABLE:
-            message = (
-                f"{method}: the server at {self.address} is unavailable after 1 attempt ({message})"
-            )
-        else:
-            message = f"{method}: {message}"
-        return error_for_status(code, message, self.address, bytes(reply[9 + size :]) or None)
+        return self.conn.error_for(method, code, message, status=bytes(reply[9 + size :]) or None)
 
     def send(self, actions: bytes) -> bool:
         """Writes a Step's ``actions`` into the region and rings: the server steps while the
@@ -288,29 +276,19 @@ class Channel:
         until the next Step is sent), the server's typed refusal raised, or ``None`` when the
         doorbell closed (the Step is then to be made over gRPC)."""
         sent = self.sent
-        reply = self._poll(sent) if self._quick else None
+        reply = self._poll(sent) if self._spin_next else None
         while reply is None:
             closed = self.conn._closed  # given up: as a gRPC call cancelled by its channel
             try:
                 reply = self.sock.recv(65536, socket.MSG_DONTWAIT if closed else 0)
                 break
             except BlockingIOError:
-                if closed:
-                    raise EnvClosed(
-                        "Step: the connection was closed during the call",
-                        code=grpc.StatusCode.CANCELLED,
-                    ) from None
-                if time.perf_counter() - sent >= self.timeout:
-                    raise ServiceTimeout(
-                        f"Step: no answer from the server at {self.address} within "
-                        f"{self.timeout:g} s (the timeout= keyword or DINERDASH_TIMEOUT sets this "
-                        "deadline)",
-                        code=grpc.StatusCode.DEADLINE_EXCEEDED,
-                        address=self.address,
-                    ) from None
+                if closed or time.perf_counter() - sent >= self.timeout:
+                    code = grpc.StatusCode["CANCELLED" if closed else "DEADLINE_EXCEEDED"]
+                    raise self.conn.error_for("Step", code, "") from None
             except OSError:
                 return None
-        self._quick = time.perf_counter() - sent < _SPIN
+        self._spin_next = time.perf_counter() - sent < _SPIN
         if reply != b"K":
             if not reply:
                 return None

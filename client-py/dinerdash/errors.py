@@ -50,9 +50,7 @@ __all__ = [
     "SessionNotFound",
     "TLSMismatch",
     "Unauthenticated",
-    "error_for_rpc",
     "error_for_status",
-    "reason_of",
 ]
 
 #: The ``ErrorInfo.domain`` of the DinerDash service's errors.
@@ -228,16 +226,6 @@ def status_details(error: grpc.RpcError) -> bytes | None:
         if key == _DETAILS_KEY:
             return value
     return None
-
-
-def reason_of(error: grpc.RpcError) -> str | None:
-    """The server's ``ErrorInfo.reason`` of a failed call, if its trailers carry one."""
-    return _decode_details(status_details(error))[0]
-
-
-def error_for_rpc(error: grpc.RpcError, details: str, address: str | None) -> ServiceError:
-    """The typed exception for a failed call, with ``details`` as its message."""
-    return error_for_status(error.code(), details, address, status_details(error))
 
 
 def _decode_details(
