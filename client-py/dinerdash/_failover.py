@@ -27,14 +27,14 @@ from .errors import (
     SessionNotFound,
 )
 
-__all__ = ["fail_over", "move", "pieces"]
+__all__ = ["even_parts", "fail_over", "move"]
 
 #: A server that refuses a new session for one of these is passed over, not given up: the
 #: environments go to the other servers left.
 PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
 
 
-def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
+def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
     """Environments ``start:stop`` cut into one contiguous piece per server of ``loads``
     (server index -> environments it holds), as ``(start, stop, server)``: the sizes differ by
     at most one, the larger ones go to the servers holding fewest environments (ties: the lower
@@ -82,7 +82,7 @@ def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[Sess
         made: list[SessionCore] = []
         target = None
         try:
-            for lo, hi, target in pieces(first, stop, loads):
+            for lo, hi, target in even_parts(first, stop, loads):
                 new = SessionCore(endpoint, target, lo, hi, core.settings)
                 new.create()
                 made.append(new)

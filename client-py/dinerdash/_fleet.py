@@ -40,12 +40,12 @@ from .errors import (
     ServiceTransportError,
 )
 
-__all__ = ["REST", "Fleet", "interrupted", "plan"]
+__all__ = ["REFUSED_WAIT", "Fleet", "interrupted", "plan"]
 
 log = logging.getLogger("dinerdash")
 
 #: Seconds a server that refused a Restore (full) is not asked again.
-REST = 10.0
+REFUSED_WAIT = 10.0
 
 
 class Fleet:
@@ -62,9 +62,9 @@ class Fleet:
         #: Environments moved to another server by Snapshot and Restore (before a close()).
         self.moves = 0
         #: Servers that refused a Restore (full): until when they rest.
-        self.resting: dict[int, float] = {}
+        self.refused_until: dict[int, float] = {}
         #: What :meth:`settle` saw last when the slices were where they should be.
-        self.quiet: tuple | None = None
+        self.settled_key: tuple | None = None
         #: A Restore was refused for its snapshot version: said once.
         self.version_warned = False
         k = len(endpoint.connections)
@@ -219,7 +219,7 @@ class Fleet:
                 endpoint.drain(core.index, core.drain_ms / 1000)
         targets = self.targets()
         key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
-        if key == self.quiet:
+        if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
         settled = True
         for core, parts in self.plan(targets) if targets else []:
@@ -231,7 +231,8 @@ class Fleet:
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
         targets = self.targets()
         key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
-        self.quiet = key if settled and not self.resting and self.balanced(targets) else None
+        settled = settled and not self.refused_until and self.balanced(targets)
+        self.settled_key = key if settled else None
 
     def take_in(self) -> None:
         """The servers the membership thread found: given-up ones that answer again are taken
@@ -254,9 +255,9 @@ class Fleet:
         """The servers slices may move to now: open to new sessions, and not resting after
         refusing one."""
         now = time.monotonic()
-        for j in [j for j, until in self.resting.items() if until <= now]:
-            del self.resting[j]
-        return [j for j in self.endpoint.open_to_new() if j not in self.resting]
+        for j in [j for j, until in self.refused_until.items() if until <= now]:
+            del self.refused_until[j]
+        return [j for j in self.endpoint.open_to_new() if j not in self.refused_until]
 
     def loads(self, targets: list[int]) -> dict[int, int]:
         loads = dict.fromkeys(targets, 0)
@@ -300,7 +301,7 @@ class Fleet:
                     session_id=core.session_id, env_start=lo - core.start, env_count=hi - lo
                 )
                 try:
-                    snapshot = core.conn.call("Snapshot", request, timeout=self.quick())
+                    snapshot = core.conn.call("Snapshot", request, timeout=self.move_timeout())
                 except ServiceError:
                     return False
                 new = SessionCore(self.endpoint, dest, lo, hi, self.settings)
@@ -333,7 +334,7 @@ class Fleet:
         when restored (exact), False when cut."""
         try:
             reply = new.conn.call(
-                "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.quick()
+                "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.move_timeout()
             )
         except InvalidArgument as e:
             if not self.version_warned:
@@ -346,9 +347,9 @@ class Fleet:
                     old.conn.address,
                     e.details,
                 )
-            new.create(self.quick())
+            new.create(self.move_timeout())
             request = pb.ResetRequest(session_id=new.session_id)
-            first = Batch.from_pb(new.conn.call("Reset", request, timeout=self.quick()))
+            first = Batch.from_pb(new.conn.call("Reset", request, timeout=self.move_timeout()))
             new.cut_over(*cut(last, first, self.settings.autoreset_mode))
             return False
         new.restored(reply, last)
@@ -363,9 +364,9 @@ class Fleet:
         elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
             self.endpoint.give_up(dest, f"could not restore a session there: {error}")
         else:
-            self.resting[dest] = time.monotonic() + REST
+            self.refused_until[dest] = time.monotonic() + REFUSED_WAIT
 
-    def quick(self) -> float:
+    def move_timeout(self) -> float:
         """The deadline of the calls that move environments between servers: a server that
         does not answer within ``failover_after`` is passed over (the env's watch gives it up
         at the next step), not waited for the whole ``timeout``."""

@@ -16,7 +16,6 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from . import render as _render
 from ._arguments import (
     RENDER_MODES,
     Config,
@@ -29,7 +28,7 @@ from ._endpoint import Endpoint
 from ._proto import pb
 from ._session import SessionCore, SessionOwner, check_actions
 from .connection import Connection, ConnectOptions
-from .errors import EnvClosed, InvalidArgument, SessionNotFound
+from .errors import InvalidArgument, SessionNotFound
 from .game import NUM_ACTIONS, observation_space
 
 __all__ = ["DinerDashEnv", "Snapshot"]
@@ -227,33 +226,17 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return self._core.session_id
 
     @property
-    def transports(self) -> dict[str, str]:
-        """The transport the session steps over now: ``{address: "shm" | "grpc"}`` (as
-        :attr:`DinerDashVectorEnv.transports <dinerdash.DinerDashVectorEnv.transports>`; a
-        session forked or restored chooses at its first step)."""
-        core = self._core
-        return {core.conn.address: core.transport.name if core.transport else "grpc"}
-
-    @property
-    def transport_changes(self) -> int:
-        """Times the session's Steps changed transport (each logged as a warning)."""
-        return self._core.endpoint.transport_changes
-
-    @property
     def _conn(self) -> Connection:
         return self._core.conn
 
-    def watch_url(self) -> str:
-        """The URL of the server's web page that shows this environment playing (the server must
-        serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
-        from .watch import watch_url
+    @property
+    def _cores(self) -> list[SessionCore]:
+        return [self._core]
 
-        self._check_open("watch_url()")
-        return watch_url(self._conn, self.session_id, 0)
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise EnvClosed(f"{what} after close(); reset() opens a new session")
+    def _shown(self) -> tuple[Any, Any, Any]:
+        if self._last_obs is None:
+            raise gym.error.ResetNeeded("call reset() before render()")
+        return [self._last_obs], [self._last_info["score"]], [self._last_info["lost"]]
 
     # -- Gymnasium API ------------------------------------------------------------------------
 
@@ -300,21 +283,6 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         return self._last_info["action_mask"].copy()
-
-    def render(self) -> str | np.ndarray | None:
-        if not self._renders():
-            return None
-        self._check_open("render()")
-        if self.render_mode == "ansi":
-            return self._core.render_text(0, self.ansi_color)
-        if self._last_obs is None:
-            raise gym.error.ResetNeeded("call reset() before render()")
-        return _render.draw(
-            self._last_obs,
-            score=self._last_info["score"],
-            lost=self._last_info["lost"],
-            lives=self.spec_proto.config.lives,
-        )
 
     def close(self) -> None:
         """Closes the session (and the local server, if this env started one). A later

@@ -37,7 +37,6 @@ from gymnasium.error import AlreadyPendingCallError, NoAsyncCallError
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from . import render as _render
 from ._arguments import (
     RENDER_MODES,
     Config,
@@ -131,6 +130,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     #: Until ``__init__`` has opened the sessions: an env whose arguments were refused has nothing
     #: to close when it is collected (gymnasium's ``__del__`` closes every vector env).
     _closed = True
+    _batched = True
 
     def __init__(
         self,
@@ -231,26 +231,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return self._endpoint.rejoins
 
     @property
-    def transports(self) -> dict[str, str]:
-        """The transport each server's session steps over now (``{address: "shm" | "grpc"}``,
-        in the order of the first environments they hold; ``"shm,grpc"`` for a server whose
-        sessions differ). A change is logged as a warning and counted in
-        :attr:`transport_changes`: nothing falls back to gRPC silently."""
-        out: dict[str, list[str]] = {}
-        for core in self._cores:
-            name = core.transport.name if core.transport is not None else "grpc"
-            names = out.setdefault(core.conn.address, [])
-            if name not in names:
-                names.append(name)
-        return {address: ",".join(names) for address, names in out.items()}
-
-    @property
-    def transport_changes(self) -> int:
-        """Sessions whose Steps changed transport since the env's sessions were opened (shared
-        memory lost, or taken up again by a session reopened after a reconnect)."""
-        return self._endpoint.transport_changes
-
-    @property
     def moves(self) -> int:
         """Environments moved to another server by Snapshot and Restore (off a draining server,
         onto a server taken in, or to even the loads), each exactly as it was. Not counted: a
@@ -267,21 +247,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     @property
     def session_ids(self) -> list[str | None]:
         return [c.session_id for c in self._cores]
-
-    def watch_url(self, index: int = 0) -> str:
-        """The URL of the server's web page that shows environment ``index`` playing (the
-        server must serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
-        from .watch import watch_url
-
-        self._check_open("watch_url()")
-        if not 0 <= index < self.num_envs:
-            raise IndexError(f"index must be in 0..{self.num_envs - 1}, got {index}")
-        core = next(c for c in self._cores if c.start <= index < c.stop)
-        return watch_url(core.conn, core.session_id, index - core.start)
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise EnvClosed(f"{what} after close(); reset() opens new sessions")
 
     # -- Gymnasium API --------------------------------------------------------------------------
 
@@ -478,27 +443,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             info["_reconnected"] = lost.copy()
         return obs, rewards, terminated, truncated, info
 
-    def render(self) -> tuple[Any, ...] | None:
-        if not self._renders():
-            return None
-        self._check_idle("render()")
-        if self.render_mode == "ansi":
-            self._check_open("render()")
-            return tuple(
-                core.render_text(i - core.start, self.ansi_color)
-                for core in self._cores
-                for i in range(core.start, core.stop)
-            )
+    def _shown(self) -> tuple[Any, Any, Any]:
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")
         obs, info = decode(join(self._fleet.batches()), self.expert)
-        lives = self.spec_proto.config.lives
-        return tuple(
-            _render.draw(
-                obs[i], score=int(info["score"][i]), lost=int(info["lost"][i]), lives=lives
-            )
-            for i in range(self.num_envs)
-        )
+        return obs, info["score"], info["lost"]
 
     def close_extras(self, **kwargs: Any) -> None:
         """Closes the sessions (and the local server, if this env started one). A later full
