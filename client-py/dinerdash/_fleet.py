@@ -1,20 +1,9 @@
-"""The fleet: the servers a vector env uses and its slices on them, as servers fail, come back,
-appear and drain. :class:`Fleet` owns the :class:`~dinerdash._endpoint.Endpoint` (connections,
-given-up and draining servers), the :class:`~dinerdash._membership.Membership` watch and the
-slices: session cores (:class:`~dinerdash._session.SessionCore`), each one session on one server
-for a contiguous range of environments, in environment order. The Gymnasium adapter
-(:mod:`dinerdash.vector`) only asks it for the step's Batches and tells it when a step or a reset
-ended.
-
-After a step or a reset (:meth:`Fleet.settle`) it notes which servers drain and moves slices
-between servers at once, by Snapshot and Restore: a draining server's slices go to the servers
-left, a server taken back or added is given its share, and a slice is split (a Snapshot of a
-range of its environments) so that the loads differ by at most one (:meth:`Fleet.plan`). A moved
-environment is exactly what it was (game state, random stream, autoreset state): the trainer sees
-what it would have seen undisturbed. A server that refuses a Restore for its snapshot version (a
-rolling upgrade) gets the environments as new episodes instead, cut as a failover cuts them, with
-one warning. A failed server's environments move with :func:`dinerdash._failover.fail_over`.
-Why moves are made this way: docs/clusters.md.
+"""The fleet: a vector env's servers (:class:`~dinerdash._endpoint.Endpoint`, the
+:class:`~dinerdash._membership.Membership` watch) and its slices, session cores each holding a
+contiguous range of environments, in environment order, as servers fail, come back, appear and
+drain. After each step or reset (:meth:`Fleet.settle`) slices move at once by Snapshot and
+Restore, exactly (:func:`plan`); a failed server's environments move with
+:func:`dinerdash._failover.fail_over`. Why: docs/clusters.md#failover.
 """
 
 from __future__ import annotations
@@ -49,9 +38,7 @@ REFUSED_WAIT = 10.0
 
 
 class Fleet:
-    """The servers and slices of one vector env (see the module's doc). Created by opening one
-    session per server, the environments split into contiguous slices; :meth:`close` closes
-    them, the membership watch and the connections (and the local server, if any)."""
+    """The servers and slices of one vector env (see the module's doc)."""
 
     def __init__(self, options: ConnectOptions, settings: Settings) -> None:
         self.options = options
@@ -114,9 +101,7 @@ class Fleet:
         self.sent = time.monotonic()
 
     def wait(self) -> None:
-        """Waits for every reply of the step :meth:`start` sent. A server that answers nothing
-        (the step nor a health check) for ``failover_after`` is given up first
-        (:func:`~dinerdash._membership.await_replies`)."""
+        """Waits for every reply of the step :meth:`start` sent."""
         endpoint = self.endpoint
         if self.failover_on() and len(endpoint.live()) > 1:
             waiting = [(c.index, c.step_ready) for c in self.cores]
@@ -126,11 +111,7 @@ class Fleet:
                 core.step_ready()
 
     def finish(self) -> list[Batch]:
-        """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned. Every
-        core is updated before the first error, if any, is raised: no server's step goes
-        unrecorded. The environments of a core whose server was lost past ``failover_after``
-        move to the servers left first, and report this step as interrupted
-        (:func:`interrupted`); then slices move as :meth:`settle` decides."""
+        """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned."""
         error, lost = None, []
         for core in self.cores:
             try:
@@ -149,12 +130,10 @@ class Fleet:
         return self.batches()
 
     def reset(self, given: dict, mask: np.ndarray | None) -> np.ndarray:
-        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (``seed``,
-        ``seeds``, ``arrivals``, ``config`` of :meth:`SessionCore.reset_request
-        <dinerdash._session.SessionCore.reset_request>`); returns which environments' cores
-        were called (a core with none of its environments in the mask keeps its state). A
-        server lost during the reset has its environments moved, their new sessions reset
-        whole, as after a reconnect."""
+        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (``seed``, ``seeds``,
+        ``arrivals``, ``config`` of :meth:`SessionCore.reset_request
+        <dinerdash._session.SessionCore.reset_request>`); returns which environments' cores were
+        called (a core with none of its environments in the mask keeps its state)."""
         endpoint = self.endpoint
         given_up = endpoint.given_up
 
@@ -207,11 +186,10 @@ class Fleet:
     # -- moves ----------------------------------------------------------------------------------
 
     def settle(self) -> None:
-        """After a step or a reset: takes in the servers the membership watch found, notes
-        which servers drain, and moves slices at once (:meth:`plan`, :meth:`split`) until no
-        environment is on a draining server and the loads of the servers that take sessions
-        differ by at most one. A drained server (no slice left) is given up: it exits, and is
-        taken back once it answers again."""
+        """After a step or a reset: takes in the servers the membership watch found, notes which
+        servers drain, and moves slices at once (:meth:`plan`, :meth:`split`) until no environment
+        is on a draining server and the loads of the servers that take sessions differ by at most
+        one."""
         endpoint = self.endpoint
         self.take_in()
         for core in self.cores:
@@ -289,10 +267,8 @@ class Fleet:
 
     def split(self, core: SessionCore, parts: list[tuple[int, int, int]]) -> bool:
         """Replaces ``core`` by new cores for ``parts`` (``(start, stop, server)``, covering its
-        environments): a Snapshot of each range, restored on its server; then ``core``'s
-        session is closed. False (``core`` kept, nothing changed) when a server cannot take its
-        part now (:meth:`refused` notes why) or the Snapshot fails (its server is lost: the next
-        step fails it over)."""
+        environments): a Snapshot of each range, restored on its server; then ``core``'s session is
+        closed. False (nothing changed) when a server cannot take its part or the Snapshot fails."""
         made: list[SessionCore] = []
         done, moved = False, 0
         try:
@@ -326,12 +302,9 @@ class Fleet:
         return True
 
     def restore(self, new: SessionCore, snapshot: bytes, last: Batch, old: SessionCore) -> bool:
-        """Opens ``new``'s session from ``snapshot`` (``last``: its environments' Batch of the
-        step just made). A server that refuses it as INVALID_ARGUMENT (another snapshot
-        version: a rolling upgrade) gets them as new episodes instead: a new session, reset
-        (unseeded: the server draws the seeds, as an autoreset does), the old episodes ending
-        truncated in this step (:func:`~dinerdash._batch.cut`); said once, as a warning. True
-        when restored (exact), False when cut."""
+        """Opens ``new``'s session from ``snapshot`` (``last``: its environments' Batch of the step
+        just made). True when restored; False when cut (another snapshot version: new episodes,
+        :func:`~dinerdash._batch.cut`, said once as a warning)."""
         try:
             reply = new.conn.call(
                 "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.move_timeout()
@@ -376,15 +349,10 @@ class Fleet:
 def plan(
     slices: list[tuple[int, int, int, bool]], n: int, targets: list[int]
 ) -> list[tuple[int, list[tuple[int, int, int]]]]:
-    """Which of ``slices`` (``(server, start, stop, movable)``, covering environments ``0:n``
-    in order) to split or move, by position, each with its new parts ``(start, stop, server)``
-    in environment order, so that once done no movable environment is on a server outside
-    ``targets`` and their loads differ by at most one (a pure function: no I/O).
-
-    Each target's share is ``n`` over the targets, the larger shares to those holding most
-    already, so that fewest move. A target above its share gives the end of its largest
-    movable slices; the slices of the other servers (draining) and the ends given are cut among
-    the targets short of their share, most short first. An environment keeps its index."""
+    """Which of ``slices`` (``(server, start, stop, movable)``, covering environments ``0:n`` in
+    order) to split or move, by position, each with its new parts ``(start, stop, server)`` in
+    environment order, so that once done no movable environment is on a server outside ``targets``
+    and their loads differ by at most one (a pure function: no I/O)."""
     loads = dict.fromkeys(targets, 0)
     for server, lo, hi, _ in slices:
         if server in loads:

@@ -69,8 +69,7 @@ class Settings:
 
 class ServerLost(Exception):
     """A core's server stayed unreachable past ``failover_after`` (or was given up) while the env
-    has other servers: the env moves the core's environments (:mod:`dinerdash._failover`). A
-    private signal, never a :class:`ServiceError`, never escaping the env."""
+    has other servers: the env moves the core's environments (:mod:`dinerdash._failover`)."""
 
     def __init__(self, core: SessionCore, error: ServiceError) -> None:
         super().__init__(
@@ -136,9 +135,8 @@ class SessionOwner:
         raise NotImplementedError
 
     def render(self) -> Any:
-        """The current state: the server's text board (``"ansi"``) or a picture
-        (``"rgb_array"``); a vector env returns a tuple, one per environment. Without a
-        ``render_mode`` it warns and returns ``None``, as Gymnasium's envs do."""
+        """The current state: the server's text board (``"ansi"``) or a picture (``"rgb_array"``); a
+        vector env returns a tuple, one per environment. Without a ``render_mode``: ``None``."""
         if self.render_mode is None:
             gym.logger.warn(
                 "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
@@ -162,10 +160,9 @@ class SessionOwner:
 
     @property
     def transports(self) -> dict[str, str]:
-        """The transport each server's sessions step over now (``{address: "shm" | "grpc"}``, in
-        the order of the first environments they hold; ``"shm,grpc"`` where they differ; a
-        session forked or restored chooses at its first step). A change is logged as a warning
-        and counted in :attr:`transport_changes`: nothing falls back to gRPC silently."""
+        """The transport each server's sessions step over now (``{address: "shm" | "grpc"}``, in the
+        order of the first environments they hold; ``"shm,grpc"`` where they differ; a session
+        forked or restored chooses at its first step)."""
         out: dict[str, list[str]] = {}
         for core in self._cores:
             name = core.transport.name if core.transport is not None else "grpc"

@@ -1,31 +1,8 @@
-"""The same-host data plane: a session's Steps through shared memory instead of gRPC, when the
-server runs on this machine as this user (Linux).
-
-The session is created, reset, forked and closed over gRPC as always. CreateSession (Fork,
-Restore) names the server's doorbell (``CreateSessionResponse.shm_doorbell``), an
-abstract-namespace Unix socket, and tells the caller the session's secret (``shm_secret``) and
-the server's pid (``shm_server_pid``). :func:`attach` uses the doorbell only when the server's
-address is this host's (loopback, or one of its own addresses), connects, and before it sends
-anything checks who answered (``SO_PEERCRED``: this user's uid and the server's pid); only
-then does it say hello with the session ID and secret, and receive the session's region, a
-memfd it maps. Whenever shared memory is not used, the reason is logged at debug level
-(logger ``dinerdash``); the session then steps over gRPC (:mod:`dinerdash._transport`). Each
-Step then writes the actions into the region, sends one byte and waits for one byte back; the
-reply's arrays are in the region at fixed offsets (the layout of
-``server/src/shm/layout.rs``), handed out as a :class:`~dinerdash._batch.Batch` whose arrays are
-views of the region (made once per layout, not per Step): valid until the session's next Step
-is sent, and copied by the environments exactly where they return them.
-
-The server checks the actions exactly as its gRPC Step does and refuses them with the same code,
-message and details, which become the same typed exception here. A doorbell that closes under a
-Step (the server died, drained, or forgot the session) is the shared-memory transport's end: the
-session core changes to gRPC (a counted event, logged as a warning: :mod:`dinerdash._transport`)
-and makes that Step there, whose answer (``UNAVAILABLE``, ``NOT_FOUND``, or the Batch) is the
-one the gRPC path would have given.
-
-``transport`` (:class:`~dinerdash.ConnectOptions`): ``"auto"`` uses shared memory whenever
-:func:`attach` succeeds and gRPC otherwise; ``"shm"`` raises
-:class:`~dinerdash.errors.ServiceTransportError` saying why it cannot; ``"grpc"`` never tries.
+"""The same-host data plane (docs/shm.md): a session's Steps through shared memory instead of
+gRPC, when the server runs on this machine as this user (Linux). :func:`attach` opens a session's
+:class:`Channel` (the doorbell's peer checked before anything is sent, the region mapped) or says
+why not; each Step writes the actions into the region, rings, and reads the reply's arrays as
+views of the region (:class:`~dinerdash._batch.Batch`), valid until the next Step is sent.
 """
 
 from __future__ import annotations
@@ -55,7 +32,7 @@ from .errors import ServiceError, ServiceTransportError
 
 __all__ = ["Channel", "Offer", "attach"]
 
-#: "DDsh" and the layout version this client reads.
+#: "DDsh" and the layout version this client reads (``server/src/shm/layout.rs``).
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
 #: The region's arrays, in order: the ``actions`` the client writes, then the Batch's fields
 #: (:data:`dinerdash._batch.FIELDS`, the one table).
@@ -66,11 +43,8 @@ _DRAIN_AT, _DRAIN = _LENGTHS + 4 * len(FIELDS), struct.Struct("<I")
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
 #: How often a Step waiting for its reply looks at its deadline and its connection.
 _TICK = 0.25
-#: A Step whose last reply came within this many seconds polls for its reply (non-blocking
-#: ``recv``) this long before it sleeps in ``recv``: on a virtual machine, waking a process
-#: whose CPU went idle costs tens of microseconds, more than a small session's Step. The
-#: server's thread for this process does the same for the next Step
-#: (``server/src/shm/mod.rs``, ``SPIN``).
+#: A Step whose last reply came within this many seconds polls this long before it sleeps in
+#: ``recv`` (why: docs/shm.md#why-each-side-polls-a-little-before-it-sleeps).
 _SPIN = 100e-6
 
 log = logging.getLogger("dinerdash")
@@ -109,9 +83,8 @@ class _Untrusted(Exception):
 
 @functools.lru_cache(maxsize=64)
 def _on_this_host(address: str) -> bool:
-    """Whether every address ``address``'s host resolves to is this host's own: a loopback
-    address, or one this host can bind (an address of one of its interfaces). Only then can
-    the server be on this machine, and only then is its doorbell looked for."""
+    """Whether every address ``address``'s host resolves to is this host's own: a loopback address,
+    or one this host can bind (an address of one of its interfaces)."""
     try:
         host, port = split_host_port(address)
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
@@ -253,9 +226,8 @@ class Channel:
     def ready(self, timeout: float | None) -> bool:
         """Whether the outcome of the Step :meth:`send` rang for is in within ``timeout`` seconds
         (``None``: waits for it), for :meth:`receive` to return or raise at once: its reply, the
-        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or
-        the Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`). Waits in
-        ``poll`` for at most _TICK at a time, to see the connection and the deadline."""
+        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or the
+        Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`)."""
         now = time.perf_counter()
         until = None if timeout is None else now + timeout
         poller = select.poll()

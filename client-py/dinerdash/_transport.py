@@ -29,9 +29,7 @@ class Detached(Exception):
 
 
 class Transport:
-    """One session's Steps: :meth:`step` returns a Step's Batch. ``split``: a Step can also be
-    sent (``send``), awaited (``ready``) and collected (``receive``) with no thread. ``views``: a
-    Batch's arrays are views that the next Step overwrites."""
+    """One session's Steps: :meth:`step` returns a Step's Batch."""
 
     name: str
     views = False

@@ -98,9 +98,8 @@ def _duration(seconds: float) -> str:
 
 def service_config(retries: int, retry_backoff: float) -> str:
     """The channel's service config (JSON): every method of :data:`SERVICE` but those of
-    :data:`NOT_RETRIED` and :data:`BY_HAND` retries ``UNAVAILABLE`` up to
-    ``min(retries, CHANNEL_MAX_RETRIES)`` times, after ``retry_backoff`` seconds doubled at each
-    retry. ``retries=0``: no retry policy."""
+    :data:`NOT_RETRIED` and :data:`BY_HAND` retries ``UNAVAILABLE`` up to ``min(retries,
+    CHANNEL_MAX_RETRIES)`` times, after ``retry_backoff`` seconds doubled at each retry."""
     retries = min(retries, CHANNEL_MAX_RETRIES)
     if retries <= 0:
         return json.dumps({"methodConfig": []})
@@ -174,8 +173,7 @@ def tls_credentials(
 
 def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
     """Whether the server at ``address`` completes a TLS handshake (certificate not checked):
-    ``None`` when nothing accepts a TCP connection there. Only asked after a failed connect, to
-    say why."""
+    ``None`` when nothing accepts a TCP connection there."""
     host, port = split_host_port(address)
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     context.check_hostname = False
@@ -236,11 +234,7 @@ def join_host_port(host: str, port: int) -> str:
 
 
 def parse_addresses(address: str | Sequence[str]) -> list[str]:
-    """Normalises an ``address`` argument into a list of ``host:port`` strings.
-
-    ``address`` is a ``host:port``, several separated by commas, or a list of them; a missing port
-    means :data:`DEFAULT_PORT`.
-    """
+    """Normalises an ``address`` argument into a list of ``host:port`` strings."""
     items = address.split(",") if isinstance(address, str) else list(address)
     out = []
     for item in items:
@@ -257,14 +251,7 @@ def parse_addresses(address: str | Sequence[str]) -> list[str]:
 
 
 def resolve_replicas(address: str | Sequence[str]) -> list[str]:
-    """Every server that ``address`` names, one ``host:port`` per replica.
-
-    A DNS name that resolves to several addresses (a Kubernetes headless Service, a round-robin
-    record) becomes one entry per address, so that a vector env can give each replica its own
-    session. Only addresses of one family are used (IPv4 when there are any), so that ``localhost``
-    is one server and not two names for the same one. A name that does not resolve is kept as is:
-    connecting to it then fails with a readable error.
-    """
+    """Every server that ``address`` names, one ``host:port`` per replica."""
     out: list[str] = []
     for item in parse_addresses(address):
         host, port = split_host_port(item)
@@ -530,11 +517,7 @@ class Connection:
         raise TLSMismatch(message, address=self.address)
 
     def wait_ready(self, timeout: float) -> bool:
-        """Waits up to ``timeout`` seconds for the server to answer; True when it did.
-
-        A ``ServerInfo`` call with ``wait_for_ready`` rather than ``grpc.channel_ready_future``,
-        whose polling thread outlives it and fails noisily when the channel is closed later.
-        """
+        """Waits up to ``timeout`` seconds for the server to answer; True when it did."""
         try:
             info = self.stub.ServerInfo(
                 pb.ServerInfoRequest(),
@@ -705,16 +688,9 @@ class Connection:
         return error_for_status(code, details or "(no message)", self.address, status)
 
     def health(self, timeout: float) -> grpc.Future:
-        """Starts a ``grpc.health.v1`` Check of the whole server (answered even while it drains,
-        and without the auth token) on this channel; the future's result is True when the server
-        is SERVING, False when it answered otherwise. A server that answers nothing leaves the
-        future pending until ``timeout``. What a vector env's watch and membership probe ask.
-
-        The check waits for the channel to connect (``wait_for_ready``) instead of failing at
-        once while the channel backs off after a lost connection: so a server that came back is
-        found by the next check, whose wait is what drives the reconnection. (Over shared memory
-        no other call may be polling gRPC: failing fast, a returning server went unfound for
-        1-14 s.)"""
+        """Starts a ``grpc.health.v1`` Check of the whole server (answered while it drains, and
+        without the token); the future's result is True when it is SERVING. It waits for the
+        channel to connect (docs/client.md#design-notes)."""
         self._check_open("Check")
         if self._health is None:
             self._health = self.channel.unary_unary(

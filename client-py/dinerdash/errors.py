@@ -60,20 +60,7 @@ _DETAILS_KEY = "grpc-status-details-bin"
 
 
 class ServiceError(Exception):
-    """A call to the DinerDash server failed.
-
-    Attributes:
-        code: the gRPC status code, or ``None`` when the failure happened before any call.
-        details: the server's message.
-        address: the ``host:port`` of the server that was called.
-        reason: the server's stable reason code (``ErrorInfo.reason``), e.g.
-            ``"SESSION_NOT_FOUND"``, ``"ACTION_OUT_OF_RANGE"``, ``"EPISODE_OVER"``; ``None`` when
-            the status carried no details.
-        field: the offending request field (``BadRequest``), e.g. ``"actions[3]"``, or ``None``.
-        env_index: the environment the error concerns, or ``None``. A vector env reports it as
-            the index in the vector env (not in one server's slice).
-        metadata: the rest of ``ErrorInfo.metadata``.
-    """
+    """A call to the DinerDash server failed."""
 
     def __init__(
         self,
@@ -140,11 +127,9 @@ class ServiceTransportError(ServiceError, OSError):
 
 
 class ServerDraining(ServiceTransportError):
-    """The server is draining before a planned restart (it got SIGTERM): it serves the sessions
-    it has until its drain timeout, but starts no new one; CreateSession, Fork, Restore and
-    Rollout are refused with ``UNAVAILABLE`` and reason ``DRAINING``. Not retried on the same
-    server: create the session on another one (or, for a single server, after its restart).
-    ``drain_remaining_ms`` is the time the server had left when it refused."""
+    """The server is draining before a planned restart (it got SIGTERM): it serves the sessions it
+    has until its drain timeout, but starts no new one; CreateSession, Fork, Restore and Rollout are
+    refused with ``UNAVAILABLE`` and reason ``DRAINING``."""
 
     @property
     def drain_remaining_ms(self) -> int | None:
@@ -162,9 +147,8 @@ class TLSMismatch(ServiceTransportError):
 class NoServerLeft(ServiceTransportError):
     """Every server of a vector env spread over several was lost: with ``reconnect=True`` and
     ``failover_after``, the environments of a lost server move to the servers left, and this is
-    raised when none is left (the last one did not come back within ``reconnect_timeout``, or
-    the last ones were lost together). ``address`` is the last server's; the message names the
-    servers given up before it. ``close()`` and then ``reset()`` start over on every address."""
+    raised when none is left (the last one did not come back within ``reconnect_timeout``, or the
+    last ones were lost together)."""
 
 
 class EnvClosed(ServiceError):

@@ -1,26 +1,7 @@
-"""The vector environment: N Diner Dash games in one batched server session per server.
-
-``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, ...)`` builds this class (the
-registered ``vector_entry_point``). Each step is one ``Step`` call per server carrying N actions as
-packed little-endian ``int32``; the reply's packed arrays are turned into numpy arrays with
-``numpy.frombuffer``, with no Python loop over the environments.
-
-Scale-out: ``address`` may be a list of servers (or a DNS name that resolves to several). The N
-environments are then split into contiguous slices, one batched session per server, and the
-servers are called concurrently (each server's Step by a thread of the env). Environment ``i`` is
-seeded with ``seed + i`` whatever server holds it, so the trajectories are the same as on one
-server. A session's calls always go to the server that created it.
-
-Failover (``reconnect=True``): a server unreachable, or silent, for more than ``failover_after``
-seconds is given up and its environments move to the servers left (:mod:`dinerdash._failover`);
-they keep their indices, and the other servers' sessions are not touched. Membership
-(:mod:`dinerdash._membership`): a draining server's environments move off it at once, and a
-given-up server that answers again, or a DNS name's new replica, is given environments until the
-loads differ by at most one, every move by Snapshot and Restore between two steps: exact, the
-trajectories those of an undisturbed run (:mod:`dinerdash._fleet`).
-
-This module is the Gymnasium adapter (arguments, autoreset modes, infos, the ``VectorEnv``
-API); the servers and sessions are the :class:`~dinerdash._fleet.Fleet`'s.
+"""The vector environment: N Diner Dash games in one batched session per server, the Gymnasium
+adapter (arguments, autoreset modes, infos, the ``VectorEnv`` API) of a
+:class:`~dinerdash._fleet.Fleet`, which holds the servers and sessions. Scale-out, failover and
+moves: docs/client.md#failover-across-servers and docs/clusters.md#failover.
 """
 
 from __future__ import annotations
@@ -66,65 +47,30 @@ __all__ = ["DinerDashVectorEnv"]
 class DinerDashVectorEnv(SessionOwner, VectorEnv):
     """``num_envs`` Diner Dash environments stepped together on one or more DinerDash servers.
 
-    The single environment, its spaces and infos are described in
-    :class:`dinerdash.env.DinerDashEnv`; here every value gains a leading axis of ``num_envs``:
-    observations ``(N, 40) float32``, rewards ``(N,) float64``, ``info["action_mask"]`` ``(N, 57)
-    bool``, ``info["score"]``, ``info["lost"]``, ``info["tick"]`` and (``expert=True``)
-    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask; and
-    ``info["seed"]``, each environment's episode seed, at reset and at every step (the keys never
-    change, as for a ``SyncVectorEnv`` of :class:`~dinerdash.DinerDashEnv`; ``int64`` as there,
-    a seed given above 2**63 - 1 reading modulo 2**64).
-
-    Autoreset: ``AutoresetMode.NEXT_STEP`` (default; the step after an episode ends resets that
-    environment, ignores its action and reports reward 0 and ``info["seed"]``) or
-    ``AutoresetMode.SAME_STEP`` (the ending step returns the new episode's first observation and
-    puts the ended one's last observation in ``info["final_obs"]`` and its infos in
-    ``info["final_info"]``) or ``AutoresetMode.DISABLED`` (stepping a finished environment raises
-    :class:`~dinerdash.errors.FailedPrecondition`; reset it with ``options={"reset_mask": ...}``).
-    ``metadata["autoreset_mode"]`` says which.
+    As :class:`dinerdash.env.DinerDashEnv`, every value with a leading axis of N: observations
+    ``(N, 40) float32``, rewards ``(N,) float64``, each info key ``(N, ...)`` with its ``_key``
+    mask (docs/client.md#the-infos). Each step is one ``Step`` call per server carrying the N
+    actions as packed ``int32``; replies become numpy arrays with no loop over environments.
 
     Args:
         num_envs: number of environments N.
-        address: a server, a list of servers, or a DNS name resolving to several; with several,
-            the environments are split into contiguous slices, one per server (at most N servers).
-            Default: ``DINERDASH_ADDRESS``, else a local server is started and stopped on close.
-        expert: add ``expert_action`` to the infos: ``True`` the reference heuristic's choices,
-            ``"planner"`` the look-ahead planner's.
-        reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
-            its session and report its environments' episodes as truncated.
-        failover_after: with ``reconnect=True`` and several servers: seconds a lost server is
-            waited for, or a server that answers nothing (hung, black-holed) is borne with,
-            before it is given up and its environments move to the servers left (new sessions,
-            spread evenly; their episodes end truncated with ``info["reconnected"]``, as after a
-            reconnect). The last server left is waited for ``reconnect_timeout``, then
-            :class:`~dinerdash.errors.NoServerLeft` is raised. ``None``: no failover. A given-up
-            server that answers again is taken back.
-        resolve_every: with failover, seconds between resolutions of a DNS-name ``address``;
-            new replicas are taken in. ``None``: never.
-        autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
-        config: game configuration (GameConfig fields), as for the single env.
+        address: a server, a list of servers, or a DNS name resolving to several: the
+            environments are split into contiguous slices, one session per server (at most N).
+            Default: ``DINERDASH_ADDRESS``, else a local server started and stopped on close.
+        autoreset_mode: ``AutoresetMode.NEXT_STEP`` (default), ``SAME_STEP`` (``final_obs``,
+            ``final_info``) or ``DISABLED`` (reset with ``options={"reset_mask": ...}``);
+            ``metadata["autoreset_mode"]`` says which.
+        failover_after, resolve_every: with ``reconnect=True`` and several servers, seconds a
+            lost or silent server is borne with before its environments move to the others, and
+            between resolutions of a DNS name (docs/client.md#failover-across-servers).
         max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
-        render_mode: ``"ansi"`` or ``"rgb_array"``; ``render()`` returns one frame per env.
-        timeout, tls, tls_ca: every call's deadline and TLS, as for the single env.
-        token, connect_timeout, reconnect_timeout, server_binary, ansi_color: as for the single env.
-        connect: a :class:`~dinerdash.ConnectOptions` holding the connection keywords (address,
-            token, timeout, TLS, reconnect, failover_after, ...) as one value; a keyword given
-            beside it overrides its field.
+        expert, config, render_mode, ansi_color, connect and the connection keywords: as for the
+            single env; ``render()`` returns one frame per environment.
 
-    Reset: ``reset(seed=s)`` seeds environment ``i`` with ``s + i``; ``seed`` may also be a list
-    of N seeds. Options: ``{"arrivals": one list of (type, size) pairs or N lists,
-    "config": {...}, "reset_mask": (N,) bool array}``. With a ``reset_mask`` (any autoreset mode,
-    as in Gymnasium) only those environments are reset, environment ``i`` still with ``s + i``;
-    the others keep their episode, and the observations and infos returned are their current ones
-    (``info["_seed"]`` is the mask of environments reset). A ``config`` needs a full reset.
-
-    Pipelining: :meth:`step_async` sends a step and returns at once, :meth:`step_wait` returns
-    its results (Gymnasium's ``AsyncVectorEnv`` names; ``step()`` is the two in a row). A trainer
-    that alternates two vector envs keeps one step on the wire while it works on the other.
-
-    :meth:`action_masks` gives the ``(N, 57)`` masks of the current states. Errors that concern
-    one environment carry its index in this vector env as ``env_index``. ``close()`` frees the
-    sessions; a later full ``reset()`` opens new ones.
+    ``reset(seed=s)`` seeds environment ``i`` with ``s + i`` (or takes a list of N seeds);
+    options: ``arrivals`` (one list or N), ``config`` (a full reset only), ``reset_mask``.
+    :meth:`step_async` / :meth:`step_wait` pipeline a step (docs/client.md#pipelining-step_async-
+    and-step_wait). An error about one environment carries its index here as ``env_index``.
     """
 
     #: Until ``__init__`` has opened the sessions: an env whose arguments were refused has nothing
