@@ -223,9 +223,7 @@ def split_host_port(address: str) -> tuple[str, int]:
     if address.count(":") == 1:
         host, port = address.split(":")
         return host, int(port)
-    if address.count(":") > 1:  # a bare IPv6 literal
-        return address, DEFAULT_PORT
-    return address, DEFAULT_PORT
+    return address, DEFAULT_PORT  # a name, or a bare IPv6 literal
 
 
 def join_host_port(host: str, port: int) -> str:
@@ -417,19 +415,9 @@ class Connection:
 
     Args:
         address: ``host:port`` of the server.
-        token: sent as ``authorization: Bearer <token>`` when the server requires one (default:
-            the ``DINERDASH_AUTH_TOKEN`` environment variable).
-        connect_timeout: seconds to wait for the first connection; past it a readable
-            :class:`~dinerdash.errors.ServiceTransportError` says who could not be reached.
-        retries: attempts after the first for a call that fails with ``UNAVAILABLE`` (up to 4
-            by the channel's service config, more by hand: see the module's exception list).
+        token, connect_timeout, timeout, tls, tls_ca: as :class:`ConnectOptions`'s fields.
+        retries: retries of a call that fails with ``UNAVAILABLE`` (docs/client.md#retries).
         retry_backoff: seconds before the first retry (jittered by gRPC); doubled after each one.
-        timeout: deadline of each call in seconds (default: ``DINERDASH_TIMEOUT``, else
-            :data:`DEFAULT_TIMEOUT`); a call past it raises
-            :class:`~dinerdash.errors.ServiceTimeout`.
-        tls: connect with TLS, trusting the system's root certificates.
-        tls_ca: connect with TLS, trusting this PEM CA certificate (default:
-            ``DINERDASH_TLS_CA``); e.g. a self-signed server certificate.
         wait: wait (``connect_timeout``) for the server to answer before returning; ``False``
             returns at once (the channel connects at its first call).
     """

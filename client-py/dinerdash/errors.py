@@ -1,29 +1,7 @@
-"""The exceptions of the client.
-
-Every gRPC status the server returns becomes one of these, carrying the server's own message (which
-names the offending field and its allowed range). The class and the attributes ``reason``,
-``field`` and ``env_index`` come from the status code and the structured details the server
-attaches (a ``google.rpc.Status`` in the ``grpc-status-details-bin`` trailer: ``ErrorInfo`` and
-``BadRequest``, listed in the proto's header), never from the message text::
-
-    ServiceError                      any failure of a call to the server
-    ├── SessionNotFound               NOT_FOUND: unknown, closed or expired session
-    ├── InvalidArgument (ValueError)  INVALID_ARGUMENT: a bad action, seed, arrival list, config ...
-    ├── FailedPrecondition            FAILED_PRECONDITION: e.g. stepping an episode that is over
-    │   └── EpisodeOver               reason EPISODE_OVER: autoreset DISABLED, an episode ended
-    ├── ResourceExhausted             RESOURCE_EXHAUSTED: too many sessions, message too large
-    ├── Unauthenticated               UNAUTHENTICATED: missing or wrong auth token
-    ├── ServiceTimeout (TimeoutError) DEADLINE_EXCEEDED
-    ├── ServiceInternalError          INTERNAL, UNKNOWN and any other code
-    ├── ServiceTransportError (OSError)  UNAVAILABLE after the retries, or no connection
-    │   ├── ServerDraining            reason DRAINING: the server drains before a restart and
-    │   │                             starts no new session (CreateSession, Fork, Restore, Rollout)
-    │   ├── TLSMismatch               a plaintext client met a TLS server (or the other way round)
-    │   └── NoServerLeft              a vector env over several servers lost every one of them
-    └── EnvClosed                     the env was closed; ``reset()`` opens a new session
-
-``LocalServerError`` is about starting a local ``dinerdash-server``; ``ServerBinaryNotFound`` (also
-a ``FileNotFoundError``) says how to build one or point to one.
+"""The exceptions of the client (the table: docs/client.md#errors). Every gRPC status the server
+returns becomes one of these, carrying the server's message; the class and ``reason``, ``field``
+and ``env_index`` come from the status code and the structured details the server attaches (a
+``google.rpc.Status``: ``ErrorInfo`` and ``BadRequest``), never from the message text.
 """
 
 from __future__ import annotations
@@ -60,7 +38,15 @@ _DETAILS_KEY = "grpc-status-details-bin"
 
 
 class ServiceError(Exception):
-    """A call to the DinerDash server failed."""
+    """A call to the DinerDash server failed.
+
+    Attributes:
+        code: the gRPC status code, or ``None`` when the failure happened before any call.
+        details: the server's message; ``address``: the server called.
+        reason: the server's stable reason code (``ErrorInfo.reason``), e.g. ``"EPISODE_OVER"``.
+        field: the offending request field (``BadRequest``), e.g. ``"actions[3]"``.
+        env_index: the environment concerned (a vector env's index); ``metadata``: the rest.
+    """
 
     def __init__(
         self,
