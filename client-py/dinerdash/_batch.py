@@ -21,7 +21,6 @@ __all__ = [
     "cut",
     "decode",
     "decode_one",
-    "drain_remaining_ms",
     "interrupt",
     "join",
     "outcome_one",
@@ -117,11 +116,6 @@ class Batch:
         self._fields[name] = value
         return value
 
-    @classmethod
-    def of_arrays(cls, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> Batch:
-        """A Batch of arrays already shaped (a shared-memory reply's views of its region)."""
-        return cls(num_envs, fields, drain_ms)
-
     def to_pb(self) -> pb.Batch:
         """The ``pb.Batch`` this Batch is the decoding of (for the wire, and the benchmark)."""
         out = pb.Batch(num_envs=self.num_envs, drain_remaining_ms=self.drain_ms)
@@ -163,11 +157,6 @@ class Batch:
             return self
         return Batch(hi - lo, {k: v[lo:hi] for k, v in self.fields.items()}, self.drain_ms)
 
-    def finals_from(self, ended: Batch, prefix: str = "") -> dict[str, np.ndarray]:
-        """The ``final_*`` fields that make ``ended``'s state (``prefix="final_"``: its own
-        ``final_*``) the last state of episodes that end in this Batch."""
-        return {"final_" + k: ended.fields[prefix + k] for k in STATE if prefix + k in ended}
-
 
 def join(batches: list[Batch]) -> Batch:
     """The Batches of consecutive environments as one, in environment order (one Batch: itself,
@@ -177,18 +166,6 @@ def join(batches: list[Batch]) -> Batch:
     names = dict.fromkeys(k for b in batches for k in b.fields)
     fields = {k: np.concatenate([b[k] for b in batches]) for k in names}
     return Batch(sum(b.num_envs for b in batches), fields, max(b.drain_ms for b in batches))
-
-
-def drain_remaining_ms(batch: Batch | pb.Batch | None) -> int:
-    """Milliseconds left before the server that sent ``batch`` ends its session, when that server
-    is draining before a restart (it got SIGTERM: it serves its sessions for up to its
-    ``--drain-timeout`` and takes no new ones); 0 when it is not draining, or when there is no
-    Batch yet. Each server's Batch says it for that server."""
-    if batch is None:
-        return 0
-    if isinstance(batch, Batch):
-        return batch.drain_ms
-    return batch.drain_remaining_ms
 
 
 def cut(ended: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
@@ -236,7 +213,7 @@ def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Ba
             reset=np.zeros(n, np.bool_), seeds=np.zeros(n, np.uint64), **outcome
         )
         return out, first if mode == AutoresetMode.NEXT_STEP else None
-    finals = {k: v.copy() for k, v in first.finals_from(last).items()}
+    finals = {"final_" + k: last.fields[k].copy() for k in STATE if k in last}
     return first.replace(**finals, **outcome), None
 
 

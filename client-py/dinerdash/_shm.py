@@ -271,7 +271,7 @@ class Channel:
             views = self._views()
             self._known = (lengths, views)
         (drain,) = _DRAIN.unpack_from(self.mm, _DRAIN_AT)
-        return Batch.of_arrays(self.num_envs, views, drain)
+        return Batch(self.num_envs, views, drain)
 
     def _views(self) -> dict[str, np.ndarray]:
         """The reply's arrays as read-only views of the region, shaped as :class:`Batch` holds
