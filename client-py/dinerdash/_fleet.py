@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 import grpc
 import numpy as np
@@ -84,14 +85,7 @@ class Fleet:
 
     def step(self, wire: np.ndarray) -> list[Batch]:
         """The step of a :meth:`blocking` fleet: its Batches, after any failover and move."""
-        core = self.cores[0]
-        try:
-            core.step(wire.tobytes())
-        except ServerLost as e:
-            self.cores = fail_over(self.cores, [e.core], interrupted)
-        if self.membership is not None:
-            self.settle()
-        return self.batches()
+        return self.collect(lambda core: core.step(wire.tobytes()), self.membership is not None)
 
     def start(self, wire: np.ndarray) -> None:
         """Every server's Step is sent (by its core's thread) before any reply is awaited: the
@@ -112,10 +106,17 @@ class Fleet:
 
     def finish(self) -> list[Batch]:
         """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned."""
+        return self.collect(SessionCore.finish_step, self.failover_on())
+
+    def collect(self, outcome: Callable[[SessionCore], Batch], settle: bool) -> list[Batch]:
+        """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's:
+        every core is updated before the first error is raised, a lost server's environments
+        move first (:func:`interrupted`), and with ``settle`` slices then move as
+        :meth:`settle` decides."""
         error, lost = None, []
         for core in self.cores:
             try:
-                core.finish_step()  # its Batch is core.last
+                outcome(core)
             except ServerLost as e:
                 lost.append(e.core)
             except BaseException as e:
@@ -125,7 +126,7 @@ class Fleet:
             self.cores = fail_over(self.cores, lost, interrupted)
         if error is not None:
             raise error
-        if self.failover_on():
+        if settle:
             self.settle()
         return self.batches()
 
