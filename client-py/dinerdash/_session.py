@@ -191,36 +191,33 @@ class SessionOwner:
 
     def _take_arguments(
         self,
+        num_envs: int,
+        autoreset_mode: AutoresetMode,
         address: Any,
         expert: bool | str,
         render_mode: str | None,
         ansi_color: bool,
         connect: ConnectOptions | None,
         connection: dict[str, Any],
-    ) -> None:
-        """Checks and keeps the constructor's arguments both envs take: ``render_mode``,
-        ``expert``, ``ansi_color`` and the merged :class:`ConnectOptions` (errors in the name of
-        the env's class, as Python's own)."""
+    ) -> Settings:
+        """Checks and keeps the constructor's arguments both envs take (errors in the name of the
+        env's class, as Python's own); returns the :class:`Settings` of the env's cores."""
         self.render_mode = check_render_mode(render_mode)
         expert_request = expert_fields(expert)
         self.expert = expert_request["expert_actions"]
-        self._expert_policy = expert_request["expert_policy"]
         self._options = options = ConnectOptions.merged(
             connect, type(self).__name__, address=address, **connection
         )
         self.reconnect = options.reconnect
         self.reconnect_timeout = options.reconnect_timeout
         self.ansi_color = ansi_color
-
-    def _settings_for(self, **settings: Any) -> Settings:
-        """The :class:`Settings` of the env's cores: the arguments :meth:`_take_arguments` kept
-        and ``settings`` (``num_envs``, ``autoreset_mode``, ``config``, ``failover_after``)."""
         return Settings(
             expert=self.expert,
-            expert_policy=self._expert_policy,
+            expert_policy=expert_request["expert_policy"],
             reconnect=self.reconnect,
             reconnect_timeout=self.reconnect_timeout,
-            **settings,
+            num_envs=num_envs,
+            autoreset_mode=autoreset_mode,
         )
 
     @property

@@ -116,10 +116,10 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         connect: ConnectOptions | None = None,
         **connection: Any,
     ) -> None:
-        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
-        self._settings = self._settings_for(
-            num_envs=1, autoreset_mode=AutoresetMode.DISABLED, config=make_config(config)
+        self._settings = self._take_arguments(
+            1, AutoresetMode.DISABLED, address, expert, render_mode, ansi_color, connect, connection
         )
+        self._settings.config = make_config(config)
         self._last_obs: np.ndarray | None = None
         self._last_info: dict[str, Any] = {}
         self._open()

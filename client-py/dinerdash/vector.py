@@ -100,7 +100,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         }
         self.autoreset_mode = mode
         self.num_envs = int(num_envs)
-        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
+        self._settings = settings = self._take_arguments(
+            self.num_envs, mode, address, expert, render_mode, ansi_color, connect, connection
+        )
         config = make_config(config)
         if max_episode_steps is not None:
             cfg = pb.GameConfig()
@@ -108,13 +110,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 cfg.CopyFrom(config)
             cfg.time_limit = int(max_episode_steps)
             config = cfg
-        self.failover_after = self._options.failover_after
-        self._settings = self._settings_for(
-            num_envs=self.num_envs,
-            autoreset_mode=mode,
-            config=config,
-            failover_after=self.failover_after,
-        )
+        settings.config = config
+        self.failover_after = settings.failover_after = self._options.failover_after
         self._open()
         spec = self.spec_proto
         self.single_observation_space = observation_space(spec)
