@@ -277,43 +277,30 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
 @dataclass(frozen=True)
 class ConnectOptions:
     """How to reach the server(s) and what to do when one is lost: one value, built once and
-    handed to :func:`gymnasium.make`, :func:`gymnasium.make_vec`, :func:`~dinerdash.rollout` or
-    an agent's command as ``connect=``::
-
-        connect = dinerdash.ConnectOptions(["10.0.0.5:50051", "10.0.0.6:50051"], reconnect=True)
-        env = gymnasium.make("dinerdash:DinerDash-v0", connect=connect)
-        envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=64, connect=connect)
-
-    Every field is also a keyword of those functions (``address=``, ``timeout=``, ...): sugar for
-    this value, and a keyword given beside ``connect=`` overrides that field of it
-    (:meth:`merged`).
+    handed to :func:`gymnasium.make`, :func:`gymnasium.make_vec`, :func:`~dinerdash.rollout` or an
+    agent's command as ``connect=`` (docs/client.md#connecting). Every field is also a keyword of
+    those, which overrides that field of a ``connect=`` given beside it (:meth:`merged`).
 
     Attributes:
-        address: a ``host:port``, several (a comma-separated string or a list, kept as a tuple),
-            or a DNS name; ``None``: ``DINERDASH_ADDRESS``, else a local server. It is resolved
-            at each connect, so that a DNS name that moved is followed.
+        address: a ``host:port``, several (a comma-separated string or a list), or a DNS name,
+            resolved at each connect; ``None``: ``DINERDASH_ADDRESS``, else a local server.
         token: the auth token (``None``: ``DINERDASH_AUTH_TOKEN``).
         connect_timeout: seconds to wait for a server to answer at first (``None``: 10, or
-            ``timeout`` when that is shorter); a wrong address costs this long.
-        timeout: every call's deadline in seconds, resolved here (:func:`call_timeout`).
+            ``timeout`` when shorter); a wrong address costs this long.
+        timeout: every call's deadline in seconds (:func:`call_timeout`).
         tls, tls_ca: TLS trusting the system's roots, or this PEM CA (``None``:
-            ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says, as for the
-            local server).
+            ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says).
         server_binary: the local server's binary, when one is started.
-        reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), open a new
-            session there and report the interrupted episodes as truncated, instead of raising.
-        reconnect_timeout: seconds a lost server is waited for (the last one left, for a vector
-            env with failover).
+        reconnect: when a server is lost, wait for it, open a new session there and report the
+            interrupted episodes as truncated, instead of raising.
+        reconnect_timeout: seconds a lost server (the last one left, with failover) is waited for.
         failover_after: a vector env over several servers with ``reconnect=True``: seconds a lost
-            server is waited for, or a server that answers nothing at all (a hung process, a
-            black-holed network) is borne with, before its environments move to the others;
-            ``None``: no failover. The single env has one server and ignores it.
-        resolve_every: a vector env with ``reconnect=True`` and failover: seconds between two
-            resolutions of a DNS-name ``address``, whose new replicas are taken in; ``None``:
-            resolved once, at connect.
-        transport: how Steps travel: ``"auto"`` through shared memory when the server is on this
-            machine and runs as this user (Linux), else gRPC; ``"shm"`` shared memory or an
-            error saying why not; ``"grpc"`` always gRPC (:mod:`dinerdash._shm`).
+            or silent server is borne with before its environments move to the others; ``None``:
+            no failover. The single env ignores it.
+        resolve_every: with failover, seconds between resolutions of a DNS-name ``address``,
+            whose new replicas are taken in; ``None``: resolved once.
+        transport: ``"auto"`` (shared memory when the server is on this machine and runs as
+            this user, else gRPC), ``"shm"`` (or an error saying why not) or ``"grpc"``.
     """
 
     address: str | tuple[str, ...] | None = None
