@@ -12,7 +12,6 @@ import gymnasium
 import numpy as np
 import pytest
 from dinerdash import Connection, ServerDraining, ServiceTransportError
-from dinerdash._batch import drain_remaining_ms
 from dinerdash._proto import pb
 
 #: Far beyond any test's length: the server drains for the whole test.
@@ -46,7 +45,7 @@ def test_a_draining_server_refuses_new_sessions_with_server_draining(start_serve
         kept = env.unwrapped.snapshot()
         held = conn.call("CreateSession", pb.CreateSessionRequest(num_envs=2))
         batch = conn.call("Reset", pb.ResetRequest(session_id=held.session_id, seed=1))
-        assert drain_remaining_ms(batch) == 0
+        assert batch.drain_remaining_ms == 0
 
         refused = _drain(server, conn)
         assert isinstance(refused, ServiceTransportError)
@@ -73,8 +72,8 @@ def test_a_draining_server_refuses_new_sessions_with_server_draining(start_serve
         first = conn.call("Step", pb.StepRequest(session_id=held.session_id, actions=actions))
         time.sleep(0.05)
         second = conn.call("Step", pb.StepRequest(session_id=held.session_id, actions=actions))
-        assert 0 < drain_remaining_ms(second) < drain_remaining_ms(first)
-        assert drain_remaining_ms(first) <= refused.drain_remaining_ms
+        assert 0 < second.drain_remaining_ms < first.drain_remaining_ms
+        assert first.drain_remaining_ms <= refused.drain_remaining_ms
     finally:
         env.close()
         conn.close()

@@ -244,8 +244,9 @@ SESSION_STATE = [
     "spec",
     "offer",
     "transport",
-    "was",
-    "caller",
+    "last_transport",
+    "step_thread",
+    "shm_sent",
     "drain_ms",
 ]
 #: Methods that change a container in place (``core.entering.update(...)`` writes the state).

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import itertools
 
-from dinerdash._failover import pieces
+from dinerdash._failover import even_parts
 from dinerdash._fleet import plan
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -90,7 +90,7 @@ def test_a_balanced_fleet_is_left_alone(fleet) -> None:
     st.dictionaries(st.integers(0, 5), st.integers(0, 9), min_size=1),
 )
 def test_pieces_cover_the_run_evenly(start, length, loads) -> None:
-    out = pieces(start, start + length, loads)
+    out = even_parts(start, start + length, loads)
     assert [i for a, b, _ in out for i in range(a, b)] == list(range(start, start + length))
     sizes = [b - a for a, b, _ in out]
     assert not sizes or max(sizes) - min(sizes) <= 1 or len(sizes) < len(loads)

@@ -232,7 +232,7 @@ def test_over_shared_memory_step_async_rings_and_starts_no_thread(address: str) 
             envs.step_async(np.zeros(3, dtype=np.int64))
         for envs in pair:  # both replies are in, neither yet collected
             (core,) = envs.fleet.cores
-            assert core.rung is not None and core.caller is None
+            assert core.shm_sent is not None and core.step_thread is None
             assert core.transport.ready(30.0)
         for envs in pair:
             np.testing.assert_array_equal(envs.step_wait()[4]["tick"], [1, 1, 1])

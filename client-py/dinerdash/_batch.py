@@ -1,19 +1,9 @@
-"""The Batch: one Reset's or Step's reply for the environments of one session (or of a whole
-env), as numpy arrays, whatever transport carried it; and what the environments make of it
-(:func:`decode`, :func:`decode_one`). This is the one module that names the reply's fields.
-
-A Batch is decoded once: from a gRPC reply (:meth:`Batch.from_pb`, arrays that read the
-message's bytes without copying them) or from a shared-memory region (:meth:`Batch.of_arrays`,
-arrays that *are* views of the region: :mod:`dinerdash._shm`). A view of the region is valid
-until the session's next Step is sent; the session core copies its last Batch
-(:meth:`Batch.copy`) before that only when it may need it afterwards (``reconnect=True``: a lost
-server's episodes end in their last state). What the environments return to their caller is
-always the caller's own (:func:`decode` copies exactly there, as Gymnasium's contract asks: an
-observation returned must not change under the caller at the next step).
-
-The operations the client needs are here too: :meth:`Batch.slice`, :func:`join`, and the
-Batches of environments whose episodes a lost server (:func:`interrupt`) or a refused Restore
-(:func:`cut`) ends early.
+"""The Batch: one Reset's or Step's reply for the environments of one session (or a whole env),
+as numpy arrays, whatever transport carried it (:meth:`Batch.from_pb`, views of a shared-memory
+region: :mod:`dinerdash._shm`); its operations (slice, join, episodes a lost server
+(:func:`interrupt`) or a refused Restore (:func:`cut`) ends early); and the observations and
+infos made of it (:func:`decode`, which copies: what an env returns is its caller's own). The one
+module that names the reply's fields. Costs: docs/client.md#design-notes.
 """
 
 from __future__ import annotations
@@ -31,17 +21,14 @@ __all__ = [
     "cut",
     "decode",
     "decode_one",
-    "drain_remaining_ms",
     "interrupt",
     "join",
     "outcome_one",
 ]
 
-#: The one table of the Batch's per-environment fields: each field's dtype and width per
-#: environment. gRPC reads each by its name in the reply (``dinerdash.v1.Batch``); shared memory
-#: reads the region's arrays in this order, after the ``actions`` the client writes
-#: (``server/src/shm/layout.rs``, ``FIELDS``). ``tests/test_batch_fields.py`` ties the three.
-#: The flags (0/1 bytes) read as bools.
+#: The one table of the Batch's per-environment fields (dtype, width): gRPC reads each by name,
+#: shared memory in this order after the ``actions`` (``server/src/shm/layout.rs``);
+#: ``tests/test_batch_fields.py`` ties the three.
 FIELDS: dict[str, tuple[str, int]] = {
     "observations": ("i1", OBSERVATION_SIZE),
     "rewards": ("<i4", 1),
@@ -76,14 +63,9 @@ def _empty(name: str, n: int) -> np.ndarray:
 
 
 class Batch:
-    """One reply for ``num_envs`` environments: ``fields`` maps each field the reply has to an
-    array of ``num_envs`` rows (``(N, width)`` for observations and masks, ``(N,)`` for the
-    rest); a field the reply lacks is absent (``batch[name]`` reads it as zeros).
-    ``drain_ms``: the server's ``drain_remaining_ms`` (0: it is not draining).
-
-    The arrays may be read-only views (of a protobuf message's bytes, or of a shared-memory
-    region until the session's next Step): a Batch is never modified in place, every
-    operation returns a new one."""
+    """One reply for ``num_envs`` environments: ``fields`` maps each field the reply has to an array
+    of ``num_envs`` rows (``(N, width)`` for observations and masks, ``(N,)`` for the rest); a field
+    the reply lacks is absent (``batch[name]`` reads it as zeros)."""
 
     __slots__ = ("_fields", "_msg", "drain_ms", "num_envs")
 
@@ -103,10 +85,7 @@ class Batch:
 
     @classmethod
     def from_pb(cls, msg: pb.Batch) -> Batch:
-        """The Batch of a gRPC reply. Each field is read from the message when first asked for
-        (an array reading the message's bytes, not a copy): by ``batch[name]`` or
-        :meth:`get`, all of them by :attr:`fields`. Most steps need a few of the fields only
-        (the single env, a vector env without episode ends: not ``seeds`` nor ``final_*``)."""
+        """The Batch of a gRPC reply."""
         return cls(msg.num_envs or len(msg.rewards) // 4, {}, msg.drain_remaining_ms, msg)
 
     @property
@@ -128,9 +107,7 @@ class Batch:
             return None
         dtype, width = FIELDS[name]
         if name in REPEATED:
-            # numpy reads protobuf's container through its __array__, ~3 us whatever its length;
-            # through a list of Python ints, ~0.05 us an item: a list for a few environments
-            # (the single env: 0.7 us), the container for more (N = 1024: 3.5 us, not 53).
+            # A list is cheaper for a few items (docs/client.md#design-notes).
             value = np.array(raw[:] if len(raw) <= _LIST_UP_TO else raw, dtype=dtype)
         else:
             value = np.frombuffer(raw, dtype=dtype)
@@ -138,11 +115,6 @@ class Batch:
                 value = value.reshape(-1, width)
         self._fields[name] = value
         return value
-
-    @classmethod
-    def of_arrays(cls, num_envs: int, fields: dict[str, np.ndarray], drain_ms: int = 0) -> Batch:
-        """A Batch of arrays already shaped (a shared-memory reply's views of its region)."""
-        return cls(num_envs, fields, drain_ms)
 
     def to_pb(self) -> pb.Batch:
         """The ``pb.Batch`` this Batch is the decoding of (for the wire, and the benchmark)."""
@@ -185,11 +157,6 @@ class Batch:
             return self
         return Batch(hi - lo, {k: v[lo:hi] for k, v in self.fields.items()}, self.drain_ms)
 
-    def finals_from(self, ended: Batch, prefix: str = "") -> dict[str, np.ndarray]:
-        """The ``final_*`` fields that make ``ended``'s state (``prefix="final_"``: its own
-        ``final_*``) the last state of episodes that end in this Batch."""
-        return {"final_" + k: ended.fields[prefix + k] for k in STATE if prefix + k in ended}
-
 
 def join(batches: list[Batch]) -> Batch:
     """The Batches of consecutive environments as one, in environment order (one Batch: itself,
@@ -201,25 +168,11 @@ def join(batches: list[Batch]) -> Batch:
     return Batch(sum(b.num_envs for b in batches), fields, max(b.drain_ms for b in batches))
 
 
-def drain_remaining_ms(batch: Batch | pb.Batch | None) -> int:
-    """Milliseconds left before the server that sent ``batch`` ends its session, when that server
-    is draining before a restart (it got SIGTERM: it serves its sessions for up to its
-    ``--drain-timeout`` and takes no new ones); 0 when it is not draining, or when there is no
-    Batch yet. Each server's Batch says it for that server."""
-    if batch is None:
-        return 0
-    if isinstance(batch, Batch):
-        return batch.drain_ms
-    return batch.drain_remaining_ms
-
-
 def cut(ended: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
-    """The Batch that environments report for the step just made when they could not be
-    restored on the server they move to (another snapshot version) and start new episodes on a
-    new session there, whose Reset replied ``first``; and the Batch their next step reports
-    (NEXT_STEP's autoreset; else ``None``). ``ended`` is their part of the step's Batch on the
-    old server: their episodes end truncated in this step (unless terminated), keeping its
-    rewards. SAME_STEP reports ``first`` as the new episode, the ended one as ``final_*``."""
+    """The Batch that environments report for the step just made when they could not be restored on
+    the server they move to (another snapshot version) and start new episodes on a new session
+    there, whose Reset replied ``first``; and the Batch their next step reports (NEXT_STEP's
+    autoreset; else ``None``)."""
     n = ended.num_envs
     truncated = ~ended["terminated"]
     if mode != AutoresetMode.SAME_STEP:
@@ -244,12 +197,10 @@ def cut(ended: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch |
 
 
 def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
-    """The Batch of a step that interrupts episodes whose ``last`` Batch came from a lost
-    session and starts the new session's, whose Reset replied ``first``: the old episodes end
-    truncated (reward 0); and the Batch the next step hands out (NEXT_STEP: ``first`` as the
-    autoreset; else ``None``). NEXT_STEP and DISABLED: this step ends the episodes in their last
-    state (DISABLED: the caller resets them; the new session's episodes have already started).
-    SAME_STEP: the new episodes start in this very step, the old ones are ``final_*``."""
+    """The Batch of a step that interrupts episodes whose ``last`` Batch came from a lost session
+    and starts the new session's, whose Reset replied ``first``: the old episodes end truncated
+    (reward 0); and the Batch the next step hands out (NEXT_STEP: ``first`` as the autoreset; else
+    ``None``)."""
     n = last.num_envs
     outcome = {
         "rewards": np.zeros(n, "<i4"),
@@ -262,7 +213,7 @@ def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Ba
             reset=np.zeros(n, np.bool_), seeds=np.zeros(n, np.uint64), **outcome
         )
         return out, first if mode == AutoresetMode.NEXT_STEP else None
-    finals = {k: v.copy() for k, v in first.finals_from(last).items()}
+    finals = {"final_" + k: last.fields[k].copy() for k in STATE if k in last}
     return first.replace(**finals, **outcome), None
 
 
@@ -271,8 +222,7 @@ def decode(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Observations ``(N, 40) float32`` and infos of the state ``batch`` returns, or with
     ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
-    Gymnasium ``_key`` mask (default: all; copied for each key, never kept). Every array
-    returned is the caller's own."""
+    Gymnasium ``_key`` mask (default: all; copied for each key, never kept)."""
     n = batch.num_envs
     if present is None:
         present = np.ones(n, dtype=np.bool_)
@@ -297,8 +247,7 @@ def decode(
 
 def decode_one(batch: Batch, expert: bool) -> tuple[np.ndarray, dict[str, Any]]:
     """The observation ``(40,)`` and info of a one-environment Batch: :func:`decode` without the
-    batch axis, with plain ``int`` values (cheaper than numpy for one environment). A gRPC
-    reply not yet decoded is read straight from its bytes (a single env's every step)."""
+    batch axis, with plain ``int`` values (cheaper than numpy for one environment)."""
     msg = batch._msg
     observations = msg.observations if msg is not None else None
     if observations:

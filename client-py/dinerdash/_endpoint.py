@@ -1,8 +1,7 @@
-"""Where an environment's sessions live: :class:`Endpoint`, the connections to one or more
-servers chosen by the :class:`~dinerdash.connection.ConnectOptions` (or the local server this
-client started when no address is given), how a lost server is waited for and reconnected, and
-which servers were given up (a vector env's failover, ``failover_after``), taken back or added
-(:mod:`dinerdash._membership`), or are draining."""
+"""Where an env's sessions live: :class:`Endpoint`, the connections to its servers (or the local
+server it started), how a lost server is waited for, and which servers were given up, taken
+back, added or drain. A server given up keeps its index (``connections[i]`` is server ``i``).
+"""
 
 from __future__ import annotations
 
@@ -33,20 +32,7 @@ def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
 
 
 class Endpoint:
-    """Connections to one or more servers, and the local server this client started, if any.
-
-    Every connection is made with the same :class:`~dinerdash.connection.ConnectOptions`
-    (deadline, TLS, token); a local server is plaintext on loopback. ``pick`` keeps one replica
-    of several (``pick`` modulo their number), ``max_servers`` the first ones. Closing it closes
-    every channel and stops the local server.
-
-    A server given up (:meth:`give_up`: it stayed unreachable or silent past a vector env's
-    ``failover_after``, or it drained) keeps its index, so that ``connections[i]`` still names
-    server ``i``, but its channel is closed and it is not called again until :meth:`take_back`
-    gives it a new one (it answered its health check again). :meth:`add` takes in a new server
-    (a DNS name's new replica) at the next index. A draining server (:attr:`draining`) keeps its
-    sessions until they move, but no new session is opened on it (:meth:`open_to_new`).
-    """
+    """Connections to one or more servers, and the local server this client started, if any."""
 
     def __init__(
         self,
@@ -90,12 +76,7 @@ class Endpoint:
         self, index: int, create: Callable[[Connection], None], lost: str, timeout: float
     ) -> Connection:
         """Waits up to ``timeout`` seconds for server ``index`` to answer again, then calls
-        ``create`` with its connection to open a new session there (``reconnect=True``).
-
-        A local server this client owns that died is started again (on a new free port). Returns
-        the connection to use from now on; ``lost`` names what was lost, for the error raised
-        when the server does not come back in time.
-        """
+        ``create`` with its connection to open a new session there (``reconnect=True``)."""
         deadline = time.monotonic() + timeout
         while True:
             # Checked on every round: a dying process may still look alive at first.
@@ -130,10 +111,8 @@ class Endpoint:
         return [i for i in self.live() if i not in self.draining]
 
     def give_up(self, index: int, why: str | None = None) -> None:
-        """Server ``index`` is lost: its channel is closed (which cancels any call still waiting
-        on it, and returns at once) and :meth:`live` leaves it out until :meth:`take_back`.
-        ``why`` (a failure) is logged once, as a warning, and counted in :attr:`failovers`;
-        without it (a drained server) it is logged at info level."""
+        """Server ``index`` is lost: its channel is closed (which cancels any call still waiting on
+        it, and returns at once) and :meth:`live` leaves it out until :meth:`take_back`."""
         if index not in self.given_up:
             self.given_up.append(index)
             self.connections[index].close()

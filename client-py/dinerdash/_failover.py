@@ -1,15 +1,7 @@
-"""Failover across servers: what becomes of the environments of a server that a vector env spread
-over several (``reconnect=True``) gave up, because it stayed unreachable past ``failover_after``.
-
-The env gives the server up (its channel is closed; if it answers its health check again it is
-taken back, :mod:`dinerdash._membership`) and moves each of its sessions' environments to the
-servers left that take new sessions (not draining): a new session on each, the
-environments cut into contiguous pieces of sizes differing by at most one, the larger pieces to
-the servers that hold the fewest environments. Environment ``i`` keeps index ``i``: the env's
-cores stay ordered by their first environment. The cores of the servers that stayed up are not
-touched. When a core raises :class:`ServerLost` is :meth:`SessionCore.reopen
-<dinerdash._session.SessionCore.reopen>`'s decision; what the moved environments report (their
-episodes truncated, or the reset asked for) is the caller's ``start``.
+"""Failover: a given-up server's environments (``reconnect=True``, ``failover_after``) move to
+the servers left that take new sessions, in contiguous parts of sizes differing by at most one,
+the larger to the least loaded; each keeps its index, their episodes end truncated (or start
+as the caller's ``start`` says). The other servers' cores are not touched.
 """
 
 from __future__ import annotations
@@ -27,14 +19,14 @@ from .errors import (
     SessionNotFound,
 )
 
-__all__ = ["fail_over", "move", "pieces"]
+__all__ = ["even_parts", "fail_over", "move"]
 
 #: A server that refuses a new session for one of these is passed over, not given up: the
 #: environments go to the other servers left.
 PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
 
 
-def pieces(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
+def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
     """Environments ``start:stop`` cut into one contiguous piece per server of ``loads``
     (server index -> environments it holds), as ``(start, stop, server)``: the sizes differ by
     at most one, the larger ones go to the servers holding fewest environments (ties: the lower
@@ -56,11 +48,9 @@ Start = Callable[[SessionCore, SessionCore], Batch]
 
 
 def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[SessionCore]:
-    """New cores for the environments of ``core`` (whose server is given
-    up or drains) on the servers that take new sessions, given ``cores`` (the env's others, for
-    the servers' loads), each started by ``start``; its Batch becomes the new core's ``last``.
-    A server that cannot take a session now is passed over (one that says it drains is marked
-    so); none left raises :class:`~dinerdash.errors.NoServerLeft`."""
+    """New cores for the environments of ``core`` (whose server is given up or drains) on the
+    servers that take new sessions, given ``cores`` (the env's others, for the servers' loads), each
+    started by ``start``; its Batch becomes the new core's ``last``."""
     endpoint = core.endpoint
     first, stop = core.start, core.stop
     candidates = [i for i in endpoint.open_to_new() if i != core.index]
@@ -82,7 +72,7 @@ def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[Sess
         made: list[SessionCore] = []
         target = None
         try:
-            for lo, hi, target in pieces(first, stop, loads):
+            for lo, hi, target in even_parts(first, stop, loads):
                 new = SessionCore(endpoint, target, lo, hi, core.settings)
                 new.create()
                 made.append(new)
@@ -106,11 +96,8 @@ def move(core: SessionCore, cores: list[SessionCore], start: Start) -> list[Sess
 def fail_over(
     cores: list[SessionCore], lost: list[SessionCore], start: Start, why: str | None = ""
 ) -> list[SessionCore]:
-    """The env's cores after the servers of the ``lost`` cores are given up and their
-    environments moved (:func:`move`), ordered by their first environment. The lost cores are
-    closed without calling their servers. On an error, the new sessions are closed again and
-    the lost cores stay (closed) where they were. ``why`` is logged with the loss (``None``:
-    the servers drained, no failure)."""
+    """The env's cores after the servers of the ``lost`` cores are given up and their environments
+    moved (:func:`move`), ordered by their first environment."""
     endpoint = lost[0].endpoint
     for core in lost:
         reason = why or f"unreachable past failover_after={core.settings.failover_after:g} s"

@@ -1,26 +1,16 @@
-"""The fleet: the servers a vector env uses and its slices on them, as servers fail, come back,
-appear and drain. :class:`Fleet` owns the :class:`~dinerdash._endpoint.Endpoint` (connections,
-given-up and draining servers), the :class:`~dinerdash._membership.Membership` watch and the
-slices: session cores (:class:`~dinerdash._session.SessionCore`), each one session on one server
-for a contiguous range of environments, in environment order. The Gymnasium adapter
-(:mod:`dinerdash.vector`) only asks it for the step's Batches and tells it when a step or a reset
-ended.
-
-After a step or a reset (:meth:`Fleet.settle`) it notes which servers drain and moves slices
-between servers at once, by Snapshot and Restore: a draining server's slices go to the servers
-left, a server taken back or added is given its share, and a slice is split (a Snapshot of a
-range of its environments) so that the loads differ by at most one (:meth:`Fleet.plan`). A moved
-environment is exactly what it was (game state, random stream, autoreset state): the trainer sees
-what it would have seen undisturbed. A server that refuses a Restore for its snapshot version (a
-rolling upgrade) gets the environments as new episodes instead, cut as a failover cuts them, with
-one warning. A failed server's environments move with :func:`dinerdash._failover.fail_over`.
-Why moves are made this way: docs/clusters.md.
+"""The fleet: a vector env's servers (:class:`~dinerdash._endpoint.Endpoint`, the
+:class:`~dinerdash._membership.Membership` watch) and its slices, session cores each holding a
+contiguous range of environments, in environment order, as servers fail, come back, appear and
+drain. After each step or reset (:meth:`Fleet.settle`) slices move at once by Snapshot and
+Restore, exactly (:func:`plan`); a failed server's environments move with
+:func:`dinerdash._failover.fail_over`. Why: docs/clusters.md#failover.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 import grpc
 import numpy as np
@@ -40,18 +30,16 @@ from .errors import (
     ServiceTransportError,
 )
 
-__all__ = ["REST", "Fleet", "interrupted", "plan"]
+__all__ = ["REFUSED_WAIT", "Fleet", "interrupted", "plan"]
 
 log = logging.getLogger("dinerdash")
 
 #: Seconds a server that refused a Restore (full) is not asked again.
-REST = 10.0
+REFUSED_WAIT = 10.0
 
 
 class Fleet:
-    """The servers and slices of one vector env (see the module's doc). Created by opening one
-    session per server, the environments split into contiguous slices; :meth:`close` closes
-    them, the membership watch and the connections (and the local server, if any)."""
+    """The servers and slices of one vector env (see the module's doc)."""
 
     def __init__(self, options: ConnectOptions, settings: Settings) -> None:
         self.options = options
@@ -62,9 +50,9 @@ class Fleet:
         #: Environments moved to another server by Snapshot and Restore (before a close()).
         self.moves = 0
         #: Servers that refused a Restore (full): until when they rest.
-        self.resting: dict[int, float] = {}
+        self.refused_until: dict[int, float] = {}
         #: What :meth:`settle` saw last when the slices were where they should be.
-        self.quiet: tuple | None = None
+        self.settled_key: tuple | None = None
         #: A Restore was refused for its snapshot version: said once.
         self.version_warned = False
         k = len(endpoint.connections)
@@ -97,14 +85,7 @@ class Fleet:
 
     def step(self, wire: np.ndarray) -> list[Batch]:
         """The step of a :meth:`blocking` fleet: its Batches, after any failover and move."""
-        core = self.cores[0]
-        try:
-            core.step(wire.tobytes())
-        except ServerLost as e:
-            self.cores = fail_over(self.cores, [e.core], interrupted)
-        if self.membership is not None:
-            self.settle()
-        return self.batches()
+        return self.collect(lambda core: core.step(wire.tobytes()), self.membership is not None)
 
     def start(self, wire: np.ndarray) -> None:
         """Every server's Step is sent (by its core's thread) before any reply is awaited: the
@@ -114,9 +95,7 @@ class Fleet:
         self.sent = time.monotonic()
 
     def wait(self) -> None:
-        """Waits for every reply of the step :meth:`start` sent. A server that answers nothing
-        (the step nor a health check) for ``failover_after`` is given up first
-        (:func:`~dinerdash._membership.await_replies`)."""
+        """Waits for every reply of the step :meth:`start` sent."""
         endpoint = self.endpoint
         if self.failover_on() and len(endpoint.live()) > 1:
             waiting = [(c.index, c.step_ready) for c in self.cores]
@@ -126,15 +105,18 @@ class Fleet:
                 core.step_ready()
 
     def finish(self) -> list[Batch]:
-        """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned. Every
-        core is updated before the first error, if any, is raised: no server's step goes
-        unrecorded. The environments of a core whose server was lost past ``failover_after``
-        move to the servers left first, and report this step as interrupted
-        (:func:`interrupted`); then slices move as :meth:`settle` decides."""
+        """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned."""
+        return self.collect(SessionCore.finish_step, self.failover_on())
+
+    def collect(self, outcome: Callable[[SessionCore], Batch], settle: bool) -> list[Batch]:
+        """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's:
+        every core is updated before the first error is raised, a lost server's environments
+        move first (:func:`interrupted`), and with ``settle`` slices then move as
+        :meth:`settle` decides."""
         error, lost = None, []
         for core in self.cores:
             try:
-                core.finish_step()  # its Batch is core.last
+                outcome(core)
             except ServerLost as e:
                 lost.append(e.core)
             except BaseException as e:
@@ -144,17 +126,15 @@ class Fleet:
             self.cores = fail_over(self.cores, lost, interrupted)
         if error is not None:
             raise error
-        if self.failover_on():
+        if settle:
             self.settle()
         return self.batches()
 
     def reset(self, given: dict, mask: np.ndarray | None) -> np.ndarray:
-        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (``seed``,
-        ``seeds``, ``arrivals``, ``config`` of :meth:`SessionCore.reset_request
-        <dinerdash._session.SessionCore.reset_request>`); returns which environments' cores
-        were called (a core with none of its environments in the mask keeps its state). A
-        server lost during the reset has its environments moved, their new sessions reset
-        whole, as after a reconnect."""
+        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (``seed``, ``seeds``,
+        ``arrivals``, ``config`` of :meth:`SessionCore.reset_request
+        <dinerdash._session.SessionCore.reset_request>`); returns which environments' cores were
+        called (a core with none of its environments in the mask keeps its state)."""
         endpoint = self.endpoint
         given_up = endpoint.given_up
 
@@ -207,11 +187,10 @@ class Fleet:
     # -- moves ----------------------------------------------------------------------------------
 
     def settle(self) -> None:
-        """After a step or a reset: takes in the servers the membership watch found, notes
-        which servers drain, and moves slices at once (:meth:`plan`, :meth:`split`) until no
-        environment is on a draining server and the loads of the servers that take sessions
-        differ by at most one. A drained server (no slice left) is given up: it exits, and is
-        taken back once it answers again."""
+        """After a step or a reset: takes in the servers the membership watch found, notes which
+        servers drain, and moves slices at once (:meth:`plan`, :meth:`split`) until no environment
+        is on a draining server and the loads of the servers that take sessions differ by at most
+        one."""
         endpoint = self.endpoint
         self.take_in()
         for core in self.cores:
@@ -219,7 +198,7 @@ class Fleet:
                 endpoint.drain(core.index, core.drain_ms / 1000)
         targets = self.targets()
         key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
-        if key == self.quiet:
+        if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
         settled = True
         for core, parts in self.plan(targets) if targets else []:
@@ -231,7 +210,8 @@ class Fleet:
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
         targets = self.targets()
         key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
-        self.quiet = key if settled and not self.resting and self.balanced(targets) else None
+        settled = settled and not self.refused_until and self.balanced(targets)
+        self.settled_key = key if settled else None
 
     def take_in(self) -> None:
         """The servers the membership thread found: given-up ones that answer again are taken
@@ -254,9 +234,9 @@ class Fleet:
         """The servers slices may move to now: open to new sessions, and not resting after
         refusing one."""
         now = time.monotonic()
-        for j in [j for j, until in self.resting.items() if until <= now]:
-            del self.resting[j]
-        return [j for j in self.endpoint.open_to_new() if j not in self.resting]
+        for j in [j for j, until in self.refused_until.items() if until <= now]:
+            del self.refused_until[j]
+        return [j for j in self.endpoint.open_to_new() if j not in self.refused_until]
 
     def loads(self, targets: list[int]) -> dict[int, int]:
         loads = dict.fromkeys(targets, 0)
@@ -288,10 +268,8 @@ class Fleet:
 
     def split(self, core: SessionCore, parts: list[tuple[int, int, int]]) -> bool:
         """Replaces ``core`` by new cores for ``parts`` (``(start, stop, server)``, covering its
-        environments): a Snapshot of each range, restored on its server; then ``core``'s
-        session is closed. False (``core`` kept, nothing changed) when a server cannot take its
-        part now (:meth:`refused` notes why) or the Snapshot fails (its server is lost: the next
-        step fails it over)."""
+        environments): a Snapshot of each range, restored on its server; then ``core``'s session is
+        closed. False (nothing changed) when a server cannot take its part or the Snapshot fails."""
         made: list[SessionCore] = []
         done, moved = False, 0
         try:
@@ -300,7 +278,7 @@ class Fleet:
                     session_id=core.session_id, env_start=lo - core.start, env_count=hi - lo
                 )
                 try:
-                    snapshot = core.conn.call("Snapshot", request, timeout=self.quick())
+                    snapshot = core.conn.call("Snapshot", request, timeout=self.move_timeout())
                 except ServiceError:
                     return False
                 new = SessionCore(self.endpoint, dest, lo, hi, self.settings)
@@ -325,15 +303,12 @@ class Fleet:
         return True
 
     def restore(self, new: SessionCore, snapshot: bytes, last: Batch, old: SessionCore) -> bool:
-        """Opens ``new``'s session from ``snapshot`` (``last``: its environments' Batch of the
-        step just made). A server that refuses it as INVALID_ARGUMENT (another snapshot
-        version: a rolling upgrade) gets them as new episodes instead: a new session, reset
-        (unseeded: the server draws the seeds, as an autoreset does), the old episodes ending
-        truncated in this step (:func:`~dinerdash._batch.cut`); said once, as a warning. True
-        when restored (exact), False when cut."""
+        """Opens ``new``'s session from ``snapshot`` (``last``: its environments' Batch of the step
+        just made). True when restored; False when cut (another snapshot version: new episodes,
+        :func:`~dinerdash._batch.cut`, said once as a warning)."""
         try:
             reply = new.conn.call(
-                "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.quick()
+                "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.move_timeout()
             )
         except InvalidArgument as e:
             if not self.version_warned:
@@ -346,9 +321,9 @@ class Fleet:
                     old.conn.address,
                     e.details,
                 )
-            new.create(self.quick())
+            new.create(self.move_timeout())
             request = pb.ResetRequest(session_id=new.session_id)
-            first = Batch.from_pb(new.conn.call("Reset", request, timeout=self.quick()))
+            first = Batch.from_pb(new.conn.call("Reset", request, timeout=self.move_timeout()))
             new.cut_over(*cut(last, first, self.settings.autoreset_mode))
             return False
         new.restored(reply, last)
@@ -363,9 +338,9 @@ class Fleet:
         elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
             self.endpoint.give_up(dest, f"could not restore a session there: {error}")
         else:
-            self.resting[dest] = time.monotonic() + REST
+            self.refused_until[dest] = time.monotonic() + REFUSED_WAIT
 
-    def quick(self) -> float:
+    def move_timeout(self) -> float:
         """The deadline of the calls that move environments between servers: a server that
         does not answer within ``failover_after`` is passed over (the env's watch gives it up
         at the next step), not waited for the whole ``timeout``."""
@@ -375,15 +350,10 @@ class Fleet:
 def plan(
     slices: list[tuple[int, int, int, bool]], n: int, targets: list[int]
 ) -> list[tuple[int, list[tuple[int, int, int]]]]:
-    """Which of ``slices`` (``(server, start, stop, movable)``, covering environments ``0:n``
-    in order) to split or move, by position, each with its new parts ``(start, stop, server)``
-    in environment order, so that once done no movable environment is on a server outside
-    ``targets`` and their loads differ by at most one (a pure function: no I/O).
-
-    Each target's share is ``n`` over the targets, the larger shares to those holding most
-    already, so that fewest move. A target above its share gives the end of its largest
-    movable slices; the slices of the other servers (draining) and the ends given are cut among
-    the targets short of their share, most short first. An environment keeps its index."""
+    """Which of ``slices`` (``(server, start, stop, movable)``, covering environments ``0:n`` in
+    order) to split or move, by position, each with its new parts ``(start, stop, server)`` in
+    environment order, so that once done no movable environment is on a server outside ``targets``
+    and their loads differ by at most one (a pure function: no I/O)."""
     loads = dict.fromkeys(targets, 0)
     for server, lo, hi, _ in slices:
         if server in loads:

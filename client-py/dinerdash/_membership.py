@@ -1,13 +1,7 @@
-"""Membership: which servers a vector env over several servers uses, as they hang, come back,
-appear and drain (``reconnect=True`` with ``failover_after``).
-
-- :func:`await_replies` waits for the replies of calls in flight and watches their servers: a
-  server that has answered nothing (neither the call nor a health check sent beside it) for
-  ``failover_after`` seconds is given up, which cancels its calls, and its environments move
-  as a killed server's do (:mod:`dinerdash._failover`). A server that answers late is kept.
-- :class:`Membership` checks the given-up servers' health and a DNS-name address's new
-  replicas (resolved again every ``resolve_every`` seconds) at the env's step boundaries,
-  without blocking; the env takes the servers it found (:meth:`Membership.found`).
+"""Membership: which servers a vector env over several uses, as they hang, come back and appear.
+:func:`await_replies` gives up a server that answers nothing (no call, no health check) for
+``failover_after``; :class:`Membership` finds given-up servers that answer again and a DNS
+name's new replicas, at step boundaries, without blocking (docs/client.md#design-notes).
 """
 
 from __future__ import annotations
@@ -108,13 +102,10 @@ def has_name(address: str | Sequence[str] | None) -> bool:
 
 
 class Membership:
-    """Looks for servers to take in, at the env's step boundaries (:meth:`found`), without
-    blocking: every :data:`PROBE_EVERY` seconds a ``grpc.health.v1`` check goes to each given-up
-    server (on a channel kept for it) and to each new replica of a DNS-name address, and the
-    checks answered SERVING by the next boundary are handed over with their connection. The
-    address is resolved again every ``resolve_every`` seconds by a thread that only resolves
-    names: no gRPC call is made off the env's own calls, so that a process that forks (a
-    subprocess, a multiprocessing worker) never does so in the middle of one."""
+    """Looks for servers to take in, at the env's step boundaries (:meth:`found`), without blocking:
+    every :data:`PROBE_EVERY` seconds a ``grpc.health.v1`` check goes to each given-up server (on a
+    channel kept for it) and to each new replica of a DNS-name address, and the checks answered
+    SERVING by the next boundary are handed over with their connection."""
 
     def __init__(self, endpoint: Endpoint, options: ConnectOptions) -> None:
         self._endpoint = endpoint
@@ -134,8 +125,7 @@ class Membership:
 
     def found(self) -> list[tuple[int | None, Connection]]:
         """The servers found since the last call: ``(index, conn)`` for a given-up server that
-        answers SERVING again, ``(None, conn)`` for a new replica. The caller takes or closes
-        each. Sends the next round of checks when it is time."""
+        answers SERVING again, ``(None, conn)`` for a new replica."""
         out = []
         for address, (index, conn, check) in list(self._probes.items()):
             if check is None or not check.done():

@@ -1,22 +1,10 @@
-"""The session core: environments ``start:stop`` of an env, held in one batched session on one
-server, and everything both environments do with such a session; and :class:`SessionOwner`, what
-the two environments share (their endpoint and the server's Spec).
+"""The session core: environments ``start:stop`` of an env in one batched session on one
+server, and everything both environments do with it (create, reset, step, the transport, and with
+``reconnect=True`` the lost server waited for); and :class:`SessionOwner`, what the two
+environments share. How sessions move between servers: docs/clusters.md#failover.
 
-It creates the session, chooses its transport (:mod:`dinerdash._transport`; a change is an event),
-resets and steps it (blocking, or handed to its :mod:`step thread <dinerdash._step_thread>` and
-collected later), checks actions, and, with ``reconnect=True``, waits for a lost server and reopens
-the session there; or, when the env has other servers and the lost one stays away past
-``failover_after``, raises :class:`ServerLost` (a private signal) for the env to move the core's
-environments (:mod:`dinerdash._failover`). :class:`~dinerdash.DinerDashEnv` is one core of one
-environment; :class:`~dinerdash.DinerDashVectorEnv` is one core per server. Errors are the server's
-typed errors; a core of a vector env that is split over several servers reports an environment by
-its index in the vector env (from the error's structured ``env_index``).
-
-A core's state (``last``, ``pending``, ``reconnected``, the session's ``session_id``, ``spec``,
-``offer``, ``transport``...) is changed only by its own methods, never assigned by another module
-(``tests/test_module_graph.py`` reads every module with :mod:`ast` to check it: its
-``SESSION_STATE``). A core never changes its range of environments: a move between servers
-(:mod:`dinerdash._fleet`) makes new cores of restored sessions (:meth:`SessionCore.restored`).
+A core's state (:data:`tests.test_module_graph.SESSION_STATE`) is changed only by its own
+methods; a move between servers makes new cores (:meth:`SessionCore.restored`).
 """
 
 from __future__ import annotations
@@ -31,13 +19,15 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 
 from . import _shm, _transport
+from . import render as _render
 from ._arguments import check_render_mode, config_dict, expert_fields
 from ._batch import Batch, interrupt
 from ._endpoint import Endpoint
 from ._proto import pb
-from ._step_thread import Caller
+from ._step_thread import StepThread
 from .connection import Connection, ConnectOptions
 from .errors import (
+    EnvClosed,
     InvalidArgument,
     NoServerLeft,
     ServiceError,
@@ -52,8 +42,7 @@ _WIRE_AUTORESET = {
     AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
 }
 _U64 = 1 << 64
-#: The unsigned dtype of each integer width, for :func:`check_actions` (a dtype parsed from its
-#: name every step costs three times the view).
+#: The unsigned dtype of each integer width, for :func:`check_actions`.
 _UNSIGNED = {width: np.dtype(f"u{width}") for width in (1, 2, 4, 8)}
 #: The errors after which ``reconnect=True`` waits for the server and opens a new session.
 LOST = (ServiceTransportError, SessionNotFound)
@@ -79,10 +68,8 @@ class Settings:
 
 
 class ServerLost(Exception):
-    """Raised by a core whose server stayed unreachable past ``failover_after`` (or was given
-    up already) while the env has other servers: the env moves the core's environments to them
-    (:func:`dinerdash._failover.move`) and never lets this escape. A private signal, not one of
-    the public errors: no ``except ServiceError`` of a caller can mistake it for a failure."""
+    """A core's server stayed unreachable past ``failover_after`` (or was given up) while the env
+    has other servers: the env moves the core's environments (:mod:`dinerdash._failover`)."""
 
     def __init__(self, core: SessionCore, error: ServiceError) -> None:
         super().__init__(
@@ -93,15 +80,12 @@ class ServerLost(Exception):
 
 
 def check_actions(actions: Any, num_envs: int) -> np.ndarray:
-    """``actions`` as ``num_envs`` little-endian int32, every one checked against the game's
-    actions before any server steps: int32 casting would wrap 2**32 + 1 into action 1, and over
-    several servers a step refused by one would have moved the others."""
+    """``actions`` as ``num_envs`` little-endian int32, each checked before any server steps (a
+    cast would wrap 2**32 + 1 into action 1; a step refused by one server would move others)."""
     acts = np.asarray(actions)
     if acts.shape != (num_envs,):
         raise ValueError(f"actions: expected shape ({num_envs},), got {acts.shape}")
-    if acts.dtype.kind in "iu":
-        # One pass: viewed as unsigned, a negative action is huge, so one comparison finds both
-        # ends (two thirds of min() and max()'s time).
+    if acts.dtype.kind in "iu":  # as unsigned, a negative action is huge: one comparison
         bad = np.count_nonzero(acts.view(_UNSIGNED[acts.itemsize]) >= NUM_ACTIONS) > 0
     else:
         bad = num_envs > 0 and (acts.min() < 0 or acts.max() >= NUM_ACTIONS)
@@ -128,53 +112,112 @@ def close_session(conn: Connection, session_id: str) -> None:
 
 class SessionOwner:
     """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share:
-    the :class:`Endpoint` they opened and the server's ``Spec`` of their session."""
+    their arguments, :class:`Endpoint`, cores (``_cores``, in environment order), the server's
+    ``Spec`` of their session, and what is read from them the same way."""
 
     _endpoint: Endpoint
+    _cores: list[SessionCore]
+    _closed: bool
     spec_proto: pb.Spec
+    #: A vector env: ``render()`` returns a tuple of frames, one per environment.
+    _batched = False
 
-    def _renders(self) -> bool:
-        """Whether ``render()`` draws: with no ``render_mode`` it warns (as Gymnasium's envs do)
-        and returns ``None``."""
+    def _check_open(self, what: str) -> None:
+        if self._closed:
+            again = "new sessions" if self._batched else "a new session"
+            raise EnvClosed(f"{what} after close(); reset() opens {again}")
+
+    def _check_idle(self, what: str) -> None:
+        """Raises while a vector env's ``step_async()`` awaits its ``step_wait()``."""
+
+    def _shown(self) -> tuple[Any, Any, Any]:
+        """The observations, scores and lost groups of the current states, for ``render()``."""
+        raise NotImplementedError
+
+    def render(self) -> Any:
+        """The current state: the server's text board (``"ansi"``) or a picture (``"rgb_array"``); a
+        vector env returns a tuple, one per environment. Without a ``render_mode``: ``None``."""
         if self.render_mode is None:
             gym.logger.warn(
                 "render() called without a render_mode; pass render_mode='ansi' or 'rgb_array'"
             )
-            return False
-        return True
+            return None
+        self._check_idle("render()")
+        self._check_open("render()")
+        if self.render_mode == "ansi":
+            frames = [
+                core.render_text(i - core.start, self.ansi_color)
+                for core in self._cores
+                for i in range(core.start, core.stop)
+            ]
+        else:
+            lives = self.spec_proto.config.lives
+            frames = [
+                _render.draw(obs, score=int(score), lost=int(lost), lives=lives)
+                for obs, score, lost in zip(*self._shown(), strict=True)
+            ]
+        return tuple(frames) if self._batched else frames[0]
+
+    @property
+    def transports(self) -> dict[str, str]:
+        """The transport each server's sessions step over now (``{address: "shm" | "grpc"}``, in the
+        order of the first environments they hold; ``"shm,grpc"`` where they differ; a session
+        forked or restored chooses at its first step)."""
+        out: dict[str, list[str]] = {}
+        for core in self._cores:
+            name = core.transport.name if core.transport is not None else "grpc"
+            names = out.setdefault(core.conn.address, [])
+            if name not in names:
+                names.append(name)
+        return {address: ",".join(names) for address, names in out.items()}
+
+    @property
+    def transport_changes(self) -> int:
+        """Sessions whose Steps changed transport since they were opened (shared memory lost,
+        or taken up again by a session reopened after a reconnect)."""
+        return self._endpoint.transport_changes
+
+    def watch_url(self, index: int = 0) -> str:
+        """The URL of the server's web page that shows environment ``index`` playing (the
+        server must serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
+        from .watch import watch_url
+
+        self._check_open("watch_url()")
+        num_envs = self._cores[-1].stop
+        if not 0 <= index < num_envs:
+            raise IndexError(f"index must be in 0..{num_envs - 1}, got {index}")
+        core = next(c for c in self._cores if c.start <= index < c.stop)
+        return watch_url(core.conn, core.session_id, index - core.start)
 
     def _take_arguments(
         self,
+        num_envs: int,
+        autoreset_mode: AutoresetMode,
         address: Any,
         expert: bool | str,
         render_mode: str | None,
         ansi_color: bool,
         connect: ConnectOptions | None,
         connection: dict[str, Any],
-    ) -> None:
-        """Checks and keeps the constructor's arguments both envs take: ``render_mode``,
-        ``expert``, ``ansi_color`` and the merged :class:`ConnectOptions` (errors in the name of
-        the env's class, as Python's own)."""
+    ) -> Settings:
+        """Checks and keeps the constructor's arguments both envs take (errors in the name of the
+        env's class, as Python's own); returns the :class:`Settings` of the env's cores."""
         self.render_mode = check_render_mode(render_mode)
         expert_request = expert_fields(expert)
         self.expert = expert_request["expert_actions"]
-        self._expert_policy = expert_request["expert_policy"]
         self._options = options = ConnectOptions.merged(
             connect, type(self).__name__, address=address, **connection
         )
         self.reconnect = options.reconnect
         self.reconnect_timeout = options.reconnect_timeout
         self.ansi_color = ansi_color
-
-    def _settings_for(self, **settings: Any) -> Settings:
-        """The :class:`Settings` of the env's cores: the arguments :meth:`_take_arguments` kept
-        and ``settings`` (``num_envs``, ``autoreset_mode``, ``config``, ``failover_after``)."""
         return Settings(
             expert=self.expert,
-            expert_policy=self._expert_policy,
+            expert_policy=expert_request["expert_policy"],
             reconnect=self.reconnect,
             reconnect_timeout=self.reconnect_timeout,
-            **settings,
+            num_envs=num_envs,
+            autoreset_mode=autoreset_mode,
         )
 
     @property
@@ -194,22 +237,22 @@ class SessionCore:
 
     __slots__ = (
         "__weakref__",
-        "caller",
         "drain_ms",
         "endpoint",
         "index",
         "last",
+        "last_transport",
         "offer",
         "pending",
         "reconnected",
-        "rung",
         "session_id",
         "settings",
+        "shm_sent",
         "spec",
         "start",
+        "step_thread",
         "stop",
         "transport",
-        "was",
     )
 
     def __init__(
@@ -223,28 +266,24 @@ class SessionCore:
         #: The session on the server, ``None`` before :meth:`create` and after :meth:`close`.
         self.session_id: str | None = None
         self.spec: pb.Spec | None = None
-        #: The last Batch received, kept for render(), action_masks() and a lost server (over
-        #: shared memory, views of the region: valid until the next Step is sent).
+        #: The last Batch received (over shared memory: views valid until the next Step).
         self.last: Batch | None = None
-        #: NEXT_STEP after a reconnect: the new session's first Batch, handed out at the next
-        #: step as that step's autoreset (Gymnasium's NEXT_STEP semantics).
+        #: NEXT_STEP after a reconnect: the new session's first Batch, the next step's autoreset.
         self.pending: Batch | None = None
-        #: The server was lost and the session reopened during the current step.
+        #: The server was lost and the session reopened (or episodes cut) during this step.
         self.reconnected = False
-        #: The thread that makes the Step calls of ``start_step``, started at the first one.
-        self.caller: Caller | None = None
-        #: The actions of a Step :meth:`start_step` rang for over shared memory, until
-        #: :meth:`finish_step` collects its reply.
-        self.rung: bytes | None = None
-        #: The server's ``drain_remaining_ms`` in the last Batch it sent (0: not draining).
+        #: The thread that makes the Steps of :meth:`start_step` over gRPC, from the first one.
+        self.step_thread: StepThread | None = None
+        #: The actions of a Step sent over shared memory whose reply :meth:`finish_step` awaits.
+        self.shm_sent: bytes | None = None
+        #: The server's ``drain_remaining_ms`` in its last Batch (0: not draining).
         self.drain_ms = 0
-        #: What the reply that made the session offered of shared memory, and the transport its
-        #: Steps take (``None`` until the first Step of a session forked or restored).
+        #: What the session's reply offered of shared memory, and the transport its Steps take
+        #: (``None`` until the first Step of a session forked or restored).
         self.offer: _shm.Offer | None = None
         self.transport: _transport.Transport | None = None
-        #: The transport of the session's last Steps (kept across a reopened session): a
-        #: change is an event (:meth:`Endpoint.transport_changed`).
-        self.was: str | None = None
+        #: The transport of the session's last Steps, kept across a reopened session.
+        self.last_transport: str | None = None
 
     @property
     def conn(self) -> Connection:
@@ -258,43 +297,38 @@ class SessionCore:
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up
 
-    def note(self, batch: Batch) -> Batch:
-        """Records what a Batch from the server says of the server (draining)."""
+    def read_drain(self, batch: Batch) -> Batch:
+        """``batch``, its server's ``drain_remaining_ms`` kept."""
         self.drain_ms = batch.drain_ms
         return batch
 
     # -- what the env reports -------------------------------------------------------------------
 
     def start_with(self, batch: Batch) -> None:
-        """``batch`` is what the env reports for the environments of this new session (moved
-        here by a failover, :mod:`dinerdash._failover`) at this step."""
+        """``batch`` is what this new core's environments (moved by a failover) report."""
         self.last = batch
 
     def restored(self, reply: pb.CreateSessionResponse, last: Batch) -> None:
-        """This new core's session is ``reply``'s (Restore's: the environments moved here by
-        Snapshot and Restore, exactly as they were); ``last`` is their report of the step just
-        made."""
+        """This new core's session is Restore's ``reply`` (environments moved exactly); ``last``
+        is their report of the step just made."""
         self.adopt(reply)
         self.last = last
 
     def cut_over(self, last: Batch, pending: Batch | None) -> None:
         """This new core's session (created and reset) took over environments whose episodes
-        were cut (a Restore refused, :func:`~dinerdash._batch.cut`): ``last`` is their report
-        of the step just made, ``pending`` (NEXT_STEP) the next step's; ``info["reconnected"]``
-        will say so."""
+        were cut (:func:`~dinerdash._batch.cut`): ``last`` reports the step just made,
+        ``pending`` (NEXT_STEP) the next one."""
         self.last, self.pending, self.reconnected = last, pending, True
 
     def take_reconnected(self) -> bool:
-        """Whether the server was lost and the session reopened (or an episode cut) during the
-        step just reported; reported once."""
-        was, self.reconnected = self.reconnected, False
-        return was
+        """Whether the session was reopened (or episodes cut) in the step just reported; once."""
+        reconnected, self.reconnected = self.reconnected, False
+        return reconnected
 
     # -- the session ----------------------------------------------------------------------------
 
     def create(self, timeout: float | None = None) -> pb.Spec:
-        """Opens the session (not reset yet) and returns the server's Spec; ``timeout``: the
-        call's deadline, else the connection's."""
+        """Opens the session (not reset yet) and returns the server's Spec."""
         s = self.settings
         request = pb.CreateSessionRequest(
             num_envs=self.size,
@@ -313,16 +347,14 @@ class SessionCore:
         return reply.spec
 
     def adopt(self, reply: pb.CreateSessionResponse) -> None:
-        """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's,
-        with what it offers of shared memory."""
+        """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's."""
         self.detach()
         self.session_id, self.spec = reply.session_id, reply.spec
         self.last = self.pending = None
         self.offer = _shm.Offer.of(reply)
 
     def attach(self) -> None:
-        """Chooses the session's transport (:func:`dinerdash._transport.open_for`): shared
-        memory when the ``transport`` option allows it and it opens, else gRPC."""
+        """Chooses the session's transport (:func:`dinerdash._transport.open_for`)."""
         self.detach()
         option = self.endpoint.options.transport
         # gRPC if the choice raises (``transport="shm"`` that cannot be had): said, not silent.
@@ -342,21 +374,18 @@ class SessionCore:
             transport.close()
 
     def changed(self, name: str, why: str) -> None:
-        """The session's Steps go over ``name`` from now on: an event of the endpoint."""
-        if self.was is not None and self.was != name:
+        """The session's Steps go over ``name`` from now on: a change is an endpoint's event."""
+        if self.last_transport is not None and self.last_transport != name:
             self.endpoint.transport_changed(
-                self.conn.address, str(self.session_id), self.was, name, why
+                self.conn.address, str(self.session_id), self.last_transport, name, why
             )
-        self.was = name
+        self.last_transport = name
 
     def reopen(self, error: ServiceError) -> None:
-        """Waits for the lost server and opens a new session there (``reconnect=True``).
-
-        With ``failover_after`` and another server left, the server is waited for that long
-        only, and then (or at once, when it was given up already) :class:`ServerLost` is raised
-        for the env to move these environments. The last server left is waited for
-        ``reconnect_timeout``, as without failover; if it does not come back,
-        :class:`~dinerdash.errors.NoServerLeft` is raised."""
+        """Waits for the lost server and opens a new session there (``reconnect=True``): for
+        ``failover_after`` when another server is left (then raises :class:`ServerLost`), else
+        for ``reconnect_timeout`` (then raises the error, or
+        :class:`~dinerdash.errors.NoServerLeft` after a failover)."""
 
         def create(conn: Connection) -> None:
             self.create()
@@ -391,19 +420,19 @@ class SessionCore:
 
     def close(self) -> None:
         """Closes the session (its server not called if given up)."""
-        self.rung = None
+        self.shm_sent = None
         self.detach()
-        if self.caller is not None:
-            self.caller.close()
-            self.caller = None
+        if self.step_thread is not None:
+            self.step_thread.close()
+            self.step_thread = None
         if self.session_id is not None:
-            if self.index not in self.endpoint.given_up:  # a server given up is not called
+            if self.index not in self.endpoint.given_up:
                 close_session(self.conn, self.session_id)
             self.session_id = None
 
     def fail(self, error: ServiceError) -> ServiceError:
-        """``error``, saying which environments it concerns when the env is split over several
-        servers (its ``env_index`` becomes the index in the whole env), and, for a lost server
+        """``error``, naming the environments it concerns when the env is split over several
+        servers (``env_index`` becomes the index in the whole env), and, for a lost server
         without ``reconnect=True``, what would have ridden it out."""
         lost = isinstance(error, LOST) and not self.settings.reconnect
         if not (self.settings.split or lost):
@@ -478,17 +507,16 @@ class SessionCore:
             request.session_id = self.session_id
             request.ClearField("reset_mask")
             batch = Batch.from_pb(self.conn.call("Reset", request))
-        self.last, self.pending = self.note(batch), None
+        self.last, self.pending = self.read_drain(batch), None
         return batch
 
     # -- Step -----------------------------------------------------------------------------------
 
-    def step(self, actions: bytes, rung: bool = False) -> Batch:
-        """One Step of this core's environments (their ``actions`` as packed int32), blocking;
-        ``rung``: :meth:`start_step` already sent it over shared memory (the checks below were
-        made then), only its reply is awaited."""
-        if rung:
-            batch = self.step_or_recover(actions, rung)
+    def step(self, actions: bytes, sent: bool = False) -> Batch:
+        """One Step of this core's environments (``actions``: packed int32), blocking; ``sent``:
+        :meth:`start_step` sent it over shared memory, only its reply is awaited."""
+        if sent:
+            batch = self.step_or_recover(actions, sent)
         elif self.pending is not None:
             batch, self.pending = self.pending, None
         elif self.index in self.endpoint.given_up:
@@ -500,11 +528,10 @@ class SessionCore:
         self.last = batch
         return batch
 
-    def step_or_recover(self, actions: bytes, rung: bool = False) -> Batch:
-        """The Batch of a Step on the session's transport; a lost server (``reconnect=True``)
-        recovered from (:meth:`recover_step`), any other error raised."""
+    def step_or_recover(self, actions: bytes, sent: bool = False) -> Batch:
+        """A Step's Batch; a lost server (``reconnect=True``) recovered from."""
         try:
-            return self.note(self.step_on(actions, rung))
+            return self.read_drain(self.step_on(actions, sent))
         except ServiceError as e:
             # A call cancelled because its server was given up (silent) is lost too.
             if not (isinstance(e, LOST) or self.given_up()):
@@ -512,22 +539,19 @@ class SessionCore:
             return self.recover_step(e)
 
     def ready_transport(self) -> _transport.Transport:
-        """The session's transport, attached if it has none yet (a session forked or restored is
-        attached at its first Step); its last Batch copied first when the next Step overwrites
-        it and a lost server's episodes may have to end in their last state."""
+        """The session's transport, attached at its first Step; the last Batch copied first when
+        the next Step overwrites it and a lost server's episodes may have to end in it."""
         if self.transport is None:
             self.attach()
         if self.transport.views and self.last is not None and self.settings.reconnect:
             self.last = self.last.copy()
         return self.transport
 
-    def step_on(self, actions: bytes, rung: bool = False) -> Batch:
-        """One Step on the session's transport (``rung``: its reply only, the Step was sent by
-        :meth:`start_step`); shared memory lost under it (:class:`Detached
-        <dinerdash._transport.Detached>`) changes to gRPC (an event), where the Step is made
-        unless it was abandoned (its error raised)."""
+    def step_on(self, actions: bytes, sent: bool = False) -> Batch:
+        """One Step on the session's transport (``sent``: its reply only). Shared memory lost
+        under it changes to gRPC (an event), where the Step is made unless it was abandoned."""
         try:
-            if rung:
+            if sent:
                 return self.transport.receive()
             return self.ready_transport().step(actions)
         except _transport.Detached as gone:
@@ -539,10 +563,8 @@ class SessionCore:
             return self.transport.step(actions)
 
     def start_step(self, actions: bytes) -> None:
-        """Starts a Step and returns at once; :meth:`finish_step` returns its Batch (or raises
-        its error). Over shared memory the Step is rung for here, with no thread (the server
-        steps while the caller works); otherwise it is handed to this core's :class:`Caller`
-        thread."""
+        """Starts a Step; :meth:`finish_step` returns its Batch. Over shared memory it is sent
+        here (the server steps while the caller works), else by the core's step thread."""
         if (
             self.pending is None
             and self.transport is not None
@@ -550,30 +572,30 @@ class SessionCore:
             and not self.given_up()
             and self.ready_transport().send(actions)
         ):
-            self.rung = actions
+            self.shm_sent = actions
             return
-        if self.caller is None:
-            self.caller = Caller(self.step, f"dinerdash-step-{self.index}")
-        self.caller.submit(actions)
+        if self.step_thread is None:
+            self.step_thread = StepThread(self.step, f"dinerdash-step-{self.index}")
+        self.step_thread.submit(actions)
 
     def in_flight(self) -> bool:
         """A Step started by :meth:`start_step` awaits :meth:`finish_step`."""
-        return self.rung is not None or self.caller is not None
+        return self.shm_sent is not None or self.step_thread is not None
 
     def step_ready(self, deadline: float | None = None) -> bool:
-        """True when the Step begun by :meth:`start_step` has its outcome by ``deadline``
-        (a :func:`time.monotonic` time; ``None``: waits for it)."""
-        if self.rung is not None:
+        """Whether the Step :meth:`start_step` began has its outcome by ``deadline``
+        (:func:`time.monotonic`; ``None``: waits for it)."""
+        if self.shm_sent is not None:
             timeout = None if deadline is None else deadline - time.monotonic()
             return self.transport.ready(timeout)
-        return self.caller.wait(deadline)
+        return self.step_thread.wait(deadline)
 
     def finish_step(self) -> Batch:
         """The Batch of the Step begun by :meth:`start_step`, once it has arrived."""
-        if self.rung is not None:
-            actions, self.rung = self.rung, None
-            return self.step(actions, rung=True)
-        return self.caller.result()
+        if self.shm_sent is not None:
+            actions, self.shm_sent = self.shm_sent, None
+            return self.step(actions, sent=True)
+        return self.step_thread.result()
 
     def recover_step(self, error: ServiceError) -> Batch:
         """A Batch that reports the interrupted episodes as truncated, after opening a new

@@ -1,31 +1,8 @@
-"""The same-host data plane: a session's Steps through shared memory instead of gRPC, when the
-server runs on this machine as this user (Linux).
-
-The session is created, reset, forked and closed over gRPC as always. CreateSession (Fork,
-Restore) names the server's doorbell (``CreateSessionResponse.shm_doorbell``), an
-abstract-namespace Unix socket, and tells the caller the session's secret (``shm_secret``) and
-the server's pid (``shm_server_pid``). :func:`attach` uses the doorbell only when the server's
-address is this host's (loopback, or one of its own addresses), connects, and before it sends
-anything checks who answered (``SO_PEERCRED``: this user's uid and the server's pid); only
-then does it say hello with the session ID and secret, and receive the session's region, a
-memfd it maps. Whenever shared memory is not used, the reason is logged at debug level
-(logger ``dinerdash``); the session then steps over gRPC (:mod:`dinerdash._transport`). Each
-Step then writes the actions into the region, sends one byte and waits for one byte back; the
-reply's arrays are in the region at fixed offsets (the layout of
-``server/src/shm/layout.rs``), handed out as a :class:`~dinerdash._batch.Batch` whose arrays are
-views of the region (made once per layout, not per Step): valid until the session's next Step
-is sent, and copied by the environments exactly where they return them.
-
-The server checks the actions exactly as its gRPC Step does and refuses them with the same code,
-message and details, which become the same typed exception here. A doorbell that closes under a
-Step (the server died, drained, or forgot the session) is the shared-memory transport's end: the
-session core changes to gRPC (a counted event, logged as a warning: :mod:`dinerdash._transport`)
-and makes that Step there, whose answer (``UNAVAILABLE``, ``NOT_FOUND``, or the Batch) is the
-one the gRPC path would have given.
-
-``transport`` (:class:`~dinerdash.ConnectOptions`): ``"auto"`` uses shared memory whenever
-:func:`attach` succeeds and gRPC otherwise; ``"shm"`` raises
-:class:`~dinerdash.errors.ServiceTransportError` saying why it cannot; ``"grpc"`` never tries.
+"""The same-host data plane (docs/shm.md): a session's Steps through shared memory instead of
+gRPC, when the server runs on this machine as this user (Linux). :func:`attach` opens a session's
+:class:`Channel` (the doorbell's peer checked before anything is sent, the region mapped) or says
+why not; each Step writes the actions into the region, rings, and reads the reply's arrays as
+views of the region (:class:`~dinerdash._batch.Batch`), valid until the next Step is sent.
 """
 
 from __future__ import annotations
@@ -51,17 +28,11 @@ import numpy as np
 from ._batch import FIELDS as _SHAPES
 from ._batch import Batch
 from .connection import Connection, split_host_port
-from .errors import (
-    EnvClosed,
-    ServiceError,
-    ServiceTimeout,
-    ServiceTransportError,
-    error_for_status,
-)
+from .errors import ServiceError, ServiceTransportError
 
 __all__ = ["Channel", "Offer", "attach"]
 
-#: "DDsh" and the layout version this client reads.
+#: "DDsh" and the layout version this client reads (``server/src/shm/layout.rs``).
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
 #: The region's arrays, in order: the ``actions`` the client writes, then the Batch's fields
 #: (:data:`dinerdash._batch.FIELDS`, the one table).
@@ -72,11 +43,8 @@ _DRAIN_AT, _DRAIN = _LENGTHS + 4 * len(FIELDS), struct.Struct("<I")
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
 #: How often a Step waiting for its reply looks at its deadline and its connection.
 _TICK = 0.25
-#: A Step whose last reply came within this many seconds polls for its reply (non-blocking
-#: ``recv``) this long before it sleeps in ``recv``: on a virtual machine, waking a process
-#: whose CPU went idle costs tens of microseconds, more than a small session's Step. The
-#: server's thread for this process does the same for the next Step
-#: (``server/src/shm/mod.rs``, ``SPIN``).
+#: A Step whose last reply came within this many seconds polls this long before it sleeps in
+#: ``recv`` (why: docs/shm.md#why-each-side-polls-a-little-before-it-sleeps).
 _SPIN = 100e-6
 
 log = logging.getLogger("dinerdash")
@@ -115,9 +83,8 @@ class _Untrusted(Exception):
 
 @functools.lru_cache(maxsize=64)
 def _on_this_host(address: str) -> bool:
-    """Whether every address ``address``'s host resolves to is this host's own: a loopback
-    address, or one this host can bind (an address of one of its interfaces). Only then can
-    the server be on this machine, and only then is its doorbell looked for."""
+    """Whether every address ``address``'s host resolves to is this host's own: a loopback address,
+    or one this host can bind (an address of one of its interfaces)."""
     try:
         host, port = split_host_port(address)
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
@@ -165,7 +132,7 @@ class Channel:
         "_known",
         "_lengths",
         "_offsets",
-        "_quick",
+        "_spin_next",
         "address",
         "conn",
         "mm",
@@ -228,7 +195,7 @@ class Channel:
         #: replies mostly repeat them).
         self._known: tuple[bytes, dict[str, np.ndarray]] = (b"", {})
         #: Whether the last reply came within _SPIN: then the next one is polled for.
-        self._quick = False
+        self._spin_next = False
         #: When the last Step was sent (:func:`time.perf_counter`; the bench times from it).
         self.sent = 0.0
 
@@ -242,13 +209,7 @@ class Channel:
         code, size = struct.unpack_from("<II", reply, 1)
         message = bytes(reply[9 : 9 + size]).decode("utf-8", "replace")
         code = _CODES.get(code, grpc.StatusCode.UNKNOWN)
-        if code == grpc.StatusCode.UNAVAILABLE:
-            message = (
-                f"{method}: the server at {self.address} is unavailable after 1 attempt ({message})"
-            )
-        else:
-            message = f"{method}: {message}"
-        return error_for_status(code, message, self.address, bytes(reply[9 + size :]) or None)
+        return self.conn.error_for(method, code, message, status=bytes(reply[9 + size :]) or None)
 
     def send(self, actions: bytes) -> bool:
         """Writes a Step's ``actions`` into the region and rings: the server steps while the
@@ -265,9 +226,8 @@ class Channel:
     def ready(self, timeout: float | None) -> bool:
         """Whether the outcome of the Step :meth:`send` rang for is in within ``timeout`` seconds
         (``None``: waits for it), for :meth:`receive` to return or raise at once: its reply, the
-        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or
-        the Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`). Waits in
-        ``poll`` for at most _TICK at a time, to see the connection and the deadline."""
+        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or the
+        Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`)."""
         now = time.perf_counter()
         until = None if timeout is None else now + timeout
         poller = select.poll()
@@ -288,29 +248,19 @@ class Channel:
         until the next Step is sent), the server's typed refusal raised, or ``None`` when the
         doorbell closed (the Step is then to be made over gRPC)."""
         sent = self.sent
-        reply = self._poll(sent) if self._quick else None
+        reply = self._poll(sent) if self._spin_next else None
         while reply is None:
             closed = self.conn._closed  # given up: as a gRPC call cancelled by its channel
             try:
                 reply = self.sock.recv(65536, socket.MSG_DONTWAIT if closed else 0)
                 break
             except BlockingIOError:
-                if closed:
-                    raise EnvClosed(
-                        "Step: the connection was closed during the call",
-                        code=grpc.StatusCode.CANCELLED,
-                    ) from None
-                if time.perf_counter() - sent >= self.timeout:
-                    raise ServiceTimeout(
-                        f"Step: no answer from the server at {self.address} within "
-                        f"{self.timeout:g} s (the timeout= keyword or DINERDASH_TIMEOUT sets this "
-                        "deadline)",
-                        code=grpc.StatusCode.DEADLINE_EXCEEDED,
-                        address=self.address,
-                    ) from None
+                if closed or time.perf_counter() - sent >= self.timeout:
+                    code = grpc.StatusCode["CANCELLED" if closed else "DEADLINE_EXCEEDED"]
+                    raise self.conn.error_for("Step", code, "") from None
             except OSError:
                 return None
-        self._quick = time.perf_counter() - sent < _SPIN
+        self._spin_next = time.perf_counter() - sent < _SPIN
         if reply != b"K":
             if not reply:
                 return None
@@ -321,7 +271,7 @@ class Channel:
             views = self._views()
             self._known = (lengths, views)
         (drain,) = _DRAIN.unpack_from(self.mm, _DRAIN_AT)
-        return Batch.of_arrays(self.num_envs, views, drain)
+        return Batch(self.num_envs, views, drain)
 
     def _views(self) -> dict[str, np.ndarray]:
         """The reply's arrays as read-only views of the region, shaped as :class:`Batch` holds

@@ -1,7 +1,7 @@
-"""The caller thread: one session core's blocking calls made on a thread of their own, so that a
-vector env can send its Steps, let the trainer work, and collect the Batches later
-(``step_async`` / ``step_wait``) over gRPC. Over shared memory no thread is needed: the core
-rings the doorbell itself and collects the reply later (:mod:`dinerdash._transport`)."""
+"""The step thread: one session core's gRPC Steps made on a thread of their own, so that a vector
+env can send its Steps, let the trainer work, and collect the Batches later (``step_async`` /
+``step_wait``). Over shared memory no thread is needed (:mod:`dinerdash._transport`). Why a
+thread and not a grpcio future: docs/client.md#design-notes."""
 
 from __future__ import annotations
 
@@ -12,19 +12,12 @@ import weakref
 from types import MethodType
 from typing import Any
 
-__all__ = ["Caller"]
+__all__ = ["StepThread"]
 
 
-class Caller:
-    """A thread that makes one session core's blocking calls, so that the caller can send a Step,
-    work, and collect the Batch later (:meth:`~dinerdash.DinerDashVectorEnv.step_async`).
-
-    Measured on the project's 2-core machine, a blocking grpcio call handed to this thread costs
-    about 30 us more CPU than the same call made in place, where a grpcio future (whose reply
-    crosses gRPC's own completion thread and a condition variable) costs two to three times the
-    call. The thread holds the work function only; it ends at :meth:`close`, once its current
-    call (cancelled by the closing channel) has returned, or when the object whose method the
-    work is is collected (an env dropped without ``close()``): the thread holds it weakly."""
+class StepThread:
+    """A thread that makes one session core's blocking Step calls. It ends at :meth:`close`, or
+    when the core whose method the work is is collected (the thread holds it weakly)."""
 
     __slots__ = ("_replies", "_reply", "_requests")
 

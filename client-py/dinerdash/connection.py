@@ -1,36 +1,10 @@
 """The channel to a DinerDash server and the one call wrapper every RPC goes through.
 
-Everything about the network lives here: how to connect (:class:`ConnectOptions`, one value for
-every environment, rollout and agent command), the channel options, the address rules (a
-``host:port``, a comma-separated or Python list of them, or a DNS name that resolves to several
-replicas), the
-mapping from gRPC statuses to the typed exceptions of :mod:`dinerdash.errors`, the deadline every
-call carries, TLS, and the retry policy: only ``UNAVAILABLE`` is retried, with exponential backoff
-and a bounded number of attempts.
-
-Retries are the channel's: its service config (:func:`service_config`) gives every method of
-``dinerdash.v1.DinerDash`` a ``retryPolicy`` that retries ``UNAVAILABLE`` ``retries`` times,
-backing off ``retry_backoff`` seconds doubled after each retry (gRPC jitters each by up to a
-fifth), within the call's one deadline. A draining server's refusal carries the retry push-back
-``grpc-retry-pushback-ms: -1``, which tells the channel not to ask it again: the caller gets
-:class:`~dinerdash.errors.ServerDraining` at once and goes elsewhere.
-
-What the channel's service config cannot express is done by one fallback, :meth:`Connection._call`:
-after the channel has given up on ``UNAVAILABLE`` the call is made again by hand, with the same
-backoff and the same push-back rule, until the call's own number of attempts is used up. It covers
-exactly these exceptions:
-
-- more than 4 retries: gRPC caps ``maxAttempts`` at 5 attempts (:data:`CHANNEL_MAX_RETRIES`);
-- a per-call ``retries=`` above the connection's (grpcio has no per-call retry policy);
-- the methods of :data:`BY_HAND`, which the channel does not retry: ``Rollout``, since gRPC commits
-  a stream at its response headers (which the server sends before the first episode) and a stream
-  broken before its first reply must still be opened again; ``CloseSession``, since closing a
-  session at ``close()`` is tried once and briefly (``retries=0``) and only the fallback can make
-  a call retry less than the channel.
-
-A per-call ``retries=`` below the connection's, for a method the channel retries, cannot be
-expressed either: the channel's count applies. :data:`NOT_RETRIED` (``Step``, ``StepStream``) is
-never retried, by the channel or by hand.
+:class:`ConnectOptions` (how to connect: one value for every environment, rollout and agent
+command), the channel's options, the address rules, the deadline, TLS, the mapping of gRPC
+statuses to :mod:`dinerdash.errors`, and retries: the channel's service config
+(:func:`service_config`), and one helper for what it cannot express
+(:meth:`Connection._retrying`). Which calls are retried, and why: docs/client.md#retries.
 """
 
 from __future__ import annotations
@@ -54,10 +28,12 @@ from ._proto import pb, pb_grpc
 from ._version import warn_if_other_version
 from .errors import (
     EnvClosed,
+    ServiceError,
     ServiceTimeout,
     ServiceTransportError,
     TLSMismatch,
-    error_for_rpc,
+    error_for_status,
+    status_details,
 )
 
 __all__ = [
@@ -79,64 +55,35 @@ TRANSPORTS = ("auto", "shm", "grpc")
 #: The port a server listens on when none is given (and the one the docker image exposes).
 DEFAULT_PORT = 50051
 
-#: Seconds a call may take when neither ``timeout=`` nor ``DINERDASH_TIMEOUT`` says: finite, so
-#: that a stuck server becomes an error, and generous enough for a 1024-environment Step or a
-#: planner's Step on a loaded 2-core machine.
+#: Seconds a call may take when neither ``timeout=`` nor ``DINERDASH_TIMEOUT`` says.
 DEFAULT_TIMEOUT = 60.0
 #: Seconds a connection waits for its server to answer at first, unless the call timeout is shorter.
 CONNECT_TIMEOUT = 10.0
 
 #: The service whose methods the channel's service config retries.
 SERVICE = "dinerdash.v1.DinerDash"
-
-#: Calls never retried on UNAVAILABLE, by the channel or by hand. A Step the server applied but
-#: whose reply was lost would be applied twice by a retry, silently changing the episode; it
-#: raises instead, and ``reconnect=True`` recovers by reporting the interrupted episode as
-#: truncated. A StepStream carries Steps.
+#: Calls never retried: a Step applied whose reply was lost would be applied twice.
 NOT_RETRIED = frozenset({"Step", "StepStream"})
-
-#: Calls the channel does not retry but the fallback does (the module's exception list): a
-#: Rollout stream broken before its first reply is opened again though gRPC has committed it;
-#: CloseSession may be asked for fewer retries than the connection's (none, at ``close()``).
+#: Calls retried by :meth:`Connection._retrying` only: a Rollout is committed at its headers, and
+#: ``close()`` asks CloseSession for fewer retries than the channel's.
 BY_HAND = frozenset({"Rollout", "CloseSession"})
-
 #: The most retries the channel makes of one call: gRPC caps ``retryPolicy.maxAttempts`` at 5.
-#: More are made by the fallback.
 CHANNEL_MAX_RETRIES = 4
-
-#: The trailer by which a server pushes back on retries (gRFC A6): a negative or unreadable value
-#: asks the client not to retry (a draining server's refusal), a positive one to wait that long.
+#: The trailer by which a server pushes back on retries (gRFC A6): negative means do not retry.
 RETRY_PUSHBACK = "grpc-retry-pushback-ms"
 
+#: Why each is set: docs/client.md#the-channel.
 CHANNEL_OPTIONS: list[tuple[str, Any]] = [
-    # A rollout of one long episode is (T + 1) x (40 + 57) bytes plus per-step fields: allow
-    # 256 MiB so that even 100,000-step episodes with action masks arrive in one message.
     ("grpc.max_receive_message_length", 256 * 1024 * 1024),
-    # Snapshots of large vector sessions travel client -> server in Restore; the server applies
-    # its own (smaller) limit and names it in the INVALID_ARGUMENT it returns.
     ("grpc.max_send_message_length", 256 * 1024 * 1024),
-    # Retries by the service config's retryPolicy (service_config, added per connection), and
-    # gRPC's transparent retries of calls that never reached the server's application (so never
-    # a Step the server applied).
     ("grpc.enable_retries", 1),
-    # The retry policy is the client's own (service_config): no DNS TXT record replaces it.
     ("grpc.service_config_disable_resolution", 1),
-    # gRPC retries only a request it still holds, 256 KiB by default: hold any request the
-    # channel may send (a Restore of a large snapshot), as the requests in flight are held anyway.
     ("grpc.per_rpc_retry_buffer_size", 256 * 1024 * 1024),
-    # After a server restart the channel must reconnect within a second or two, not after
-    # gRPC's default backoff that grows to two minutes (reconnect=True relies on this).
     ("grpc.initial_reconnect_backoff_ms", 100),
     ("grpc.min_reconnect_backoff_ms", 100),
     ("grpc.max_reconnect_backoff_ms", 2000),
-    # Each Connection keeps its own subchannel (TCP connection), so one environment's traffic
-    # never queues behind another's and closing one never disturbs the others.
     ("grpc.use_local_subchannel_pool", 1),
-    # Environment servers are on loopback or inside the cluster: never send them through an
-    # http_proxy that happens to be set for the trainer's downloads.
     ("grpc.enable_http_proxy", 0),
-    # Keepalive pings while a call is in flight notice a peer that vanished without closing the
-    # connection (a dead host, a dropped route) before the deadline runs out.
     ("grpc.keepalive_time_ms", 20_000),
     ("grpc.keepalive_timeout_ms", 10_000),
     ("grpc.keepalive_permit_without_calls", 0),
@@ -145,42 +92,27 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
 
 
 def _duration(seconds: float) -> str:
-    """``seconds`` as a protobuf JSON Duration (``"0.100000000s"``), at least a millisecond: gRPC
-    wants backoffs above zero."""
+    """``seconds`` as a protobuf JSON Duration, at least a millisecond (gRPC wants it > 0)."""
     return f"{max(seconds, 0.001):.9f}s"
 
 
 def service_config(retries: int, retry_backoff: float) -> str:
-    """The channel's service config (JSON, the ``grpc.service_config`` channel option): every
-    method of :data:`SERVICE` but those of :data:`NOT_RETRIED` and :data:`BY_HAND` retries
-    ``UNAVAILABLE`` up to ``min(retries, CHANNEL_MAX_RETRIES)`` times, the first after
-    ``retry_backoff`` seconds (gRPC jitters it), each next one after twice the last (up to
-    ``2 ** (CHANNEL_MAX_RETRIES - 1)`` times the first: the doubling is never capped within the
-    channel's retries). ``retries=0``: no retry policy at all."""
+    """The channel's service config (JSON): every method of :data:`SERVICE` but those of
+    :data:`NOT_RETRIED` and :data:`BY_HAND` retries ``UNAVAILABLE`` up to ``min(retries,
+    CHANNEL_MAX_RETRIES)`` times, after ``retry_backoff`` seconds doubled at each retry."""
     retries = min(retries, CHANNEL_MAX_RETRIES)
-    configs: list[dict[str, Any]] = []
-    if retries > 0:
-        configs.append(
-            {
-                "name": [{"service": SERVICE}],
-                "retryPolicy": {
-                    "maxAttempts": retries + 1,
-                    "initialBackoff": _duration(retry_backoff),
-                    "maxBackoff": _duration(retry_backoff * 2 ** (CHANNEL_MAX_RETRIES - 1)),
-                    "backoffMultiplier": 2,
-                    "retryableStatusCodes": ["UNAVAILABLE"],
-                },
-            }
-        )
-        # A method's own entry wins over its service's: these have no retry policy.
-        configs.append(
-            {
-                "name": [
-                    {"service": SERVICE, "method": method}
-                    for method in sorted(NOT_RETRIED | BY_HAND)
-                ]
-            }
-        )
+    if retries <= 0:
+        return json.dumps({"methodConfig": []})
+    policy = {
+        "maxAttempts": retries + 1,
+        "initialBackoff": _duration(retry_backoff),
+        "maxBackoff": _duration(retry_backoff * 2 ** (CHANNEL_MAX_RETRIES - 1)),
+        "backoffMultiplier": 2,
+        "retryableStatusCodes": ["UNAVAILABLE"],
+    }
+    # A method's own entry wins over its service's: these have no retry policy.
+    methods = [{"service": SERVICE, "method": m} for m in sorted(NOT_RETRIED | BY_HAND)]
+    configs = [{"name": [{"service": SERVICE}], "retryPolicy": policy}, {"name": methods}]
     return json.dumps({"methodConfig": configs}, separators=(",", ":"))
 
 
@@ -202,7 +134,7 @@ def call_timeout(timeout: float | None) -> float:
     return timeout
 
 
-def check_seconds_or_none(name: str, value: Any, none: str = "never") -> float | None:
+def check_seconds_or_none(name: str, value: Any, none: str) -> float | None:
     """Keyword ``name`` as seconds: ``None``, or a positive finite number (not a bool)."""
     if value is None:
         return None
@@ -217,15 +149,6 @@ def check_seconds_or_none(name: str, value: Any, none: str = "never") -> float |
             f"got {value!r}"
         )
     return seconds
-
-
-def check_failover_after(failover_after: Any) -> float | None:
-    """``failover_after=`` as seconds: ``None``, or a positive finite number (not a bool)."""
-    return check_seconds_or_none(
-        "failover_after",
-        failover_after,
-        "a lost server is waited for reconnect_timeout, as without failover",
-    )
 
 
 def tls_credentials(
@@ -250,8 +173,7 @@ def tls_credentials(
 
 def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
     """Whether the server at ``address`` completes a TLS handshake (certificate not checked):
-    ``None`` when nothing accepts a TCP connection there. Only asked after a failed connect, to
-    say why."""
+    ``None`` when nothing accepts a TCP connection there."""
     host, port = split_host_port(address)
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     context.check_hostname = False
@@ -301,9 +223,7 @@ def split_host_port(address: str) -> tuple[str, int]:
     if address.count(":") == 1:
         host, port = address.split(":")
         return host, int(port)
-    if address.count(":") > 1:  # a bare IPv6 literal
-        return address, DEFAULT_PORT
-    return address, DEFAULT_PORT
+    return address, DEFAULT_PORT  # a name, or a bare IPv6 literal
 
 
 def join_host_port(host: str, port: int) -> str:
@@ -312,11 +232,7 @@ def join_host_port(host: str, port: int) -> str:
 
 
 def parse_addresses(address: str | Sequence[str]) -> list[str]:
-    """Normalises an ``address`` argument into a list of ``host:port`` strings.
-
-    ``address`` is a ``host:port``, several separated by commas, or a list of them; a missing port
-    means :data:`DEFAULT_PORT`.
-    """
+    """Normalises an ``address`` argument into a list of ``host:port`` strings."""
     items = address.split(",") if isinstance(address, str) else list(address)
     out = []
     for item in items:
@@ -333,14 +249,7 @@ def parse_addresses(address: str | Sequence[str]) -> list[str]:
 
 
 def resolve_replicas(address: str | Sequence[str]) -> list[str]:
-    """Every server that ``address`` names, one ``host:port`` per replica.
-
-    A DNS name that resolves to several addresses (a Kubernetes headless Service, a round-robin
-    record) becomes one entry per address, so that a vector env can give each replica its own
-    session. Only addresses of one family are used (IPv4 when there are any), so that ``localhost``
-    is one server and not two names for the same one. A name that does not resolve is kept as is:
-    connecting to it then fails with a readable error.
-    """
+    """Every server that ``address`` names, one ``host:port`` per replica."""
     out: list[str] = []
     for item in parse_addresses(address):
         host, port = split_host_port(item)
@@ -368,43 +277,30 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
 @dataclass(frozen=True)
 class ConnectOptions:
     """How to reach the server(s) and what to do when one is lost: one value, built once and
-    handed to :func:`gymnasium.make`, :func:`gymnasium.make_vec`, :func:`~dinerdash.rollout` or
-    an agent's command as ``connect=``::
-
-        connect = dinerdash.ConnectOptions(["10.0.0.5:50051", "10.0.0.6:50051"], reconnect=True)
-        env = gymnasium.make("dinerdash:DinerDash-v0", connect=connect)
-        envs = gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=64, connect=connect)
-
-    Every field is also a keyword of those functions (``address=``, ``timeout=``, ...): sugar for
-    this value, and a keyword given beside ``connect=`` overrides that field of it
-    (:meth:`merged`).
+    handed to :func:`gymnasium.make`, :func:`gymnasium.make_vec`, :func:`~dinerdash.rollout` or an
+    agent's command as ``connect=`` (docs/client.md#connecting). Every field is also a keyword of
+    those, which overrides that field of a ``connect=`` given beside it (:meth:`merged`).
 
     Attributes:
-        address: a ``host:port``, several (a comma-separated string or a list, kept as a tuple),
-            or a DNS name; ``None``: ``DINERDASH_ADDRESS``, else a local server. It is resolved
-            at each connect, so that a DNS name that moved is followed.
+        address: a ``host:port``, several (a comma-separated string or a list), or a DNS name,
+            resolved at each connect; ``None``: ``DINERDASH_ADDRESS``, else a local server.
         token: the auth token (``None``: ``DINERDASH_AUTH_TOKEN``).
         connect_timeout: seconds to wait for a server to answer at first (``None``: 10, or
-            ``timeout`` when that is shorter); a wrong address costs this long.
-        timeout: every call's deadline in seconds, resolved here (:func:`call_timeout`).
+            ``timeout`` when shorter); a wrong address costs this long.
+        timeout: every call's deadline in seconds (:func:`call_timeout`).
         tls, tls_ca: TLS trusting the system's roots, or this PEM CA (``None``:
-            ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says, as for the
-            local server).
+            ``DINERDASH_TLS_CA``; ``False``: plaintext whatever the environment says).
         server_binary: the local server's binary, when one is started.
-        reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), open a new
-            session there and report the interrupted episodes as truncated, instead of raising.
-        reconnect_timeout: seconds a lost server is waited for (the last one left, for a vector
-            env with failover).
+        reconnect: when a server is lost, wait for it, open a new session there and report the
+            interrupted episodes as truncated, instead of raising.
+        reconnect_timeout: seconds a lost server (the last one left, with failover) is waited for.
         failover_after: a vector env over several servers with ``reconnect=True``: seconds a lost
-            server is waited for, or a server that answers nothing at all (a hung process, a
-            black-holed network) is borne with, before its environments move to the others;
-            ``None``: no failover. The single env has one server and ignores it.
-        resolve_every: a vector env with ``reconnect=True`` and failover: seconds between two
-            resolutions of a DNS-name ``address``, whose new replicas are taken in; ``None``:
-            resolved once, at connect.
-        transport: how Steps travel: ``"auto"`` through shared memory when the server is on this
-            machine and runs as this user (Linux), else gRPC; ``"shm"`` shared memory or an
-            error saying why not; ``"grpc"`` always gRPC (:mod:`dinerdash._shm`).
+            or silent server is borne with before its environments move to the others; ``None``:
+            no failover. The single env ignores it.
+        resolve_every: with failover, seconds between resolutions of a DNS-name ``address``,
+            whose new replicas are taken in; ``None``: resolved once.
+        transport: ``"auto"`` (shared memory when the server is on this machine and runs as
+            this user, else gRPC), ``"shm"`` (or an error saying why not) or ``"grpc"``.
     """
 
     address: str | tuple[str, ...] | None = None
@@ -436,10 +332,9 @@ class ConnectOptions:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
                 raise ValueError(f"{name}: expected a positive number of seconds, got {value!r}")
-        object.__setattr__(self, "failover_after", check_failover_after(self.failover_after))
-        object.__setattr__(
-            self, "resolve_every", check_seconds_or_none("resolve_every", self.resolve_every)
-        )
+        no_failover = "a lost server is waited for reconnect_timeout, as without failover"
+        for name, none in (("failover_after", no_failover), ("resolve_every", "never")):
+            object.__setattr__(self, name, check_seconds_or_none(name, getattr(self, name), none))
 
     @classmethod
     def merged(cls, connect: ConnectOptions | None, caller: str, **keywords: Any) -> ConnectOptions:
@@ -507,19 +402,9 @@ class Connection:
 
     Args:
         address: ``host:port`` of the server.
-        token: sent as ``authorization: Bearer <token>`` when the server requires one (default:
-            the ``DINERDASH_AUTH_TOKEN`` environment variable).
-        connect_timeout: seconds to wait for the first connection; past it a readable
-            :class:`~dinerdash.errors.ServiceTransportError` says who could not be reached.
-        retries: attempts after the first for a call that fails with ``UNAVAILABLE`` (up to 4
-            by the channel's service config, more by hand: see the module's exception list).
+        token, connect_timeout, timeout, tls, tls_ca: as :class:`ConnectOptions`'s fields.
+        retries: retries of a call that fails with ``UNAVAILABLE`` (docs/client.md#retries).
         retry_backoff: seconds before the first retry (jittered by gRPC); doubled after each one.
-        timeout: deadline of each call in seconds (default: ``DINERDASH_TIMEOUT``, else
-            :data:`DEFAULT_TIMEOUT`); a call past it raises
-            :class:`~dinerdash.errors.ServiceTimeout`.
-        tls: connect with TLS, trusting the system's root certificates.
-        tls_ca: connect with TLS, trusting this PEM CA certificate (default:
-            ``DINERDASH_TLS_CA``); e.g. a self-signed server certificate.
         wait: wait (``connect_timeout``) for the server to answer before returning; ``False``
             returns at once (the channel connects at its first call).
     """
@@ -607,11 +492,7 @@ class Connection:
         raise TLSMismatch(message, address=self.address)
 
     def wait_ready(self, timeout: float) -> bool:
-        """Waits up to ``timeout`` seconds for the server to answer; True when it did.
-
-        A ``ServerInfo`` call with ``wait_for_ready`` rather than ``grpc.channel_ready_future``,
-        whose polling thread outlives it and fails noisily when the channel is closed later.
-        """
+        """Waits up to ``timeout`` seconds for the server to answer; True when it did."""
         try:
             info = self.stub.ServerInfo(
                 pb.ServerInfoRequest(),
@@ -633,30 +514,19 @@ class Connection:
         timeout: float | None = None,
         retries: int | None = None,
     ) -> Any:
-        """Calls ``method`` (an RPC name such as ``"Step"``) and returns its reply.
-
-        Raises the typed exception for any gRPC error, with the server's message; retries only
-        ``UNAVAILABLE``, at most ``retries`` times (default: the connection's) with exponential
-        backoff: the channel's retries, and the fallback's beyond them (the module's exception
-        list). ``timeout`` is the deadline of the attempts the channel makes together.
-        """
+        """Calls ``method`` (an RPC name such as ``"Step"``) and returns its reply, or raises its
+        typed error. ``UNAVAILABLE`` is retried at most ``retries`` times (default: the
+        connection's), within the one deadline ``timeout``."""
         if self._closed:
             self._check_open(method)
         rpc = getattr(self.stub, method)
         timeout = self.timeout if timeout is None else timeout
-        # The first attempt inline (a Step's every call: no closure, no loop); the fallback
-        # takes over from its error.
-        try:
+        try:  # the first attempt inline: a Step's every call
             return rpc(request, timeout=timeout, metadata=self._metadata)
         except grpc.RpcError as e:
             error = e
-        return self._call(
-            method,
-            lambda: rpc(request, timeout=timeout, metadata=self._metadata),
-            retries,
-            timeout,
-            error,
-        )
+        again = lambda: rpc(request, timeout=timeout, metadata=self._metadata)  # noqa: E731
+        return self._retrying(method, again, error, retries, timeout)
 
     def future(self, method: str, request: Any) -> grpc.Future:
         """Starts ``method`` without waiting; pass the future to :meth:`result`."""
@@ -665,46 +535,34 @@ class Connection:
         return rpc.future(request, timeout=self.timeout, metadata=self._metadata)
 
     def result(self, method: str, request: Any, future: grpc.Future) -> Any:
-        """The reply of a call started by :meth:`future`, with the same errors and retries as
-        :meth:`call` (the future's attempts were the channel's; the fallback calls again)."""
+        """The reply of a call started by :meth:`future`, with :meth:`call`'s errors and retries."""
         try:
             return future.result()
         except grpc.RpcError as e:
             error = e
         rpc = getattr(self.stub, method)
-        return self._call(
-            method,
-            lambda: rpc(request, timeout=self.timeout, metadata=self._metadata),
-            None,
-            None,
-            error,
-        )
+        again = lambda: rpc(request, timeout=self.timeout, metadata=self._metadata)  # noqa: E731
+        return self._retrying(method, again, error)
 
     def stream(self, method: str, request: Any) -> Iterator[Any]:
-        """Iterates the replies of a server-streaming ``method``, mapping errors as :meth:`call`
-        does. Only the opening of the stream is retried (before its first reply, by the
-        fallback: ``Rollout`` is in :data:`BY_HAND`): a stream broken half-way raises.
-
-        A stream has no overall deadline (a long rollout may rightly take many minutes): the
-        keepalive pings, which a stopped or vanished server cannot answer, end it instead."""
+        """Iterates the replies of a server-streaming ``method``, with :meth:`call`'s errors.
+        Only its opening is retried (until its first reply): a stream broken half-way raises. It
+        has no overall deadline: the keepalive pings end it when its server vanishes."""
         self._check_open(method)
         rpc = getattr(self.stub, method)
-        wanted = self._wanted(method, None)
-        made = 0
-        while True:
-            received = False
-            try:
-                for reply in rpc(request, metadata=self._metadata):
-                    received = True
-                    yield reply
-                return
-            except grpc.RpcError as e:
-                error = e
-            made += 1 if received else self._channel_attempts(method)
-            delay = None if received else self._fallback_delay(error, made, wanted)
-            if delay is None:
-                raise self._error(method, error, made) from None
-            time.sleep(delay)
+
+        def open_stream() -> tuple[Iterator[Any], Any]:
+            replies = rpc(request, metadata=self._metadata)
+            return replies, next(replies, None)
+
+        replies, first = self._retrying(method, open_stream)
+        if first is None:
+            return
+        yield first
+        try:
+            yield from replies
+        except grpc.RpcError as e:
+            raise self._error(method, e, 1) from None
 
     def _check_open(self, method: str) -> None:
         if self._closed:
@@ -714,31 +572,25 @@ class Connection:
                 address=self.address,
             )
 
-    def _wanted(self, method: str, retries: int | None) -> int:
-        """The retries a call of ``method`` may make: ``retries``, else the connection's; none
-        for :data:`NOT_RETRIED`."""
-        if method in NOT_RETRIED:
-            return 0
-        return self.retries if retries is None else retries
-
     def _channel_attempts(self, method: str) -> int:
         """The most attempts the channel makes of one call of ``method`` (its retries + 1)."""
         if method in NOT_RETRIED or method in BY_HAND:
             return 1
         return min(self.retries, CHANNEL_MAX_RETRIES) + 1
 
-    def _call(
+    def _retrying(
         self,
         method: str,
         attempt: Callable[[], Any],
-        retries: int | None,
-        timeout: float | None,
         error: grpc.RpcError | None = None,
+        retries: int | None = None,
+        timeout: float | None = None,
     ) -> Any:
-        """``attempt()`` (one call through the channel, which retries by its service config),
-        made again by the fallback while the call's retries are not used up; ``error``: the
-        first attempt was made already, and failed so."""
-        wanted = self._wanted(method, retries)
+        """The one retry helper beside the channel's (docs/client.md#retries): ``attempt()``
+        made again after ``UNAVAILABLE`` while the call's ``retries`` last (none for
+        :data:`NOT_RETRIED`), backing off as the channel does, and never after a push-back that
+        says not to (a draining server). ``error``: the first attempt's, made already."""
+        wanted = 0 if method in NOT_RETRIED else self.retries if retries is None else retries
         made = 0
         while True:
             if error is None:
@@ -747,32 +599,43 @@ class Connection:
                 except grpc.RpcError as e:
                     error = e
             made += self._channel_attempts(method)
-            delay = self._fallback_delay(error, made, wanted)
-            if delay is None:
+            pushback = _pushback_ms(error)
+            if (
+                error.code() != grpc.StatusCode.UNAVAILABLE
+                or made > wanted
+                or self._closed
+                or (pushback is not None and pushback < 0)
+            ):
                 raise self._error(method, error, made, timeout) from None
-            time.sleep(delay)
+            if pushback is not None:
+                time.sleep(pushback / 1000)
+            else:
+                time.sleep(self.retry_backoff * 2 ** (made - 1))  # doubling on the channel's
             error = None
-
-    def _fallback_delay(self, error: grpc.RpcError, made: int, wanted: int) -> float | None:
-        """Seconds before the fallback calls again after ``error``, with ``made`` attempts made
-        (at most) and ``wanted`` retries allowed; ``None``: raise. Only ``UNAVAILABLE`` is
-        retried, and, as the channel does, never after a push-back that says not to (a draining
-        server's refusal); a push-back of N ms waits N ms. The backoff goes on doubling from the
-        channel's last."""
-        if error.code() != grpc.StatusCode.UNAVAILABLE or made > wanted or self._closed:
-            return None
-        pushback = _pushback_ms(error)
-        if pushback is not None:
-            return None if pushback < 0 else pushback / 1000
-        return self.retry_backoff * 2 ** (made - 1)
 
     def _error(
         self, method: str, error: grpc.RpcError, attempts: int, timeout: float | None = None
-    ):
-        """The typed exception for ``error``, after at most ``attempts`` attempts (exactly that
-        many when the channel does not retry ``method``; the channel does not say how many it
-        made)."""
+    ) -> ServiceError:
+        """The typed exception for a failed call (:meth:`error_for`)."""
         code, details = error.code(), error.details()
+        return self.error_for(
+            method, code, details, attempts, timeout, _pushback_ms(error), status_details(error)
+        )
+
+    def error_for(
+        self,
+        method: str,
+        code: grpc.StatusCode,
+        details: str,
+        attempts: int = 1,
+        timeout: float | None = None,
+        pushback: int | None = None,
+        status: bytes | None = None,
+    ) -> ServiceError:
+        """The typed exception of ``method``'s failure with ``code``, the server's ``details``
+        and ``status`` (its serialized ``google.rpc.Status``), after at most ``attempts``
+        attempts (exactly that many when the channel does not retry ``method``): what gRPC and
+        shared memory raise alike."""
         if code == grpc.StatusCode.UNAVAILABLE:
             if attempts == 1:
                 made = "1 attempt"
@@ -780,7 +643,6 @@ class Connection:
                 made = f"{attempts} attempts"
             else:
                 made = f"up to {attempts} attempts"
-            pushback = _pushback_ms(error)
             if pushback is not None and pushback < 0:
                 made += "; it asked not to be retried"
             details = (
@@ -798,19 +660,12 @@ class Connection:
             return EnvClosed(f"{method}: the connection was closed during the call", code=code)
         else:
             details = f"{method}: {details}"
-        return error_for_rpc(error, details, self.address)
+        return error_for_status(code, details or "(no message)", self.address, status)
 
     def health(self, timeout: float) -> grpc.Future:
-        """Starts a ``grpc.health.v1`` Check of the whole server (answered even while it drains,
-        and without the auth token) on this channel; the future's result is True when the server
-        is SERVING, False when it answered otherwise. A server that answers nothing leaves the
-        future pending until ``timeout``. What a vector env's watch and membership probe ask.
-
-        The check waits for the channel to connect (``wait_for_ready``) instead of failing at
-        once while the channel backs off after a lost connection: so a server that came back is
-        found by the next check, whose wait is what drives the reconnection. (Over shared memory
-        no other call may be polling gRPC: failing fast, a returning server went unfound for
-        1-14 s.)"""
+        """Starts a ``grpc.health.v1`` Check of the whole server (answered while it drains, and
+        without the token); the future's result is True when it is SERVING. It waits for the
+        channel to connect (docs/client.md#design-notes)."""
         self._check_open("Check")
         if self._health is None:
             self._health = self.channel.unary_unary(

@@ -16,7 +16,6 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from . import render as _render
 from ._arguments import (
     RENDER_MODES,
     Config,
@@ -29,7 +28,7 @@ from ._endpoint import Endpoint
 from ._proto import pb
 from ._session import SessionCore, SessionOwner, check_actions
 from .connection import Connection, ConnectOptions
-from .errors import EnvClosed, InvalidArgument, SessionNotFound
+from .errors import InvalidArgument, SessionNotFound
 from .game import NUM_ACTIONS, observation_space
 
 __all__ = ["DinerDashEnv", "Snapshot"]
@@ -73,106 +72,35 @@ class Snapshot:
 
 
 class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
-    """
-    ## Description
+    """Diner Dash, ruleset ``v0`` of the DinerDash Gym benchmark (Chen, Ma, Hsu), one game in one
+    session of a ``dinerdash-server``: a thin client. The rules, bit for bit the reference's, are in
+    docs/rules.md; this client's keywords, infos and errors in docs/client.md.
 
-    Diner Dash, the restaurant game of the DinerDash Gym benchmark (Chen, Ma, Hsu), ruleset
-    ``v0``: the waitress seats arriving groups at six tables, takes their orders to the kitchen,
-    brings the food, collects the bill and clears the dishes, before the groups lose patience.
-    The game runs on a ``dinerdash-server``; this class is a thin client of one server session.
-    The rules, bit for bit those of the reference simulator, are in docs/rules.md.
-
-    ## Action Space
-
-    ``Discrete(57)``:
-
-    | action  | meaning |
-    |---------|---------|
-    | 0       | wait |
-    | 1..6    | go to table ``a`` (take the order, serve its food, collect the bill or the dishes) |
-    | 7       | hand the orders in hand to the kitchen |
-    | 8..13   | pick up the food of table ``a - 7`` from a counter |
-    | 14      | drop the dishes in hand at the wash point |
-    | 15..56  | seat waiting group ``(a - 15) // 6 + 1`` at table ``(a - 15) % 6 + 1`` |
-
-    An action whose preconditions do not hold changes nothing but lets time pass;
-    ``info["action_mask"]`` says which actions have an effect.
-
-    ## Observation Space
-
-    ``Box(40,)`` of ``float32`` with tight bounds per index (integers on the wire):
-
-    | index            | observation                                           | min | max |
-    |------------------|-------------------------------------------------------|-----|-----|
-    | ``3(t-1)``       | status of table ``t`` (0 free .. 6 waiting for bill)  | 0   | 6   |
-    | ``3(t-1) + 1``   | capacity of table ``t``                               | 0   | 6   |
-    | ``3(t-1) + 2``   | patience level ``P // 200`` of its group, -1 if none  | -1  | 4   |
-    | ``18 + (t-1)``   | 1 if table ``t``'s food is on a counter               | 0   | 1   |
-    | ``24 + 2(g-1)``  | patience level of waiting group ``g`` (0 if none)     | 0   | 4   |
-    | ``25 + 2(g-1)``  | size of waiting group ``g`` (0 if none)               | 0   | 6   |
-    | ``38``, ``39``   | hand slots: 0, ``t`` order, ``6+t`` food, ``12+t`` dish | 0 | 18  |
-
-    ## Rewards
-
-    The change of the game score over the step: +10 to +50 for each service action, -500 for a
-    group that runs away from its table (a group that leaves the queue costs a life, no score).
-
-    ## Starting State
-
-    Empty tables, an empty counter and empty hands; the arrival list of 200 groups is drawn from
-    the seed (MT19937, as CPython's ``random.seed(seed)`` in the reference) and the first group
-    arrives at once. ``reset(options={"arrivals": [(type, size), ...]})`` gives the list instead.
-
-    ## Episode End
-
-    * Termination: the configured number of groups (5) have been lost.
-    * Truncation: the configured ``time_limit`` was reached (none by default, as in the
-      reference); or, with ``reconnect=True``, the server was lost and the session recreated.
-
-    ## Information
-
-    ``reset`` and ``step`` return ``info`` with ``action_mask`` (``bool`` array of 57), ``score``
-    (the episode's total so far), ``lost`` (groups lost), ``tick`` (ticks since reset), and with
-    ``expert=True`` ``expert_action``, the reference expert's choice in the state returned, and
-    ``seed``, the seed that replays the episode: the same keys at reset and at every step.
-
-    ## Arguments
+    * Actions: ``Discrete(57)`` (docs/rules.md §4.1): wait, go to a table, hand in the orders, pick
+      up a table's food, drop the dishes, seat a waiting group at a table. One whose preconditions
+      do not hold lets time pass; ``info["action_mask"]`` says which have an effect.
+    * Observations: ``Box(40,)`` of ``float32``, integers with tight bounds per index (§6).
+    * Rewards: the change of the game score (+10 to +50 a service, -500 a group that runs away).
+    * Start: empty tables; 200 arriving groups drawn from the seed (MT19937, as the reference's
+      ``random.seed(seed)``), or ``reset(options={"arrivals": [(type, size), ...]})``.
+    * End: terminated when the configured lives (5) are lost; truncated at ``time_limit`` (none by
+      default) or, with ``reconnect=True``, when the server was lost and the session recreated.
+    * Infos (the same keys at reset and every step): ``action_mask``, ``score``, ``lost``,
+      ``tick``, ``seed``, and with ``expert`` ``expert_action``.
 
     ```python
     env = gymnasium.make("dinerdash:DinerDash-v0", address="localhost:50051", expert=True)
     ```
 
-    * ``address``: ``"host:port"`` of a server (a list or a DNS name with several addresses:
-      one of them is chosen at random). Default: ``DINERDASH_ADDRESS``, else a local server is
-      started on a free port and stopped by ``close()``.
-    * ``expert``: add ``expert_action`` to every info: ``True`` the reference heuristic's choice,
-      ``"planner"`` the look-ahead planner's (0.1-0.2 ms a step more on the server).
-    * ``reconnect``: when the server is lost (unreachable after the retries, or restarted and no
-      longer knowing the session), wait up to ``reconnect_timeout`` seconds for it, recreate the
-      session and report the interrupted episode as truncated instead of raising.
-    * ``config``: game configuration, e.g. ``{"lives": 3, "time_limit": 2000}`` (the GameConfig
-      fields of the protocol; absent fields keep the ``v0`` rules).
-    * ``render_mode``: ``"ansi"`` (the server's text board) or ``"rgb_array"`` (a picture).
-    * ``timeout``: deadline of every call in seconds (default ``DINERDASH_TIMEOUT``, else 60); a
-      stuck server raises :class:`~dinerdash.ServiceTimeout`.
-    * ``tls_ca``: connect with TLS trusting this PEM CA (or self-signed) certificate (default
-      ``DINERDASH_TLS_CA``); ``tls=True``: TLS trusting the system's roots.
-    * ``token``: auth token (default ``DINERDASH_AUTH_TOKEN``); ``connect_timeout``,
-      ``reconnect_timeout`` in seconds; ``server_binary`` for the local server; ``ansi_color``.
-    * ``connect``: a :class:`~dinerdash.ConnectOptions` holding the connection keywords above
-      (``address``, ``token``, ``timeout``, ``tls``, ``tls_ca``, ``connect_timeout``,
-      ``reconnect``, ``reconnect_timeout``, ``server_binary``) as one value; a keyword given beside
-      it overrides its field.
-
-    Reset options: ``{"arrivals": [(customer_type, size), ...], "config": {...}}``.
-
-    Extras: :meth:`action_masks` (for sb3-contrib's MaskablePPO), :meth:`fork`,
-    :meth:`snapshot` / :meth:`restore`. ``close()`` frees the session; a later ``reset()`` opens a
-    new one.
-
-    ## Version History
-
-    * v0: ruleset ``v0`` of the DinerDash Gym benchmark, served over gRPC.
+    Arguments: ``address`` (default ``DINERDASH_ADDRESS``, else a local server started here and
+    stopped by ``close()``; several: one at random), ``expert`` (``True``: the reference
+    heuristic's ``expert_action``, ``"planner"``: the look-ahead planner's), ``config`` (GameConfig
+    fields, e.g. ``{"lives": 3}``), ``render_mode`` (``"ansi"`` or ``"rgb_array"``),
+    ``ansi_color``, ``connect`` (a :class:`~dinerdash.ConnectOptions`) and its fields as keywords
+    (``timeout``, ``reconnect``, ``tls_ca``, ``token``, ...), each overriding ``connect``'s.
+    Reset options: ``arrivals``, ``config``. Extras: :meth:`action_masks`, :meth:`fork`,
+    :meth:`snapshot` / :meth:`restore`, :meth:`watch_url`. ``close()`` frees the session; a later
+    ``reset()`` opens a new one.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": list(RENDER_MODES), "render_fps": 8}
@@ -188,10 +116,10 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         connect: ConnectOptions | None = None,
         **connection: Any,
     ) -> None:
-        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
-        self._settings = self._settings_for(
-            num_envs=1, autoreset_mode=AutoresetMode.DISABLED, config=make_config(config)
+        self._settings = self._take_arguments(
+            1, AutoresetMode.DISABLED, address, expert, render_mode, ansi_color, connect, connection
         )
+        self._settings.config = make_config(config)
         self._last_obs: np.ndarray | None = None
         self._last_info: dict[str, Any] = {}
         self._open()
@@ -227,33 +155,17 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return self._core.session_id
 
     @property
-    def transports(self) -> dict[str, str]:
-        """The transport the session steps over now: ``{address: "shm" | "grpc"}`` (as
-        :attr:`DinerDashVectorEnv.transports <dinerdash.DinerDashVectorEnv.transports>`; a
-        session forked or restored chooses at its first step)."""
-        core = self._core
-        return {core.conn.address: core.transport.name if core.transport else "grpc"}
-
-    @property
-    def transport_changes(self) -> int:
-        """Times the session's Steps changed transport (each logged as a warning)."""
-        return self._core.endpoint.transport_changes
-
-    @property
     def _conn(self) -> Connection:
         return self._core.conn
 
-    def watch_url(self) -> str:
-        """The URL of the server's web page that shows this environment playing (the server must
-        serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
-        from .watch import watch_url
+    @property
+    def _cores(self) -> list[SessionCore]:
+        return [self._core]
 
-        self._check_open("watch_url()")
-        return watch_url(self._conn, self.session_id, 0)
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise EnvClosed(f"{what} after close(); reset() opens a new session")
+    def _shown(self) -> tuple[Any, Any, Any]:
+        if self._last_obs is None:
+            raise gym.error.ResetNeeded("call reset() before render()")
+        return [self._last_obs], [self._last_info["score"]], [self._last_info["lost"]]
 
     # -- Gymnasium API ------------------------------------------------------------------------
 
@@ -300,21 +212,6 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         return self._last_info["action_mask"].copy()
-
-    def render(self) -> str | np.ndarray | None:
-        if not self._renders():
-            return None
-        self._check_open("render()")
-        if self.render_mode == "ansi":
-            return self._core.render_text(0, self.ansi_color)
-        if self._last_obs is None:
-            raise gym.error.ResetNeeded("call reset() before render()")
-        return _render.draw(
-            self._last_obs,
-            score=self._last_info["score"],
-            lost=self._last_info["lost"],
-            lives=self.spec_proto.config.lives,
-        )
 
     def close(self) -> None:
         """Closes the session (and the local server, if this env started one). A later

@@ -1,29 +1,7 @@
-"""The exceptions of the client.
-
-Every gRPC status the server returns becomes one of these, carrying the server's own message (which
-names the offending field and its allowed range). The class and the attributes ``reason``,
-``field`` and ``env_index`` come from the status code and the structured details the server
-attaches (a ``google.rpc.Status`` in the ``grpc-status-details-bin`` trailer: ``ErrorInfo`` and
-``BadRequest``, listed in the proto's header), never from the message text::
-
-    ServiceError                      any failure of a call to the server
-    ├── SessionNotFound               NOT_FOUND: unknown, closed or expired session
-    ├── InvalidArgument (ValueError)  INVALID_ARGUMENT: a bad action, seed, arrival list, config ...
-    ├── FailedPrecondition            FAILED_PRECONDITION: e.g. stepping an episode that is over
-    │   └── EpisodeOver               reason EPISODE_OVER: autoreset DISABLED, an episode ended
-    ├── ResourceExhausted             RESOURCE_EXHAUSTED: too many sessions, message too large
-    ├── Unauthenticated               UNAUTHENTICATED: missing or wrong auth token
-    ├── ServiceTimeout (TimeoutError) DEADLINE_EXCEEDED
-    ├── ServiceInternalError          INTERNAL, UNKNOWN and any other code
-    ├── ServiceTransportError (OSError)  UNAVAILABLE after the retries, or no connection
-    │   ├── ServerDraining            reason DRAINING: the server drains before a restart and
-    │   │                             starts no new session (CreateSession, Fork, Restore, Rollout)
-    │   ├── TLSMismatch               a plaintext client met a TLS server (or the other way round)
-    │   └── NoServerLeft              a vector env over several servers lost every one of them
-    └── EnvClosed                     the env was closed; ``reset()`` opens a new session
-
-``LocalServerError`` is about starting a local ``dinerdash-server``; ``ServerBinaryNotFound`` (also
-a ``FileNotFoundError``) says how to build one or point to one.
+"""The exceptions of the client (the table: docs/client.md#errors). Every gRPC status the server
+returns becomes one of these, carrying the server's message; the class and ``reason``, ``field``
+and ``env_index`` come from the status code and the structured details the server attaches (a
+``google.rpc.Status``: ``ErrorInfo`` and ``BadRequest``), never from the message text.
 """
 
 from __future__ import annotations
@@ -50,9 +28,7 @@ __all__ = [
     "SessionNotFound",
     "TLSMismatch",
     "Unauthenticated",
-    "error_for_rpc",
     "error_for_status",
-    "reason_of",
 ]
 
 #: The ``ErrorInfo.domain`` of the DinerDash service's errors.
@@ -66,15 +42,10 @@ class ServiceError(Exception):
 
     Attributes:
         code: the gRPC status code, or ``None`` when the failure happened before any call.
-        details: the server's message.
-        address: the ``host:port`` of the server that was called.
-        reason: the server's stable reason code (``ErrorInfo.reason``), e.g.
-            ``"SESSION_NOT_FOUND"``, ``"ACTION_OUT_OF_RANGE"``, ``"EPISODE_OVER"``; ``None`` when
-            the status carried no details.
-        field: the offending request field (``BadRequest``), e.g. ``"actions[3]"``, or ``None``.
-        env_index: the environment the error concerns, or ``None``. A vector env reports it as
-            the index in the vector env (not in one server's slice).
-        metadata: the rest of ``ErrorInfo.metadata``.
+        details: the server's message; ``address``: the server called.
+        reason: the server's stable reason code (``ErrorInfo.reason``), e.g. ``"EPISODE_OVER"``.
+        field: the offending request field (``BadRequest``), e.g. ``"actions[3]"``.
+        env_index: the environment concerned (a vector env's index); ``metadata``: the rest.
     """
 
     def __init__(
@@ -142,11 +113,9 @@ class ServiceTransportError(ServiceError, OSError):
 
 
 class ServerDraining(ServiceTransportError):
-    """The server is draining before a planned restart (it got SIGTERM): it serves the sessions
-    it has until its drain timeout, but starts no new one; CreateSession, Fork, Restore and
-    Rollout are refused with ``UNAVAILABLE`` and reason ``DRAINING``. Not retried on the same
-    server: create the session on another one (or, for a single server, after its restart).
-    ``drain_remaining_ms`` is the time the server had left when it refused."""
+    """The server is draining before a planned restart (it got SIGTERM): it serves the sessions it
+    has until its drain timeout, but starts no new one; CreateSession, Fork, Restore and Rollout are
+    refused with ``UNAVAILABLE`` and reason ``DRAINING``."""
 
     @property
     def drain_remaining_ms(self) -> int | None:
@@ -164,9 +133,8 @@ class TLSMismatch(ServiceTransportError):
 class NoServerLeft(ServiceTransportError):
     """Every server of a vector env spread over several was lost: with ``reconnect=True`` and
     ``failover_after``, the environments of a lost server move to the servers left, and this is
-    raised when none is left (the last one did not come back within ``reconnect_timeout``, or
-    the last ones were lost together). ``address`` is the last server's; the message names the
-    servers given up before it. ``close()`` and then ``reset()`` start over on every address."""
+    raised when none is left (the last one did not come back within ``reconnect_timeout``, or the
+    last ones were lost together)."""
 
 
 class EnvClosed(ServiceError):
@@ -228,16 +196,6 @@ def status_details(error: grpc.RpcError) -> bytes | None:
         if key == _DETAILS_KEY:
             return value
     return None
-
-
-def reason_of(error: grpc.RpcError) -> str | None:
-    """The server's ``ErrorInfo.reason`` of a failed call, if its trailers carry one."""
-    return _decode_details(status_details(error))[0]
-
-
-def error_for_rpc(error: grpc.RpcError, details: str, address: str | None) -> ServiceError:
-    """The typed exception for a failed call, with ``details`` as its message."""
-    return error_for_status(error.code(), details, address, status_details(error))
 
 
 def _decode_details(

@@ -1,12 +1,7 @@
-"""The game's fixed numbers, ruleset ``v0`` (docs/rules.md), defined once for the whole client and
-for the code built on it (the agents, the scripts).
-
-What a server sends in its ``Spec`` is read from the Spec where there is one: the environments
-build their spaces from it (:func:`observation_space`), so code that has an environment takes
-the observation's bounds from ``env.observation_space`` rather than from here.
-:data:`OBSERVATION_LOW` and :data:`OBSERVATION_HIGH` are the bounds a ``v0`` server sends, for
-what has no server to ask (a demonstrations file, a checkpoint written before it recorded them).
-The sizes are checked against every Spec: the client decodes the packed replies with them.
+"""The game's fixed numbers, ruleset ``v0`` (docs/rules.md), defined once for the client and the
+code built on it. Code with an environment reads the observation's bounds from its
+``observation_space`` (the server's Spec); :data:`OBSERVATION_LOW` and :data:`OBSERVATION_HIGH`
+are for what has no server to ask.
 """
 
 from __future__ import annotations
@@ -72,9 +67,8 @@ def seat_action(group: int, table: int) -> int:
 
 
 def observation_space(spec: pb.Spec | None = None) -> spaces.Box:
-    """The observation Box with the bounds the server reports in ``spec`` (docs/rules.md section
-    6); without a Spec, those of ruleset ``v0``. A Spec of other sizes than this client decodes
-    is refused."""
+    """The observation Box with the bounds the server reports in ``spec`` (docs/rules.md section 6);
+    without a Spec, those of ruleset ``v0``."""
     if spec is None:
         return spaces.Box(low=OBSERVATION_LOW, high=OBSERVATION_HIGH, dtype=np.float32)
     if spec.observation_size != OBSERVATION_SIZE or spec.num_actions != NUM_ACTIONS:

@@ -1,26 +1,7 @@
-"""The vector environment: N Diner Dash games in one batched server session per server.
-
-``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, ...)`` builds this class (the
-registered ``vector_entry_point``). Each step is one ``Step`` call per server carrying N actions as
-packed little-endian ``int32``; the reply's packed arrays are turned into numpy arrays with
-``numpy.frombuffer``, with no Python loop over the environments.
-
-Scale-out: ``address`` may be a list of servers (or a DNS name that resolves to several). The N
-environments are then split into contiguous slices, one batched session per server, and the
-servers are called concurrently (each server's Step by a thread of the env). Environment ``i`` is
-seeded with ``seed + i`` whatever server holds it, so the trajectories are the same as on one
-server. A session's calls always go to the server that created it.
-
-Failover (``reconnect=True``): a server unreachable, or silent, for more than ``failover_after``
-seconds is given up and its environments move to the servers left (:mod:`dinerdash._failover`);
-they keep their indices, and the other servers' sessions are not touched. Membership
-(:mod:`dinerdash._membership`): a draining server's environments move off it at once, and a
-given-up server that answers again, or a DNS name's new replica, is given environments until the
-loads differ by at most one, every move by Snapshot and Restore between two steps: exact, the
-trajectories those of an undisturbed run (:mod:`dinerdash._fleet`).
-
-This module is the Gymnasium adapter (arguments, autoreset modes, infos, the ``VectorEnv``
-API); the servers and sessions are the :class:`~dinerdash._fleet.Fleet`'s.
+"""The vector environment: N Diner Dash games in one batched session per server, the Gymnasium
+adapter (arguments, autoreset modes, infos, the ``VectorEnv`` API) of a
+:class:`~dinerdash._fleet.Fleet`, which holds the servers and sessions. Scale-out, failover and
+moves: docs/client.md#failover-across-servers and docs/clusters.md#failover.
 """
 
 from __future__ import annotations
@@ -37,7 +18,6 @@ from gymnasium.error import AlreadyPendingCallError, NoAsyncCallError
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from . import render as _render
 from ._arguments import (
     RENDER_MODES,
     Config,
@@ -67,70 +47,36 @@ __all__ = ["DinerDashVectorEnv"]
 class DinerDashVectorEnv(SessionOwner, VectorEnv):
     """``num_envs`` Diner Dash environments stepped together on one or more DinerDash servers.
 
-    The single environment, its spaces and infos are described in
-    :class:`dinerdash.env.DinerDashEnv`; here every value gains a leading axis of ``num_envs``:
-    observations ``(N, 40) float32``, rewards ``(N,) float64``, ``info["action_mask"]`` ``(N, 57)
-    bool``, ``info["score"]``, ``info["lost"]``, ``info["tick"]`` and (``expert=True``)
-    ``info["expert_action"]`` of shape ``(N,)``, each with its Gymnasium ``_key`` mask; and
-    ``info["seed"]``, each environment's episode seed, at reset and at every step (the keys never
-    change, as for a ``SyncVectorEnv`` of :class:`~dinerdash.DinerDashEnv`; ``int64`` as there,
-    a seed given above 2**63 - 1 reading modulo 2**64).
-
-    Autoreset: ``AutoresetMode.NEXT_STEP`` (default; the step after an episode ends resets that
-    environment, ignores its action and reports reward 0 and ``info["seed"]``) or
-    ``AutoresetMode.SAME_STEP`` (the ending step returns the new episode's first observation and
-    puts the ended one's last observation in ``info["final_obs"]`` and its infos in
-    ``info["final_info"]``) or ``AutoresetMode.DISABLED`` (stepping a finished environment raises
-    :class:`~dinerdash.errors.FailedPrecondition`; reset it with ``options={"reset_mask": ...}``).
-    ``metadata["autoreset_mode"]`` says which.
+    As :class:`dinerdash.env.DinerDashEnv`, every value with a leading axis of N: observations
+    ``(N, 40) float32``, rewards ``(N,) float64``, each info key ``(N, ...)`` with its ``_key``
+    mask (docs/client.md#the-infos). Each step is one ``Step`` call per server carrying the N
+    actions as packed ``int32``; replies become numpy arrays with no loop over environments.
 
     Args:
         num_envs: number of environments N.
-        address: a server, a list of servers, or a DNS name resolving to several; with several,
-            the environments are split into contiguous slices, one per server (at most N servers).
-            Default: ``DINERDASH_ADDRESS``, else a local server is started and stopped on close.
-        expert: add ``expert_action`` to the infos: ``True`` the reference heuristic's choices,
-            ``"planner"`` the look-ahead planner's.
-        reconnect: when a server is lost, wait for it (``reconnect_timeout`` seconds), recreate
-            its session and report its environments' episodes as truncated.
-        failover_after: with ``reconnect=True`` and several servers: seconds a lost server is
-            waited for, or a server that answers nothing (hung, black-holed) is borne with,
-            before it is given up and its environments move to the servers left (new sessions,
-            spread evenly; their episodes end truncated with ``info["reconnected"]``, as after a
-            reconnect). The last server left is waited for ``reconnect_timeout``, then
-            :class:`~dinerdash.errors.NoServerLeft` is raised. ``None``: no failover. A given-up
-            server that answers again is taken back.
-        resolve_every: with failover, seconds between resolutions of a DNS-name ``address``;
-            new replicas are taken in. ``None``: never.
-        autoreset_mode: ``AutoresetMode.NEXT_STEP``, ``SAME_STEP`` or ``DISABLED``.
-        config: game configuration (GameConfig fields), as for the single env.
+        address: a server, a list of servers, or a DNS name resolving to several: the
+            environments are split into contiguous slices, one session per server (at most N).
+            Default: ``DINERDASH_ADDRESS``, else a local server started and stopped on close.
+        autoreset_mode: ``AutoresetMode.NEXT_STEP`` (default), ``SAME_STEP`` (``final_obs``,
+            ``final_info``) or ``DISABLED`` (reset with ``options={"reset_mask": ...}``);
+            ``metadata["autoreset_mode"]`` says which.
+        failover_after, resolve_every: with ``reconnect=True`` and several servers, seconds a
+            lost or silent server is borne with before its environments move to the others, and
+            between resolutions of a DNS name (docs/client.md#failover-across-servers).
         max_episode_steps: shorthand for ``config["time_limit"]`` (the server truncates).
-        render_mode: ``"ansi"`` or ``"rgb_array"``; ``render()`` returns one frame per env.
-        timeout, tls, tls_ca: every call's deadline and TLS, as for the single env.
-        token, connect_timeout, reconnect_timeout, server_binary, ansi_color: as for the single env.
-        connect: a :class:`~dinerdash.ConnectOptions` holding the connection keywords (address,
-            token, timeout, TLS, reconnect, failover_after, ...) as one value; a keyword given
-            beside it overrides its field.
+        expert, config, render_mode, ansi_color, connect and the connection keywords: as for the
+            single env; ``render()`` returns one frame per environment.
 
-    Reset: ``reset(seed=s)`` seeds environment ``i`` with ``s + i``; ``seed`` may also be a list
-    of N seeds. Options: ``{"arrivals": one list of (type, size) pairs or N lists,
-    "config": {...}, "reset_mask": (N,) bool array}``. With a ``reset_mask`` (any autoreset mode,
-    as in Gymnasium) only those environments are reset, environment ``i`` still with ``s + i``;
-    the others keep their episode, and the observations and infos returned are their current ones
-    (``info["_seed"]`` is the mask of environments reset). A ``config`` needs a full reset.
-
-    Pipelining: :meth:`step_async` sends a step and returns at once, :meth:`step_wait` returns
-    its results (Gymnasium's ``AsyncVectorEnv`` names; ``step()`` is the two in a row). A trainer
-    that alternates two vector envs keeps one step on the wire while it works on the other.
-
-    :meth:`action_masks` gives the ``(N, 57)`` masks of the current states. Errors that concern
-    one environment carry its index in this vector env as ``env_index``. ``close()`` frees the
-    sessions; a later full ``reset()`` opens new ones.
+    ``reset(seed=s)`` seeds environment ``i`` with ``s + i`` (or takes a list of N seeds);
+    options: ``arrivals`` (one list or N), ``config`` (a full reset only), ``reset_mask``.
+    :meth:`step_async` / :meth:`step_wait` pipeline a step (docs/client.md#pipelining-step_async-
+    and-step_wait). An error about one environment carries its index here as ``env_index``.
     """
 
     #: Until ``__init__`` has opened the sessions: an env whose arguments were refused has nothing
     #: to close when it is collected (gymnasium's ``__del__`` closes every vector env).
     _closed = True
+    _batched = True
 
     def __init__(
         self,
@@ -154,7 +100,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         }
         self.autoreset_mode = mode
         self.num_envs = int(num_envs)
-        self._take_arguments(address, expert, render_mode, ansi_color, connect, connection)
+        self._settings = settings = self._take_arguments(
+            self.num_envs, mode, address, expert, render_mode, ansi_color, connect, connection
+        )
         config = make_config(config)
         if max_episode_steps is not None:
             cfg = pb.GameConfig()
@@ -162,13 +110,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 cfg.CopyFrom(config)
             cfg.time_limit = int(max_episode_steps)
             config = cfg
-        self.failover_after = self._options.failover_after
-        self._settings = self._settings_for(
-            num_envs=self.num_envs,
-            autoreset_mode=mode,
-            config=config,
-            failover_after=self.failover_after,
-        )
+        settings.config = config
+        self.failover_after = settings.failover_after = self._options.failover_after
         self._open()
         spec = self.spec_proto
         self.single_observation_space = observation_space(spec)
@@ -231,26 +174,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return self._endpoint.rejoins
 
     @property
-    def transports(self) -> dict[str, str]:
-        """The transport each server's session steps over now (``{address: "shm" | "grpc"}``,
-        in the order of the first environments they hold; ``"shm,grpc"`` for a server whose
-        sessions differ). A change is logged as a warning and counted in
-        :attr:`transport_changes`: nothing falls back to gRPC silently."""
-        out: dict[str, list[str]] = {}
-        for core in self._cores:
-            name = core.transport.name if core.transport is not None else "grpc"
-            names = out.setdefault(core.conn.address, [])
-            if name not in names:
-                names.append(name)
-        return {address: ",".join(names) for address, names in out.items()}
-
-    @property
-    def transport_changes(self) -> int:
-        """Sessions whose Steps changed transport since the env's sessions were opened (shared
-        memory lost, or taken up again by a session reopened after a reconnect)."""
-        return self._endpoint.transport_changes
-
-    @property
     def moves(self) -> int:
         """Environments moved to another server by Snapshot and Restore (off a draining server,
         onto a server taken in, or to even the loads), each exactly as it was. Not counted: a
@@ -267,21 +190,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     @property
     def session_ids(self) -> list[str | None]:
         return [c.session_id for c in self._cores]
-
-    def watch_url(self, index: int = 0) -> str:
-        """The URL of the server's web page that shows environment ``index`` playing (the
-        server must serve pages: ``--http-port``); see :mod:`dinerdash.watch`."""
-        from .watch import watch_url
-
-        self._check_open("watch_url()")
-        if not 0 <= index < self.num_envs:
-            raise IndexError(f"index must be in 0..{self.num_envs - 1}, got {index}")
-        core = next(c for c in self._cores if c.start <= index < c.stop)
-        return watch_url(core.conn, core.session_id, index - core.start)
-
-    def _check_open(self, what: str) -> None:
-        if self._closed:
-            raise EnvClosed(f"{what} after close(); reset() opens new sessions")
 
     # -- Gymnasium API --------------------------------------------------------------------------
 
@@ -447,7 +355,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         terminated = batch["terminated"].copy()
         truncated = batch["truncated"].copy()
         reset = batch.get("reset")
-        # count_nonzero: a quarter of any()'s time on a (256,) bool.
         resets = reset is not None and np.count_nonzero(reset) > 0
         # Every step's info has reset's keys (TorchRL reads them once): each environment's
         # episode seed, as a SyncVectorEnv of DinerDashEnv reports it.
@@ -478,27 +385,11 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             info["_reconnected"] = lost.copy()
         return obs, rewards, terminated, truncated, info
 
-    def render(self) -> tuple[Any, ...] | None:
-        if not self._renders():
-            return None
-        self._check_idle("render()")
-        if self.render_mode == "ansi":
-            self._check_open("render()")
-            return tuple(
-                core.render_text(i - core.start, self.ansi_color)
-                for core in self._cores
-                for i in range(core.start, core.stop)
-            )
+    def _shown(self) -> tuple[Any, Any, Any]:
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")
         obs, info = decode(join(self._fleet.batches()), self.expert)
-        lives = self.spec_proto.config.lives
-        return tuple(
-            _render.draw(
-                obs[i], score=int(info["score"][i]), lost=int(info["lost"][i]), lives=lives
-            )
-            for i in range(self.num_envs)
-        )
+        return obs, info["score"], info["lost"]
 
     def close_extras(self, **kwargs: Any) -> None:
         """Closes the sessions (and the local server, if this env started one). A later full
