@@ -801,10 +801,11 @@ class Connection:
         return error_for_rpc(error, details, self.address)
 
     def health(self, timeout: float) -> grpc.Future:
-        """Starts a ``grpc.health.v1`` Check of the whole server (answered even while it drains,
-        and without the auth token) on this channel; the future's result is True when the server
-        is SERVING, False when it answered otherwise. A server that answers nothing leaves the
-        future pending until ``timeout``. What a vector env's watch and membership probe ask.
+        """Starts a ``grpc.health.v1`` Check of the whole server (answered even while it drains;
+        sent with the auth token, which a server with a probe port asks for) on this channel;
+        the future's result is True when the server is SERVING, False when it answered
+        otherwise. A server that answers nothing leaves the future pending until ``timeout``.
+        What a vector env's watch and membership probe ask.
 
         The check waits for the channel to connect (``wait_for_ready``) instead of failing at
         once while the channel backs off after a lost connection: so a server that came back is
@@ -818,7 +819,9 @@ class Connection:
                 request_serializer=bytes,
                 response_deserializer=_serving,
             )
-        return self._health.future(b"", timeout=timeout, wait_for_ready=True)
+        return self._health.future(
+            b"", timeout=timeout, metadata=self._metadata, wait_for_ready=True
+        )
 
     def server_info(self) -> pb.ServerInfoResponse:
         """The server's version, ruleset and limits."""
