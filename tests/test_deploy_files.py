@@ -198,6 +198,8 @@ def test_with_the_token_a_client_without_it_is_refused(
                 conn.server_info()
         with Connection(server.address, token=token, **ca) as conn:
             assert conn.server_info().live_sessions == 0
+            # The client's own health Check (failover, membership) sends the token.
+            assert conn.health(60).result() is True
         # The health checks the file gives, against this server's probe port.
         assert server.probe_address is not None
         for check in _health_checks(source):
