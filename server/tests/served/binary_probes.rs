@@ -131,7 +131,16 @@ async fn the_probe_port_serves_health_alone_and_the_grpc_port_only_with_a_token(
         unary(&mut raw, &probes, reflection, Some(TOKEN), &[]).await,
         Some(UNIMPLEMENTED)
     );
-    // And it stays served: the DinerDash service on the gRPC port is untouched.
+    // Its calls have the gRPC port's bounds: a Check announcing 4 MiB is refused at its header.
+    let mut ready = raw.ready().await.unwrap();
+    let (response, mut stream) = ready
+        .send_request(grpc_headers(&probes, CHECK, None), false)
+        .unwrap();
+    stream.send_data(framed(4 << 20, &[]), false).unwrap();
+    let code = tokio::time::timeout(PATIENCE, grpc_status(response)).await;
+    assert_eq!(code, Ok(Some(Code::InvalidArgument as u32)));
+    drop((ready, stream));
+    // And the DinerDash service on the gRPC port is untouched.
     let mut tenant = DinerDashClient::new(channel(&server.addr).await);
     let request = with_token(Some(TOKEN), pb::ServerInfoRequest::default());
     tenant.server_info(request).await.unwrap();
@@ -173,8 +182,8 @@ async fn strangers_on_the_grpc_port_hold_no_health_call_and_probes_are_answered(
         connections.push(send);
     }
     assert_eq!(refused, 16 * 32);
-    // Meanwhile the probe port answers Checks, and serves Watches from one address up to
-    // its cap of 4.
+    // Meanwhile the probe port answers Checks, and serves Watches from one address up to its
+    // cap of 4 (its own: a fifth is refused).
     for service in ["", LIVENESS_SERVICE] {
         assert_eq!(
             probe(&probes, service).await,
@@ -202,6 +211,13 @@ async fn strangers_on_the_grpc_port_hold_no_health_call_and_probes_are_answered(
         watches.push((stream, response));
         send = ready;
     }
+    let mut ready = send.ready().await.unwrap();
+    let (response, mut stream) = ready
+        .send_request(grpc_headers(&probes, WATCH, None), false)
+        .unwrap();
+    stream.send_data(framed(0, &[]), true).unwrap();
+    let code = tokio::time::timeout(PATIENCE, grpc_status(response)).await;
+    assert_eq!(code, Ok(Some(Code::ResourceExhausted as u32)));
     drop((held, connections, watches));
     let (status, stderr) = server.terminate().await;
     assert_eq!(status.code(), Some(0), "{stderr}");
