@@ -8,8 +8,8 @@
 //! ([`serve_probes`]); the gRPC port then serves health only behind the token check.
 //!
 //! The binary calls [`serve`], which binds `--host:--port` (and `--http-host:--http-port`,
-//! `--host:--probe-port`) and runs it under [`crate::shutdown::serve_until_signal`] (the first SIGINT/SIGTERM starts the
-//! drain); tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
+//! `--host:--probe-port`) and runs it under [`crate::shutdown::serve_until_signal`] (the first
+//! SIGINT/SIGTERM starts the drain); tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
 
 use std::future::Future;
 use std::io::Write as _;
