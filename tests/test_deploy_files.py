@@ -2,15 +2,19 @@
 ``docker/k8s/dinerdash.yaml`` start the server on every address (``--host 0.0.0.0``) only with a
 token taken from a secret (an env file, a Kubernetes Secret), never on the command line and never
 with ``--insecure``; the compose trainer gets the same token. Compose and Kubernetes serve TLS
-with a certificate and key from secrets (Compose secrets, a ``kubernetes.io/tls`` Secret), their
-health checks speak TLS, every container drops all capabilities, cannot gain privileges, runs
-under the runtime's default seccomp profile on a read-only root file system, and a
-NetworkPolicy admits only the trainers' pods, only to the gRPC port. The base images are build
+with a certificate and key from secrets (Compose secrets, a ``kubernetes.io/tls`` Secret); every
+file's health checks ask the probe port (``--probe-port``: health alone, plaintext, no token; the
+Docker HEALTHCHECK, which compose keeps, and the kubelet's gRPC probes); every container drops
+all capabilities, cannot gain privileges, runs under the runtime's default seccomp profile on a
+read-only root file system, and a NetworkPolicy admits only the trainers' pods, only to the gRPC
+port. The base images are build
 arguments, pinned by digest only where a real digest is known (none is here: see the
 Dockerfile's comment). Then the real binary, started with the very arguments each file gives:
 without the token it refuses to start (before it binds anything), and with it (moved to
 127.0.0.1 and free ports, the secrets' files replaced by a certificate made like the Makefile's)
-a client without the token is refused, and one with it and the certificate is served over TLS.
+a client without the token is refused, and one with it and the certificate is served over TLS;
+the files' own health checks pass against its probe port, and a health check of its gRPC port
+without the token is refused.
 
 This stands in for ``make docker-smoke`` and ``make k8s-validate`` where no Docker engine or
 cluster runs (CI)."""
@@ -153,8 +157,9 @@ def _with_tls_files(args: list[str], cert: Path, key: Path) -> list[str]:
 
 def _on_loopback(args: list[str], cert: Path, key: Path) -> list[str]:
     """``args`` without ``--host``/``--port`` (LocalServer gives 127.0.0.1 and port 0), the
-    metrics port a free one, the TLS files ``cert`` and ``key``."""
-    loopback = _replaced(args, {"--host": None, "--port": None, "--metrics-port": "0"})
+    metrics and probe ports free ones, the TLS files ``cert`` and ``key``."""
+    free = {"--host": None, "--port": None, "--metrics-port": "0", "--probe-port": "0"}
+    loopback = _replaced(args, free)
     return _with_tls_files(loopback, cert, key)
 
 
@@ -193,22 +198,47 @@ def test_with_the_token_a_client_without_it_is_refused(
                 conn.server_info()
         with Connection(server.address, token=token, **ca) as conn:
             assert conn.server_info().live_sessions == 0
-        if tls:
-            # The health check the file gives, against this server.
-            check = _health_check(source)
-            check[check.index("--address") + 1] = server.address
-            check[check.index("--tls-ca") + 1] = str(cert)
-            done = subprocess.run(
-                [str(server_binary()), *check[1:]], capture_output=True, text=True, timeout=60
-            )
-            assert done.returncode == 0, done.stderr
+            # The client's own health Check (failover, membership) sends the token.
+            assert conn.health(60).result() is True
+        # The health checks the file gives, against this server's probe port.
+        assert server.probe_address is not None
+        for check in _health_checks(source):
+            check[check.index("--address") + 1] = server.probe_address
+            done = _health(check)
+            assert done.returncode == 0 and done.stdout.strip() == "SERVING", done
+        # The gRPC port answers health only to callers with the token.
+        tls_ca = ["--tls-ca", str(cert)] if tls else []
+        done = _health(["--address", server.address, *tls_ca])
+        assert done.returncode != 0 and "Unauthenticated" in done.stderr, done
 
 
-def _health_check(source: str) -> list[str]:
-    """The TLS health check of the compose servers or the Kubernetes readiness probe."""
-    if source == "compose":
-        return _compose()["services"]["server1"]["healthcheck"]["test"][1:]
-    return _k8s_container()["readinessProbe"]["exec"]["command"]
+def _health(args: list[str]) -> subprocess.CompletedProcess:
+    """``dinerdash-server health`` with ``args``."""
+    return subprocess.run(
+        [str(server_binary()), "health", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def _health_checks(source: str) -> list[list[str]]:
+    """The arguments of ``dinerdash-server health`` that ask what the file's health checks ask:
+    the image's HEALTHCHECK (compose keeps it), or what the kubelet's gRPC probes ask (a Check
+    of the probe's service, plaintext, on its port of the pod)."""
+    if source in ("Dockerfile", "compose"):
+        return [_dockerfile_healthcheck()[2:]]
+    container = _k8s_container()
+    checks = []
+    for probe in ("readinessProbe", "livenessProbe"):
+        grpc = container[probe]["grpc"]
+        address = f"127.0.0.1:{grpc['port']}"
+        checks.append(["--address", address, "--service", grpc.get("service", "")])
+    return checks
+
+
+def _dockerfile_healthcheck() -> list[str]:
+    """The image's HEALTHCHECK command."""
+    text = (DOCKER / "Dockerfile").read_text()
+    command = text.split("HEALTHCHECK ", 1)[1].split(" CMD ", 1)[1].split("\n", 1)[0]
+    return json.loads(command)
 
 
 def test_compose_and_kubernetes_serve_tls_from_secrets() -> None:
@@ -228,8 +258,6 @@ def test_compose_and_kubernetes_serve_tls_from_secrets() -> None:
         command = service["command"]
         assert _value(command, "--tls-cert") == "/run/secrets/dinerdash_tls_cert"
         assert _value(command, "--tls-key") == "/run/secrets/dinerdash_tls_key"
-        check = service["healthcheck"]["test"]
-        assert _value(check, "--tls-ca") == "/run/secrets/dinerdash_tls_cert"
     trainer = compose["services"]["trainer"]
     assert trainer["secrets"] == ["dinerdash_tls_cert"]
     assert trainer["environment"]["DINERDASH_TLS_CA"] == "/run/secrets/dinerdash_tls_cert"
@@ -247,12 +275,40 @@ def test_compose_and_kubernetes_serve_tls_from_secrets() -> None:
     directory = mount["mountPath"]
     assert _value(container["args"], "--tls-cert") == f"{directory}/tls.crt"
     assert _value(container["args"], "--tls-key") == f"{directory}/tls.key"
-    # The kubelet's gRPC probe speaks no TLS: both probes ask over TLS with the binary.
+
+
+def test_every_health_check_asks_the_probe_port() -> None:
+    """The probe port (health alone, plaintext, no token) is what the Docker HEALTHCHECK, the
+    compose servers (which keep the image's check) and the kubelet's gRPC probes ask; the gRPC
+    port then asks a token of health checks too."""
+    port = _value(_dockerfile_args(), "--probe-port")
+    assert port is not None and port != _value(_dockerfile_args(), "--port")
+    assert _dockerfile_healthcheck() == [
+        "dinerdash-server",
+        "health",
+        "--address",
+        f"127.0.0.1:{port}",
+    ]
+    expose = [line for line in (DOCKER / "Dockerfile").read_text().splitlines() if "EXPOSE" in line]
+    assert port in expose[0].split(), expose
+    for name in SERVERS:
+        service = _compose()["services"][name]
+        assert _value(service["command"], "--probe-port") == port, name
+        assert "healthcheck" not in service, f"{name}: the image's HEALTHCHECK asks the probe port"
+    container = _k8s_container()
+    assert _value(container["args"], "--probe-port") == port
+    (probe,) = [p for p in container["ports"] if p["name"] == "probe"]
+    assert probe["containerPort"] == int(port)
+    # The kubelet's own gRPC probes (they name a port by number), plaintext as the port is.
+    assert container["readinessProbe"]["grpc"] == {"port": int(port)}
+    assert container["livenessProbe"]["grpc"] == {"port": int(port), "service": "liveness"}
     for probe in ("readinessProbe", "livenessProbe"):
-        command = container[probe]["exec"]["command"]
-        assert command[:2] == ["dinerdash-server", "health"], probe
-        assert _value(command, "--tls-ca") == f"{directory}/tls.crt", probe
-    assert _value(container["livenessProbe"]["exec"]["command"], "--service") == "liveness"
+        assert "exec" not in container[probe], probe
+    # The NetworkPolicy admits no pod to the probe port (the test below: the trainers to the
+    # gRPC port alone); the kubelet's probes come from the node, which it does not filter in
+    # most network plugins, as the manifest says.
+    text = (DOCKER / "k8s" / "dinerdash.yaml").read_text()
+    assert "not subject to NetworkPolicy" in text
 
 
 def test_every_container_is_confined() -> None:

@@ -663,9 +663,9 @@ class Connection:
         return error_for_status(code, details or "(no message)", self.address, status)
 
     def health(self, timeout: float) -> grpc.Future:
-        """Starts a ``grpc.health.v1`` Check of the whole server (answered while it drains, and
-        without the token); the future's result is True when it is SERVING. It waits for the
-        channel to connect (docs/client.md#design-notes)."""
+        """Starts a ``grpc.health.v1`` Check of the whole server (answered while it drains; sent
+        with the token, which a server with a probe port asks for); the future's result is True
+        when it is SERVING. It waits for the channel to connect (docs/client.md#design-notes)."""
         self._check_open("Check")
         if self._health is None:
             self._health = self.channel.unary_unary(
@@ -673,7 +673,9 @@ class Connection:
                 request_serializer=bytes,
                 response_deserializer=_serving,
             )
-        return self._health.future(b"", timeout=timeout, wait_for_ready=True)
+        return self._health.future(
+            b"", timeout=timeout, metadata=self._metadata, wait_for_ready=True
+        )
 
     def server_info(self) -> pb.ServerInfoResponse:
         """The server's version, ruleset and limits."""

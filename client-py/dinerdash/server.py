@@ -52,6 +52,7 @@ def server_args(flags: Mapping[str, Any], chosen: Mapping[str, str] | None = Non
 
 
 _LISTENING = re.compile(r"^dinerdash-server listening on (\S+)\s*$")
+_PROBES = re.compile(r"^dinerdash-server probes on (\S+)\s*$")
 _BUILD_HINT = (
     "install it with `pip install 'dinerdash[server]'`; or, in a clone of the repository, build it "
     "with `cargo build --release -p dinerdash-server` and set "
@@ -146,7 +147,8 @@ class LocalServer:
         port: port to listen on; 0 lets the server pick a free one.
         args: extra command-line arguments for the server (e.g. ``["--max-sessions", "8"]``);
             unless they set ``--max-envs-per-session``, it is :data:`LOCAL_MAX_ENVS_PER_SESSION`.
-        startup_timeout: seconds to wait for the ``listening on`` line.
+        startup_timeout: seconds to wait for the ``listening on`` line (and, given
+            ``--probe-port``, the ``probes on`` line: :attr:`probe_address`).
         stop_timeout: seconds between terminate and kill.
         rebind_timeout: seconds to keep trying a given ``port`` that a stopped server has not
             let go of yet (a restart on the same port).
@@ -170,6 +172,8 @@ class LocalServer:
         self.startup_timeout = startup_timeout
         self.stop_timeout = stop_timeout
         self.address: str | None = None
+        #: Where the probe listener serves health, given ``--probe-port`` in ``args``.
+        self.probe_address: str | None = None
         self.process: subprocess.Popen | None = None
         self._stderr = None
         self._finalizer: weakref.finalize | None = None
@@ -215,6 +219,8 @@ class LocalServer:
             daemon=True,
         ).start()
         deadline = time.monotonic() + self.startup_timeout
+        probed = any(a.split("=")[0] == "--probe-port" for a in self.args)
+        self.probe_address = None  # a restart's is read again (port 0 picks a new one)
         while True:
             try:
                 line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
@@ -232,9 +238,11 @@ class LocalServer:
                 raise LocalServerError(
                     f"{' '.join(cmd)} exited with status {code} before listening{tail}"
                 )
-            match = _LISTENING.match(line)
-            if match is not None:
+            if (match := _LISTENING.match(line)) is not None:
                 self.address = match.group(1)
+            elif (match := _PROBES.match(line)) is not None:
+                self.probe_address = match.group(1)
+            if self.address is not None and (self.probe_address is not None or not probed):
                 return
 
     def _stderr_tail(self) -> str:

@@ -94,6 +94,11 @@ pub struct ServeArgs {
     /// names; repeatable. Requests naming any other `Host` are refused 421 (DNS rebinding).
     #[arg(long = "http-allowed-host", value_name = "NAME")]
     pub http_allowed_hosts: Vec<String>,
+    /// Serve grpc.health.v1, and only it, on this port of --host, plaintext and without a token,
+    /// for orchestrators' probes; 0 picks a free one (printed on stdout after the gRPC port).
+    /// The gRPC port then serves health only to callers with a token, like any call.
+    #[arg(long)]
+    pub probe_port: Option<u16>,
     /// Require `authorization: Bearer <token>` on every RPC (health checks excepted): at least
     /// 16 visible ASCII characters, no `#`. Prefer the environment variable: flags show in `ps`.
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]

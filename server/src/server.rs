@@ -3,9 +3,13 @@
 //! alike), the idle-session sweeper and the HTTP endpoint (pages, feeds, metrics), served on the
 //! [`Listeners`] the caller bound until a shutdown future completes ([`run`]).
 //!
-//! The binary calls [`serve`], which binds `--host:--port` (and `--http-host:--http-port`) and
-//! runs it under [`crate::shutdown::serve_until_signal`] (the first SIGINT/SIGTERM starts the
-//! drain); tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
+//! With a probe listener (`--probe-port`), `grpc.health.v1` alone is also served there,
+//! plaintext and without a token, for orchestrators' probes, under caps of its own
+//! ([`serve_probes`]); the gRPC port then serves health only behind the token check.
+//!
+//! The binary calls [`serve`], which binds `--host:--port` (and `--http-host:--http-port`,
+//! `--host:--probe-port`) and runs it under [`crate::shutdown::serve_until_signal`] (the first
+//! SIGINT/SIGTERM starts the drain); tests bind `127.0.0.1:0` and pass a oneshot to [`run`].
 
 use std::future::Future;
 use std::io::Write as _;
@@ -19,7 +23,7 @@ pub use crate::config::{ServerConfig, TlsPem};
 
 use crate::audit::{Audit, MethodLayer};
 use crate::auth::{RequestGate, Roster, Tokens};
-use crate::budget::Tenant;
+use crate::budget::{Budget, Share, Tenant};
 use crate::codec::intake::IntakeLayer;
 use crate::config::{ConfigError, ServeArgs};
 use crate::connections::calls::{Admit, Admitted, ProbeLayer};
@@ -36,6 +40,10 @@ use crate::shutdown;
 /// The grpc.health.v1 service name that stays SERVING while the server drains, for liveness
 /// probes (a draining server is alive; it only takes no new sessions).
 pub const LIVENESS_SERVICE: &str = "liveness";
+
+/// Most connections the probe listener serves at once; at the limit it sheds the longest-idle
+/// one, as the gRPC port does. Probes open a connection each (the kubelet's) or keep one.
+pub const PROBE_MAX_CONNECTIONS: usize = 64;
 
 /// Why the server could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -57,7 +65,8 @@ pub enum ServerError {
     Listen {
         /// `host:port`.
         addr: String,
-        /// Empty for gRPC, " for the web pages" for the HTTP endpoint.
+        /// Empty for gRPC, " for the web pages" for the HTTP endpoint, " for the health probes"
+        /// for the probe listener.
         purpose: &'static str,
         /// Why.
         source: std::io::Error,
@@ -99,10 +108,20 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
             Some(port) => Some(bind(&args.http_host, port, " for the web pages").await?),
             None => None,
         },
+        probe: match args.probe_port {
+            Some(port) => Some(bind(&args.host, port, " for the health probes").await?),
+            None => None,
+        },
     };
     let addr = listeners
         .grpc
         .local_addr()
+        .map_err(ServerError::LocalAddr)?;
+    let probe_addr = listeners
+        .probe
+        .as_ref()
+        .map(TcpListener::local_addr)
+        .transpose()
         .map_err(ServerError::LocalAddr)?;
     tracing::info!(
         %addr,
@@ -113,6 +132,7 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
         max_envs_per_session = config.limits.max_envs_per_session,
         max_memory = config.limits.max_memory,
         max_connections = config.connections.max_connections,
+        probe_addr = probe_addr.map(tracing::field::display),
         session_ttl_s = config.limits.session_ttl.as_secs_f64(),
         "serving"
     );
@@ -124,9 +144,13 @@ pub async fn serve(args: &ServeArgs) -> Result<(), ServerError> {
         Some(_) => Hangups::listen(),
         None => Hangups::default(),
     };
-    // The one line on stdout: clients that started this process read the port from it.
+    // The first line on stdout: clients that started this process read the port from it; the
+    // probe port, if any, on the second.
     let mut stdout = std::io::stdout().lock();
     let _ = writeln!(stdout, "dinerdash-server listening on {addr}");
+    if let Some(probe_addr) = probe_addr {
+        let _ = writeln!(stdout, "dinerdash-server probes on {probe_addr}");
+    }
     let _ = stdout.flush();
     drop(stdout);
 
@@ -160,13 +184,53 @@ pub struct Listeners {
     /// The HTTP endpoint: the sessions and watch pages, their feeds, and Prometheus metrics,
     /// asking for the same tokens as the RPCs; `None` serves none.
     pub http: Option<TcpListener>,
+    /// `grpc.health.v1` alone, plaintext, without a token, for orchestrators' probes; the gRPC
+    /// listener then serves health behind the token check. `None`: health is served on the
+    /// gRPC listener without a token.
+    pub probe: Option<TcpListener>,
 }
 
 impl Listeners {
     /// gRPC on `grpc`, no HTTP endpoint.
     pub fn grpc(grpc: TcpListener) -> Listeners {
-        Listeners { grpc, http: None }
+        Listeners {
+            grpc,
+            http: None,
+            probe: None,
+        }
     }
+}
+
+/// Serves `health` alone on `listener` until `stopping` fires (the server stops), plaintext and
+/// without a token, so that an orchestrator's probes (the kubelet's gRPC probe speaks no TLS)
+/// are not answered from the caps that the gRPC port's callers fill: the same bounds as the
+/// gRPC port's calls outside the DinerDash service (a 1 KiB message, arriving within 10 s:
+/// [`IntakeLayer`]), caps of its own ([`ProbeLayer`]: 256 calls, 32 a peer address; Watches
+/// 64, 4 a peer address) and at most [`PROBE_MAX_CONNECTIONS`] connections. Any other path is
+/// answered `UNIMPLEMENTED`.
+async fn serve_probes<H: tonic_health::pb::health_server::Health>(
+    listener: TcpListener,
+    health: tonic_health::pb::health_server::HealthServer<H>,
+    budget: Arc<Budget>,
+    (limits, share): (connections::Limits, Share),
+    metrics: Arc<Metrics>,
+    stopping: shutdown::Shutdown,
+) -> Result<(), tonic::transport::Error> {
+    let limits = connections::Limits {
+        max_connections: PROBE_MAX_CONNECTIONS,
+        ..limits
+    };
+    let incoming = connections::accept(listener, limits, share, metrics, stopping.clone());
+    let mut stopped = stopping;
+    Server::builder()
+        .layer(ProbeLayer::default())
+        .layer(IntakeLayer::new(budget))
+        .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
+        .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
+        .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT))
+        .add_service(health)
+        .serve_with_incoming_shutdown(incoming, async move { stopped.wait().await })
+        .await
 }
 
 /// Serves on `listeners` until `shutdown` completes, then drains (for `config.drain_timeout` at
@@ -263,6 +327,17 @@ pub async fn run_with_hangups(
         ))
     });
     let budget = Arc::clone(store.budget());
+    // The probe listener serves the same statuses: the drain below sets both at once.
+    let probes = listeners.probe.map(|listener| {
+        tokio::spawn(serve_probes(
+            listener,
+            health_service.clone(),
+            Arc::clone(&budget),
+            (config.connections, config.connection_share),
+            Arc::clone(&metrics),
+            stopping.clone(),
+        ))
+    });
     let service = DinerDashService::new(
         store,
         Arc::clone(&metrics),
@@ -294,6 +369,13 @@ pub async fn run_with_hangups(
         builder = builder
             .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(&tls.cert, &tls.key)))?;
     }
+    // Health stays open without the token, so that orchestrators can probe it, unless they
+    // probe the probe listener: then it is a call like any other, behind the token check.
+    let router = if probes.is_some() {
+        builder.add_service(InterceptedService::new(health_service, gate.clone()))
+    } else {
+        builder.add_service(health_service)
+    };
     // The accept loop stops (and closes the port) when the trigger fires.
     let incoming = connections::accept(
         listeners.grpc,
@@ -302,9 +384,7 @@ pub async fn run_with_hangups(
         Arc::clone(&metrics),
         stopping.clone(),
     );
-    let served = builder
-        // Health stays open without the token, so that orchestrators can probe it.
-        .add_service(health_service)
+    let served = router
         .add_service(InterceptedService::new(reflection, gate.clone()))
         .add_service(InterceptedService::new(dinerdash, gate))
         .serve_with_incoming_shutdown(incoming, async {
@@ -333,7 +413,12 @@ pub async fn run_with_hangups(
     if let Some(task) = http_task {
         let _ = task.await;
     }
+    let probes_served = match probes {
+        Some(task) => task.await.unwrap_or(Ok(())),
+        None => Ok(()),
+    };
     served?;
+    probes_served?;
     tracing::info!("server stopped");
     Ok(())
 }

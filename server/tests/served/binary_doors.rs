@@ -86,7 +86,7 @@ fn mib(bytes: u64) -> f64 {
 }
 
 /// A raw HTTP/2 connection to `addr` from `from` (a loopback address; `None`: any).
-async fn h2_connect(addr: &str, from: Option<IpAddr>) -> h2::client::SendRequest<Bytes> {
+pub(crate) async fn h2_connect(addr: &str, from: Option<IpAddr>) -> h2::client::SendRequest<Bytes> {
     let socket = tokio::net::TcpSocket::new_v4().unwrap();
     if let Some(ip) = from {
         socket.bind((ip, 0).into()).unwrap();
@@ -100,7 +100,7 @@ async fn h2_connect(addr: &str, from: Option<IpAddr>) -> h2::client::SendRequest
 }
 
 /// The headers of a gRPC call to `path`, with `token`'s authorization if any.
-fn grpc_headers(addr: &str, path: &str, token: Option<&str>) -> http::Request<()> {
+pub(crate) fn grpc_headers(addr: &str, path: &str, token: Option<&str>) -> http::Request<()> {
     let mut request = http::Request::builder()
         .method("POST")
         .uri(format!("http://{addr}{path}"))
@@ -113,7 +113,7 @@ fn grpc_headers(addr: &str, path: &str, token: Option<&str>) -> http::Request<()
 }
 
 /// A gRPC message's 5-byte header announcing `length`, then `payload`.
-fn framed(length: usize, payload: &[u8]) -> Bytes {
+pub(crate) fn framed(length: usize, payload: &[u8]) -> Bytes {
     let mut out = vec![0];
     out.extend_from_slice(&u32::try_from(length).unwrap().to_be_bytes());
     out.extend_from_slice(payload);
@@ -121,7 +121,7 @@ fn framed(length: usize, payload: &[u8]) -> Bytes {
 }
 
 /// The `grpc-status` of a response: from its headers (a trailers-only answer) or trailers.
-async fn grpc_status(response: h2::client::ResponseFuture) -> Option<u32> {
+pub(crate) async fn grpc_status(response: h2::client::ResponseFuture) -> Option<u32> {
     let response = response.await.ok()?;
     let status = |headers: &http::HeaderMap| {
         headers
@@ -140,7 +140,7 @@ async fn grpc_status(response: h2::client::ResponseFuture) -> Option<u32> {
 }
 
 /// A unary call over a raw connection: its `grpc-status` (`None`: the connection failed).
-async fn unary(
+pub(crate) async fn unary(
     send: &mut h2::client::SendRequest<Bytes>,
     addr: &str,
     path: &str,

@@ -20,6 +20,7 @@ mod binary_fair;
 mod binary_hostile;
 mod binary_memory;
 mod binary_operations;
+mod binary_probes;
 mod binary_restore;
 mod binary_tenants;
 mod grpc_concurrency;

@@ -3,7 +3,7 @@
 
 #![allow(dead_code)]
 
-use std::io::Read;
+use std::io::{BufRead as _, BufReader, Read};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -35,14 +35,32 @@ impl Process {
         Process::spawn(format!("exec {wrapper} '{exe}' --port 0 {args}"))
     }
 
+    /// [`Process::start_exe`] with `--probe-port 0`: also the address of its probe listener,
+    /// read from its second line (`dinerdash-server probes on ADDR`).
+    pub fn start_probed(exe: &str, prefix: &str, args: &str) -> (Process, String) {
+        let mut child = child(format!(
+            "{prefix} exec '{exe}' --port 0 --probe-port 0 {args}"
+        ));
+        let mut stdout = BufReader::new(child.stdout.take().expect("stdout piped"));
+        let mut line = || {
+            let mut line = String::new();
+            stdout.read_line(&mut line).unwrap();
+            line
+        };
+        let (first, second) = (line(), line());
+        let after = |line: &str, prefix: &str| {
+            line.trim()
+                .strip_prefix(prefix)
+                .unwrap_or_else(|| panic!("unexpected line {line:?}"))
+                .to_owned()
+        };
+        let addr = after(&first, "dinerdash-server listening on ");
+        let probe = after(&second, "dinerdash-server probes on ");
+        (Process { child, addr }, probe)
+    }
+
     fn spawn(script: String) -> Process {
-        let mut child = Command::new("sh")
-            .arg("-c")
-            .arg(script)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
+        let mut child = child(script);
         let addr = listening_addr(&mut child);
         Process { child, addr }
     }
@@ -112,6 +130,17 @@ impl Process {
             .unwrap();
         (status, stderr)
     }
+}
+
+/// `sh -c script`, its stdout and stderr piped.
+fn child(script: String) -> Child {
+    Command::new("sh")
+        .arg("-c")
+        .arg(script)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
 }
 
 impl Drop for Process {
