@@ -348,6 +348,11 @@ impl Budget {
         self.metrics.memory_used_bytes.get()
     }
 
+    /// The metrics its gauges are.
+    pub fn metrics(&self) -> &Arc<Metrics> {
+        &self.metrics
+    }
+
     /// Live sessions.
     pub fn live_sessions(&self) -> u64 {
         self.metrics.live_sessions.get()

@@ -16,7 +16,7 @@ use super::fd_limit::{Capacity, soft_limit};
 use super::table::{Shed, Table, Tracked};
 use super::{ConnInfo, Limits};
 use crate::budget::{Share, Tenant};
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, Refusal};
 use crate::shutdown::Shutdown;
 
 /// Connections the kernel queues until the accept loop takes them. A burst of clients (a
@@ -171,7 +171,7 @@ impl Accepting {
             );
             match &admitted {
                 Some((_, Shed::Peer)) => {
-                    self.metrics.connections_shed.inc();
+                    self.metrics.count_refusal(Refusal::AddressCap);
                     // A warning for the first, then one every 1,024: a flood must not flood the log.
                     if peer_sheds % 1024 == 0 {
                         tracing::warn!(

@@ -36,6 +36,7 @@ use super::in_flight::{Call, CallBody, CallFuture};
 use super::table::Activity;
 use crate::budget::{Budget, Held, IntakeCharge, SharedShare, Tenant, intake_bound};
 use crate::codec::intake::CALL_BYTES;
+use crate::metrics::{Metrics, Refusal};
 
 /// Most calls outside the DinerDash service open at once, from everyone.
 pub const PROBE_CALLS: usize = 256;
@@ -86,11 +87,23 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// The tower layer that caps the calls outside the DinerDash service; every service is behind
-/// it: `Server::builder().layer(ProbeLayer::default())`.
-#[derive(Debug, Clone, Default)]
+/// it: `Server::builder().layer(ProbeLayer::new(metrics))`.
+#[derive(Debug, Clone)]
 pub struct ProbeLayer {
     /// The calls open now.
     probes: SharedProbes,
+    /// Counts the refusals.
+    metrics: Arc<Metrics>,
+}
+
+impl ProbeLayer {
+    /// Caps the calls outside the DinerDash service, counting refusals in `metrics`.
+    pub fn new(metrics: Arc<Metrics>) -> ProbeLayer {
+        ProbeLayer {
+            probes: SharedProbes::default(),
+            metrics,
+        }
+    }
 }
 
 impl<S> tower::Layer<S> for ProbeLayer {
@@ -100,6 +113,7 @@ impl<S> tower::Layer<S> for ProbeLayer {
         ProbeCalls {
             inner,
             probes: Arc::clone(&self.probes),
+            metrics: Arc::clone(&self.metrics),
         }
     }
 }
@@ -111,6 +125,8 @@ pub struct ProbeCalls<S> {
     inner: S,
     /// The calls open now.
     probes: SharedProbes,
+    /// Counts the refusals.
+    metrics: Arc<Metrics>,
 }
 
 /// A call outside the DinerDash service, counted until its response ends.
@@ -185,7 +201,10 @@ where
             .map(|addr| addr.ip());
         match ProbeSlot::take(&self.probes, request.uri().path(), peer) {
             Ok(slot) => Answer::call(self.inner.call(request), Some(slot)),
-            Err(status) => Answer::Refused(Some(status.into_http())),
+            Err(status) => {
+                self.metrics.count_refusal(Refusal::ProbeCalls);
+                Answer::Refused(Some(status.into_http()))
+            }
         }
     }
 }
@@ -249,6 +268,10 @@ impl Admitted {
         })
     }
 
+    fn metrics(&self) -> &Metrics {
+        self.budget.metrics()
+    }
+
     /// Most calls open at once on a server without tokens.
     pub fn per_identity(&self) -> u64 {
         self.per_identity
@@ -258,6 +281,7 @@ impl Admitted {
     fn open(self: &Arc<Self>, tenant: Option<&Arc<Tenant>>) -> Result<CallSlot, Status> {
         let counted = match tenant {
             Some(tenant) => Counted::Tenant(tenant.take_stream().map_err(|(open, max)| {
+                self.metrics().count_refusal(Refusal::StreamsQuota);
                 Status::resource_exhausted(format!(
                     "{} has {open} calls open, its streams quota of {max} calls at once (its \
                      part of those the intake bound holds, or streams= in the tokens file): \
@@ -272,6 +296,7 @@ impl Admitted {
                         (open < max).then_some(open + 1)
                     })
                     .map_err(|open| {
+                        self.metrics().count_refusal(Refusal::CallsOpen);
                         Status::resource_exhausted(format!(
                             "{open} calls are open, the most a server without tokens takes \
                              (1/{IDENTITY_SHARE} of what the intake bound, a quarter of \
@@ -284,6 +309,7 @@ impl Admitted {
             }
         };
         let charge = self.budget.charge_intake(CALL_BYTES).map_err(|e| {
+            self.metrics().count_refusal(Refusal::Intake);
             Status::resource_exhausted(format!(
                 "an open call is charged {} KiB while it lasts: {e}",
                 CALL_BYTES >> 10
@@ -317,7 +343,11 @@ impl Drop for Counted {
 /// Makes the connection of `activity` its first authenticated caller's: counted against that
 /// `tenant`'s `connections` quota until it closes (none on a server without tokens), or refused
 /// (it stays nobody's). Once it is someone's, one atomic load.
-fn claim(activity: &Activity, tenant: Option<&Arc<Tenant>>) -> Result<(), Status> {
+fn claim(
+    activity: &Activity,
+    tenant: Option<&Arc<Tenant>>,
+    metrics: &Metrics,
+) -> Result<(), Status> {
     if activity.authenticated.load(Ordering::Acquire) {
         return Ok(());
     }
@@ -327,6 +357,7 @@ fn claim(activity: &Activity, tenant: Option<&Arc<Tenant>>) -> Result<(), Status
     }
     if let Some(tenant) = tenant {
         let held = tenant.take_connection().map_err(|(held, max)| {
+            metrics.count_refusal(Refusal::ConnectionsQuota);
             Status::resource_exhausted(format!(
                 "{} holds {held} connections, its connections quota of {max} (its part of \
                  --max-connections, or connections= in the tokens file): make its calls on the \
@@ -394,7 +425,9 @@ where
             .or_else(|| ext.get::<SharedShare>().map(|shared| &shared.0));
         let activity = conn_info_in(ext).and_then(|info| info.activity.as_ref());
         let admitted = activity
-            .map_or(Ok(()), |activity| claim(activity, tenant))
+            .map_or(Ok(()), |activity| {
+                claim(activity, tenant, self.admitted.metrics())
+            })
             .and_then(|()| self.admitted.open(tenant));
         match admitted {
             Ok(mut slot) => {

@@ -436,6 +436,25 @@ async fn neither_strangers_nor_one_tenant_take_the_web_endpoints_slots() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// How many calls or connections the server refused for `reason`
+/// (`dinerdash_refusals_total{reason=...}`), read from its metrics as `token`.
+async fn refusals(addr: &str, token: &str, reason: &str) -> u64 {
+    let mut c = client(addr).await;
+    let info = c.server_info(with_token(token, pb::ServerInfoRequest {}));
+    let port = info.await.unwrap().into_inner().http_port;
+    let web = std::net::SocketAddr::from(([127, 0, 0, 1], u16::try_from(port).unwrap()));
+    let request = format!(
+        "GET /metrics HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {token}\r\n\
+         Connection: close\r\n\r\n"
+    );
+    let (status, text) = grpc_support::http_exchange(web, &request).await;
+    assert_eq!(status, 200, "{text}");
+    let line = format!("dinerdash_refusals_total{{reason=\"{reason}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&line))
+        .map_or(0, |n| n.trim().parse().unwrap())
+}
+
 /// A held StepStream: what keeps it open.
 type Held = (h2::client::SendRequest<Bytes>, h2::SendStream<Bytes>);
 
@@ -464,7 +483,7 @@ async fn open_stream(
 async fn a_tenant_holds_at_most_its_part_of_the_connections() {
     let dir = scratch("connections");
     // Two tenants: 4 connections each.
-    let server = start(&dir, "--max-connections 8");
+    let server = start(&dir, "--max-connections 8 --http-port 0");
     let addr = server.addr.clone();
     // Tenant A opens as many connections as the server takes, each holding a StepStream.
     let (mut held, mut refused) = (Vec::new(), Vec::new());
@@ -498,6 +517,11 @@ async fn a_tenant_holds_at_most_its_part_of_the_connections() {
             .send_data(framed(0, &[]), false)
             .expect("a stream of tenant A was closed");
     }
+    // Each refusal is counted by its quota.
+    assert_eq!(
+        refusals(&addr, TOKEN_B, "connections_quota").await,
+        refused.len() as u64
+    );
     drop(held);
     let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
@@ -509,7 +533,8 @@ async fn a_tenant_holds_at_most_its_part_of_the_open_calls() {
     let dir = scratch("streams");
     // Three tenants share the calls the intake bound holds (1,365 at 64 MiB): 455 each.
     let tenants = format!("{TENANTS}team-c team-c-token-cccc\n");
-    let server = start_with(&dir, &tenants, &format!("--max-memory {MAX_MEMORY}"));
+    let args = format!("--max-memory {MAX_MEMORY} --http-port 0");
+    let server = start_with(&dir, &tenants, &args);
     let addr = server.addr.clone();
     // Tenant A opens 600 StepStreams over 3 connections (256 streams a connection at most).
     let (mut held, mut refused) = (Vec::new(), Vec::new());
@@ -555,6 +580,10 @@ async fn a_tenant_holds_at_most_its_part_of_the_open_calls() {
         send = ready;
         b_held.push(stream);
     }
+    assert_eq!(
+        refusals(&addr, TOKEN_B, "streams_quota").await,
+        refused.len() as u64
+    );
     drop((held, b_held));
     let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
@@ -565,7 +594,7 @@ async fn a_tenant_holds_at_most_its_part_of_the_open_calls() {
 async fn strangers_from_one_address_hold_at_most_a_quarter_of_the_connections() {
     let dir = scratch("address");
     // A quarter of 32: 8 connections without an authenticated call from one address.
-    let server = start(&dir, "--max-connections 32");
+    let server = start(&dir, "--max-connections 32 --http-port 0");
     let addr = server.addr.clone();
     const INFO: &str = "/dinerdash.v1.DinerDash/ServerInfo";
     // Tenant A's 6 connections, from the address the strangers will use.
@@ -610,6 +639,12 @@ async fn strangers_from_one_address_hold_at_most_a_quarter_of_the_connections() 
     tokio::time::timeout(PATIENCE, served(&mut b, TOKEN_B, 4))
         .await
         .expect("tenant B was not served");
+    // Each stranger's connection closed for the cap is counted.
+    let closed = refusals(&addr, TOKEN_B, "address_cap").await;
+    assert!(
+        closed >= 16,
+        "{closed} connections closed for the address's cap"
+    );
     drop(strangers);
     let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
