@@ -219,7 +219,7 @@ pub struct TenantRules {
     /// `--max-connections`.
     pub max_connections: u64,
     /// The calls the intake bound holds (`connections::calls::calls_held`); one identity's part
-    /// is at most half of them, as [`connections::calls::IDENTITY_SHARE`] says, even alone.
+    /// is at most half of them, as [`IDENTITY_SHARE`] says, even alone.
     pub max_calls: u64,
     /// The shared token (`DINERDASH_AUTH_TOKEN` / `--auth-token`), if any: a tenant's token may
     /// not be it, and it counts as one more identity in the fair part of the sessions.
