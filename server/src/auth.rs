@@ -12,7 +12,9 @@ use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use tonic::{Request, Status};
 
 use crate::audit::{Audit, AuthFailure, called_method};
+pub use crate::budget::SharedShare;
 use crate::budget::{Share, Tenant};
+use crate::connections::calls::IDENTITY_SHARE;
 use crate::connections::conn_info;
 use crate::shutdown::{self, Shutdown};
 
@@ -129,7 +131,7 @@ fn without_comment(line: &str) -> &str {
 }
 
 /// Reads `--auth-tokens-file`: one tenant a line, `NAME TOKEN [envs=N] [sessions=N]
-/// [rollouts=N]`; what a line does not give is `default`'s. Blank lines and comments are
+/// [rollouts=N] [connections=N] [streams=N]`; what a line does not give is `default`'s. Blank lines and comments are
 /// skipped: a comment starts with a `#` at the start of a line or after whitespace. Names and
 /// tokens must be unique, and every token must pass [`check_token`]. The errors name the line
 /// and the tenant, never the token.
@@ -144,7 +146,9 @@ pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, Stri
         let mut words = line.split_whitespace();
         let (Some(name), Some(token)) = (words.next(), words.next()) else {
             return Err(at(
-                "expected `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`".into(),
+                "expected `NAME TOKEN [envs=N] [sessions=N] [rollouts=N] [connections=N] \
+                 [streams=N]`"
+                    .into(),
             ));
         };
         check_token(token).map_err(|e| at(format!("tenant {name:?}: {e}")))?;
@@ -160,9 +164,12 @@ pub fn parse_tenants(text: &str, default: Share) -> Result<Vec<TenantLine>, Stri
                 "envs" => share.max_envs = value,
                 "sessions" => share.max_sessions = value,
                 "rollouts" => share.max_rollouts = value,
+                "connections" => share.max_connections = value,
+                "streams" => share.max_streams = value,
                 other => {
                     return Err(at(format!(
-                        "unknown quota {other:?}: use envs, sessions or rollouts"
+                        "unknown quota {other:?}: use envs, sessions, rollouts, connections or \
+                         streams"
                     )));
                 }
             }
@@ -191,23 +198,29 @@ pub fn tenant_tokens(text: &str, default: Share) -> Result<Vec<Token>, String> {
     Ok(Roster::default().tokens(parse_tenants(text, default)?))
 }
 
-/// Sessions each identity may hold when its line gives no `sessions=`: an equal part of
-/// `max_sessions` for each of `identities` (the tenants, and the shared token if there is one),
-/// at least one, so that no identity can take every session slot and every one can always
-/// reach its part.
-pub fn fair_sessions(max_sessions: u64, identities: usize) -> u64 {
-    (max_sessions / identities.max(1) as u64).max(1)
+/// What each identity may hold of a server-wide limit (`--max-sessions`, `--max-connections`,
+/// the calls the intake bound holds) when its line does not say: an equal part of `max` for each
+/// of `identities` (the tenants, and the shared token if there is one), at least one, so that no
+/// identity can take all of it and every one can always reach its part.
+pub fn fair_part(max: u64, identities: usize) -> u64 {
+    (max / identities.max(1) as u64).max(1)
 }
 
 /// What the tenants of a tokens file may hold when their lines say nothing else, and the shared
 /// token their tokens must differ from.
 #[derive(Debug, Clone)]
 pub struct TenantRules {
-    /// `--max-envs-per-tenant` and `--max-rollouts-per-tenant`; its `max_sessions` is ignored:
-    /// a tenant's sessions default to its fair part of `max_sessions` ([`fair_sessions`]).
+    /// `--max-envs-per-tenant` and `--max-rollouts-per-tenant`; its `max_sessions`,
+    /// `max_connections` and `max_streams` are ignored: a tenant's default to its fair part
+    /// ([`fair_part`]) of the three below.
     pub share: Share,
     /// `--max-sessions`.
     pub max_sessions: u64,
+    /// `--max-connections`.
+    pub max_connections: u64,
+    /// The calls the intake bound holds (`connections::calls::calls_held`); one identity's part
+    /// is at most half of them, as [`IDENTITY_SHARE`] says, even alone.
+    pub max_calls: u64,
     /// The shared token (`DINERDASH_AUTH_TOKEN` / `--auth-token`), if any: a tenant's token may
     /// not be it, and it counts as one more identity in the fair part of the sessions.
     pub shared_token: Option<Secret>,
@@ -221,10 +234,7 @@ impl TenantRules {
         // Counted first: the fair part depends on how many identities there are.
         let count = parse_tenants(text, self.share)?.len();
         let identities = count + usize::from(self.shared_token.is_some());
-        let default = Share {
-            max_sessions: fair_sessions(self.max_sessions, identities),
-            ..self.share
-        };
+        let default = self.fair_share(identities);
         let lines = parse_tenants(text, default)?;
         if let Some(shared) = &self.shared_token
             && let Some(line) = lines.iter().find(|l| l.token == *shared)
@@ -238,10 +248,19 @@ impl TenantRules {
         Ok(lines)
     }
 
-    /// The shared token's share: `share`, its sessions its fair part among `tenants` tenants.
+    /// The shared token's share: `share`, its sessions, connections and calls its fair part
+    /// among `tenants` tenants and itself.
     pub fn shared_share(&self, tenants: usize) -> Share {
+        self.fair_share(tenants + 1)
+    }
+
+    /// `share` with its sessions, connections and calls each an equal part for `identities`;
+    /// the calls at most 1/[`IDENTITY_SHARE`] of those the intake bound holds.
+    fn fair_share(&self, identities: usize) -> Share {
         Share {
-            max_sessions: fair_sessions(self.max_sessions, tenants + 1),
+            max_sessions: fair_part(self.max_sessions, identities),
+            max_connections: fair_part(self.max_connections, identities),
+            max_streams: fair_part(self.max_calls, identities.max(IDENTITY_SHARE)),
             ..self.share
         }
     }
@@ -304,11 +323,6 @@ pub struct Tokens {
     /// What the shared token's requests count against, as one identity (not per connection).
     shared: Option<Arc<Tenant>>,
 }
-
-/// The share the shared token's requests count against (a request extension the
-/// [`RequestGate`] adds): one for all its connections.
-#[derive(Debug, Clone)]
-pub struct SharedShare(pub Arc<Tenant>);
 
 impl fmt::Debug for Tokens {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -540,6 +554,8 @@ mod tests {
         let rules = TenantRules {
             share: Share::default(),
             max_sessions: 10,
+            max_connections: 7,
+            max_calls: 1365,
             shared_token: Some("shared-token-0123456789".into()),
         };
         let text = "a aaaaaaaaaaaaaaaa\nb bbbbbbbbbbbbbbbb sessions=7\n";
@@ -548,7 +564,22 @@ mod tests {
         assert_eq!(lines[0].share.max_sessions, 3);
         assert_eq!(lines[1].share.max_sessions, 7);
         assert_eq!(rules.shared_share(2).max_sessions, 3);
-        assert_eq!(fair_sessions(1, 5), 1);
+        // Connections and calls too: 7 / 3, and 1365 / 3.
+        assert_eq!(lines[0].share.max_connections, 2);
+        assert_eq!(lines[0].share.max_streams, 455);
+        let alone = rules.shared_share(0);
+        // Alone, an identity may have half the calls open (two are needed to fill the bound).
+        assert_eq!((alone.max_connections, alone.max_streams), (7, 682));
+        assert_eq!(fair_part(1, 5), 1);
+        let quotas = "c cccccccccccccccc connections=9 streams=11\n";
+        let c = &rules.lines(quotas).unwrap()[0].share;
+        assert_eq!((c.max_connections, c.max_streams), (9, 11));
+        assert!(
+            rules
+                .lines("c cccccccccccccccc sockets=9\n")
+                .unwrap_err()
+                .contains("use envs, sessions, rollouts, connections or streams")
+        );
         let twice = rules.lines("a shared-token-0123456789\n").unwrap_err();
         assert!(
             twice.contains("tenant \"a\"'s token is also the shared token"),

@@ -40,6 +40,11 @@ pub struct Share {
     pub max_sessions: u64,
     /// Rollout streams running at once.
     pub max_rollouts: u64,
+    /// Connections it may hold at once: a connection is its from its first authenticated call
+    /// (`connections::calls`).
+    pub max_connections: u64,
+    /// Calls it may have open at once (unary calls and streams, over all its connections).
+    pub max_streams: u64,
 }
 
 impl Default for Share {
@@ -48,6 +53,8 @@ impl Default for Share {
             max_envs: DEFAULT_TENANT_ENVS,
             max_sessions: u64::MAX,
             max_rollouts: DEFAULT_TENANT_ROLLOUTS,
+            max_connections: u64::MAX,
+            max_streams: u64::MAX,
         }
     }
 }
@@ -117,6 +124,10 @@ pub struct Tenant {
     sessions: AtomicU64,
     /// Rollout streams running.
     rollouts: AtomicU64,
+    /// Connections it holds.
+    connections: AtomicU64,
+    /// Calls it has open.
+    streams: AtomicU64,
 }
 
 impl Tenant {
@@ -128,6 +139,8 @@ impl Tenant {
             envs: AtomicU64::new(0),
             sessions: AtomicU64::new(0),
             rollouts: AtomicU64::new(0),
+            connections: AtomicU64::new(0),
+            streams: AtomicU64::new(0),
         }
     }
 
@@ -155,6 +168,84 @@ impl Tenant {
     pub fn envs(&self) -> u64 {
         self.envs.load(Ordering::Relaxed)
     }
+
+    /// Counts one more connection of its, unless it holds its `max_connections`; refused, says
+    /// how many it holds and may hold.
+    pub fn take_connection(self: &Arc<Self>) -> Result<Held, (u64, u64)> {
+        let max = self.share().max_connections;
+        take(&self.connections, 1, max).map_err(|held| (held, max))?;
+        Ok(Held {
+            tenant: Arc::clone(self),
+            what: HeldKind::Connection,
+        })
+    }
+
+    /// Counts one more open call of its, unless it has its `max_streams` open; refused, says
+    /// how many it has open and may have.
+    pub fn take_stream(self: &Arc<Self>) -> Result<Held, (u64, u64)> {
+        let max = self.share().max_streams;
+        take(&self.streams, 1, max).map_err(|held| (held, max))?;
+        Ok(Held {
+            tenant: Arc::clone(self),
+            what: HeldKind::Stream,
+        })
+    }
+
+    /// Connections it holds now.
+    pub fn connections(&self) -> u64 {
+        self.connections.load(Ordering::Relaxed)
+    }
+
+    /// Calls it has open now.
+    pub fn streams(&self) -> u64 {
+        self.streams.load(Ordering::Relaxed)
+    }
+}
+
+/// The share the shared token's requests count against (a request extension the request gate,
+/// `auth::RequestGate`, adds): one for all its connections.
+#[derive(Debug, Clone)]
+pub struct SharedShare(pub Arc<Tenant>);
+
+/// Which counter a [`Held`] counts in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum HeldKind {
+    /// [`Tenant::take_connection`].
+    Connection,
+    /// [`Tenant::take_stream`].
+    Stream,
+}
+
+/// A connection or an open call counted against a tenant's share; given back when dropped.
+#[derive(Debug)]
+pub struct Held {
+    /// Whose.
+    tenant: Arc<Tenant>,
+    /// Which counter.
+    what: HeldKind,
+}
+
+impl Held {
+    /// Whose share it counts against.
+    pub fn tenant(&self) -> &Arc<Tenant> {
+        &self.tenant
+    }
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        let counter = match self.what {
+            HeldKind::Connection => &self.tenant.connections,
+            HeldKind::Stream => &self.tenant.streams,
+        };
+        give(counter, 1);
+    }
+}
+
+/// The intake bound of a server of `--max-memory` `max_bytes`: a quarter of it, at least
+/// [`MIN_INTAKE_BYTES`].
+pub fn intake_bound(max_bytes: u64) -> u64 {
+    (max_bytes / INTAKE_SHARE).max(MIN_INTAKE_BYTES)
 }
 
 /// Adds `n` to `counter` unless that passes `max`; on refusal returns what it holds.
@@ -255,6 +346,11 @@ impl Budget {
     /// Bytes held now.
     pub fn used_bytes(&self) -> u64 {
         self.metrics.memory_used_bytes.get()
+    }
+
+    /// The metrics its gauges are.
+    pub fn metrics(&self) -> &Arc<Metrics> {
+        &self.metrics
     }
 
     /// Live sessions.
@@ -395,7 +491,7 @@ impl Budget {
     /// Bytes requests being received and decoded may hold: a quarter of `--max-memory`, at
     /// least [`MIN_INTAKE_BYTES`].
     pub fn max_intake_bytes(&self) -> u64 {
-        (self.max_bytes / INTAKE_SHARE).max(MIN_INTAKE_BYTES)
+        intake_bound(self.max_bytes)
     }
 
     /// Bytes requests being received and decoded hold now.
@@ -430,6 +526,7 @@ mod tests {
             max_envs: 10,
             max_sessions: 2,
             max_rollouts: 1,
+            ..Share::default()
         };
         let tenant = Arc::new(Tenant::new("connection a".into(), share));
         let a = budget.charge_session(&tenant, 4, 400).unwrap();

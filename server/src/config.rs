@@ -15,6 +15,7 @@ use clap::ValueEnum;
 
 use crate::auth::{Roster, Secret, TenantRules, Token, TokenError, check_token};
 use crate::budget::{DEFAULT_MAX_MEMORY, DEFAULT_TENANT_ENVS, DEFAULT_TENANT_ROLLOUTS, Share};
+use crate::connections::calls::calls_held;
 use crate::connections::{self, DEFAULT_MAX_CONNECTIONS};
 use crate::pools::{DEFAULT_PARALLEL_MIN_ENVS, DEFAULT_PARALLEL_MIN_PLANNER_ENVS, Stepping};
 use crate::rollout::{self, MAX_ROLLOUT_WORK_STEPS};
@@ -75,6 +76,11 @@ pub struct ServeArgs {
     /// a call in flight, new ones are answered RESOURCE_EXHAUSTED and closed.
     #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS as u32, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_connections: u32,
+    /// Most connections from one peer address that have made no authenticated call (default:
+    /// a quarter of --max-connections): at it, a new one from that address closes the longest
+    /// idle of them. A tenant's connections (from its first call with a token) do not count.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_connections_per_address: Option<u32>,
     /// Close connections silent this long (live clients answer keepalive pings every 30 s).
     #[arg(long, default_value = "120", value_parser = parse_duration)]
     pub idle_timeout: Duration,
@@ -103,11 +109,12 @@ pub struct ServeArgs {
     /// 16 visible ASCII characters, no `#`. Prefer the environment variable: flags show in `ps`.
     #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
     pub auth_token: Option<Secret>,
-    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N]`; `#` starts a
-    /// comment at the start of a line or after whitespace. Each token is accepted like
-    /// --auth-token (and follows its rules), and its requests count against its tenant's share:
-    /// by default an equal part of --max-sessions for each tenant (and the shared token, if
-    /// given, which must differ from every tenant's). Read again on SIGHUP.
+    /// Tenants, one a line: `NAME TOKEN [envs=N] [sessions=N] [rollouts=N] [connections=N]
+    /// [streams=N]`; `#` starts a comment at the start of a line or after whitespace. Each
+    /// token is accepted like --auth-token (and follows its rules), and its requests count
+    /// against its tenant's share: by default an equal part of --max-sessions, of
+    /// --max-connections and of the calls open at once for each tenant (and the shared token,
+    /// if given, which must differ from every tenant's). Read again on SIGHUP.
     #[arg(long)]
     pub auth_tokens_file: Option<PathBuf>,
     /// Start even where a port is open beyond this machine without a token (--host), or the
@@ -258,6 +265,8 @@ impl ServeArgs {
             max_envs: self.max_envs_per_tenant,
             max_sessions: u64::MAX,
             max_rollouts: self.max_rollouts_per_tenant,
+            max_connections: u64::MAX,
+            max_streams: u64::MAX,
         }
     }
 
@@ -433,6 +442,8 @@ impl ServerConfig {
         TenantRules {
             share: self.connection_share,
             max_sessions: self.limits.max_sessions as u64,
+            max_connections: self.connections.max_connections as u64,
+            max_calls: calls_held(self.limits.max_memory),
             shared_token: self.auth_token.clone(),
         }
     }
@@ -453,6 +464,8 @@ impl ServerConfig {
         let rules = TenantRules {
             share,
             max_sessions: u64::from(args.max_sessions),
+            max_connections: u64::from(args.max_connections),
+            max_calls: calls_held(args.max_memory),
             shared_token: auth_token.clone(),
         };
         let tenants = match &args.auth_tokens_file {
@@ -479,6 +492,7 @@ impl ServerConfig {
             connections: connections::Limits {
                 max_connections: args.max_connections as usize,
                 idle_timeout: args.idle_timeout,
+                max_connections_per_address: args.max_connections_per_address.map(|n| n as usize),
                 ..connections::Limits::default()
             },
             tls,

@@ -4,8 +4,9 @@
 //! Each metric is declared once, in the `metrics!` list below: its field, its type, its
 //! Prometheus name and help. The list makes the struct and registers every field's handle with
 //! the registry [`Metrics::render`] encodes, in the order listed (the order of `/metrics`). The
-//! handles are `prometheus-client`'s own types: [`Counter`], [`Gauge`] and a [`Family`] of
-//! counters labelled by gRPC status code ([`CodeLabel`]). Cloning a handle shares its atomic,
+//! handles are `prometheus-client`'s own types: [`Counter`], [`Gauge`] and [`Family`]s of
+//! counters labelled by gRPC status code ([`CodeLabel`]) and by the limit that refused
+//! ([`ReasonLabel`]). Cloning a handle shares its atomic,
 //! so what the registry reads is what the server bumped: there is no second copy.
 //!
 //! Counters and gauges are single atomics bumped on the hot path (relaxed: statistics, not
@@ -70,6 +71,51 @@ impl GrpcCode {
 }
 
 impl EncodeLabelValue for GrpcCode {
+    fn encode(&self, encoder: &mut LabelValueEncoder) -> Result<(), std::fmt::Error> {
+        std::fmt::Write::write_str(encoder, self.name())
+    }
+}
+
+/// The label of [`Metrics::refusals`]: `reason="streams_quota"`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, EncodeLabelSet)]
+pub struct ReasonLabel {
+    /// Which limit refused.
+    pub reason: Refusal,
+}
+
+/// A limit that refused a call or closed a connection, as [`Metrics::refusals`] counts it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Refusal {
+    /// A tenant's first call on a connection over its `connections` quota.
+    ConnectionsQuota,
+    /// A call over its identity's `streams` quota.
+    StreamsQuota,
+    /// A call over what a server without tokens lets be open at once.
+    CallsOpen,
+    /// A call whose charge the intake bound could not take.
+    Intake,
+    /// A call outside the DinerDash service over their caps (in all, or from one address).
+    ProbeCalls,
+    /// A connection without an authenticated call closed for its address's cap
+    /// (`--max-connections-per-address`).
+    AddressCap,
+}
+
+impl Refusal {
+    /// The label value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Refusal::ConnectionsQuota => "connections_quota",
+            Refusal::StreamsQuota => "streams_quota",
+            Refusal::CallsOpen => "calls_open",
+            Refusal::Intake => "intake",
+            Refusal::ProbeCalls => "probe_calls",
+            Refusal::AddressCap => "address_cap",
+        }
+    }
+}
+
+impl EncodeLabelValue for Refusal {
     fn encode(&self, encoder: &mut LabelValueEncoder) -> Result<(), std::fmt::Error> {
         std::fmt::Write::write_str(encoder, self.name())
     }
@@ -142,6 +188,8 @@ metrics! {
         "Connections over the connection limit open now, answered RESOURCE_EXHAUSTED";
     rpc_errors: Family<CodeLabel, Counter> = "dinerdash_rpc_errors",
         "RPCs that failed, by gRPC status code";
+    refusals: Family<ReasonLabel, Counter> = "dinerdash_refusals",
+        "Calls refused and connections closed at a quota or cap, by the limit";
 }
 
 impl Metrics {
@@ -152,6 +200,11 @@ impl Metrics {
                 code: GrpcCode(code),
             })
             .inc();
+    }
+
+    /// Counts one call refused (or connection closed) by `reason`.
+    pub fn count_refusal(&self, reason: Refusal) {
+        self.refusals.get_or_create(&ReasonLabel { reason }).inc();
     }
 
     /// The metrics in Prometheus' text exposition format (version 0.0.4, [`CONTENT_TYPE`]),
@@ -198,6 +251,13 @@ mod tests {
         }
         assert!(!text.contains("code=\"OK\""), "{text}");
         assert_eq!(text.matches("# TYPE ").count(), 18);
+        metrics.count_refusal(Refusal::StreamsQuota);
+        let text = metrics.render();
+        assert!(
+            text.lines()
+                .any(|l| l == "dinerdash_refusals_total{reason=\"streams_quota\"} 1"),
+            "{text}"
+        );
     }
 
     #[test]

@@ -357,7 +357,7 @@ pub async fn run_with_hangups(
     // timeout; dead ones do not, and are closed.
     let mut builder = Server::builder()
         // Health checks and reflection, open without a token, are few at once.
-        .layer(ProbeLayer::default())
+        .layer(ProbeLayer::new(Arc::clone(&metrics)))
         // The method of each request, for the audit of refused tokens.
         .layer(MethodLayer)
         // Large messages count against --max-memory while they are received and decoded.

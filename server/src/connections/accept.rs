@@ -13,10 +13,10 @@ use tokio_stream::wrappers::ReceiverStream;
 
 use super::conn::Conn;
 use super::fd_limit::{Capacity, soft_limit};
-use super::table::{Table, Tracked};
+use super::table::{Shed, Table, Tracked};
 use super::{ConnInfo, Limits};
 use crate::budget::{Share, Tenant};
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, Refusal};
 use crate::shutdown::Shutdown;
 
 /// Connections the kernel queues until the accept loop takes them. A burst of clients (a
@@ -86,6 +86,7 @@ pub fn accept(
     let (tx, rx) = mpsc::channel(16);
     let accepting = Accepting {
         limits,
+        per_address: limits.strangers_per_address(capacity.max_connections),
         capacity,
         share,
         metrics,
@@ -101,6 +102,8 @@ struct Accepting {
     limits: Limits,
     /// The limits under the open-file limit.
     capacity: Capacity,
+    /// Most connections from one address without an authenticated call.
+    per_address: usize,
     /// Each connection's tenant share.
     share: Share,
     /// The connection counters.
@@ -120,6 +123,8 @@ impl Accepting {
         let mut failures: u64 = 0;
         // Connections shed since the loop last admitted one without shedding.
         let mut shed_run: u64 = 0;
+        // Connections shed for their address's cap.
+        let mut peer_sheds: u64 = 0;
         // A shed connection closes when its task next runs; until then its descriptor is open.
         // A burst of new connections must not outrun them into the open-file limit.
         let most_closing = (self.capacity.max_over_limit / 2).max(1);
@@ -159,9 +164,27 @@ impl Accepting {
             backoff = BACKOFF.0;
             // Small request/reply pairs are the hot path: Nagle's algorithm would hold them back.
             let _ = io.set_nodelay(true);
-            let admitted = self.table.admit(self.capacity.max_connections);
+            let admitted = self.table.admit(
+                self.capacity.max_connections,
+                self.per_address,
+                Some(remote.ip()),
+            );
             match &admitted {
-                Some((_, true)) => {
+                Some((_, Shed::Peer)) => {
+                    self.metrics.count_refusal(Refusal::AddressCap);
+                    // A warning for the first, then one every 1,024: a flood must not flood the log.
+                    if peer_sheds % 1024 == 0 {
+                        tracing::warn!(
+                            peer = %remote.ip(),
+                            max_connections_per_address = self.per_address,
+                            shed = peer_sheds + 1,
+                            "an address holds its most connections without an authenticated \
+                             call: closing its longest-idle one to admit each new one"
+                        );
+                    }
+                    peer_sheds += 1;
+                }
+                Some((_, Shed::Limit)) => {
                     self.metrics.connections_shed.inc();
                     if shed_run == 0 {
                         tracing::warn!(
@@ -172,7 +195,7 @@ impl Accepting {
                     }
                     shed_run += 1;
                 }
-                Some((_, false)) if shed_run > 0 => {
+                Some((_, Shed::No)) if shed_run > 0 => {
                     tracing::info!(shed = shed_run, "below the connection limit again");
                     shed_run = 0;
                 }

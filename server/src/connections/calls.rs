@@ -8,17 +8,22 @@
 //!   `RESOURCE_EXHAUSTED` at their headers. Their one message is 1 KiB at most and must arrive
 //!   within 10 s of the call (`codec::intake`).
 //! - Each DinerDash call that passed the token check ([`Admit`]) is charged
-//!   [`CALL_BYTES`] against the intake bound for as long as it
-//!   is open, and one identity (a tenant, or the shared identity) may hold at most
-//!   [`IDENTITY_SHARE`] of the calls that bound holds; more are refused `RESOURCE_EXHAUSTED`
-//!   before their message is read. Only these calls count as in flight for shedding, and the
-//!   first one marks its connection as a tenant's: those that never made one are shed first.
+//!   [`CALL_BYTES`] against the intake bound for as long as it is open, and counted against its
+//!   identity's `streams` quota: a tenant's or the shared token's `max_streams`, by default its
+//!   fair part of the calls that bound holds and at most 1/[`IDENTITY_SHARE`] of them
+//!   (`auth::TenantRules`); on a server without tokens, all calls together at most
+//!   1/[`IDENTITY_SHARE`]. More are refused `RESOURCE_EXHAUSTED` before their message is read.
+//! - Only these calls count as in flight for shedding, and the first one makes its connection
+//!   its identity's (those that never made one are shed first), counted against the identity's
+//!   `connections` quota (`max_connections`, by default its fair part of `--max-connections`)
+//!   until it closes: a call that would pass it is refused `RESOURCE_EXHAUSTED`, and the
+//!   connection stays nobody's.
 
 use std::collections::HashMap;
 use std::future::Future;
 use std::net::IpAddr;
 use std::pin::Pin;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::task::{Context, Poll};
 
@@ -28,8 +33,10 @@ use tonic::server::NamedService;
 
 use super::conn_info_in;
 use super::in_flight::{Call, CallBody, CallFuture};
-use crate::budget::{Budget, IntakeCharge, Tenant};
+use super::table::Activity;
+use crate::budget::{Budget, Held, IntakeCharge, SharedShare, Tenant, intake_bound};
 use crate::codec::intake::CALL_BYTES;
+use crate::metrics::{Metrics, Refusal};
 
 /// Most calls outside the DinerDash service open at once, from everyone.
 pub const PROBE_CALLS: usize = 256;
@@ -45,6 +52,12 @@ const WATCH: &str = "/grpc.health.v1.Health/Watch";
 /// One identity may hold at most this part of the calls the intake bound holds (1/2: two
 /// identities are needed to fill it).
 pub const IDENTITY_SHARE: usize = 2;
+/// The calls the intake bound of a server of `--max-memory` `max_memory` holds at
+/// [`CALL_BYTES`] each.
+pub fn calls_held(max_memory: u64) -> u64 {
+    intake_bound(max_memory) / CALL_BYTES
+}
+
 /// The paths of the DinerDash service.
 const SERVICE_PREFIX: &str = "/dinerdash.v1.DinerDash/";
 
@@ -74,11 +87,23 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// The tower layer that caps the calls outside the DinerDash service; every service is behind
-/// it: `Server::builder().layer(ProbeLayer::default())`.
-#[derive(Debug, Clone, Default)]
+/// it: `Server::builder().layer(ProbeLayer::new(metrics))`.
+#[derive(Debug, Clone)]
 pub struct ProbeLayer {
     /// The calls open now.
     probes: SharedProbes,
+    /// Counts the refusals.
+    metrics: Arc<Metrics>,
+}
+
+impl ProbeLayer {
+    /// Caps the calls outside the DinerDash service, counting refusals in `metrics`.
+    pub fn new(metrics: Arc<Metrics>) -> ProbeLayer {
+        ProbeLayer {
+            probes: SharedProbes::default(),
+            metrics,
+        }
+    }
 }
 
 impl<S> tower::Layer<S> for ProbeLayer {
@@ -88,6 +113,7 @@ impl<S> tower::Layer<S> for ProbeLayer {
         ProbeCalls {
             inner,
             probes: Arc::clone(&self.probes),
+            metrics: Arc::clone(&self.metrics),
         }
     }
 }
@@ -99,6 +125,8 @@ pub struct ProbeCalls<S> {
     inner: S,
     /// The calls open now.
     probes: SharedProbes,
+    /// Counts the refusals.
+    metrics: Arc<Metrics>,
 }
 
 /// A call outside the DinerDash service, counted until its response ends.
@@ -173,7 +201,10 @@ where
             .map(|addr| addr.ip());
         match ProbeSlot::take(&self.probes, request.uri().path(), peer) {
             Ok(slot) => Answer::call(self.inner.call(request), Some(slot)),
-            Err(status) => Answer::Refused(Some(status.into_http())),
+            Err(status) => {
+                self.metrics.count_refusal(Refusal::ProbeCalls);
+                Answer::Refused(Some(status.into_http()))
+            }
         }
     }
 }
@@ -213,102 +244,142 @@ where
     }
 }
 
-/// The authenticated calls open now, by identity.
+/// The authenticated calls open now: each counted against its identity's `streams` quota and
+/// charged against the intake bound.
 #[derive(Debug)]
 pub struct Admitted {
     /// Where each call is charged [`CALL_BYTES`].
     budget: Arc<Budget>,
-    /// Most calls one identity may have open.
-    per_identity: usize,
-    /// Calls open by identity: a tenant's address, 0 for the shared identity.
-    open: Mutex<HashMap<usize, usize>>,
+    /// Most calls open at once on a server without tokens (all its calls are nobody's).
+    per_identity: u64,
+    /// Calls open on a server without tokens.
+    anonymous: AtomicU64,
 }
 
 impl Admitted {
     /// Charges calls against `budget`'s intake bound.
     pub fn new(budget: Arc<Budget>) -> Arc<Admitted> {
         let holds = budget.max_intake_bytes() / CALL_BYTES;
-        let per_identity = (usize::try_from(holds).unwrap_or(usize::MAX) / IDENTITY_SHARE).max(1);
+        let per_identity = (holds / IDENTITY_SHARE as u64).max(1);
         Arc::new(Admitted {
             budget,
             per_identity,
-            open: Mutex::new(HashMap::new()),
+            anonymous: AtomicU64::new(0),
         })
     }
 
-    /// Most calls one identity may have open.
-    pub fn per_identity(&self) -> usize {
+    fn metrics(&self) -> &Metrics {
+        self.budget.metrics()
+    }
+
+    /// Most calls open at once on a server without tokens.
+    pub fn per_identity(&self) -> u64 {
         self.per_identity
     }
 
-    /// Opens a call of `tenant` (`None`: the shared identity), or says why not.
-    fn open(self: &Arc<Self>, tenant: Option<Arc<Tenant>>) -> Result<CallSlot, Status> {
-        let key = identity_key(tenant.as_ref());
-        {
-            let mut open = lock(&self.open);
-            let n = open.entry(key).or_default();
-            if *n >= self.per_identity {
-                let n = *n;
-                drop(open);
-                let who = tenant
-                    .as_deref()
-                    .map_or("the shared identity", Tenant::name);
-                return Err(Status::resource_exhausted(format!(
-                    "{who} has {n} calls open, the most one identity may (1/{IDENTITY_SHARE} of \
-                     what the intake bound, a quarter of --max-memory, holds at {} KiB a call): \
-                     end some, or raise --max-memory",
-                    CALL_BYTES >> 10
-                )));
+    /// Opens a call of `tenant` (`None`: a server without tokens), or says why not.
+    fn open(self: &Arc<Self>, tenant: Option<&Arc<Tenant>>) -> Result<CallSlot, Status> {
+        let counted = match tenant {
+            Some(tenant) => Counted::Tenant(tenant.take_stream().map_err(|(open, max)| {
+                self.metrics().count_refusal(Refusal::StreamsQuota);
+                Status::resource_exhausted(format!(
+                    "{} has {open} calls open, its streams quota of {max} calls at once (its \
+                     part of those the intake bound holds, or streams= in the tokens file): \
+                     end some",
+                    tenant.name()
+                ))
+            })?),
+            None => {
+                let max = self.per_identity;
+                self.anonymous
+                    .fetch_update(Ordering::AcqRel, Ordering::Acquire, |open| {
+                        (open < max).then_some(open + 1)
+                    })
+                    .map_err(|open| {
+                        self.metrics().count_refusal(Refusal::CallsOpen);
+                        Status::resource_exhausted(format!(
+                            "{open} calls are open, the most a server without tokens takes \
+                             (1/{IDENTITY_SHARE} of what the intake bound, a quarter of \
+                             --max-memory, holds at {} KiB a call): end some, or raise \
+                             --max-memory",
+                            CALL_BYTES >> 10
+                        ))
+                    })?;
+                Counted::Anonymous(Arc::clone(self))
             }
-            *n += 1;
-        }
-        let slot = CallSlot {
-            admitted: Arc::clone(self),
-            tenant,
-            charge: None,
-            call: None,
         };
         let charge = self.budget.charge_intake(CALL_BYTES).map_err(|e| {
+            self.metrics().count_refusal(Refusal::Intake);
             Status::resource_exhausted(format!(
                 "an open call is charged {} KiB while it lasts: {e}",
                 CALL_BYTES >> 10
             ))
         })?;
-        let mut slot = slot;
-        slot.charge = Some(charge);
-        Ok(slot)
+        Ok(CallSlot {
+            _counted: counted,
+            _charge: charge,
+            call: None,
+        })
     }
 }
 
-/// The key of `tenant`'s calls: its address, 0 for the shared identity.
-fn identity_key(tenant: Option<&Arc<Tenant>>) -> usize {
-    tenant.map_or(0, |t| Arc::as_ptr(t) as usize)
+/// Where an open call is counted.
+#[derive(Debug)]
+enum Counted {
+    /// Against its tenant's (or the shared token's) `streams` quota.
+    Tenant(#[allow(dead_code, reason = "held to be given back when dropped")] Held),
+    /// Among a server without tokens' calls.
+    Anonymous(Arc<Admitted>),
+}
+
+impl Drop for Counted {
+    fn drop(&mut self) {
+        if let Counted::Anonymous(admitted) = self {
+            admitted.anonymous.fetch_sub(1, Ordering::AcqRel);
+        }
+    }
+}
+
+/// Makes the connection of `activity` its first authenticated caller's: counted against that
+/// `tenant`'s `connections` quota until it closes (none on a server without tokens), or refused
+/// (it stays nobody's). Once it is someone's, one atomic load.
+fn claim(
+    activity: &Activity,
+    tenant: Option<&Arc<Tenant>>,
+    metrics: &Metrics,
+) -> Result<(), Status> {
+    if activity.authenticated.load(Ordering::Acquire) {
+        return Ok(());
+    }
+    let mut owner = lock(&activity.owner);
+    if activity.authenticated.load(Ordering::Acquire) {
+        return Ok(());
+    }
+    if let Some(tenant) = tenant {
+        let held = tenant.take_connection().map_err(|(held, max)| {
+            metrics.count_refusal(Refusal::ConnectionsQuota);
+            Status::resource_exhausted(format!(
+                "{} holds {held} connections, its connections quota of {max} (its part of \
+                 --max-connections, or connections= in the tokens file): make its calls on the \
+                 connections it has, or close one",
+                tenant.name()
+            ))
+        })?;
+        *owner = Some(held);
+    }
+    activity.authenticated.store(true, Ordering::Release);
+    Ok(())
 }
 
 /// An authenticated call, counted and charged until its response ends.
 #[derive(Debug)]
 pub struct CallSlot {
     /// Where it is counted.
-    admitted: Arc<Admitted>,
-    /// Whose call it is (kept, so that its key stays its own while counted).
-    tenant: Option<Arc<Tenant>>,
+    _counted: Counted,
     /// Its [`CALL_BYTES`].
-    charge: Option<IntakeCharge>,
+    _charge: IntakeCharge,
     /// Counted in flight on its connection.
     call: Option<Call>,
-}
-
-impl Drop for CallSlot {
-    fn drop(&mut self) {
-        let key = identity_key(self.tenant.as_ref());
-        let mut open = lock(&self.admitted.open);
-        if let Some(n) = open.get_mut(&key) {
-            *n -= 1;
-            if *n == 0 {
-                open.remove(&key);
-            }
-        }
-    }
 }
 
 /// The DinerDash service behind the token check: each call is admitted ([`Admitted`]),
@@ -347,15 +418,20 @@ where
     }
 
     fn call(&mut self, request: http::Request<ReqBody>) -> Self::Future {
-        let tenant = request.extensions().get::<Arc<Tenant>>().cloned();
-        match self.admitted.open(tenant) {
+        let ext = request.extensions();
+        // A tenant's, or the shared token's; none on a server without tokens.
+        let tenant = ext
+            .get::<Arc<Tenant>>()
+            .or_else(|| ext.get::<SharedShare>().map(|shared| &shared.0));
+        let activity = conn_info_in(ext).and_then(|info| info.activity.as_ref());
+        let admitted = activity
+            .map_or(Ok(()), |activity| {
+                claim(activity, tenant, self.admitted.metrics())
+            })
+            .and_then(|()| self.admitted.open(tenant));
+        match admitted {
             Ok(mut slot) => {
-                if let Some(activity) =
-                    conn_info_in(request.extensions()).and_then(|info| info.activity.as_ref())
-                {
-                    activity.authenticated.store(true, Ordering::Relaxed);
-                    slot.call = Some(Call::new(activity));
-                }
+                slot.call = activity.map(Call::new);
                 Answer::call(self.inner.call(request), Some(slot))
             }
             Err(status) => Answer::Refused(Some(status.into_http())),
@@ -373,26 +449,35 @@ mod tests {
     fn one_identity_holds_at_most_its_share_of_the_calls() {
         let budget = Arc::new(Budget::new(1 << 20, 10, Arc::new(Metrics::default())));
         let admitted = Admitted::new(Arc::clone(&budget));
-        // The intake bound's floor, 64 MiB, holds 1365 calls of 48 KiB: one identity 682.
+        // The intake bound's floor, 64 MiB, holds 1365 calls of 48 KiB: on a server without
+        // tokens, all its calls together 682.
+        assert_eq!(calls_held(1 << 20), 1365);
         assert_eq!(admitted.per_identity(), 682);
-        let a = Arc::new(Tenant::new("tenant a".into(), Share::default()));
-        let mut held: Vec<CallSlot> = (0..682)
-            .map(|_| admitted.open(Some(Arc::clone(&a))).unwrap())
-            .collect();
-        assert_eq!(budget.intake_bytes(), 682 * CALL_BYTES);
-        let e = admitted.open(Some(Arc::clone(&a))).unwrap_err();
+        let share = Share {
+            max_streams: 455,
+            ..Share::default()
+        };
+        let a = Arc::new(Tenant::new("tenant a".into(), share));
+        let mut held: Vec<CallSlot> = (0..455).map(|_| admitted.open(Some(&a)).unwrap()).collect();
+        assert_eq!(budget.intake_bytes(), 455 * CALL_BYTES);
+        assert_eq!(a.streams(), 455);
+        let e = admitted.open(Some(&a)).unwrap_err();
         assert_eq!(e.code(), tonic::Code::ResourceExhausted);
         assert!(
-            e.message().starts_with("tenant a has 682 calls open"),
+            e.message()
+                .starts_with("tenant a has 455 calls open, its streams quota of 455"),
             "{e:?}"
         );
         // Another identity is not refused for it.
-        let shared = admitted.open(None).unwrap();
+        let others: Vec<CallSlot> = (0..682).map(|_| admitted.open(None).unwrap()).collect();
+        let e = admitted.open(None).unwrap_err();
+        assert!(e.message().starts_with("682 calls are open"), "{e:?}");
         held.pop();
-        admitted.open(Some(Arc::clone(&a))).unwrap();
-        drop((held, shared));
+        held.push(admitted.open(Some(&a)).unwrap());
+        drop((held, others));
         assert_eq!(budget.intake_bytes(), 0);
-        assert!(lock(&admitted.open).is_empty());
+        assert_eq!(a.streams(), 0);
+        assert_eq!(admitted.anonymous.load(Ordering::Relaxed), 0);
     }
 
     #[test]

@@ -18,6 +18,12 @@
 //!   A shed connection closes when its task next runs; the loop accepts no more while too many
 //!   are still closing, so that a burst of new connections cannot outrun them into the
 //!   open-file limit.
+//! - Connections from one peer address that have made no authenticated call hold at most
+//!   [`Limits::max_connections_per_address`] (by default a quarter of the limit): at that
+//!   cap, a new one from the address closes the longest idle of them, so that strangers from
+//!   one address never hold more, while a tenant from it still connects.
+//! - A connection is its first authenticated caller's, counted against that identity's
+//!   `connections` quota until it closes ([`calls`]).
 //! - When every connection has a call in flight, a new connection is still accepted, but only to
 //!   be answered `RESOURCE_EXHAUSTED` (see [`ConnInfo::over_limit`]) and closed after a short
 //!   grace; beyond [`Capacity::max_over_limit`] of those (counting the shed ones still closing) it
@@ -61,6 +67,9 @@ use table::Activity;
 
 /// Default most connections served at once.
 pub const DEFAULT_MAX_CONNECTIONS: usize = 1024;
+/// By default, the connections of one peer address that made no authenticated call may hold
+/// 1/4 of `--max-connections` (`--max-connections-per-address`).
+pub const STRANGERS_PER_ADDRESS: usize = 4;
 /// Default time a connection may stay silent (no bytes, not even a keepalive ping's answer).
 pub const DEFAULT_IDLE_TIMEOUT: Duration = Duration::from_secs(120);
 /// Default time a new connection has to send the HTTP/2 preface. Clients send it with their
@@ -88,6 +97,20 @@ pub struct Limits {
     /// A connection that has not sent the HTTP/2 preface this long after it was accepted is
     /// closed.
     pub preface_timeout: Duration,
+    /// Most connections from one peer address that have made no authenticated call; at it, a
+    /// new one from that address closes the longest idle of them. `None`:
+    /// [`STRANGERS_PER_ADDRESS`] of `max_connections`.
+    pub max_connections_per_address: Option<usize>,
+}
+
+impl Limits {
+    /// Most connections from one address without an authenticated call, of `max_connections`
+    /// (the limit under the open-file limit): the one given, or its default part, at least 1.
+    pub fn strangers_per_address(&self, max_connections: usize) -> usize {
+        self.max_connections_per_address
+            .unwrap_or(max_connections / STRANGERS_PER_ADDRESS)
+            .max(1)
+    }
 }
 
 impl Default for Limits {
@@ -96,6 +119,7 @@ impl Default for Limits {
             max_connections: DEFAULT_MAX_CONNECTIONS,
             idle_timeout: DEFAULT_IDLE_TIMEOUT,
             preface_timeout: DEFAULT_PREFACE_TIMEOUT,
+            max_connections_per_address: None,
         }
     }
 }

@@ -2,12 +2,15 @@
 
 use std::collections::HashMap;
 use std::future::Future;
+use std::net::IpAddr;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::task::Context;
 
 use tokio::sync::{Notify, oneshot};
+
+use crate::budget::Held;
 use tokio::time::Instant;
 
 /// What the accept loop reads of a connection to choose which to shed.
@@ -21,6 +24,11 @@ pub(super) struct Activity {
     pub(super) in_flight: AtomicUsize,
     /// It has made an authenticated call ([`calls::Admit`](super::calls::Admit)).
     pub(super) authenticated: AtomicBool,
+    /// Whose it is since that call, counted against that tenant's connections until it
+    /// closes; `None` before, or on a server without tokens.
+    pub(super) owner: Mutex<Option<Held>>,
+    /// The peer's address, for the cap on strangers from one address.
+    pub(super) peer: Option<IpAddr>,
 }
 
 impl Activity {
@@ -84,6 +92,28 @@ struct Open {
     closing: usize,
 }
 
+impl Open {
+    /// Closes connection `id` for another.
+    fn shed(&mut self, id: u64) {
+        if let Some(entry) = self.conns.remove(&id) {
+            // The connection sees it at its next read (one is always pending) and closes.
+            let _ = entry.close.send(());
+            self.closing += 1;
+        }
+    }
+}
+
+/// Whether a connection was admitted by closing another, and why.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Shed {
+    /// Nothing was closed.
+    No,
+    /// The server was at its connection limit.
+    Limit,
+    /// The new connection's address had its most connections that made no authenticated call.
+    Peer,
+}
+
 /// One admitted connection in the table.
 #[derive(Debug)]
 struct Entry {
@@ -124,23 +154,39 @@ impl Table {
         u64::try_from(at.saturating_duration_since(self.epoch).as_millis()).unwrap_or(u64::MAX)
     }
 
-    /// Admits a connection: below `max` at once, at `max` by shedding one (`shed` is then
-    /// true). `None`: the table is full of connections with calls in flight.
-    pub(super) fn admit(self: &Arc<Self>, max: usize) -> Option<(Tracked, bool)> {
+    /// Admits a connection from `peer`: when `per_peer` connections from that address have
+    /// made no authenticated call, by shedding the longest idle of them ([`Shed::Peer`]); else
+    /// below `max` at once, at `max` by shedding one ([`Shed::Limit`]). `None`: the table is
+    /// full of connections with calls in flight.
+    pub(super) fn admit(
+        self: &Arc<Self>,
+        max: usize,
+        per_peer: usize,
+        peer: Option<IpAddr>,
+    ) -> Option<(Tracked, Shed)> {
         let now = Instant::now();
         let mut open = self.lock();
-        let shed = open.conns.len() >= max;
-        if shed {
+        let mut shed = Shed::No;
+        if peer.is_some() {
+            let strangers = open.conns.iter().filter(|(_, entry)| {
+                entry.activity.peer == peer && !entry.activity.authenticated.load(Ordering::Acquire)
+            });
+            if strangers.clone().count() >= per_peer {
+                let strangers = strangers.map(|(&id, entry)| (id, entry.activity.idle()));
+                if let Some(victim) = choose_to_shed(strangers) {
+                    open.shed(victim);
+                    shed = Shed::Peer;
+                }
+            }
+        }
+        if open.conns.len() >= max {
             let victim = choose_to_shed(
                 open.conns
                     .iter()
                     .map(|(&id, entry)| (id, entry.activity.idle())),
             )?;
-            if let Some(entry) = open.conns.remove(&victim) {
-                // The connection sees it at its next read (one is always pending) and closes.
-                let _ = entry.close.send(());
-                open.closing += 1;
-            }
+            open.shed(victim);
+            shed = Shed::Limit;
         }
         let id = open.next_id;
         open.next_id += 1;
@@ -149,6 +195,8 @@ impl Table {
             preface: AtomicBool::new(false),
             in_flight: AtomicUsize::new(0),
             authenticated: AtomicBool::new(false),
+            owner: Mutex::new(None),
+            peer,
         });
         let (close, closed) = oneshot::channel();
         open.conns.insert(
@@ -196,6 +244,14 @@ impl Tracked {
 
 impl Drop for Tracked {
     fn drop(&mut self) {
+        // Its tenant's connection given back.
+        drop(
+            self.activity
+                .owner
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .take(),
+        );
         let mut open = self.table.lock();
         if open.conns.remove(&self.id).is_none() {
             // It was shed, and is closed now.
@@ -267,15 +323,15 @@ mod tests {
     #[tokio::test]
     async fn admitting_at_the_limit_closes_the_chosen_connection() {
         let table = Arc::new(Table::new());
-        let (mut first, shed) = table.admit(2).unwrap();
-        assert!(!shed);
-        let (second, shed) = table.admit(2).unwrap();
-        assert!(!shed);
+        let (mut first, shed) = table.admit(2, 2, None).unwrap();
+        assert_eq!(shed, Shed::No);
+        let (second, shed) = table.admit(2, 2, None).unwrap();
+        assert_eq!(shed, Shed::No);
         // The first has sent its preface and has a call in flight; the second is silent.
         first.activity.preface.store(true, Ordering::Relaxed);
         let call = Call::new(&first.activity);
-        let (third, shed) = table.admit(2).unwrap();
-        assert!(shed);
+        let (third, shed) = table.admit(2, 2, None).unwrap();
+        assert_eq!(shed, Shed::Limit);
         let mut second = second;
         let waker = std::task::Waker::noop();
         let mut cx = Context::from_waker(waker);
@@ -293,16 +349,46 @@ mod tests {
             .unwrap();
         // Both left have calls in flight: nothing to shed, the next one is over the limit.
         let third_call = Call::new(&third.activity);
-        assert!(table.admit(2).is_none());
+        assert!(table.admit(2, 2, None).is_none());
         // A call ended: that connection may go now.
         drop(call);
-        let (_fourth, shed) = table.admit(2).unwrap();
-        assert!(shed);
+        let (_fourth, shed) = table.admit(2, 2, None).unwrap();
+        assert_eq!(shed, Shed::Limit);
         assert!(first.poll_shed(&mut cx));
         drop(third_call);
         drop(third);
         assert_eq!(table.lock().conns.len(), 1);
         drop(first);
         assert_eq!(table.closing(), 0);
+    }
+
+    #[tokio::test]
+    async fn strangers_from_one_address_hold_at_most_their_cap() {
+        let table = Arc::new(Table::new());
+        let here = Some(IpAddr::from([10, 0, 0, 1]));
+        let there = Some(IpAddr::from([10, 0, 0, 2]));
+        let (tenants, shed) = table.admit(8, 2, here).unwrap();
+        assert_eq!(shed, Shed::No);
+        // A tenant's connection (it made an authenticated call) is no stranger.
+        tenants
+            .activity
+            .authenticated
+            .store(true, Ordering::Release);
+        let (mut first, _) = table.admit(8, 2, here).unwrap();
+        let (second, shed) = table.admit(8, 2, here).unwrap();
+        assert_eq!(shed, Shed::No);
+        // Another address has its own two.
+        let (_elsewhere, shed) = table.admit(8, 2, there).unwrap();
+        assert_eq!(shed, Shed::No);
+        let (_third, shed) = table.admit(8, 2, here).unwrap();
+        assert_eq!(shed, Shed::Peer);
+        let waker = std::task::Waker::noop();
+        let mut cx = Context::from_waker(waker);
+        assert!(
+            first.poll_shed(&mut cx),
+            "the oldest stranger was not closed"
+        );
+        assert_eq!(table.lock().conns.len(), 4);
+        drop((first, second, tenants));
     }
 }

@@ -262,6 +262,7 @@ impl Default for Plays {
             max_envs: MAX_RECORDINGS as u64,
             max_sessions: MAX_RECORDINGS as u64,
             max_rollouts: 0,
+            ..Share::default()
         };
         Plays {
             games: Mutex::new(Vec::new()),

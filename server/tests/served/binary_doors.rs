@@ -13,6 +13,12 @@
 //!   connection stays open.
 //! - Web endpoint slots (item 4): tenant A holding 32 event streams and 32 silent sockets
 //!   without a token do not make the endpoint refuse tenant B.
+//! - Quotas (item 5): a tenant holds at most its fair part of `--max-connections` and of the
+//!   calls open at once (its streams); beyond them its calls are refused `RESOURCE_EXHAUSTED`
+//!   naming the quota, and the other tenants connect and are served.
+//! - One address (item 2): connections from one address that made no authenticated call hold
+//!   at most a quarter of `--max-connections`; the tenants' connections from the same address
+//!   stay, and a tenant still connects.
 //!
 //! The attacks speak raw HTTP/2 ([`h2`]) so that a message can be left unfinished. Nothing
 //! depends on the machine's speed: counts are fixed, every wait is bounded by a deadline, and
@@ -55,9 +61,14 @@ const TOKEN_B: &str = "team-b-token-bbbb";
 
 /// The server under test, with the two tenants and `args`; its tenants file in `dir`.
 fn start(dir: &std::path::Path, args: &str) -> Process {
+    start_with(dir, TENANTS, args)
+}
+
+/// The server under test, with the tenants file `tenants` (in `dir`) and `args`.
+fn start_with(dir: &std::path::Path, tenants: &str, args: &str) -> Process {
     std::fs::create_dir_all(dir).unwrap();
     let file = dir.join("tenants");
-    std::fs::write(&file, TENANTS).unwrap();
+    std::fs::write(&file, tenants).unwrap();
     let args = format!(
         "--auth-tokens-file '{}' --drain-timeout 0 {args}",
         file.display()
@@ -420,6 +431,221 @@ async fn neither_strangers_nor_one_tenant_take_the_web_endpoints_slots() {
     // A's streams served before the strangers came were not closed for them.
     assert!(served > 0);
     drop((streams, silent));
+    let (status, _) = server.terminate().await;
+    assert_eq!(status.code(), Some(0));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// How many calls or connections the server refused for `reason`
+/// (`dinerdash_refusals_total{reason=...}`), read from its metrics as `token`.
+async fn refusals(addr: &str, token: &str, reason: &str) -> u64 {
+    let mut c = client(addr).await;
+    let info = c.server_info(with_token(token, pb::ServerInfoRequest {}));
+    let port = info.await.unwrap().into_inner().http_port;
+    let web = std::net::SocketAddr::from(([127, 0, 0, 1], u16::try_from(port).unwrap()));
+    let request = format!(
+        "GET /metrics HTTP/1.1\r\nHost: localhost\r\nAuthorization: Bearer {token}\r\n\
+         Connection: close\r\n\r\n"
+    );
+    let (status, text) = grpc_support::http_exchange(web, &request).await;
+    assert_eq!(status, 200, "{text}");
+    let line = format!("dinerdash_refusals_total{{reason=\"{reason}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&line))
+        .map_or(0, |n| n.trim().parse().unwrap())
+}
+
+/// A held StepStream: what keeps it open.
+type Held = (h2::client::SendRequest<Bytes>, h2::SendStream<Bytes>);
+
+/// Opens a StepStream as `token` on `send` and leaves it open: held (the server answered its
+/// headers and the stream goes on), or refused with its `grpc-status` and `grpc-message`.
+async fn open_stream(
+    send: h2::client::SendRequest<Bytes>,
+    addr: &str,
+    token: &str,
+) -> Result<Held, (u32, String)> {
+    let failed = || (u32::MAX, "the connection failed".to_owned());
+    let mut ready = send.ready().await.map_err(|_| failed())?;
+    let headers = grpc_headers(addr, "/dinerdash.v1.DinerDash/StepStream", Some(token));
+    let (response, stream) = ready.send_request(headers, false).map_err(|_| failed())?;
+    let response = tokio::time::timeout(PATIENCE, response)
+        .await
+        .expect("no answer to a StepStream's headers")
+        .map_err(|_| failed())?;
+    match tonic::Status::from_header_map(response.headers()) {
+        None => Ok((ready, stream)),
+        Some(status) => Err((status.code() as u32, status.message().to_owned())),
+    }
+}
+
+#[tokio::test]
+async fn a_tenant_holds_at_most_its_part_of_the_connections() {
+    let dir = scratch("connections");
+    // Two tenants: 4 connections each.
+    let server = start(&dir, "--max-connections 8 --http-port 0");
+    let addr = server.addr.clone();
+    // Tenant A opens as many connections as the server takes, each holding a StepStream.
+    let (mut held, mut refused) = (Vec::new(), Vec::new());
+    for _ in 0..8 {
+        match open_stream(h2_connect(&addr, None).await, &addr, TOKEN_A).await {
+            Ok(stream) => held.push(stream),
+            Err(refusal) => refused.push(refusal),
+        }
+    }
+    println!(
+        "tenant A's connections holding a stream: {} of 8; refused: {refused:?}",
+        held.len()
+    );
+    // Tenant B connects and is served while A holds its part.
+    let mut b = client(&addr).await;
+    tokio::time::timeout(PATIENCE, served(&mut b, TOKEN_B, 4))
+        .await
+        .expect("tenant B was not served");
+    assert_eq!(held.len(), 4, "tenant A holds more than its part");
+    for (code, message) in &refused {
+        assert_eq!(*code, tonic::Code::ResourceExhausted as u32, "{message}");
+        assert!(
+            message.contains("tenant team-a holds 4 connections")
+                && message.contains("connections quota of 4"),
+            "{message}"
+        );
+    }
+    // A's held streams were not closed for it: each still takes a Step request's frame.
+    for (_, stream) in &mut held {
+        stream
+            .send_data(framed(0, &[]), false)
+            .expect("a stream of tenant A was closed");
+    }
+    // Each refusal is counted by its quota.
+    assert_eq!(
+        refusals(&addr, TOKEN_B, "connections_quota").await,
+        refused.len() as u64
+    );
+    drop(held);
+    let (status, _) = server.terminate().await;
+    assert_eq!(status.code(), Some(0));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[tokio::test]
+async fn a_tenant_holds_at_most_its_part_of_the_open_calls() {
+    let dir = scratch("streams");
+    // Three tenants share the calls the intake bound holds (1,365 at 64 MiB): 455 each.
+    let tenants = format!("{TENANTS}team-c team-c-token-cccc\n");
+    let args = format!("--max-memory {MAX_MEMORY} --http-port 0");
+    let server = start_with(&dir, &tenants, &args);
+    let addr = server.addr.clone();
+    // Tenant A opens 600 StepStreams over 3 connections (256 streams a connection at most).
+    let (mut held, mut refused) = (Vec::new(), Vec::new());
+    for _ in 0..3 {
+        let mut send = h2_connect(&addr, None).await;
+        for _ in 0..200 {
+            match open_stream(send.clone(), &addr, TOKEN_A).await {
+                Ok((ready, stream)) => {
+                    send = ready;
+                    held.push(stream);
+                }
+                Err(refusal) => refused.push(refusal),
+            }
+        }
+    }
+    println!(
+        "tenant A's StepStreams held: {} of 600; refused: {} ({:?})",
+        held.len(),
+        refused.len(),
+        refused.first()
+    );
+    assert_eq!(held.len(), 455, "tenant A holds more than its part");
+    for (code, message) in &refused {
+        assert_eq!(*code, tonic::Code::ResourceExhausted as u32, "{message}");
+        assert!(
+            message.contains("tenant team-a has 455 calls open, its streams quota of 455"),
+            "{message}"
+        );
+    }
+    // Tenants B and C are served meanwhile, and each may open as many.
+    for token in [TOKEN_B, "team-c-token-cccc"] {
+        let mut c = client(&addr).await;
+        tokio::time::timeout(PATIENCE, served(&mut c, token, 4))
+            .await
+            .expect("another tenant was not served");
+    }
+    let mut send = h2_connect(&addr, None).await;
+    let mut b_held = Vec::new();
+    for _ in 0..200 {
+        let (ready, stream) = open_stream(send, &addr, TOKEN_B)
+            .await
+            .expect("tenant B's StepStream was refused");
+        send = ready;
+        b_held.push(stream);
+    }
+    assert_eq!(
+        refusals(&addr, TOKEN_B, "streams_quota").await,
+        refused.len() as u64
+    );
+    drop((held, b_held));
+    let (status, _) = server.terminate().await;
+    assert_eq!(status.code(), Some(0));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[tokio::test]
+async fn strangers_from_one_address_hold_at_most_a_quarter_of_the_connections() {
+    let dir = scratch("address");
+    // A quarter of 32: 8 connections without an authenticated call from one address.
+    let server = start(&dir, "--max-connections 32 --http-port 0");
+    let addr = server.addr.clone();
+    const INFO: &str = "/dinerdash.v1.DinerDash/ServerInfo";
+    // Tenant A's 6 connections, from the address the strangers will use.
+    let mut tenant = Vec::new();
+    for _ in 0..6 {
+        let mut send = h2_connect(&addr, None).await;
+        assert_eq!(
+            unary(&mut send, &addr, INFO, Some(TOKEN_A), &[]).await,
+            Some(0)
+        );
+        tenant.push(send);
+    }
+    // 24 connections without a token from that address: the HTTP/2 handshake, then silence.
+    let mut strangers = Vec::new();
+    for _ in 0..24 {
+        let tcp = TcpStream::connect(&addr).await.unwrap();
+        let (send, connection) = h2::client::handshake(tcp).await.unwrap();
+        strangers.push((send, tokio::spawn(connection)));
+    }
+    let open = |strangers: &[(_, tokio::task::JoinHandle<_>)]| {
+        strangers.iter().filter(|(_, c)| !c.is_finished()).count()
+    };
+    let deadline = tokio::time::Instant::now() + PATIENCE;
+    while open(&strangers) > 8 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let left = open(&strangers);
+    println!("strangers' connections from one address still open: {left} of 24");
+    assert!(
+        left <= 8,
+        "{left} connections without a token from one address are open"
+    );
+    // The tenant's connections from that address stay, and another tenant connects.
+    for send in &mut tenant {
+        assert_eq!(
+            unary(send, &addr, INFO, Some(TOKEN_A), &[]).await,
+            Some(0),
+            "a connection of tenant A was closed"
+        );
+    }
+    let mut b = client(&addr).await;
+    tokio::time::timeout(PATIENCE, served(&mut b, TOKEN_B, 4))
+        .await
+        .expect("tenant B was not served");
+    // Each stranger's connection closed for the cap is counted.
+    let closed = refusals(&addr, TOKEN_B, "address_cap").await;
+    assert!(
+        closed >= 16,
+        "{closed} connections closed for the address's cap"
+    );
+    drop(strangers);
     let (status, _) = server.terminate().await;
     assert_eq!(status.code(), Some(0));
     std::fs::remove_dir_all(&dir).unwrap();
