@@ -128,6 +128,8 @@ pub struct Tenant {
     connections: AtomicU64,
     /// Calls it has open.
     streams: AtomicU64,
+    /// Its share's `max_streams`, read without the share's lock on every call.
+    max_streams: AtomicU64,
 }
 
 impl Tenant {
@@ -141,6 +143,7 @@ impl Tenant {
             rollouts: AtomicU64::new(0),
             connections: AtomicU64::new(0),
             streams: AtomicU64::new(0),
+            max_streams: AtomicU64::new(share.max_streams),
         }
     }
 
@@ -156,7 +159,9 @@ impl Tenant {
 
     /// Changes what it may hold from now on (what it holds stays held).
     pub fn set_share(&self, share: Share) {
-        *self.share.lock().unwrap_or_else(PoisonError::into_inner) = share;
+        let mut held = self.share.lock().unwrap_or_else(PoisonError::into_inner);
+        *held = share;
+        self.max_streams.store(share.max_streams, Ordering::Relaxed);
     }
 
     /// Sessions it holds now.
@@ -183,7 +188,7 @@ impl Tenant {
     /// Counts one more open call of its, unless it has its `max_streams` open; refused, says
     /// how many it has open and may have.
     pub fn take_stream(self: &Arc<Self>) -> Result<Held, (u64, u64)> {
-        let max = self.share().max_streams;
+        let max = self.max_streams.load(Ordering::Relaxed);
         take(&self.streams, 1, max).map_err(|held| (held, max))?;
         Ok(Held {
             tenant: Arc::clone(self),
