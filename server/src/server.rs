@@ -220,10 +220,11 @@ async fn serve_probes<H: tonic_health::pb::health_server::Health>(
         max_connections: PROBE_MAX_CONNECTIONS,
         ..limits
     };
+    let probe_layer = ProbeLayer::new(Arc::clone(&metrics));
     let incoming = connections::accept(listener, limits, share, metrics, stopping.clone());
     let mut stopped = stopping;
     Server::builder()
-        .layer(ProbeLayer::default())
+        .layer(probe_layer)
         .layer(IntakeLayer::new(budget))
         .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))

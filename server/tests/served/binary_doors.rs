@@ -171,6 +171,29 @@ pub(crate) async fn unary(
         .ok()?
 }
 
+/// Opens a health Watch without a token on `send`'s connection to `addr` and asserts it is
+/// served (its answer's headers carry no status: the stream goes on); returns what keeps it
+/// open.
+pub(crate) async fn served_watch(
+    send: &mut h2::client::SendRequest<Bytes>,
+    addr: &str,
+) -> (h2::SendStream<Bytes>, http::Response<h2::RecvStream>) {
+    let mut ready = send.clone().ready().await.unwrap();
+    let headers = grpc_headers(addr, "/grpc.health.v1.Health/Watch", None);
+    let (response, mut stream) = ready.send_request(headers, false).unwrap();
+    stream.send_data(framed(0, &[]), true).unwrap();
+    *send = ready;
+    let response = tokio::time::timeout(PATIENCE, response)
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(
+        response.headers().get("grpc-status").is_none(),
+        "{response:?}"
+    );
+    (stream, response)
+}
+
 /// Opens [`CONNECTIONS`] × [`STREAMS`] calls to `path`, each sending a message announcing
 /// [`ANNOUNCED`] bytes and one byte less, never finished; returns what keeps them open.
 async fn flood(addr: &str, path: &str, token: Option<&str>) -> Vec<h2::SendStream<Bytes>> {
@@ -353,20 +376,9 @@ async fn health_watches_without_a_token_cannot_keep_a_tenant_out() {
     let mut watches = Vec::new();
     for i in 0..8 {
         let from = IpAddr::from([127, 0, 0, 2 + i]);
-        let mut ready = h2_connect(&addr, Some(from)).await.ready().await.unwrap();
-        let headers = grpc_headers(&addr, "/grpc.health.v1.Health/Watch", None);
-        let (response, mut stream) = ready.send_request(headers, false).unwrap();
-        stream.send_data(framed(0, &[]), true).unwrap();
-        // The Watch is served (its answer's headers carry no status: the stream goes on).
-        let response = tokio::time::timeout(PATIENCE, response)
-            .await
-            .unwrap()
-            .unwrap();
-        assert!(
-            response.headers().get("grpc-status").is_none(),
-            "{response:?}"
-        );
-        watches.push((ready, response, stream));
+        let mut send = h2_connect(&addr, Some(from)).await;
+        let watch = served_watch(&mut send, &addr).await;
+        watches.push((send, watch));
     }
     // Tenant B connects and is served while they hold the server.
     let mut b = client(&addr).await;

@@ -14,7 +14,7 @@
 //! `DINERDASH_SERVER_EXE=/path/to/dinerdash-server` runs them against another build (the build
 //! before the probe listener refuses `--probe-port`, so each fails at its start).
 
-use crate::binary_doors::{framed, grpc_headers, grpc_status, h2_connect, unary};
+use crate::binary_doors::{framed, grpc_headers, grpc_status, h2_connect, served_watch, unary};
 use crate::binary_support::Process;
 use crate::grpc_support::{PATIENCE, create, create_request, reset};
 
@@ -194,22 +194,7 @@ async fn strangers_on_the_grpc_port_hold_no_health_call_and_probes_are_answered(
     let mut watches = Vec::new();
     let mut send = h2_connect(&probes, None).await;
     for _ in 0..4 {
-        let mut ready = send.ready().await.unwrap();
-        let (response, mut stream) = ready
-            .send_request(grpc_headers(&probes, WATCH, None), false)
-            .unwrap();
-        stream.send_data(framed(0, &[]), true).unwrap();
-        let response = tokio::time::timeout(PATIENCE, response)
-            .await
-            .unwrap()
-            .unwrap();
-        // Served: its answer's headers carry no status (the stream goes on).
-        assert!(
-            response.headers().get("grpc-status").is_none(),
-            "{response:?}"
-        );
-        watches.push((stream, response));
-        send = ready;
+        watches.push(served_watch(&mut send, &probes).await);
     }
     let mut ready = send.ready().await.unwrap();
     let (response, mut stream) = ready
