@@ -54,7 +54,7 @@ from dinerdash.game import (
 
 from . import checkpoint
 from .errors import AgentsError
-from .seeds import RESERVED_SEEDS, VALIDATION_SEEDS
+from .seeds import VALIDATION_SEEDS, training_seeds
 from .supervised import fit, masked_logits
 
 __all__ = [
@@ -332,16 +332,6 @@ def mix_actions(
     else the learner's; returns them and the mask of environments where the teacher acted."""
     from_teacher = rng.random(len(teacher)) < beta
     return np.where(from_teacher, teacher, learner).astype(np.int64), from_teacher
-
-
-def training_seeds(start: int, count: int) -> list[int]:
-    """``count`` seeds from ``start`` upwards, skipping :data:`RESERVED_SEEDS`."""
-    seeds, s = [], start
-    while len(seeds) < count:
-        if not any(s in r for r in RESERVED_SEEDS):
-            seeds.append(s)
-        s += 1
-    return seeds
 
 
 class Aggregate:

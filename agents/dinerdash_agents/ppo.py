@@ -53,7 +53,7 @@ import optax
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
 from . import checkpoint
-from .seeds import as_ranges
+from .seeds import as_ranges, training_seeds
 from .supervised import masked_logits
 
 __all__ = ["ActorCritic", "PPOConfig", "gae", "init", "observation_scale", "sample_actions"]
@@ -534,8 +534,10 @@ class Trainer:
         """Starts playing on ``envs``: a SAME_STEP vector env of ``num_envs`` environments, or a
         sequence of them that hold ``num_envs`` in all (environment ``i`` of the trainer is then
         the ``i``-th counting across them in order; with several, their steps are pipelined).
-        Environment ``i`` is seeded with ``seed * num_envs + steps + i`` at the first reset (a
-        resumed run's ``steps`` are those done), and the seeds are added to :attr:`seed_ranges`."""
+        Environment ``i`` is seeded at the first reset with the ``i``-th seed from ``seed *
+        num_envs + steps`` on (a resumed run's ``steps`` are those done) that is not one of
+        :data:`~dinerdash_agents.seeds.RESERVED_SEEDS`, and the seeds are added to
+        :attr:`seed_ranges`."""
         several = isinstance(envs, Sequence)
         parts = list(envs) if several else [envs]
         sizes = [e.num_envs for e in parts]
@@ -546,12 +548,12 @@ class Trainer:
             )
         self._envs = envs
         self._groups, start = [], 0
+        seeds = training_seeds(self.seed * self.config.num_envs + self.steps, sum(sizes))
+        self.seed_ranges = as_ranges(self.seeds_trained_on() + seeds)
         for part, size in zip(parts, sizes, strict=True):
             group = _Group(part, slice(start, start + size))
             group.view = self.view()
-            first = self.seed * self.config.num_envs + self.steps + start
-            obs, info = part.reset(seed=first)
-            self.seed_ranges = as_ranges(self.seeds_trained_on() + list(range(first, first + size)))
+            obs, info = part.reset(seed=seeds[start : start + size])
             group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
             self._groups.append(group)
             start += size

@@ -3,8 +3,8 @@ evaluation seeds that keep clear of them: what ``evaluate`` starts at when not t
 warns about when told to play on seeds the checkpoint has seen.
 
 A checkpoint records them as ``data["seed_ranges"]``, ``[first, last]`` pairs: the
-demonstrations' episodes (``bc``, ``dpgm``; ``gail``'s discriminator), DAgger's episodes (which
-skip :data:`RESERVED_SEEDS`), the seeds of an RL run's environments' first resets (each later
+demonstrations' episodes (``bc``, ``dpgm``; ``gail``'s discriminator), DAgger's episodes, the
+seeds of an RL run's environments' first resets (both skip :data:`RESERVED_SEEDS`; each later
 episode of an environment continues its random stream, which no seeded episode replays) and,
 for ``ppo-kickstart``, those of the checkpoint it started from. Checkpoints written before the
 field hold ``data["seeds"]``, ``[first, last]`` of their demonstrations or DAgger episodes, which
@@ -28,6 +28,7 @@ __all__ = [
     "overlap_warning",
     "spelled",
     "trained_on",
+    "training_seeds",
 ]
 
 #: DAgger's validation seeds (its learner after each round is judged there).
@@ -36,6 +37,17 @@ VALIDATION_SEEDS = range(2000, 2100)
 RESERVED_SEEDS = (EVALUATION_SEEDS, VALIDATION_SEEDS)
 #: Algorithms whose ``data["seeds"]`` span skips :data:`RESERVED_SEEDS`.
 _SKIPPING = ("dagger", "dagger-recurrent")
+
+
+def training_seeds(start: int, count: int) -> list[int]:
+    """``count`` seeds from ``start`` upwards, skipping :data:`RESERVED_SEEDS`: the seeds of
+    DAgger's episodes and of an RL run's environments' first resets."""
+    seeds, s = [], start
+    while len(seeds) < count:
+        if not any(s in r for r in RESERVED_SEEDS):
+            seeds.append(s)
+        s += 1
+    return seeds
 
 
 def as_ranges(seeds: Iterable[int]) -> list[list[int]]:

@@ -365,3 +365,15 @@ def test_more_environments_keep_the_minibatch_and_the_updates_per_sample():
         # gradient steps per sample and the learning rate: the base's
         assert c.update_epochs * c.num_minibatches / samples == 2 * 4 / (256 * 64)
         assert c.learning_rate == base.learning_rate
+
+
+def test_an_rl_runs_environments_never_start_on_the_evaluation_or_validation_seeds(
+    server_address: str, tmp_path: Path
+):
+    # Training seed 125 of 8 environments would start them on seeds 1000..1007, the evaluation
+    # seeds; they take the next 8 that are neither evaluation nor validation seeds.
+    out = tmp_path / "run"
+    argv = ["train", "ppo-masked", "--steps", "512", "--num-envs", "8", "--seed", "125"]
+    assert agents_main([*argv, "--address", server_address, "--out", str(out)]) == 0
+    described = json.loads((out / "checkpoint.json").read_text())
+    assert described["data"]["seed_ranges"] == [[1100, 1107]]
