@@ -31,6 +31,9 @@ pub struct Probe {
     /// Connect with TLS, trusting this PEM CA certificate (or a self-signed server certificate
     /// itself).
     pub tls_ca: Option<Vec<u8>>,
+    /// Sent as `authorization: Bearer <token>`: a server with a `--probe-port` serves health on
+    /// its gRPC port only to callers with a token.
+    pub token: Option<String>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -48,6 +51,10 @@ pub(super) struct HealthArgs {
     /// itself).
     #[arg(long)]
     tls_ca: Option<PathBuf>,
+    /// The token to send (a server with --probe-port asks for one on its gRPC port; its probe
+    /// port does not).
+    #[arg(long, env = "DINERDASH_AUTH_TOKEN", hide_env_values = true)]
+    auth_token: Option<String>,
 }
 
 /// The `health` command: prints the status the server reported; success if it is SERVING.
@@ -57,6 +64,7 @@ pub(super) fn execute(args: &HealthArgs) -> ExitCode {
         timeout: args.timeout,
         service: args.service.clone(),
         tls_ca,
+        token: args.auth_token.clone().filter(|t| !t.is_empty()),
     };
     let result = args
         .tls_ca
@@ -99,10 +107,17 @@ pub async fn check(probe: &Probe) -> Result<ServingStatus, String> {
             None => endpoint.connect().await,
         }
         .map_err(|e| format!("cannot connect: {}", error_chain(&e)))?;
+        let mut request = tonic::Request::new(HealthCheckRequest {
+            service: probe.service.clone(),
+        });
+        if let Some(token) = &probe.token {
+            let value = format!("Bearer {token}")
+                .parse()
+                .map_err(|_| "the token cannot be sent in a header".to_owned())?;
+            request.metadata_mut().insert("authorization", value);
+        }
         let reply = HealthClient::new(channel)
-            .check(HealthCheckRequest {
-                service: probe.service.clone(),
-            })
+            .check(request)
             .await
             .map_err(|s| format!("{:?}: {}", s.code(), s.message()))?;
         Ok(reply.into_inner().status())

@@ -40,6 +40,7 @@ async fn health_of(server: &Process, service: &str) -> ServingStatus {
         timeout: PATIENCE,
         service: service.into(),
         tls_ca: None,
+        token: None,
     })
     .await
     .unwrap()

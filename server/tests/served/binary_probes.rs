@@ -69,6 +69,7 @@ async fn probe(addr: &str, service: &str) -> Result<ServingStatus, String> {
         timeout: PATIENCE,
         service: service.into(),
         tls_ca: None,
+        token: None,
     })
     .await
 }
@@ -100,6 +101,21 @@ async fn check(addr: &str, token: Option<&str>) -> Result<ServingStatus, tonic::
     Ok(reply.into_inner().status())
 }
 
+/// `dinerdash-server health --address addr`, with `DINERDASH_AUTH_TOKEN=token` or without it.
+async fn health_command(addr: &str, token: Option<&str>) -> std::process::Output {
+    let exe = std::env::var("DINERDASH_SERVER_EXE")
+        .unwrap_or_else(|_| env!("CARGO_BIN_EXE_dinerdash-server").to_owned());
+    let mut command = std::process::Command::new(exe);
+    command.args(["health", "--address", addr, "--timeout", "20"]);
+    command.env_remove("DINERDASH_AUTH_TOKEN");
+    if let Some(token) = token {
+        command.env("DINERDASH_AUTH_TOKEN", token);
+    }
+    tokio::task::spawn_blocking(move || command.output().unwrap())
+        .await
+        .unwrap()
+}
+
 #[tokio::test]
 async fn the_probe_port_serves_health_alone_and_the_grpc_port_only_with_a_token() {
     let (server, probes, dir) = start_with_a_tenant("alone", "");
@@ -117,6 +133,20 @@ async fn the_probe_port_serves_health_alone_and_the_grpc_port_only_with_a_token(
         check(&server.addr, Some(TOKEN)).await.unwrap(),
         ServingStatus::Serving
     );
+    // `dinerdash-server health` (the Docker HEALTHCHECK) sends DINERDASH_AUTH_TOKEN when set.
+    for (token, expected) in [(None, None), (Some(TOKEN), Some("SERVING"))] {
+        let out = health_command(&server.addr, token).await;
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(out.status.success(), expected.is_some(), "{out:?}");
+        if let Some(expected) = expected {
+            assert_eq!(stdout.trim(), expected);
+        } else {
+            assert!(
+                String::from_utf8_lossy(&out.stderr).contains("Unauthenticated"),
+                "{out:?}"
+            );
+        }
+    }
     // The probe port serves nothing but health, with the token or without: neither the
     // DinerDash service nor reflection.
     let mut c = DinerDashClient::new(channel(&probes).await);
