@@ -26,10 +26,10 @@ build: build-server
 # gymnasium 1.2.x) is for tests/test_ray.py; the torchrl extra (TorchRL, on the same torch) for
 # tests/test_torchrl.py; the minari extra for the Minari dataset test of tests/test_rollout_cli.py.
 # In CI (CI set) a skipped test fails (tests/conftest.py): every extra must be here.
-$(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml
+$(VENV)/.installed: client-py/pyproject.toml agents/pyproject.toml bench/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray,torchrl,minari]' -e 'agents[dev]'
+	$(PY) -m pip install --quiet -e 'client-py[dev,sb3,ray,torchrl,minari]' -e 'agents[dev]' -e bench
 	touch $@
 
 venv: $(VENV)/.installed
@@ -42,7 +42,8 @@ $(BUILD_VENV)/.installed: scripts/build-requirements.txt
 	touch $@
 
 ## dist/: the dinerdash-server wheel (the release binary, stripped; manylinux2014 linked by zig)
-## and its sdist, and the pure-Python wheels of dinerdash and dinerdash-agents; all one version.
+## and its sdist, and the pure-Python wheels of dinerdash, dinerdash-agents and dinerdash-bench;
+## all one version.
 ## SERVER_WHEEL_FLAGS= (empty) builds a wheel for this machine's glibc with the system linker.
 ## Built in target/wheels, so that it never waits for (or holds up) a cargo command on target/.
 SERVER_WHEEL_FLAGS ?= --zig --compatibility manylinux2014
@@ -52,7 +53,7 @@ wheels: $(BUILD_VENV)/.installed
 	CARGO_TARGET_DIR="$(abspath target/wheels)" PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" \
 		maturin build --release -m server/Cargo.toml $(SERVER_WHEEL_FLAGS) --out dist
 	PATH="$(abspath $(BUILD_VENV))/bin:$$PATH" maturin sdist -m server/Cargo.toml --out dist
-	$(BUILD_VENV)/bin/python -m pip wheel --quiet --no-deps --wheel-dir dist ./client-py ./agents
+	$(BUILD_VENV)/bin/python -m pip wheel --quiet --no-deps --wheel-dir dist ./client-py ./agents ./bench
 	if [ "$$(uname)" = Linux ]; then $(BUILD_VENV)/bin/auditwheel show dist/dinerdash_server-*.whl; fi
 	ls -l dist
 
@@ -82,11 +83,12 @@ lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
 	RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --document-private-items
-	$(VENV)/bin/ruff check client-py tests agents scripts server/python
+	$(VENV)/bin/ruff check client-py tests agents bench scripts server/python
 	scripts/buf_check.sh
-	$(VENV)/bin/ruff format --check client-py tests agents scripts server/python
+	$(VENV)/bin/ruff format --check client-py tests agents bench scripts server/python
 
-## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench.
+## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench
+## (the dinerdash-bench package, bench/).
 bench: build venv
 	cargo bench -p dinerdash-server
 	DINERDASH_SERVER=$(abspath $(SERVER)) $(PY) -m dinerdash bench

@@ -1,12 +1,13 @@
-"""The one version of the three distributions: `check` that they agree, or `set` a new one.
+"""The one version of the four distributions: `check` that they agree, or `set` a new one.
 
 The source is the workspace's ``[workspace.package] version`` in ``Cargo.toml``: the server
 crate inherits it, so ``dinerdash-server --version``, its ServerInfo and the ``dinerdash-server``
-wheel (maturin reads Cargo) all carry it. The two pure-Python packages keep a static copy, which
+wheel (maturin reads Cargo) all carry it. The pure-Python packages keep a static copy, which
 every tool can read without running code (sdists, editable installs, pip's resolver):
 
     client-py/pyproject.toml  version, and the [server] extra's ``dinerdash-server==VERSION``
     agents/pyproject.toml     version, and its ``dinerdash==VERSION`` dependency
+    bench/pyproject.toml      the same
     Cargo.lock                the dinerdash-server and dinerdash-proto packages' versions (for
                               --locked builds)
 
@@ -45,6 +46,8 @@ COPIES = [
     ("client-py/pyproject.toml", re.compile(r'("dinerdash-server==)([^"]+)(")')),
     ("agents/pyproject.toml", re.compile(r'(\nversion = ")([^"]+)(")')),
     ("agents/pyproject.toml", re.compile(r'("dinerdash==)([^"]+)(")')),
+    ("bench/pyproject.toml", re.compile(r'(\nversion = ")([^"]+)(")')),
+    ("bench/pyproject.toml", re.compile(r'("dinerdash==)([^"]+)(")')),
 ]
 
 
@@ -96,7 +99,7 @@ def main(argv: list[str]) -> int:
             print(line, file=sys.stderr)
         if not wrong:
             print(
-                f"version {workspace_version()}: Cargo.toml, Cargo.lock and both pyprojects agree"
+                f"version {workspace_version()}: Cargo.toml, Cargo.lock and the pyprojects agree"
             )
         return 1 if wrong else 0
     if argv[0] == "set" and len(argv) == 2:

@@ -12,7 +12,9 @@
 #   seeds 0..2 (EXPERT_SCORES), the checkpoint's seeds 1000..1002 as docs/results/results.json
 #   reports them;
 #   - dinerdash-server --version, python -m dinerdash_server --version and the three packages'
-#     versions agree.
+#     versions agree;
+#   - the client's wheel holds no bench, and `python -m dinerdash bench` without dinerdash-bench
+#     fails naming the pip command; with the dinerdash-bench wheel installed, a short bench runs.
 # Prints the install time and the checks' time. Usage: scripts/wheel_smoke.sh [DIST_DIR]
 set -euo pipefail
 
@@ -52,6 +54,19 @@ one_wheel() {
 server_whl="$(one_wheel 'dinerdash_server-*.whl')"
 client_whl="$(one_wheel 'dinerdash-*-py3-none-any.whl')"
 agents_whl="$(one_wheel 'dinerdash_agents-*-py3-none-any.whl')"
+bench_whl="$(one_wheel 'dinerdash_bench-*-py3-none-any.whl')"
+
+# The bench is a package of its own (dinerdash-bench): the client's wheel holds none of it.
+"$python" - "$client_whl" <<'EOF'
+import sys
+import zipfile
+
+names = zipfile.ZipFile(sys.argv[1]).namelist()
+bench = [n for n in names if n.startswith("dinerdash/bench") or "dinerdash_bench" in n]
+assert not bench, f"the client's wheel holds the bench: {bench}"
+assert "dinerdash/cli.py" in names, names
+EOF
+echo "wheel-smoke: $(basename "$client_whl") holds no bench"
 
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
@@ -145,8 +160,24 @@ echo "== wheel-smoke: python -m dinerdash_agents evaluate (docs/results/checkpoi
 check_scores "$checkpoint_scores" python -m dinerdash_agents evaluate checkpoint --episodes 3 \
     --seed 1000 --num-envs 3 --json
 
+echo "== wheel-smoke: python -m dinerdash bench, without and with dinerdash-bench"
+if out="$(in_venv python -m dinerdash bench 2>&1)" || ! grep -q 'pip install dinerdash-bench' <<<"$out"; then
+    echo "wheel-smoke: python -m dinerdash bench without dinerdash-bench: $out" >&2
+    exit 1
+fi
+echo "$out"
+in_venv python -m pip install --quiet "$bench_whl"
+out="$(in_venv python -m dinerdash bench --steps 0 --vec-steps 0 --reference-steps 1000 \
+    --no-transports --no-scaling --sb3-steps 0)"
+echo "$out"
+if ! grep -q '^reference .* steps/s' <<<"$out"; then
+    echo "wheel-smoke: python -m dinerdash bench printed no reference line" >&2
+    exit 1
+fi
+
 done_at=$(date +%s.%N)
 awk -v a="$start" -v b="$installed" -v c="$done_at" 'BEGIN {
     printf "wheel-smoke: install %.1f s (venv + pip), checks %.1f s\n", b - a, c - b }'
-# install, the episode, the versions, eval, evaluate, the agents' evaluate; any failure exits above.
-echo "wheel-smoke: 6 passed, 0 failed"
+# the wheel without the bench, install, the episode, the versions, eval, evaluate, the agents'
+# evaluate, bench without and with its package; any failure exits above.
+echo "wheel-smoke: 9 passed, 0 failed"

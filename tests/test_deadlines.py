@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from dinerdash import DinerDashEnv, DinerDashVectorEnv, ServiceTimeout
 from dinerdash.connection import DEFAULT_TIMEOUT, Connection, call_timeout
-from dinerdash.testing.cluster import _wait_stopped
+from dinerdash.testing import wait_stopped
 
 from .conftest import ServerProcess
 from .trajectories import async_step, plain_step
@@ -31,7 +31,7 @@ def stop(server: ServerProcess) -> None:
     stopped: the signal is asynchronous, and a server still running for a moment would answer
     the next call."""
     server.proc.send_signal(signal.SIGSTOP)
-    _wait_stopped(server.proc.pid, timeout=10)
+    wait_stopped(server.proc.pid, timeout=10)
     state = Path(f"/proc/{server.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     assert state in ("T", "t"), "the server did not stop within 10 s"
 

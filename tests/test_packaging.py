@@ -71,7 +71,8 @@ def test_server_info_reports_the_binarys_version(address: str) -> None:
 
 
 def test_version_set_rewrites_every_copy(tmp_path: Path) -> None:
-    files = ["Cargo.toml", "Cargo.lock", "client-py/pyproject.toml", "agents/pyproject.toml"]
+    files = ["Cargo.toml", "Cargo.lock"]
+    files += [f"{p}/pyproject.toml" for p in ("client-py", "agents", "bench")]
     for name in [*files, "scripts/version.py"]:
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(REPO / name, tmp_path / name)
@@ -82,8 +83,9 @@ def test_version_set_rewrites_every_copy(tmp_path: Path) -> None:
     assert run(sys.executable, script, "check").returncode == 0
     client = (tmp_path / "client-py/pyproject.toml").read_text()
     assert '\nversion = "3.4.5"' in client and '"dinerdash-server==3.4.5"' in client
-    agents = (tmp_path / "agents/pyproject.toml").read_text()
-    assert '\nversion = "3.4.5"' in agents and '"dinerdash==3.4.5"' in agents
+    for package in ("agents", "bench"):
+        text = (tmp_path / package / "pyproject.toml").read_text()
+        assert '\nversion = "3.4.5"' in text and '"dinerdash==3.4.5"' in text, package
     lock_text = (tmp_path / "Cargo.lock").read_text()
     assert 'name = "dinerdash-server"\nversion = "3.4.5"' in lock_text
     assert 'name = "dinerdash-proto"\nversion = "3.4.5"' in lock_text

@@ -32,7 +32,7 @@ from dinerdash import DinerDashVectorEnv  # noqa: E402
 from dinerdash.connection import Connection  # noqa: E402
 from dinerdash.evaluation import evaluate_through_env, play_seeded  # noqa: E402
 from dinerdash.ray import masked_ppo, start_servers  # noqa: E402
-from dinerdash.testing.cluster import _wait_stopped  # noqa: E402
+from dinerdash.testing import wait_stopped  # noqa: E402
 from ray.cluster_utils import Cluster  # noqa: E402
 
 from .conftest import server_binary  # noqa: E402
@@ -254,7 +254,7 @@ def test_a_server_ray_restarts_is_taken_back(pool) -> None:
         envs.reset(seed=0)
         pid = pool.pids()[0]
         os.kill(pid, signal.SIGSTOP)
-        _wait_stopped(pid)  # else its shared-memory thread may still answer the Step
+        wait_stopped(pid)  # else its shared-memory thread may still answer the Step
         _, _, _, _, info = envs.step(np.zeros(4, dtype=np.int64))
         assert info["reconnected"][:2].all() and envs.lost_addresses == [pool.addresses[0]]
         os.kill(pid, signal.SIGKILL)

@@ -1,12 +1,12 @@
-"""The plain-Python simulator (``dinerdash.bench.reference``, the baseline of ``bench``) replays
+"""The plain-Python simulator (``dinerdash_bench.reference``, the baseline of ``bench``) replays
 every trajectory recorded from the reference (tests/data/conformance) exactly, expert included.
 No server is needed."""
 
 from __future__ import annotations
 
 import pytest
-from dinerdash.bench.reference import Config, Game, random_steps_per_second
 from dinerdash.game import NUM_ACTIONS, WAIT
+from dinerdash_bench.reference import Config, Game, random_steps_per_second
 
 from .test_conformance import load
 

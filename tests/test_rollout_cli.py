@@ -152,6 +152,19 @@ def test_cli_bench_runs(address: str) -> None:
     assert "SB3 DummyVecEnv N=4" in out or "skipped (pip install 'dinerdash[sb3]')" in out
 
 
+def test_cli_bench_without_the_bench_package_names_the_pip_command(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``bench`` is dinerdash-bench's: without it the client's command says how to install it."""
+    from dinerdash.cli import main
+
+    monkeypatch.setitem(sys.modules, "dinerdash_bench", None)  # as if not installed
+    monkeypatch.delitem(sys.modules, "dinerdash_bench.cli", raising=False)
+    assert main(["bench", "--steps", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "pip install dinerdash-bench" in err, err
+
+
 def test_cli_reports_errors_readably(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "dinerdash", "evaluate", "--episodes", "1"],

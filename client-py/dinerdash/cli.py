@@ -39,22 +39,6 @@ def _address(text: str) -> str | list[str]:
     return [a for a in text.split(",") if a]
 
 
-def _above_zero(kind: type) -> Callable[[str], Any]:
-    """An argparse type: ``kind(text)``, refused unless above zero."""
-
-    def convert(text: str) -> Any:
-        value = kind(text)
-        if not value > 0:
-            raise argparse.ArgumentTypeError(f"must be above 0, got {text}")
-        return value
-
-    convert.__name__ = kind.__name__  # argparse names it in "invalid int value"
-    return convert
-
-
-_positive_int, _positive_float = _above_zero(int), _above_zero(float)
-
-
 def summary(doc: str) -> str:
     """A module docstring's first paragraph as one line of ``--help`` text, reST quotes dropped."""
     return " ".join(doc.split("\n\n")[0].split()).replace("``", "")
@@ -209,28 +193,6 @@ def _write_collected(collected: Any, unit: str, dataset_id: str) -> int:
     return 0
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import run
-
-    run(
-        args.address,
-        steps=args.steps,
-        num_envs=args.num_envs,
-        vec_steps=args.vec_steps,
-        pipeline=args.pipeline,
-        reference_steps=args.reference_steps,
-        servers=args.servers,
-        sb3_envs=args.sb3_envs,
-        sb3_steps=args.sb3_steps,
-        compare_transports=not args.no_transports,
-        compare_scaling=not args.no_scaling,
-        rounds=args.rounds,
-        ceiling_seconds=args.ceiling_seconds,
-        **connection_keywords(args),
-    )
-    return 0
-
-
 def _cmd_watch(args: argparse.Namespace) -> int:
     import os
 
@@ -323,53 +285,12 @@ def _parser() -> argparse.ArgumentParser:
         "Minari dinerdash/play-v0); --policy and --episodes are then ignored",
     )
 
-    p = command(
+    # main() hands `bench` and what follows to dinerdash-bench; here for the list of commands.
+    sub.add_parser(
         "bench",
-        _cmd_bench,
-        help="steps/s of a single env and of make_vec, beside the machine's floors",
-    )
-    p.add_argument("--steps", type=int, default=20_000, help="single-env steps (0: skip)")
-    p.add_argument("--num-envs", type=int, default=256, help="environments of the vector env")
-    p.add_argument("--vec-steps", type=int, default=2_000, help="vector steps (0: skip)")
-    p.add_argument(
-        "--pipeline",
-        action="store_true",
-        help="also two vector envs of --num-envs stepped with step_async/step_wait",
-    )
-    p.add_argument(
-        "--reference-steps",
-        type=int,
-        default=100_000,
-        help="random steps of the in-process pure-Python reference (0: skip)",
-    )
-    p.add_argument(
-        "--servers", type=int, default=1, help="local servers to start when no address is given"
-    )
-    p.add_argument("--sb3-envs", type=int, default=8, help="environments of the SB3 comparison")
-    p.add_argument(
-        "--sb3-steps", type=int, default=2_000, help="steps of the SB3 comparison (0: skip)"
-    )
-    p.add_argument(
-        "--no-transports",
-        action="store_true",
-        help="skip the table of gRPC and shared memory beside the server's own rates",
-    )
-    p.add_argument(
-        "--no-scaling",
-        action="store_true",
-        help="skip the table of the server's rates by stepping threads beside this client's",
-    )
-    p.add_argument(
-        "--rounds",
-        type=_positive_int,
-        default=3,
-        help="rounds of the transports table, taking turns; each figure is the best",
-    )
-    p.add_argument(
-        "--ceiling-seconds",
-        type=_positive_float,
-        default=1.0,
-        help="seconds of each measurement of the server's own rates",
+        add_help=False,
+        help="steps/s of a single env and of make_vec, beside the machine's floors "
+        "(the dinerdash-bench package)",
     )
 
     p = command(
@@ -388,5 +309,24 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _bench(argv: Sequence[str]) -> int:
+    """``bench``: dinerdash-bench's command, given every argument after ``bench``."""
+    try:
+        from dinerdash_bench.cli import main as bench
+    except ModuleNotFoundError as e:
+        if (e.name or "").partition(".")[0] != "dinerdash_bench":
+            raise  # one of the bench's own imports
+        print(
+            "error: `bench` is the dinerdash-bench package's, which is not installed: "
+            "pip install dinerdash-bench (from a clone: pip install -e bench)",
+            file=sys.stderr,
+        )
+        return 1
+    return bench(argv)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["bench"]:
+        return _bench(argv[1:])
     return run_command(_parser().parse_args(argv))

@@ -2,7 +2,8 @@
 (docs/client.md#testing-your-own-training-code).
 
 Layout:
-    cluster   LocalCluster: n ``dinerdash-server`` processes on 127.0.0.1, and signals to lose them
+    cluster   LocalCluster: n ``dinerdash-server`` processes on 127.0.0.1, signals to lose them,
+              and wait_stopped: until a SIGSTOP has stopped every thread of a process
     proxy     FaultProxy: a TCP proxy that adds latency, black-holes, resets or cuts connections
     plugin    the pytest plugin (entry point ``pytest11``): its fixtures and marker
 """
@@ -12,12 +13,17 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .cluster import LocalCluster, server_args
+    from .cluster import LocalCluster, server_args, wait_stopped
     from .proxy import FaultProxy
 
-__all__ = ["FaultProxy", "LocalCluster", "server_args"]
+__all__ = ["FaultProxy", "LocalCluster", "server_args", "wait_stopped"]
 
-_HOME = {"LocalCluster": "cluster", "server_args": "cluster", "FaultProxy": "proxy"}
+_HOME = {
+    "LocalCluster": "cluster",
+    "server_args": "cluster",
+    "wait_stopped": "cluster",
+    "FaultProxy": "proxy",
+}
 
 
 def __getattr__(name: str) -> Any:

@@ -16,13 +16,13 @@ from ..connection import Connection, split_host_port
 from ..errors import ServiceError
 from ..server import LocalServer, find_server_binary, server_args
 
-__all__ = ["LocalCluster", "server_args"]
+__all__ = ["LocalCluster", "server_args", "wait_stopped"]
 
 #: Seconds a restarted server keeps trying its old port, which a killed process may still hold.
 REBIND_TIMEOUT = 10.0
 
 
-def _wait_stopped(pid: int, timeout: float = 5.0) -> None:
+def wait_stopped(pid: int, timeout: float = 5.0) -> None:
     """Waits until every thread of process ``pid`` is stopped (a signal lands after ``kill``
     returns, and a thread on another core may answer meanwhile). Linux only; elsewhere a sleep."""
     tasks = Path(f"/proc/{pid}/task")
@@ -171,7 +171,7 @@ class LocalCluster:
         it is stopped."""
         if self._signal(i, signal.SIGSTOP):
             self._hung.add(i)
-            _wait_stopped(self.pid(i))
+            wait_stopped(self.pid(i))
 
     def resume(self, i: int) -> None:
         """``SIGCONT``: a hung server ``i`` goes on where it stopped."""

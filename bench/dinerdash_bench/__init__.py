@@ -1,8 +1,10 @@
 """``python -m dinerdash bench``: the client's speed beside the machine's floors and a plain-Python
-reference, measured in one run.
+reference, measured in one run. A package of its own (``dinerdash-bench``), not the client's: a
+trainer never imports it.
 
 Layout:
-    harness    the measurements and the ``bench`` command's report (:func:`run`)
+    cli        the ``bench`` command's arguments (``python -m dinerdash bench`` forwards here)
+    harness    the measurements and the command's report (:func:`run`)
     reference  the rules in plain Python: the reference the rates are measured against
 """
 

@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from ..game import (
+from dinerdash.game import (
     DROP_DISHES,
     FIRST_PICK_UP,
     FIRST_SEAT,

@@ -15,8 +15,13 @@ from contextlib import closing
 from typing import Any
 
 import numpy as np
-
-from ..game import NUM_ACTIONS
+from dinerdash._batch import Batch, join
+from dinerdash._proto import pb
+from dinerdash.connection import Connection
+from dinerdash.env import DinerDashEnv
+from dinerdash.game import NUM_ACTIONS
+from dinerdash.server import LocalServer, find_server_binary
+from dinerdash.vector import DinerDashVectorEnv
 
 __all__ = ["ceiling_lines", "run", "scaling", "tcp_floor", "transports"]
 
@@ -86,9 +91,6 @@ def _first(address: str | list[str] | None) -> str | None:
 
 def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
     """Microseconds of one bare ``ServerInfo`` call: the floor under any single-env step."""
-    from .._proto import pb
-    from ..connection import Connection
-
     connection.pop("transport", None)  # a bare RPC: always gRPC
     with Connection(address, **connection) as conn:
         request = pb.ServerInfoRequest()
@@ -101,8 +103,6 @@ def _round_trip(address: str, calls: int = 2000, **connection: Any) -> float:
 
 
 def _single(address: str | None, steps: int, **connection: Any) -> float:
-    from ..env import DinerDashEnv
-
     with DinerDashEnv(address, **connection) as env:
         actions = np.random.default_rng(0).integers(0, NUM_ACTIONS, size=steps)
         env.reset(seed=0)
@@ -117,8 +117,6 @@ def _single(address: str | None, steps: int, **connection: Any) -> float:
 def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: Any) -> float:
     """Env-steps/s of one vector env of ``num_envs`` stepped with ``step()``, or (``pipelined``)
     of two, each one's ``step_async`` sent before the other's ``step_wait``."""
-    from ..vector import DinerDashVectorEnv
-
     count = 2 if pipelined else 1
     pair = [DinerDashVectorEnv(num_envs, address, **connection) for _ in range(count)]
     try:
@@ -152,10 +150,6 @@ def _vector(address, num_envs: int, steps: int, pipelined: bool, **connection: A
 def _decode(address, num_envs: int, steps: int = 200, **connection: Any) -> float:
     """Microseconds the client spends on one Step reply of ``num_envs`` environments once it has
     arrived (gRPC: parse it too; shared memory: from the region), over ``steps`` random steps."""
-    from .._batch import Batch
-    from .._proto import pb
-    from ..vector import DinerDashVectorEnv
-
     with closing(DinerDashVectorEnv(num_envs, address, **connection)) as envs:
         rng = np.random.default_rng(0)
         envs.reset(seed=0)
@@ -182,9 +176,6 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
     """Microseconds of the least work any Python client does for one shared-memory step of
     ``num_envs`` environments beside the server's Step, the 10th percentile of the steps
     (docs/benchmarks.md: "What any Python client could reach")."""
-    from .._batch import join
-    from ..vector import DinerDashVectorEnv
-
     with closing(DinerDashVectorEnv(num_envs, address, transport="shm")) as envs:
         envs.reset(seed=0)
         fleet, present = envs.fleet, np.ones(num_envs, dtype=np.bool_)
@@ -221,8 +212,6 @@ def _python_floor(address, num_envs: int, steps: int = 2000) -> float:
 def _shm_parts(address, num_envs: int, steps: int) -> tuple[float, float]:
     """``(microseconds a shared-memory step() of ``num_envs`` takes, microseconds of it from the
     doorbell's ring to the reply)``: the rest is this client's own work."""
-    from ..vector import DinerDashVectorEnv
-
     with closing(DinerDashVectorEnv(num_envs, address, transport="shm")) as envs:
         envs.reset(seed=0)
         (core,) = envs.fleet.cores
@@ -255,8 +244,6 @@ def ceiling_lines(
     number of stepping ``threads`` (default: one per core), measured by its binary here: one
     ``(N, threads, labels, in process, Rust gRPC client)`` per line of ``dinerdash-server
     ceiling``."""
-    from ..server import find_server_binary
-
     threads = list(threads or [])
     out = subprocess.run(
         [
@@ -418,10 +405,8 @@ def _random_legal(rng: np.random.Generator, masks: np.ndarray) -> np.ndarray:
 def _sb3(address, num_envs: int, steps: int, **connection: Any) -> tuple[float, float]:
     """Env-steps/s of SB3's ``DummyVecEnv`` of ``num_envs`` single envs and of
     :func:`dinerdash.sb3.make_vec_env`, both with random legal actions read as MaskablePPO does."""
+    from dinerdash.sb3 import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv
-
-    from ..env import DinerDashEnv
-    from ..sb3 import make_vec_env
 
     def run(vec) -> float:
         rng = np.random.default_rng(0)
@@ -467,8 +452,6 @@ def run(
     ``DINERDASH_ADDRESS``) it starts ``servers`` local servers; a step count of 0 skips its
     measurement; ``connection``'s ``transport`` (default ``"grpc"``) is that of the lines before
     the transports table."""
-    from ..server import LocalServer
-
     connection.setdefault("transport", "grpc")
     reference = None
 
@@ -487,7 +470,7 @@ def run(
 
         reference = random_steps_per_second(reference_steps)
         print(
-            f"reference          : {reference:12,.0f} steps/s       (dinerdash.bench.reference in "
+            f"reference          : {reference:12,.0f} steps/s       (dinerdash_bench.reference in "
             "process, random actions)"
         )
     started = []
