@@ -168,7 +168,6 @@ LAYERS = [
     {"dinerdash.connection", "dinerdash.server", "dinerdash._arguments"},
     {"dinerdash._shm", "dinerdash._transport", "dinerdash._endpoint", "dinerdash._step_thread"},
     {"dinerdash._session", "dinerdash._membership"},
-    {"dinerdash._failover"},
     {"dinerdash._fleet"},
     {"dinerdash.env", "dinerdash.vector"},
 ]

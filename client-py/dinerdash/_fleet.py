@@ -1,9 +1,9 @@
 """The fleet: a vector env's servers (:class:`~dinerdash._endpoint.Endpoint`, the
 :class:`~dinerdash._membership.Membership` watch) and its slices, session cores each holding a
-contiguous range of environments, in environment order, as servers fail, come back, appear and
-drain. After each step or reset (:meth:`Fleet.settle`) slices move at once by Snapshot and
-Restore, exactly (:func:`plan`); a failed server's environments move with
-:func:`dinerdash._failover.fail_over`. Why: docs/clusters.md#failover.
+contiguous range of environments, in environment order. After each step or reset
+(:meth:`Fleet.settle`) slices move at once by Snapshot and Restore, exactly (:func:`plan`); a
+lost server's environments get new sessions on the servers left (:meth:`Fleet.fail_over`,
+:func:`even_parts`). Why: docs/clusters.md#failover.
 """
 
 from __future__ import annotations
@@ -17,25 +17,33 @@ import numpy as np
 
 from ._batch import Batch, cut
 from ._endpoint import Endpoint
-from ._failover import fail_over
 from ._membership import Membership, await_replies, has_name
 from ._proto import pb
 from ._session import ServerLost, SessionCore, Settings
 from .connection import ConnectOptions
 from .errors import (
     InvalidArgument,
+    NoServerLeft,
+    ResourceExhausted,
     ServerDraining,
     ServiceError,
     ServiceTimeout,
     ServiceTransportError,
+    SessionNotFound,
 )
 
-__all__ = ["REFUSED_WAIT", "Fleet", "interrupted", "plan"]
+__all__ = ["REFUSED_WAIT", "Fleet", "even_parts", "interrupted", "plan"]
 
 log = logging.getLogger("dinerdash")
 
 #: Seconds a server that refused a Restore (full) is not asked again.
 REFUSED_WAIT = 10.0
+#: A server that refuses a failover's new session for one of these is passed over, not given up.
+PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
+
+#: ``start(lost_core, new_core)``: resets the new core's session (created) and returns the Batch
+#: its environments report.
+Start = Callable[[SessionCore, SessionCore], Batch]
 
 
 class Fleet:
@@ -81,25 +89,27 @@ class Fleet:
     def blocking(self) -> bool:
         """One session and no other server to watch: the step is one blocking call, cheaper than
         a hand-off to a thread (or to gRPC's completion thread)."""
-        return len(self.cores) == 1 and not (self.failover_on() and len(self.endpoint.live()) > 1)
+        return len(self.cores) == 1 and not self.watched()
+
+    def watched(self) -> bool:
+        """Calls in flight are watched for silent servers (:func:`await_replies`)."""
+        return self.failover_on() and len(self.endpoint.live()) > 1
 
     def step(self, wire: np.ndarray) -> list[Batch]:
         """The step of a :meth:`blocking` fleet: its Batches, after any failover and move."""
         return self.collect(lambda core: core.step(wire.tobytes()), self.membership is not None)
 
     def start(self, wire: np.ndarray) -> None:
-        """Every server's Step is sent (by its core's thread) before any reply is awaited: the
-        servers work in parallel, and with the caller."""
+        """Every server's Step is sent (by its core's thread) before any reply is awaited."""
         for core in self.cores:
             core.start_step(wire[core.start : core.stop].tobytes())
         self.sent = time.monotonic()
 
     def wait(self) -> None:
         """Waits for every reply of the step :meth:`start` sent."""
-        endpoint = self.endpoint
-        if self.failover_on() and len(endpoint.live()) > 1:
+        if self.watched():
             waiting = [(c.index, c.step_ready) for c in self.cores]
-            await_replies(waiting, endpoint, self.settings.failover_after, self.sent)
+            await_replies(waiting, self.endpoint, self.settings.failover_after, self.sent)
         else:
             for core in self.cores:
                 core.step_ready()
@@ -108,11 +118,13 @@ class Fleet:
         """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned."""
         return self.collect(SessionCore.finish_step, self.failover_on())
 
-    def collect(self, outcome: Callable[[SessionCore], Batch], settle: bool) -> list[Batch]:
-        """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's:
-        every core is updated before the first error is raised, a lost server's environments
-        move first (:func:`interrupted`), and with ``settle`` slices then move as
-        :meth:`settle` decides."""
+    def collect(
+        self, outcome: Callable[[SessionCore], object], settle: bool, start: Start | None = None
+    ) -> list[Batch]:
+        """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's (or
+        reset's): every core is updated before the first error is raised, a lost server's
+        environments move first (:meth:`fail_over`, started by ``start``, default
+        :func:`interrupted`), and with ``settle`` slices then move (:meth:`settle`)."""
         error, lost = None, []
         for core in self.cores:
             try:
@@ -123,7 +135,7 @@ class Fleet:
                 if error is None:
                     error = e
         if lost:
-            self.cores = fail_over(self.cores, lost, interrupted)
+            self.fail_over(lost, start or interrupted)
         if error is not None:
             raise error
         if settle:
@@ -131,42 +143,26 @@ class Fleet:
         return self.batches()
 
     def reset(self, given: dict, mask: np.ndarray | None) -> np.ndarray:
-        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (``seed``, ``seeds``,
-        ``arrivals``, ``config`` of :meth:`SessionCore.reset_request
-        <dinerdash._session.SessionCore.reset_request>`); returns which environments' cores were
-        called (a core with none of its environments in the mask keeps its state)."""
-        endpoint = self.endpoint
-        given_up = endpoint.given_up
+        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (the keywords of
+        :meth:`SessionCore.reset_request <dinerdash._session.SessionCore.reset_request>`); returns
+        which environments' cores were called (one with none of its environments in the mask
+        keeps its state). A lost server's environments start new sessions, reset with ``given``."""
 
         def start(old: SessionCore, new: SessionCore) -> Batch:
             return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
 
         called = np.zeros(self.num_envs, np.bool_)
-        calls = []
+        calls = {}
         for core in self.cores:
-            if mask is not None and not mask[core.start : core.stop].any():
-                continue
-            called[core.start : core.stop] = True
-            req = core.reset_request(**given, mask=mask)
-            calls.append(
-                (core, req, None if core.index in given_up else core.conn.future("Reset", req))
-            )
-        if self.failover_on() and len(endpoint.live()) > 1:
-            waiting = [(c.index, _ready(f)) for c, _, f in calls if f is not None]
-            await_replies(waiting, endpoint, self.settings.failover_after, time.monotonic())
-        lost = []
-        for core, req, future in calls:
-            try:
-                if future is None:
-                    lost.append(core)  # its server was given up at a step: it moves now
-                else:
-                    core.reset(req, future)
-            except ServerLost:
-                lost.append(core)
-        if lost:
-            self.cores = fail_over(self.cores, lost, start)
-        if self.failover_on():
-            self.settle()
+            if mask is None or mask[core.start : core.stop].any():
+                called[core.start : core.stop] = True
+                req = core.reset_request(**given, mask=mask)
+                # A server given up at a step: its core's reset raises ServerLost, and it moves.
+                calls[core] = (req, None if core.given_up() else core.conn.future("Reset", req))
+        if self.watched():
+            waiting = [(c.index, _ready(f)) for c, (_, f) in calls.items() if f is not None]
+            await_replies(waiting, self.endpoint, self.settings.failover_after, time.monotonic())
+        self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), start)
         return called
 
     def close(self) -> None:
@@ -183,6 +179,68 @@ class Fleet:
 
     def failover_on(self) -> bool:
         return self.settings.reconnect and self.settings.failover_after is not None
+
+    # -- failover -------------------------------------------------------------------------------
+
+    def fail_over(self, lost: list[SessionCore], start: Start) -> None:
+        """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`);
+        the other cores are not touched."""
+        for core in lost:
+            after = core.settings.failover_after
+            self.endpoint.give_up(core.index, f"unreachable past failover_after={after:g} s")
+            core.close()
+        kept = [c for c in self.cores if all(c is not x for x in lost)]
+        made: list[SessionCore] = []
+        try:
+            for core in lost:
+                made += self.move(core, kept + made, start)
+        except BaseException:
+            for new in made:
+                new.close()
+            raise
+        self.cores = sorted(kept + made, key=lambda c: c.start)
+
+    def move(self, core: SessionCore, others: list[SessionCore], start: Start) -> list[SessionCore]:
+        """New cores for the environments of ``core`` (its server given up) on the servers that
+        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started by
+        ``start``; a server that refuses one (:data:`PASSED_OVER`) is passed over."""
+        endpoint = core.endpoint
+        candidates = [i for i in endpoint.open_to_new() if i != core.index]
+        while True:
+            if not candidates:
+                lost = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
+                draining = ", ".join(endpoint.addresses[i] for i in endpoint.draining)
+                raise NoServerLeft(
+                    f"no server left for environments {core.start}..{core.stop - 1}: every "
+                    f"server of the env was given up ({lost or 'none'}), each unreachable for "
+                    f"more than failover_after={core.settings.failover_after:g} s, or drains "
+                    f"({draining or 'none'})",
+                    address=core.conn.address,
+                )
+            made: list[SessionCore] = []
+            target = None
+            try:
+                for lo, hi, target in even_parts(
+                    core.start, core.stop, servers_loads(others, candidates)
+                ):
+                    new = SessionCore(endpoint, target, lo, hi, core.settings)
+                    new.create()
+                    made.append(new)
+                    try:
+                        new.start_with(start(core, new))
+                    except ServiceError as e:
+                        raise new.fail(e) from None
+                return made
+            except PASSED_OVER as e:
+                if isinstance(e, ServerDraining):
+                    endpoint.drain(target, None)
+                candidates.remove(target)
+                for new in made:
+                    new.close()
+            except BaseException:
+                for new in made:
+                    new.close()
+                raise
 
     # -- moves ----------------------------------------------------------------------------------
 
@@ -238,16 +296,9 @@ class Fleet:
             del self.refused_until[j]
         return [j for j in self.endpoint.open_to_new() if j not in self.refused_until]
 
-    def loads(self, targets: list[int]) -> dict[int, int]:
-        loads = dict.fromkeys(targets, 0)
-        for c in self.cores:
-            if c.index in loads:
-                loads[c.index] += c.size
-        return loads
-
     def balanced(self, targets: list[int]) -> bool:
         """Every environment is on a server of ``targets``, whose loads differ by at most one."""
-        loads = self.loads(targets)
+        loads = servers_loads(self.cores, targets)
         if not targets or any(c.index not in loads for c in self.cores):
             return not targets
         return max(loads.values()) - min(loads.values()) <= 1
@@ -389,6 +440,30 @@ def plan(
             at = stop
         if at == hi:
             out.append((pos, parts))
+    return out
+
+
+def servers_loads(cores: list[SessionCore], servers: list[int]) -> dict[int, int]:
+    """Server index -> environments ``cores`` hold there, for each of ``servers``."""
+    loads = dict.fromkeys(servers, 0)
+    for c in cores:
+        if c.index in loads:
+            loads[c.index] += c.size
+    return loads
+
+
+def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
+    """Environments ``start:stop`` cut into one contiguous part ``(start, stop, server)`` per
+    server of ``loads`` (server -> environments it holds): sizes differ by at most one, the larger
+    to the least loaded (ties: the lower index); empty parts left out."""
+    order = sorted(loads, key=lambda i: (loads[i], i))
+    m, k = stop - start, len(order)
+    out = []
+    for j, server in enumerate(order):
+        size = m // k + (j < m % k)
+        if size:
+            out.append((start, start + size, server))
+            start += size
     return out
 
 

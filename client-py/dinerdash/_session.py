@@ -69,7 +69,7 @@ class Settings:
 
 class ServerLost(Exception):
     """A core's server stayed unreachable past ``failover_after`` (or was given up) while the env
-    has other servers: the env moves the core's environments (:mod:`dinerdash._failover`)."""
+    has other servers: its environments move (:meth:`dinerdash._fleet.Fleet.fail_over`)."""
 
     def __init__(self, core: SessionCore, error: ServiceError) -> None:
         super().__init__(
