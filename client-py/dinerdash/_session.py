@@ -1,16 +1,18 @@
-"""The session core: environments ``start:stop`` of an env in one batched session on one
-server, and everything both environments do with it (create, reset, step, the transport, and with
-``reconnect=True`` the lost server waited for); and :class:`SessionOwner`, what the two
-environments share. How sessions move between servers: docs/clusters.md#failover.
-
-A core's state (:data:`tests.test_module_graph.SESSION_STATE`) is changed only by its own
-methods; a move between servers makes new cores (:meth:`SessionCore.restored`).
+"""The session core: environments ``start:stop`` of an env in one batched session on one server
+and everything both environments do with it (create, reset, step, the transport, the step thread,
+and with ``reconnect=True`` the lost server waited for); and :class:`SessionOwner`, what the two
+environments share. A core's state (:data:`tests.test_module_graph.SESSION_STATE`) is changed
+only by its own methods; a move between servers makes new cores. Why: docs/clusters.md#failover.
 """
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
+import weakref
 from dataclasses import dataclass, field
+from types import MethodType
 from typing import Any
 
 import grpc
@@ -24,7 +26,6 @@ from ._arguments import check_render_mode, config_dict, expert_fields
 from ._batch import Batch, interrupt
 from ._endpoint import Endpoint
 from ._proto import pb
-from ._step_thread import StepThread
 from .connection import Connection, ConnectOptions
 from .errors import (
     EnvClosed,
@@ -623,3 +624,63 @@ class SessionCore:
             return self.conn.call("Render", request).text
         except ServiceError as e:
             raise self.fail(e) from None
+
+
+class StepThread:
+    """A thread that makes one session core's blocking gRPC Steps, for ``step_async`` /
+    ``step_wait`` (why not a grpcio future: docs/client.md#design-notes). It ends at
+    :meth:`close`, or when the core whose method the work is is collected (held weakly)."""
+
+    __slots__ = ("_replies", "_reply", "_requests")
+
+    def __init__(self, work: MethodType, name: str) -> None:
+        self._requests: queue.SimpleQueue = queue.SimpleQueue()
+        self._replies: queue.SimpleQueue = queue.SimpleQueue()
+        self._reply: tuple[bool, Any] | None = None
+        threading.Thread(
+            target=_serve,
+            args=(weakref.WeakMethod(work), self._requests, self._replies),
+            name=name,
+            daemon=True,
+        ).start()
+        weakref.finalize(work.__self__, self._requests.put, None)
+
+    def submit(self, item: Any) -> None:
+        self._requests.put(item)
+
+    def wait(self, deadline: float | None = None) -> bool:
+        """True when the reply is in by ``deadline`` (``None``: waits for it); it is then kept for
+        :meth:`result`. An interrupted wait (Ctrl-C) loses nothing: the reply stays queued."""
+        if self._reply is None:
+            try:
+                if deadline is None:
+                    self._reply = self._replies.get()
+                else:
+                    self._reply = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                return False
+        return True
+
+    def result(self) -> Any:
+        """The work's return value for the oldest submitted item, or its exception raised."""
+        reply = self._reply if self._reply is not None else self._replies.get()
+        self._reply = None
+        ok, value = reply
+        if ok:
+            return value
+        raise value
+
+    def close(self) -> None:
+        self._requests.put(None)
+
+
+def _serve(work: weakref.WeakMethod, requests: queue.SimpleQueue, replies: queue.SimpleQueue):
+    while (item := requests.get()) is not None:
+        method = work()
+        if method is None:
+            return
+        try:
+            replies.put((True, method(item)))
+        except BaseException as e:
+            replies.put((False, e))
+        del method
