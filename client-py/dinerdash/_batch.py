@@ -16,16 +16,6 @@ from gymnasium.vector import AutoresetMode
 from ._proto import pb
 from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
-__all__ = [
-    "Batch",
-    "cut",
-    "decode",
-    "decode_one",
-    "interrupt",
-    "join",
-    "outcome_one",
-]
-
 #: The one table of the Batch's per-environment fields (dtype, width): gRPC reads each by name,
 #: shared memory in this order after the ``actions`` (``server/src/shm/layout.rs``);
 #: ``tests/test_batch_fields.py`` ties the three.

@@ -16,8 +16,6 @@ from .connection import Connection, ConnectOptions
 from .errors import EnvClosed, ServiceTransportError
 from .server import LocalServer
 
-__all__ = ["Endpoint", "choose_addresses"]
-
 log = logging.getLogger("dinerdash")
 
 

@@ -32,8 +32,6 @@ from .errors import (
     SessionNotFound,
 )
 
-__all__ = ["REFUSED_WAIT", "Fleet", "even_parts", "interrupted", "plan"]
-
 log = logging.getLogger("dinerdash")
 
 #: Seconds a server that refused a Restore (full) is not asked again.

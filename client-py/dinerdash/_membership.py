@@ -19,8 +19,6 @@ from ._endpoint import Endpoint
 from .connection import Connection, ConnectOptions, split_host_port
 from .errors import ServiceError
 
-__all__ = ["Membership", "await_replies", "has_name"]
-
 log = logging.getLogger("dinerdash")
 
 #: Seconds a call may go unanswered before a health check is sent beside it (at most): a quick

@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from . import _shm, _transport
+from . import _shm
 from . import render as _render
 from ._arguments import check_render_mode, config_dict, expert_fields
 from ._batch import Batch, interrupt
@@ -282,7 +282,7 @@ class SessionCore:
         #: What the session's reply offered of shared memory, and the transport its Steps take
         #: (``None`` until the first Step of a session forked or restored).
         self.offer: _shm.Offer | None = None
-        self.transport: _transport.Transport | None = None
+        self.transport: _shm.Transport | None = None
         #: The transport of the session's last Steps, kept across a reopened session.
         self.last_transport: str | None = None
 
@@ -355,12 +355,12 @@ class SessionCore:
         self.offer = _shm.Offer.of(reply)
 
     def attach(self) -> None:
-        """Chooses the session's transport (:func:`dinerdash._transport.open_for`)."""
+        """Chooses the session's transport (:func:`dinerdash._shm.open_for`)."""
         self.detach()
         option = self.endpoint.options.transport
         # gRPC if the choice raises (``transport="shm"`` that cannot be had): said, not silent.
-        self.transport = _transport.GrpcTransport(self.conn, str(self.session_id))
-        self.transport = transport = _transport.open_for(self.offer, self.conn, option)
+        self.transport = _shm.GrpcTransport(self.conn, str(self.session_id))
+        self.transport = transport = _shm.open_for(self.offer, self.conn, option)
         why = "the session was reopened on a server that offers it shared memory"
         if transport.name == "grpc":
             why = "the reopened session could not attach shared memory (see the debug log)"
@@ -539,7 +539,7 @@ class SessionCore:
                 raise self.fail(e) from None
             return self.recover_step(e)
 
-    def ready_transport(self) -> _transport.Transport:
+    def ready_transport(self) -> _shm.Transport:
         """The session's transport, attached at its first Step; the last Batch copied first when
         the next Step overwrites it and a lost server's episodes may have to end in it."""
         if self.transport is None:
@@ -555,9 +555,9 @@ class SessionCore:
             if sent:
                 return self.transport.receive()
             return self.ready_transport().step(actions)
-        except _transport.Detached as gone:
+        except _shm.Detached as gone:
             self.detach()
-            self.transport = _transport.GrpcTransport(self.conn, self.session_id)
+            self.transport = _shm.GrpcTransport(self.conn, self.session_id)
             self.changed("grpc", gone.reason)
             if gone.error is not None:
                 raise gone.error from None
