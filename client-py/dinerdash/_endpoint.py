@@ -9,7 +9,7 @@ import dataclasses
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from . import connection
 from .connection import Connection, ConnectOptions
@@ -19,31 +19,21 @@ from .server import LocalServer
 log = logging.getLogger("dinerdash")
 
 
-def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
-    """The replicas to use: from ``address``, else ``DINERDASH_ADDRESS``; ``None`` means "start a
-    local server"."""
-    if address is None:
-        address = os.environ.get("DINERDASH_ADDRESS") or None
-    if address is None:
-        return None
-    return connection.resolve_replicas(address)
-
-
 class Endpoint:
     """Connections to one or more servers, and the local server this client started, if any."""
 
     def __init__(
-        self,
-        options: ConnectOptions,
-        *,
-        max_servers: int | None = None,
-        pick: int | None = None,
+        self, options: ConnectOptions, *, max_servers: int | None = None, pick: int | None = None
     ) -> None:
         self.options = options
         self.server: LocalServer | None = None
         self.connections: list[Connection] = []
-        addresses = choose_addresses(options.address)
-        if addresses is None:
+        address = options.address
+        if address is None:
+            address = os.environ.get("DINERDASH_ADDRESS") or None
+        if address is not None:
+            addresses = connection.resolve_replicas(address)
+        else:
             # The local server is plaintext on loopback: TLS settings, DINERDASH_TLS_CA included,
             # are for remote servers.
             self.options = dataclasses.replace(options, tls=False, tls_ca=False)
@@ -70,11 +60,9 @@ class Endpoint:
             self.close()
             raise
 
-    def reopen(
-        self, index: int, create: Callable[[Connection], None], lost: str, timeout: float
-    ) -> Connection:
+    def reopen(self, index: int, create: Callable[[], object], lost: str, timeout: float) -> None:
         """Waits up to ``timeout`` seconds for server ``index`` to answer again, then calls
-        ``create`` with its connection to open a new session there (``reconnect=True``)."""
+        ``create`` to open a new session there (``reconnect=True``)."""
         deadline = time.monotonic() + timeout
         while True:
             # Checked on every round: a dying process may still look alive at first.
@@ -85,8 +73,8 @@ class Endpoint:
             conn = self.connections[index]
             if conn.wait_ready(min(1.0, max(0.0, deadline - time.monotonic()))):
                 try:
-                    create(conn)
-                    return conn
+                    create()
+                    return
                 except (ServiceTransportError, EnvClosed):
                     pass  # went away again between connecting and creating: keep waiting
             if index in self.given_up:  # meanwhile, a vector env's watch gave it up

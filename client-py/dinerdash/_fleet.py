@@ -244,30 +244,43 @@ class Fleet:
 
     def settle(self) -> None:
         """After a step or a reset: takes in the servers the membership watch found, notes which
-        servers drain, and moves slices at once (:meth:`plan`, :meth:`split`) until no environment
-        is on a draining server and the loads of the servers that take sessions differ by at most
-        one."""
+        servers drain, and splits or moves slices at once (:func:`plan`, :meth:`split`) until no
+        environment is on a draining server and the targets' loads differ by at most one. A slice
+        whose last step was cut (a failover's, waiting to report it) moves at the next step."""
         endpoint = self.endpoint
         self.take_in()
         for core in self.cores:
             if core.drain_ms > 0:
                 endpoint.drain(core.index, core.drain_ms / 1000)
-        targets = self.targets()
-        key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
+        key, targets = self.key()
         if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
         settled = True
-        for core, parts in self.plan(targets) if targets else []:
-            if not self.split(core, parts):
+        cores = list(self.cores)
+        slices = [
+            (
+                c.index,
+                c.start,
+                c.stop,
+                c.last is not None and c.pending is None and not c.reconnected,
+            )
+            for c in cores
+        ]
+        for k, parts in plan(slices, self.num_envs, targets) if targets else []:
+            if not self.split(cores[k], parts):
                 settled = False  # planned again at the next step, with what the refusal taught
                 break
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self.cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
-        targets = self.targets()
-        key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
+        key, targets = self.key()
         settled = settled and not self.refused_until and self.balanced(targets)
         self.settled_key = key if settled else None
+
+    def key(self) -> tuple[tuple, list[int]]:
+        """What :meth:`settle` compares with :attr:`settled_key`, and the :meth:`targets`."""
+        e, targets = self.endpoint, self.targets()
+        return (len(self.cores), tuple(e.given_up), tuple(e.draining), tuple(targets)), targets
 
     def take_in(self) -> None:
         """The servers the membership thread found: given-up ones that answer again are taken
@@ -300,20 +313,6 @@ class Fleet:
         if not targets or any(c.index not in loads for c in self.cores):
             return not targets
         return max(loads.values()) - min(loads.values()) <= 1
-
-    def plan(self, targets: list[int]) -> list[tuple[SessionCore, list[tuple[int, int, int]]]]:
-        """The slices to split or move now and their new parts (:func:`plan`). A slice whose
-        last step was cut (a failover's, waiting to report it) moves at the next step."""
-        slices = [
-            (
-                c.index,
-                c.start,
-                c.stop,
-                c.last is not None and c.pending is None and not c.reconnected,
-            )
-            for c in self.cores
-        ]
-        return [(self.cores[k], parts) for k, parts in plan(slices, self.num_envs, targets)]
 
     def split(self, core: SessionCore, parts: list[tuple[int, int, int]]) -> bool:
         """Replaces ``core`` by new cores for ``parts`` (``(start, stop, server)``, covering its

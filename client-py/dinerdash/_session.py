@@ -236,26 +236,6 @@ class SessionCore:
     """Environments ``start:stop`` of an env, in one session on server ``index`` of its
     :class:`~dinerdash._endpoint.Endpoint`."""
 
-    __slots__ = (
-        "__weakref__",
-        "drain_ms",
-        "endpoint",
-        "index",
-        "last",
-        "last_transport",
-        "offer",
-        "pending",
-        "reconnected",
-        "session_id",
-        "settings",
-        "shm_sent",
-        "spec",
-        "start",
-        "step_thread",
-        "stop",
-        "transport",
-    )
-
     def __init__(
         self, endpoint: Endpoint, index: int, start: int, stop: int, settings: Settings
     ) -> None:
@@ -388,9 +368,6 @@ class SessionCore:
         for ``reconnect_timeout`` (then raises the error, or
         :class:`~dinerdash.errors.NoServerLeft` after a failover)."""
 
-        def create(conn: Connection) -> None:
-            self.create()
-
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
             raise ServerLost(self, error)
@@ -402,12 +379,12 @@ class SessionCore:
         failover = s.failover_after is not None and len(endpoint.connections) > 1
         if failover and len(endpoint.live()) > 1:
             try:
-                endpoint.reopen(self.index, create, lost, s.failover_after)
+                endpoint.reopen(self.index, self.create, lost, s.failover_after)
             except ServiceTransportError:
                 raise ServerLost(self, error) from None
             return
         try:
-            endpoint.reopen(self.index, create, lost, s.reconnect_timeout)
+            endpoint.reopen(self.index, self.create, lost, s.reconnect_timeout)
         except ServiceTransportError as e:
             if not failover:
                 raise

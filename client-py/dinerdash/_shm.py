@@ -130,21 +130,6 @@ def _check_peer(sock: socket.socket, offer: Offer) -> None:
 class Channel:
     """One session's doorbell socket and mapped region."""
 
-    __slots__ = (
-        "_known",
-        "_lengths",
-        "_offsets",
-        "_spin_next",
-        "address",
-        "conn",
-        "mm",
-        "num_envs",
-        "sent",
-        "session_id",
-        "sock",
-        "timeout",
-    )
-
     def __init__(self, offer: Offer, conn: Connection) -> None:
         self.address = conn.address
         self.conn = conn

@@ -20,9 +20,9 @@ from ._arguments import RENDER_MODES, Config, check_options, make_arrivals, make
 from ._batch import decode_one, outcome_one
 from ._endpoint import Endpoint
 from ._proto import pb
-from ._session import SessionCore, SessionOwner, check_actions
+from ._session import SessionCore, SessionOwner, check_actions, close_session
 from .connection import Connection, ConnectOptions
-from .errors import InvalidArgument, SessionNotFound
+from .errors import InvalidArgument
 from .game import NUM_ACTIONS, observation_space
 
 __all__ = ["DinerDashEnv", "Snapshot"]
@@ -239,10 +239,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         self._core.adopt(reply)
         self.spec_proto = reply.spec
         if old is not None:
-            try:
-                self._conn.call("CloseSession", pb.CloseSessionRequest(session_id=old))
-            except SessionNotFound:
-                pass
+            close_session(self._conn, old)
         self._last_obs = snapshot.observation.copy()
         self._last_info = copy.deepcopy(snapshot.info)
         return self._last_obs.copy(), copy.deepcopy(self._last_info)

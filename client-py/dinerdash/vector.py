@@ -172,10 +172,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     # -- Gymnasium API --------------------------------------------------------------------------
 
     def reset(
-        self,
-        *,
-        seed: int | Sequence[int] | None = None,
-        options: dict[str, Any] | None = None,
+        self, *, seed: int | Sequence[int] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         seed_list = None
         if seed is None or isinstance(seed, (int, np.integer)):
