@@ -492,29 +492,24 @@ class SessionCore:
 
     def step(self, actions: bytes, sent: bool = False) -> Batch:
         """One Step of this core's environments (``actions``: packed int32), blocking; ``sent``:
-        :meth:`start_step` sent it over shared memory, only its reply is awaited."""
-        if sent:
-            batch = self.step_or_recover(actions, sent)
-        elif self.pending is not None:
+        :meth:`start_step` sent it over shared memory, only its reply is awaited. A lost server
+        (``reconnect=True``) is recovered from (:meth:`recover_step`)."""
+        if self.pending is not None and not sent:
             batch, self.pending = self.pending, None
-        elif self.index in self.endpoint.given_up:
-            # Another session on this server found it lost: this one moves too.
-            gone = ServiceTransportError("the server was given up", address=self.conn.address)
-            batch = self.recover_step(gone)
         else:
-            batch = self.step_or_recover(actions)
+            try:
+                if self.given_up() and not sent:  # another session found the server lost
+                    raise ServiceTransportError(
+                        "the server was given up", address=self.conn.address
+                    )
+                batch = self.read_drain(self.step_on(actions, sent))
+            except ServiceError as e:
+                # A call cancelled because its server was given up (silent) is lost too.
+                if not (isinstance(e, LOST) or self.given_up()):
+                    raise self.fail(e) from None
+                batch = self.recover_step(e)
         self.last = batch
         return batch
-
-    def step_or_recover(self, actions: bytes, sent: bool = False) -> Batch:
-        """A Step's Batch; a lost server (``reconnect=True``) recovered from."""
-        try:
-            return self.read_drain(self.step_on(actions, sent))
-        except ServiceError as e:
-            # A call cancelled because its server was given up (silent) is lost too.
-            if not (isinstance(e, LOST) or self.given_up()):
-                raise self.fail(e) from None
-            return self.recover_step(e)
 
     def ready_transport(self) -> _shm.Transport:
         """The session's transport, attached at its first Step; the last Batch copied first when
