@@ -85,8 +85,7 @@ class Fleet:
     # -- a step and a reset --------------------------------------------------------------------
 
     def blocking(self) -> bool:
-        """One session and no other server to watch: the step is one blocking call, cheaper than
-        a hand-off to a thread (or to gRPC's completion thread)."""
+        """One session and no other server to watch: the step is one blocking call."""
         return len(self.cores) == 1 and not self.watched()
 
     def watched(self) -> bool:
@@ -142,9 +141,8 @@ class Fleet:
 
     def reset(self, given: dict, mask: np.ndarray | None) -> np.ndarray:
         """Resets the environments of ``mask`` (all: ``None``) with ``given`` (the keywords of
-        :meth:`SessionCore.reset_request <dinerdash._session.SessionCore.reset_request>`); returns
-        which environments' cores were called (one with none of its environments in the mask
-        keeps its state). A lost server's environments start new sessions, reset with ``given``."""
+        :meth:`~dinerdash._session.SessionCore.reset_request`); returns which environments' cores
+        were called (a core with none in the mask keeps its state)."""
 
         def start(old: SessionCore, new: SessionCore) -> Batch:
             return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
@@ -283,8 +281,8 @@ class Fleet:
         return (len(self.cores), tuple(e.given_up), tuple(e.draining), tuple(targets)), targets
 
     def take_in(self) -> None:
-        """The servers the membership thread found: given-up ones that answer again are taken
-        back, new replicas added (no more servers than environments)."""
+        """Takes back the given-up servers the membership watch found, and adds new replicas (no
+        more servers than environments)."""
         if self.membership is None:
             return
         endpoint = self.endpoint
@@ -300,8 +298,7 @@ class Fleet:
                 conn.close()
 
     def targets(self) -> list[int]:
-        """The servers slices may move to now: open to new sessions, and not resting after
-        refusing one."""
+        """The servers slices may move to now: open to new sessions and not resting (refused)."""
         now = time.monotonic()
         for j in [j for j, until in self.refused_until.items() if until <= now]:
             del self.refused_until[j]
@@ -370,17 +367,15 @@ class Fleet:
                     e.details,
                 )
             new.create(self.move_timeout())
-            request = pb.ResetRequest(session_id=new.session_id)
-            first = Batch.from_pb(new.conn.call("Reset", request, timeout=self.move_timeout()))
+            first = new.reset_new(self.move_timeout())
             new.cut_over(*cut(last, first, self.settings.autoreset_mode))
             return False
         new.restored(reply, last)
         return True
 
     def refused(self, dest: int, error: ServiceError) -> None:
-        """Server ``dest`` could not take environments moving to it: one that drains is marked
-        so, one that does not answer is given up, one that refuses otherwise (full) is not
-        asked for a while."""
+        """Server ``dest`` could not take environments: marked draining, given up (no answer), or
+        (full) not asked for :data:`REFUSED_WAIT`."""
         if isinstance(error, ServerDraining):
             self.endpoint.drain(dest, None)
         elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
@@ -389,9 +384,7 @@ class Fleet:
             self.refused_until[dest] = time.monotonic() + REFUSED_WAIT
 
     def move_timeout(self) -> float:
-        """The deadline of the calls that move environments between servers: a server that
-        does not answer within ``failover_after`` is passed over (the env's watch gives it up
-        at the next step), not waited for the whole ``timeout``."""
+        """The deadline of a move's calls: a server silent for ``failover_after`` is passed over."""
         return min(self.options.timeout, self.settings.failover_after)
 
 
@@ -481,10 +474,9 @@ def _ready(future: grpc.Future):
 
 
 def interrupted(old: SessionCore, new: SessionCore) -> Batch:
-    """A moved core's Batch for the step in which its server was given up: its environments'
-    episodes end truncated in their last state (``old.last``), and the new session's first
-    Batch (an unseeded Reset: the new server draws each episode's seed) is the autoreset, as
-    after a reconnect."""
-    first = Batch.from_pb(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
-    last = old.last.slice(new.start - old.start, new.stop - old.start)
-    return new.interrupt(last, first)
+    """A moved core's Batch for the step in which its server was given up: its episodes end
+    truncated in their last state (``old.last``), the new session's unseeded Reset is the
+    autoreset, as after a reconnect."""
+    return new.interrupt(
+        old.last.slice(new.start - old.start, new.stop - old.start), new.reset_new()
+    )

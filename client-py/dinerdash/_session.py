@@ -11,7 +11,7 @@ import queue
 import threading
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import MethodType
 from typing import Any
 
@@ -65,12 +65,12 @@ class Settings:
     #: (``reconnect=True``, several servers); ``None``: it is waited for ``reconnect_timeout``.
     failover_after: float | None = None
     #: Several cores: errors name the environments by their index in the whole env.
-    split: bool = field(default=False)
+    split: bool = False
 
 
 class ServerLost(Exception):
-    """A core's server stayed unreachable past ``failover_after`` (or was given up) while the env
-    has other servers: its environments move (:meth:`dinerdash._fleet.Fleet.fail_over`)."""
+    """A core's server was lost past ``failover_after`` (or given up) while the env has others:
+    its environments move (:meth:`dinerdash._fleet.Fleet.fail_over`)."""
 
     def __init__(self, core: SessionCore, error: ServiceError) -> None:
         super().__init__(
@@ -81,8 +81,7 @@ class ServerLost(Exception):
 
 
 def check_actions(actions: Any, num_envs: int) -> np.ndarray:
-    """``actions`` as ``num_envs`` little-endian int32, each checked before any server steps (a
-    cast would wrap 2**32 + 1 into action 1; a step refused by one server would move others)."""
+    """``actions`` as ``num_envs`` little-endian int32, each checked before any server steps."""
     acts = np.asarray(actions)
     if acts.shape != (num_envs,):
         raise ValueError(f"actions: expected shape ({num_envs},), got {acts.shape}")
@@ -102,8 +101,7 @@ def check_actions(actions: Any, num_envs: int) -> np.ndarray:
 
 
 def close_session(conn: Connection, session_id: str) -> None:
-    """Closes a session, once and briefly: a server that is gone or already forgot the session
-    has nothing left to free."""
+    """Closes a session, once and briefly (errors ignored: nothing is left to free)."""
     try:
         request = pb.CloseSessionRequest(session_id=session_id)
         conn.call("CloseSession", request, timeout=2.0, retries=0)
@@ -112,9 +110,8 @@ def close_session(conn: Connection, session_id: str) -> None:
 
 
 class SessionOwner:
-    """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share:
-    their arguments, :class:`Endpoint`, cores (``_cores``, in environment order), the server's
-    ``Spec`` of their session, and what is read from them the same way."""
+    """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share: their
+    arguments, :class:`Endpoint`, cores (``_cores``, in environment order), what is read of them."""
 
     _endpoint: Endpoint
     _cores: list[SessionCore]
@@ -161,9 +158,8 @@ class SessionOwner:
 
     @property
     def transports(self) -> dict[str, str]:
-        """The transport each server's sessions step over now (``{address: "shm" | "grpc"}``, in the
-        order of the first environments they hold; ``"shm,grpc"`` where they differ; a session
-        forked or restored chooses at its first step)."""
+        """The transport each server's sessions step over now: ``{address: "shm" | "grpc"}``
+        (``"shm,grpc"`` where they differ), in the order of their first environments."""
         out: dict[str, list[str]] = {}
         for core in self._cores:
             name = core.transport.name if core.transport is not None else "grpc"
@@ -174,8 +170,7 @@ class SessionOwner:
 
     @property
     def transport_changes(self) -> int:
-        """Sessions whose Steps changed transport since they were opened (shared memory lost,
-        or taken up again by a session reopened after a reconnect)."""
+        """Sessions whose Steps changed transport (shared memory lost, or taken up again)."""
         return self._endpoint.transport_changes
 
     def watch_url(self, index: int = 0) -> str:
@@ -201,8 +196,7 @@ class SessionOwner:
         connect: ConnectOptions | None,
         connection: dict[str, Any],
     ) -> Settings:
-        """Checks and keeps the constructor's arguments both envs take (errors in the name of the
-        env's class, as Python's own); returns the :class:`Settings` of the env's cores."""
+        """Checks and keeps the arguments both envs take; returns their cores' :class:`Settings`."""
         self.render_mode = check_render_mode(render_mode)
         expert_request = expert_fields(expert)
         self.expert = expert_request["expert_actions"]
@@ -296,9 +290,8 @@ class SessionCore:
         self.last = last
 
     def cut_over(self, last: Batch, pending: Batch | None) -> None:
-        """This new core's session (created and reset) took over environments whose episodes
-        were cut (:func:`~dinerdash._batch.cut`): ``last`` reports the step just made,
-        ``pending`` (NEXT_STEP) the next one."""
+        """This new core's session took over cut episodes (:func:`~dinerdash._batch.cut`): ``last``
+        reports the step just made, ``pending`` (NEXT_STEP) the next one."""
         self.last, self.pending, self.reconnected = last, pending, True
 
     def take_reconnected(self) -> bool:
@@ -363,10 +356,9 @@ class SessionCore:
         self.last_transport = name
 
     def reopen(self, error: ServiceError) -> None:
-        """Waits for the lost server and opens a new session there (``reconnect=True``): for
-        ``failover_after`` when another server is left (then raises :class:`ServerLost`), else
-        for ``reconnect_timeout`` (then raises the error, or
-        :class:`~dinerdash.errors.NoServerLeft` after a failover)."""
+        """Waits for the lost server and opens a new session there (``reconnect=True``), for
+        ``failover_after`` when another server is left (then :class:`ServerLost`), else for
+        ``reconnect_timeout`` (then the error, or ``NoServerLeft`` after a failover)."""
 
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
@@ -409,9 +401,8 @@ class SessionCore:
             self.session_id = None
 
     def fail(self, error: ServiceError) -> ServiceError:
-        """``error``, naming the environments it concerns when the env is split over several
-        servers (``env_index`` becomes the index in the whole env), and, for a lost server
-        without ``reconnect=True``, what would have ridden it out."""
+        """``error`` naming its environments' indices in the whole env when it is split over
+        servers, and, for a lost server without ``reconnect=True``, what would ride it out."""
         lost = isinstance(error, LOST) and not self.settings.reconnect
         if not (self.settings.split or lost):
             return error
@@ -452,9 +443,8 @@ class SessionCore:
         config: pb.GameConfig | None = None,
         mask: np.ndarray | None = None,
     ) -> pb.ResetRequest:
-        """This core's part of a reset of the whole env: environment ``i`` of the env is seeded
-        with ``seed + i`` (or ``seeds[i]``), gets ``arrivals[i]`` when there is one list per
-        environment (else the one list), and is reset when ``mask[i]`` (else all are)."""
+        """This core's part of a reset of the whole env: environment ``i`` seeded ``seed + i`` (or
+        ``seeds[i]``), given ``arrivals[i]`` (or the one list), reset if ``mask[i]`` (or all)."""
         r = pb.ResetRequest(session_id=self.session_id, config=config)
         if mask is not None:
             r.reset_mask = mask[self.start : self.stop].astype(np.uint8).tobytes()
@@ -470,8 +460,8 @@ class SessionCore:
         return r
 
     def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> Batch:
-        """The reply to ``request`` (started as ``future``, or called now). After a lost server
-        (``reconnect=True``) the new session is reset whole, as a new session must be."""
+        """The reply to ``request`` (started as ``future``, or called now); after a lost server
+        (``reconnect=True``) the new session is reset whole."""
         try:
             if future is None:
                 batch = Batch.from_pb(self.conn.call("Reset", request))
@@ -487,6 +477,11 @@ class SessionCore:
             batch = Batch.from_pb(self.conn.call("Reset", request))
         self.last, self.pending = self.read_drain(batch), None
         return batch
+
+    def reset_new(self, timeout: float | None = None) -> Batch:
+        """The Batch of a new session's first Reset, unseeded (its server draws the seeds)."""
+        request = pb.ResetRequest(session_id=self.session_id)
+        return Batch.from_pb(self.conn.call("Reset", request, timeout=timeout))
 
     # -- Step -----------------------------------------------------------------------------------
 
@@ -512,8 +507,8 @@ class SessionCore:
         return batch
 
     def ready_transport(self) -> _shm.Transport:
-        """The session's transport, attached at its first Step; the last Batch copied first when
-        the next Step overwrites it and a lost server's episodes may have to end in it."""
+        """The session's transport, attached at its first Step; the last Batch copied when the
+        next Step overwrites it and a lost server's episodes may end in it."""
         if self.transport is None:
             self.attach()
         if self.transport.views and self.last is not None and self.settings.reconnect:
@@ -521,8 +516,8 @@ class SessionCore:
         return self.transport
 
     def step_on(self, actions: bytes, sent: bool = False) -> Batch:
-        """One Step on the session's transport (``sent``: its reply only). Shared memory lost
-        under it changes to gRPC (an event), where the Step is made unless it was abandoned."""
+        """One Step on the session's transport (``sent``: its reply only); shared memory lost under
+        it changes to gRPC, where the Step is made unless it was abandoned."""
         try:
             if sent:
                 return self.transport.receive()
@@ -536,8 +531,8 @@ class SessionCore:
             return self.transport.step(actions)
 
     def start_step(self, actions: bytes) -> None:
-        """Starts a Step; :meth:`finish_step` returns its Batch. Over shared memory it is sent
-        here (the server steps while the caller works), else by the core's step thread."""
+        """Starts a Step (over shared memory sent here, else by the step thread);
+        :meth:`finish_step` returns its Batch."""
         if (
             self.pending is None
             and self.transport is not None
@@ -571,19 +566,17 @@ class SessionCore:
         return self.step_thread.result()
 
     def recover_step(self, error: ServiceError) -> Batch:
-        """A Batch that reports the interrupted episodes as truncated, after opening a new
-        session for them (``reconnect=True``); raises ``error`` otherwise."""
+        """With ``reconnect=True``, a new session and the Batch that ends the interrupted episodes
+        (truncated); otherwise ``error`` raised."""
         if not self.settings.reconnect or self.last is None:
             raise self.fail(error) from None
         last = self.last
         self.reopen(error)
-        first = Batch.from_pb(self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id)))
-        return self.interrupt(last, first)
+        return self.interrupt(last, self.reset_new())
 
     def interrupt(self, last: Batch, first: Batch) -> Batch:
-        """The Batch of a step that interrupts this core's episodes, whose ``last`` Batch came
-        from a lost session, and starts the new session's, whose Reset replied ``first``
-        (:func:`~dinerdash._batch.interrupt`); ``info["reconnected"]`` will say so."""
+        """The Batch that ends this core's episodes (``last``: the lost session's) and starts the
+        new session's (``first``, its Reset's): :func:`~dinerdash._batch.interrupt`."""
         out, self.pending = interrupt(last, first, self.settings.autoreset_mode)
         self.reconnected = True
         return out

@@ -24,13 +24,14 @@ import grpc
 from ._proto import pb, pb_grpc
 from ._version import warn_if_other_version
 from .errors import (
+    DETAILS_KEY,
     EnvClosed,
     ServiceError,
     ServiceTimeout,
     ServiceTransportError,
     TLSMismatch,
     error_for_status,
-    status_details,
+    trailer,
 )
 
 __all__ = [
@@ -369,14 +370,11 @@ class ConnectOptions:
 def _pushback_ms(error: grpc.RpcError) -> int | None:
     """The retry push-back's milliseconds a failed call's trailers carry (-1: not a number,
     do not retry), or ``None``."""
-    trailers = getattr(error, "trailing_metadata", None)
-    for key, value in (trailers() if trailers else None) or ():
-        if key == RETRY_PUSHBACK:
-            try:
-                return int(value)
-            except (TypeError, ValueError):
-                return -1
-    return None
+    value = trailer(error, RETRY_PUSHBACK)
+    try:
+        return None if value is None else int(value)
+    except (TypeError, ValueError):
+        return -1
 
 
 def _serving(reply: bytes) -> bool:
@@ -599,9 +597,9 @@ class Connection:
         self, method: str, error: grpc.RpcError, attempts: int, timeout: float | None = None
     ) -> ServiceError:
         """The typed exception for a failed call (:meth:`error_for`)."""
-        code, details = error.code(), error.details()
+        status = trailer(error, DETAILS_KEY)
         return self.error_for(
-            method, code, details, attempts, timeout, _pushback_ms(error), status_details(error)
+            method, error.code(), error.details(), attempts, timeout, _pushback_ms(error), status
         )
 
     def error_for(

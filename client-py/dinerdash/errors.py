@@ -34,7 +34,7 @@ __all__ = [
 #: The ``ErrorInfo.domain`` of the DinerDash service's errors.
 ERROR_DOMAIN = "dinerdash.v1"
 #: The trailer that carries a serialized ``google.rpc.Status`` (the gRPC rich error model).
-_DETAILS_KEY = "grpc-status-details-bin"
+DETAILS_KEY = "grpc-status-details-bin"
 
 
 class ServiceError(Exception):
@@ -189,11 +189,11 @@ def error_for_status(
     )
 
 
-def status_details(error: grpc.RpcError) -> bytes | None:
-    """The serialized ``google.rpc.Status`` a failed call's trailers carry, if any."""
+def trailer(error: grpc.RpcError, key: str) -> Any:
+    """A failed call's trailer ``key`` (e.g. :data:`DETAILS_KEY`), or ``None``."""
     trailers = getattr(error, "trailing_metadata", None)
-    for key, value in (trailers() if trailers else None) or ():
-        if key == _DETAILS_KEY:
+    for name, value in (trailers() if trailers else None) or ():
+        if name == key:
             return value
     return None
 
