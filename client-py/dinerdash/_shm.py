@@ -85,8 +85,7 @@ class _Untrusted(Exception):
 
 @functools.lru_cache(maxsize=64)
 def _on_this_host(address: str) -> bool:
-    """Whether every address ``address``'s host resolves to is this host's own: a loopback address,
-    or one this host can bind (an address of one of its interfaces)."""
+    """Whether every address ``address``'s host resolves to is loopback or this host's own."""
     try:
         host, port = split_host_port(address)
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
@@ -109,9 +108,8 @@ def _on_this_host(address: str) -> bool:
 
 
 def _check_peer(sock: socket.socket, offer: Offer) -> None:
-    """Raises :class:`_Untrusted` unless the doorbell's peer runs as this user (its uid) and is
-    the process the server's reply named (its pid): read from ``SO_PEERCRED`` before anything
-    is sent, so that a process that took the doorbell's name is told nothing."""
+    """Raises :class:`_Untrusted` unless the doorbell's peer (``SO_PEERCRED``, read before anything
+    is sent) runs as this user and is the process the server's reply named."""
     raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size)
     pid, uid, _ = _UCRED.unpack(raw)
     if uid != os.geteuid():
@@ -157,8 +155,7 @@ class Channel:
         except BaseException:
             sock.close()
             raise
-        # Blocking from here (no poll per recv), waking every _TICK to see the deadline and
-        # whether the connection was closed (a server given up: its calls end at once).
+        # Blocking from here, waking every _TICK to see the deadline and a closed connection.
         sock.settimeout(None)
         tick = min(conn.timeout, _TICK)
         seconds = int(tick)
@@ -178,8 +175,7 @@ class Channel:
             struct.unpack_from("<I", self.mm, _TABLE + 8 * i)[0] for i in range(len(FIELDS))
         ]
         self._lengths = np.frombuffer(self.mm, dtype="<u4", count=len(FIELDS), offset=_LENGTHS)
-        #: The lengths of the last reply, and the views of the region they gave (a session's
-        #: replies mostly repeat them).
+        #: The lengths of the last reply, and the views of the region they gave.
         self._known: tuple[bytes, dict[str, np.ndarray]] = (b"", {})
         #: Whether the last reply came within _SPIN: then the next one is polled for.
         self._spin_next = False
@@ -199,8 +195,7 @@ class Channel:
         return self.conn.error_for(method, code, message, status=bytes(reply[9 + size :]) or None)
 
     def send(self, actions: bytes) -> bool:
-        """Writes a Step's ``actions`` into the region and rings: the server steps while the
-        caller works, until :meth:`receive`. False when the doorbell closed (nothing was sent)."""
+        """Writes a Step's ``actions`` into the region and rings; False when the doorbell closed."""
         offset = self._offsets[0]
         self.mm[offset : offset + len(actions)] = actions
         try:
@@ -211,10 +206,9 @@ class Channel:
         return True
 
     def ready(self, timeout: float | None) -> bool:
-        """Whether the outcome of the Step :meth:`send` rang for is in within ``timeout`` seconds
-        (``None``: waits for it), for :meth:`receive` to return or raise at once: its reply, the
-        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or the
-        Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`)."""
+        """Whether the outcome of the Step :meth:`send` rang for (its reply, the doorbell's end,
+        the connection closed, or its deadline passed) is in within ``timeout`` seconds (``None``:
+        waits for it), for :meth:`receive` to return or raise at once."""
         now = time.perf_counter()
         until = None if timeout is None else now + timeout
         poller = select.poll()
@@ -232,8 +226,7 @@ class Channel:
 
     def receive(self) -> Batch | None:
         """The reply of the Step :meth:`send` rang for: its Batch (views of the region, valid
-        until the next Step is sent), the server's typed refusal raised, or ``None`` when the
-        doorbell closed (the Step is then to be made over gRPC)."""
+        until the next Step), its typed refusal raised, or ``None``: the doorbell closed."""
         sent = self.sent
         reply = self._poll(sent) if self._spin_next else None
         while reply is None:
@@ -261,8 +254,7 @@ class Channel:
         return Batch(self.num_envs, views, drain)
 
     def _views(self) -> dict[str, np.ndarray]:
-        """The reply's arrays as read-only views of the region, shaped as :class:`Batch` holds
-        them, for the lengths the last reply wrote (the next Step's reply overwrites them)."""
+        """The reply's arrays as read-only views of the region, for the lengths it wrote."""
         views = {}
         for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
             if not size or name == "actions":
@@ -278,8 +270,7 @@ class Channel:
         return views
 
     def _poll(self, sent: float) -> bytes | None:
-        """The reply if it comes within _SPIN of ``sent``, polled for without sleeping; ``None``
-        when it did not (or the socket failed: the blocking ``recv`` then says how)."""
+        """The reply if it comes within _SPIN of ``sent`` (polled, no sleep), or ``None``."""
         sock, until = self.sock, sent + _SPIN
         while True:
             try:
@@ -301,10 +292,9 @@ class Channel:
 
 
 def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | None:
-    """The shared-memory channel of the session ``offer`` describes (what its CreateSession,
-    Fork or Restore reply offered), on the server of ``conn``, when ``transport`` allows it and
-    it can be opened; else ``None``, the reason logged at debug level, or, for
-    ``transport="shm"``, raised as a :class:`~dinerdash.errors.ServiceTransportError`."""
+    """The shared-memory channel of the session ``offer`` describes, on the server of ``conn``, when
+    ``transport`` allows it and it opens; else ``None``, why logged at debug level (raised as a
+    ``ServiceTransportError`` for ``transport="shm"``)."""
     if transport == "grpc" or offer is None:
         return None
     why = None
@@ -433,9 +423,8 @@ class ShmTransport(Transport):
 
 
 def open_for(offer: Offer | None, conn: Connection, option: str) -> Transport:
-    """The transport of the session ``offer`` describes: shared memory when ``option``
-    (``ConnectOptions.transport``) allows it and it opens (:func:`attach`, which
-    says why not, or raises for ``"shm"``), else gRPC."""
+    """The transport of the session ``offer`` describes: shared memory when ``option`` allows it
+    and it opens (:func:`attach`), else gRPC."""
     channel = attach(offer, conn, option)
     if channel is None:
         return GrpcTransport(conn, offer.session_id if offer is not None else "")

@@ -1,7 +1,6 @@
-"""The exceptions of the client (the table: docs/client.md#errors). Every gRPC status the server
-returns becomes one of these, carrying the server's message; the class and ``reason``, ``field``
-and ``env_index`` come from the status code and the structured details the server attaches (a
-``google.rpc.Status``: ``ErrorInfo`` and ``BadRequest``), never from the message text.
+"""The exceptions of the client (the table: docs/client.md#errors). Every gRPC status becomes one
+of these, with the server's message; the class, ``reason``, ``field`` and ``env_index`` come from
+the status code and its structured details (``ErrorInfo``, ``BadRequest``), never from the text.
 """
 
 from __future__ import annotations
@@ -131,10 +130,9 @@ class TLSMismatch(ServiceTransportError):
 
 
 class NoServerLeft(ServiceTransportError):
-    """Every server of a vector env spread over several was lost: with ``reconnect=True`` and
-    ``failover_after``, the environments of a lost server move to the servers left, and this is
-    raised when none is left (the last one did not come back within ``reconnect_timeout``, or the
-    last ones were lost together)."""
+    """Every server of a vector env spread over several was lost (``reconnect=True``,
+    ``failover_after``): the last did not come back within ``reconnect_timeout``, or the last ones
+    were lost together."""
 
 
 class EnvClosed(ServiceError):
