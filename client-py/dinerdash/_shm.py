@@ -131,7 +131,6 @@ class Channel:
     def __init__(self, offer: Offer, conn: Connection) -> None:
         self.address = conn.address
         self.conn = conn
-        self.session_id = offer.session_id
         self.timeout = conn.timeout
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
         try:

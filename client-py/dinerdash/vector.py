@@ -326,19 +326,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         if resets:
             self._seeds = np.where(reset, batch["seeds"].astype(np.int64), self._seeds)
         info["seed"], info["_seed"] = self._seeds.copy(), everyone.copy()
-        if resets:
-            reset = reset.copy()
-            if self.autoreset_mode == AutoresetMode.SAME_STEP:
-                final, final_info = decode(batch, self.expert, "final_", reset)
-                final_info["seed"] = np.where(reset, ended_seeds, 0)
-                final_info["_seed"] = reset.copy()
-                final_obs = np.full(n, None, dtype=object)
-                for i in np.flatnonzero(reset):  # only the environments that just ended
-                    final_obs[i] = final[i]
-                info["final_obs"] = final_obs
-                info["_final_obs"] = reset.copy()
-                info["final_info"] = final_info
-                info["_final_info"] = reset.copy()
+        if resets and self.autoreset_mode == AutoresetMode.SAME_STEP:
+            final, final_info = decode(batch, self.expert, "final_", reset)
+            final_info["seed"] = np.where(reset, ended_seeds, 0)
+            final_info["_seed"] = reset.copy()
+            final_obs = np.full(n, None, dtype=object)
+            for i in np.flatnonzero(reset):  # only the environments that just ended
+                final_obs[i] = final[i]
+            info["final_obs"] = final_obs
+            info["_final_obs"] = reset.copy()
+            info["final_info"] = final_info
+            info["_final_info"] = reset.copy()
         cut = [c for c in self._cores if c.reconnected]
         if cut:
             lost = np.zeros(n, dtype=np.bool_)
