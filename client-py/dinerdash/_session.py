@@ -493,7 +493,7 @@ class SessionCore:
             batch, self.pending = self.pending, None
         else:
             try:
-                if self.given_up() and not sent:  # another session found the server lost
+                if not sent and self.given_up():  # another session found the server lost
                     raise ServiceTransportError(
                         "the server was given up", address=self.conn.address
                     )
