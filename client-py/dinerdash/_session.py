@@ -37,11 +37,8 @@ from .errors import (
 )
 from .game import NUM_ACTIONS
 
-_WIRE_AUTORESET = {
-    AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
-    AutoresetMode.SAME_STEP: pb.AUTORESET_MODE_SAME_STEP,
-    AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
-}
+#: Gymnasium's autoreset modes as the protocol's (``AUTORESET_MODE_NEXT_STEP``, ...).
+_WIRE_AUTORESET = {m: pb.AutoresetMode.Value(f"AUTORESET_MODE_{m.name}") for m in AutoresetMode}
 _U64 = 1 << 64
 #: The unsigned dtype of each integer width, for :func:`check_actions`.
 _UNSIGNED = {width: np.dtype(f"u{width}") for width in (1, 2, 4, 8)}
@@ -617,20 +614,17 @@ class StepThread:
         """True when the reply is in by ``deadline`` (``None``: waits for it); it is then kept for
         :meth:`result`. An interrupted wait (Ctrl-C) loses nothing: the reply stays queued."""
         if self._reply is None:
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
             try:
-                if deadline is None:
-                    self._reply = self._replies.get()
-                else:
-                    self._reply = self._replies.get(timeout=max(0.0, deadline - time.monotonic()))
+                self._reply = self._replies.get(timeout=timeout)
             except queue.Empty:
                 return False
         return True
 
     def result(self) -> Any:
         """The work's return value for the oldest submitted item, or its exception raised."""
-        reply = self._reply if self._reply is not None else self._replies.get()
+        ok, value = self._reply if self._reply is not None else self._replies.get()
         self._reply = None
-        ok, value = reply
         if ok:
             return value
         raise value
