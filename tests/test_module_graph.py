@@ -167,9 +167,8 @@ LAYERS = [
     {"dinerdash._proto", "dinerdash.game", "dinerdash._grpc_settings"},
     {"dinerdash._batch", "dinerdash.errors", "dinerdash._version"},
     {"dinerdash.connection", "dinerdash.server", "dinerdash._arguments"},
-    {"dinerdash._shm", "dinerdash._transport", "dinerdash._endpoint", "dinerdash._step_thread"},
+    {"dinerdash._shm", "dinerdash._endpoint"},
     {"dinerdash._session", "dinerdash._membership"},
-    {"dinerdash._failover"},
     {"dinerdash._fleet"},
     {"dinerdash.env", "dinerdash.vector"},
 ]

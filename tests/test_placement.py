@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import itertools
 
-from dinerdash._failover import even_parts
-from dinerdash._fleet import plan
+from dinerdash._fleet import even_parts, plan
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -30,6 +30,7 @@ import grpc
 import numpy as np
 import pytest
 from dinerdash import (
+    Connection,
     ConnectOptions,
     DinerDashEnv,
     DinerDashVectorEnv,
@@ -106,11 +107,10 @@ def test_shm_away_from_the_server_says_why_and_auto_falls_back(start_server) -> 
         env.step(0)
         assert regions(bare.pid) == 0
         # What a client on another machine meets: a doorbell name not bound on its host.
-        with pytest.raises(ServiceTransportError, match="not on this machine"):
-            offer = _shm.Offer(
-                env._core.session_id, "dinerdash-0-on-another-host", b"s" * 32, bare.pid
-            )
-            _shm.attach(offer, env._core.conn, "shm")
+        offer = _shm.Offer(env.session_id, "dinerdash-0-on-another-host", b"s" * 32, bare.pid)
+        with Connection(env.address) as conn:
+            with pytest.raises(ServiceTransportError, match="not on this machine"):
+                _shm.attach(offer, conn, "shm")
     finally:
         env.close()
     with pytest.raises(ValueError, match="transport"):

@@ -1,9 +1,7 @@
-"""The Batch: one Reset's or Step's reply for the environments of one session (or a whole env),
-as numpy arrays, whatever transport carried it (:meth:`Batch.from_pb`, views of a shared-memory
-region: :mod:`dinerdash._shm`); its operations (slice, join, episodes a lost server
-(:func:`interrupt`) or a refused Restore (:func:`cut`) ends early); and the observations and
-infos made of it (:func:`decode`, which copies: what an env returns is its caller's own). The one
-module that names the reply's fields. Costs: docs/client.md#design-notes.
+"""The Batch: one Reset's or Step's reply for the environments of one session (or a whole env) as
+numpy arrays, whatever transport carried it; its operations (slice, join, episodes ended early by
+a lost server, :func:`interrupt`, or a refused Restore, :func:`cut`); and the observations and
+infos made of it (:func:`decode`, copies). The one module that names the reply's fields.
 """
 
 from __future__ import annotations
@@ -16,19 +14,8 @@ from gymnasium.vector import AutoresetMode
 from ._proto import pb
 from .game import NUM_ACTIONS, OBSERVATION_SIZE
 
-__all__ = [
-    "Batch",
-    "cut",
-    "decode",
-    "decode_one",
-    "interrupt",
-    "join",
-    "outcome_one",
-]
-
 #: The one table of the Batch's per-environment fields (dtype, width): gRPC reads each by name,
-#: shared memory in this order after the ``actions`` (``server/src/shm/layout.rs``);
-#: ``tests/test_batch_fields.py`` ties the three.
+#: shared memory in this order (``tests/test_batch_fields.py`` ties it to the proto and server).
 FIELDS: dict[str, tuple[str, int]] = {
     "observations": ("i1", OBSERVATION_SIZE),
     "rewards": ("<i4", 1),
@@ -63,9 +50,8 @@ def _empty(name: str, n: int) -> np.ndarray:
 
 
 class Batch:
-    """One reply for ``num_envs`` environments: ``fields`` maps each field the reply has to an array
-    of ``num_envs`` rows (``(N, width)`` for observations and masks, ``(N,)`` for the rest); a field
-    the reply lacks is absent (``batch[name]`` reads it as zeros)."""
+    """One reply for ``num_envs`` environments: each field it has as an array of ``num_envs`` rows
+    (``batch[name]`` reads a field it lacks as zeros); a gRPC reply's decoded when first read."""
 
     __slots__ = ("_fields", "_msg", "drain_ms", "num_envs")
 
@@ -77,10 +63,8 @@ class Batch:
         msg: pb.Batch | None = None,
     ) -> None:
         self.num_envs = num_envs
-        #: The fields decoded (all of them, or with ``msg`` those read so far).
         self._fields = fields
-        #: The gRPC reply whose other fields are not decoded yet (:meth:`from_pb`), else ``None``.
-        self._msg = msg
+        self._msg = msg  # the gRPC reply whose other fields are not decoded yet
         self.drain_ms = drain_ms
 
     @classmethod
@@ -169,10 +153,9 @@ def join(batches: list[Batch]) -> Batch:
 
 
 def cut(ended: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
-    """The Batch that environments report for the step just made when they could not be restored on
-    the server they move to (another snapshot version) and start new episodes on a new session
-    there, whose Reset replied ``first``; and the Batch their next step reports (NEXT_STEP's
-    autoreset; else ``None``)."""
+    """The Batch environments report for the step just made (``ended``) when they could not be
+    restored where they move (another snapshot version) and start new episodes there, whose Reset
+    replied ``first``; and the Batch their next step reports (NEXT_STEP; else ``None``)."""
     n = ended.num_envs
     truncated = ~ended["terminated"]
     if mode != AutoresetMode.SAME_STEP:
@@ -197,10 +180,9 @@ def cut(ended: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch |
 
 
 def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Batch | None]:
-    """The Batch of a step that interrupts episodes whose ``last`` Batch came from a lost session
-    and starts the new session's, whose Reset replied ``first``: the old episodes end truncated
-    (reward 0); and the Batch the next step hands out (NEXT_STEP: ``first`` as the autoreset; else
-    ``None``)."""
+    """The Batch of a step that ends, truncated (reward 0), episodes whose ``last`` Batch came from
+    a lost session and starts the new session's (its Reset replied ``first``); and the Batch the
+    next step hands out (NEXT_STEP: ``first``; else ``None``)."""
     n = last.num_envs
     outcome = {
         "rewards": np.zeros(n, "<i4"),
@@ -220,9 +202,8 @@ def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Ba
 def decode(
     batch: Batch, expert: bool, prefix: str = "", present: np.ndarray | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Observations ``(N, 40) float32`` and infos of the state ``batch`` returns, or with
-    ``prefix="final_"`` of the episodes that ended (SAME_STEP); ``present`` is every info key's
-    Gymnasium ``_key`` mask (default: all; copied for each key, never kept)."""
+    """Observations ``(N, 40) float32`` and infos of ``batch``'s state (``prefix="final_"``: of the
+    episodes that ended), ``present`` each key's ``_key`` mask (default: all; copied)."""
     n = batch.num_envs
     if present is None:
         present = np.ones(n, dtype=np.bool_)
@@ -246,8 +227,7 @@ def decode(
 
 
 def decode_one(batch: Batch, expert: bool) -> tuple[np.ndarray, dict[str, Any]]:
-    """The observation ``(40,)`` and info of a one-environment Batch: :func:`decode` without the
-    batch axis, with plain ``int`` values (cheaper than numpy for one environment)."""
+    """The observation ``(40,)`` and info of a one-environment Batch, with plain ``int`` values."""
     msg = batch._msg
     observations = msg.observations if msg is not None else None
     if observations:

@@ -1,6 +1,6 @@
 """Where an env's sessions live: :class:`Endpoint`, the connections to its servers (or the local
-server it started), how a lost server is waited for, and which servers were given up, taken
-back, added or drain. A server given up keeps its index (``connections[i]`` is server ``i``).
+server it started), a lost server waited for, and which servers were given up, taken back, added
+or drain. A server keeps its index (``connections[i]`` is server ``i``).
 """
 
 from __future__ import annotations
@@ -9,45 +9,32 @@ import dataclasses
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from . import connection
 from .connection import Connection, ConnectOptions
 from .errors import EnvClosed, ServiceTransportError
 from .server import LocalServer
 
-__all__ = ["Endpoint", "choose_addresses"]
-
 log = logging.getLogger("dinerdash")
-
-
-def choose_addresses(address: str | Sequence[str] | None) -> list[str] | None:
-    """The replicas to use: from ``address``, else ``DINERDASH_ADDRESS``; ``None`` means "start a
-    local server"."""
-    if address is None:
-        address = os.environ.get("DINERDASH_ADDRESS") or None
-    if address is None:
-        return None
-    return connection.resolve_replicas(address)
 
 
 class Endpoint:
     """Connections to one or more servers, and the local server this client started, if any."""
 
     def __init__(
-        self,
-        options: ConnectOptions,
-        *,
-        max_servers: int | None = None,
-        pick: int | None = None,
+        self, options: ConnectOptions, *, max_servers: int | None = None, pick: int | None = None
     ) -> None:
         self.options = options
         self.server: LocalServer | None = None
         self.connections: list[Connection] = []
-        addresses = choose_addresses(options.address)
-        if addresses is None:
-            # The local server is plaintext on loopback: TLS settings, DINERDASH_TLS_CA included,
-            # are for remote servers.
+        address = options.address
+        if address is None:
+            address = os.environ.get("DINERDASH_ADDRESS") or None
+        if address is not None:
+            addresses = connection.resolve_replicas(address)
+        else:
+            # The local server is plaintext on loopback: TLS settings are for remote servers.
             self.options = dataclasses.replace(options, tls=False, tls_ca=False)
             self.server = LocalServer(options.server_binary)
             addresses = [self.server.address]
@@ -72,11 +59,9 @@ class Endpoint:
             self.close()
             raise
 
-    def reopen(
-        self, index: int, create: Callable[[Connection], None], lost: str, timeout: float
-    ) -> Connection:
+    def reopen(self, index: int, create: Callable[[], object], lost: str, timeout: float) -> None:
         """Waits up to ``timeout`` seconds for server ``index`` to answer again, then calls
-        ``create`` with its connection to open a new session there (``reconnect=True``)."""
+        ``create`` to open a new session there (``reconnect=True``)."""
         deadline = time.monotonic() + timeout
         while True:
             # Checked on every round: a dying process may still look alive at first.
@@ -87,8 +72,8 @@ class Endpoint:
             conn = self.connections[index]
             if conn.wait_ready(min(1.0, max(0.0, deadline - time.monotonic()))):
                 try:
-                    create(conn)
-                    return conn
+                    create()
+                    return
                 except (ServiceTransportError, EnvClosed):
                     pass  # went away again between connecting and creating: keep waiting
             if index in self.given_up:  # meanwhile, a vector env's watch gave it up
@@ -111,8 +96,8 @@ class Endpoint:
         return [i for i in self.live() if i not in self.draining]
 
     def give_up(self, index: int, why: str | None = None) -> None:
-        """Server ``index`` is lost: its channel is closed (which cancels any call still waiting on
-        it, and returns at once) and :meth:`live` leaves it out until :meth:`take_back`."""
+        """Server ``index`` is lost (``why``; ``None``: drained): its channel is closed (its calls
+        cancelled) and :meth:`live` leaves it out until :meth:`take_back`."""
         if index not in self.given_up:
             self.given_up.append(index)
             self.connections[index].close()
@@ -124,9 +109,8 @@ class Endpoint:
                 log.warning("gave up the server at %s: %s", self.addresses[index], why)
 
     def transport_changed(self, address: str, session: str, old: str, new: str, why: str) -> None:
-        """A session's Steps changed transport (``old`` to ``new``: ``"shm"``, ``"grpc"``):
-        counted in :attr:`transport_changes` and logged once, as a warning, with ``why``; a
-        user who measured shared memory's rate must not train at gRPC's without knowing."""
+        """A session's Steps changed transport (``old`` to ``new``): counted and logged once, as a
+        warning, with ``why``."""
         self.transport_changes += 1
         log.warning(
             "session %s on %s steps over %s instead of %s from now on: %s",
@@ -138,8 +122,7 @@ class Endpoint:
         )
 
     def take_back(self, index: int, conn: Connection) -> None:
-        """Server ``index``, given up, answered its health check again: ``conn`` is its channel
-        from now on and it takes sessions again."""
+        """Server ``index``, given up, answers again: ``conn`` is its channel from now on."""
         self.given_up.remove(index)
         self.connections[index] = conn
         self.rejoins += 1
@@ -154,8 +137,7 @@ class Endpoint:
         return len(self.connections) - 1
 
     def drain(self, index: int, remaining: float | None) -> None:
-        """Server ``index`` said it drains, with ``remaining`` seconds until its deadline
-        (``None``: not said, as when it refuses a session; a later Batch says it)."""
+        """Server ``index`` drains, ``remaining`` seconds before its deadline (``None``: unsaid)."""
         if index in self.given_up:
             return
         deadline = float("inf") if remaining is None else time.monotonic() + remaining

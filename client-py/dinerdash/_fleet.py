@@ -1,9 +1,9 @@
 """The fleet: a vector env's servers (:class:`~dinerdash._endpoint.Endpoint`, the
 :class:`~dinerdash._membership.Membership` watch) and its slices, session cores each holding a
-contiguous range of environments, in environment order, as servers fail, come back, appear and
-drain. After each step or reset (:meth:`Fleet.settle`) slices move at once by Snapshot and
-Restore, exactly (:func:`plan`); a failed server's environments move with
-:func:`dinerdash._failover.fail_over`. Why: docs/clusters.md#failover.
+contiguous range of environments, in environment order. After each step or reset
+(:meth:`Fleet.settle`) slices move at once by Snapshot and Restore, exactly (:func:`plan`); a
+lost server's environments get new sessions on the servers left (:meth:`Fleet.fail_over`,
+:func:`even_parts`). Why: docs/clusters.md#failover.
 """
 
 from __future__ import annotations
@@ -17,25 +17,31 @@ import numpy as np
 
 from ._batch import Batch, cut
 from ._endpoint import Endpoint
-from ._failover import fail_over
 from ._membership import Membership, await_replies, has_name
 from ._proto import pb
 from ._session import ServerLost, SessionCore, Settings
 from .connection import ConnectOptions
 from .errors import (
     InvalidArgument,
+    NoServerLeft,
+    ResourceExhausted,
     ServerDraining,
     ServiceError,
     ServiceTimeout,
     ServiceTransportError,
+    SessionNotFound,
 )
-
-__all__ = ["REFUSED_WAIT", "Fleet", "interrupted", "plan"]
 
 log = logging.getLogger("dinerdash")
 
 #: Seconds a server that refused a Restore (full) is not asked again.
 REFUSED_WAIT = 10.0
+#: A server that refuses a failover's new session for one of these is passed over, not given up.
+PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
+
+#: ``start(lost_core, new_core)``: resets the new core's session (created) and returns the Batch
+#: its environments report.
+Start = Callable[[SessionCore, SessionCore], Batch]
 
 
 class Fleet:
@@ -79,27 +85,28 @@ class Fleet:
     # -- a step and a reset --------------------------------------------------------------------
 
     def blocking(self) -> bool:
-        """One session and no other server to watch: the step is one blocking call, cheaper than
-        a hand-off to a thread (or to gRPC's completion thread)."""
-        return len(self.cores) == 1 and not (self.failover_on() and len(self.endpoint.live()) > 1)
+        """One session and no other server to watch: the step is one blocking call."""
+        return len(self.cores) == 1 and not self.watched()
+
+    def watched(self) -> bool:
+        """Calls in flight are watched for silent servers (:func:`await_replies`)."""
+        return self.failover_on() and len(self.endpoint.live()) > 1
 
     def step(self, wire: np.ndarray) -> list[Batch]:
         """The step of a :meth:`blocking` fleet: its Batches, after any failover and move."""
         return self.collect(lambda core: core.step(wire.tobytes()), self.membership is not None)
 
     def start(self, wire: np.ndarray) -> None:
-        """Every server's Step is sent (by its core's thread) before any reply is awaited: the
-        servers work in parallel, and with the caller."""
+        """Every server's Step is sent (by its core's thread) before any reply is awaited."""
         for core in self.cores:
             core.start_step(wire[core.start : core.stop].tobytes())
         self.sent = time.monotonic()
 
     def wait(self) -> None:
         """Waits for every reply of the step :meth:`start` sent."""
-        endpoint = self.endpoint
-        if self.failover_on() and len(endpoint.live()) > 1:
+        if self.watched():
             waiting = [(c.index, c.step_ready) for c in self.cores]
-            await_replies(waiting, endpoint, self.settings.failover_after, self.sent)
+            await_replies(waiting, self.endpoint, self.settings.failover_after, self.sent)
         else:
             for core in self.cores:
                 core.step_ready()
@@ -108,11 +115,13 @@ class Fleet:
         """Every core's Batch of the step :meth:`start` sent, once :meth:`wait` returned."""
         return self.collect(SessionCore.finish_step, self.failover_on())
 
-    def collect(self, outcome: Callable[[SessionCore], Batch], settle: bool) -> list[Batch]:
-        """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's:
-        every core is updated before the first error is raised, a lost server's environments
-        move first (:func:`interrupted`), and with ``settle`` slices then move as
-        :meth:`settle` decides."""
+    def collect(
+        self, outcome: Callable[[SessionCore], object], settle: bool, start: Start | None = None
+    ) -> list[Batch]:
+        """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's (or
+        reset's): every core is updated before the first error is raised, a lost server's
+        environments move first (:meth:`fail_over`, started by ``start``, default
+        :func:`interrupted`), and with ``settle`` slices then move (:meth:`settle`)."""
         error, lost = None, []
         for core in self.cores:
             try:
@@ -123,7 +132,7 @@ class Fleet:
                 if error is None:
                     error = e
         if lost:
-            self.cores = fail_over(self.cores, lost, interrupted)
+            self.fail_over(lost, start or interrupted)
         if error is not None:
             raise error
         if settle:
@@ -131,42 +140,25 @@ class Fleet:
         return self.batches()
 
     def reset(self, given: dict, mask: np.ndarray | None) -> np.ndarray:
-        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (``seed``, ``seeds``,
-        ``arrivals``, ``config`` of :meth:`SessionCore.reset_request
-        <dinerdash._session.SessionCore.reset_request>`); returns which environments' cores were
-        called (a core with none of its environments in the mask keeps its state)."""
-        endpoint = self.endpoint
-        given_up = endpoint.given_up
+        """Resets the environments of ``mask`` (all: ``None``) with ``given`` (the keywords of
+        :meth:`~dinerdash._session.SessionCore.reset_request`); returns which environments' cores
+        were called (a core with none in the mask keeps its state)."""
 
         def start(old: SessionCore, new: SessionCore) -> Batch:
             return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
 
         called = np.zeros(self.num_envs, np.bool_)
-        calls = []
+        calls = {}
         for core in self.cores:
-            if mask is not None and not mask[core.start : core.stop].any():
-                continue
-            called[core.start : core.stop] = True
-            req = core.reset_request(**given, mask=mask)
-            calls.append(
-                (core, req, None if core.index in given_up else core.conn.future("Reset", req))
-            )
-        if self.failover_on() and len(endpoint.live()) > 1:
-            waiting = [(c.index, _ready(f)) for c, _, f in calls if f is not None]
-            await_replies(waiting, endpoint, self.settings.failover_after, time.monotonic())
-        lost = []
-        for core, req, future in calls:
-            try:
-                if future is None:
-                    lost.append(core)  # its server was given up at a step: it moves now
-                else:
-                    core.reset(req, future)
-            except ServerLost:
-                lost.append(core)
-        if lost:
-            self.cores = fail_over(self.cores, lost, start)
-        if self.failover_on():
-            self.settle()
+            if mask is None or mask[core.start : core.stop].any():
+                called[core.start : core.stop] = True
+                req = core.reset_request(**given, mask=mask)
+                # A server given up at a step: its core's reset raises ServerLost, and it moves.
+                calls[core] = (req, None if core.given_up() else core.conn.future("Reset", req))
+        if self.watched():
+            waiting = [(c.index, _ready(f)) for c, (_, f) in calls.items() if f is not None]
+            await_replies(waiting, self.endpoint, self.settings.failover_after, time.monotonic())
+        self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), start)
         return called
 
     def close(self) -> None:
@@ -184,38 +176,113 @@ class Fleet:
     def failover_on(self) -> bool:
         return self.settings.reconnect and self.settings.failover_after is not None
 
+    # -- failover -------------------------------------------------------------------------------
+
+    def fail_over(self, lost: list[SessionCore], start: Start) -> None:
+        """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`);
+        the other cores are not touched."""
+        for core in lost:
+            after = core.settings.failover_after
+            self.endpoint.give_up(core.index, f"unreachable past failover_after={after:g} s")
+            core.close()
+        kept = [c for c in self.cores if all(c is not x for x in lost)]
+        made: list[SessionCore] = []
+        try:
+            for core in lost:
+                made += self.move(core, kept + made, start)
+        except BaseException:
+            for new in made:
+                new.close()
+            raise
+        self.cores = sorted(kept + made, key=lambda c: c.start)
+
+    def move(self, core: SessionCore, others: list[SessionCore], start: Start) -> list[SessionCore]:
+        """New cores for the environments of ``core`` (its server given up) on the servers that
+        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started by
+        ``start``; a server that refuses one (:data:`PASSED_OVER`) is passed over."""
+        endpoint = core.endpoint
+        candidates = [i for i in endpoint.open_to_new() if i != core.index]
+        while True:
+            if not candidates:
+                lost = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
+                draining = ", ".join(endpoint.addresses[i] for i in endpoint.draining)
+                raise NoServerLeft(
+                    f"no server left for environments {core.start}..{core.stop - 1}: every "
+                    f"server of the env was given up ({lost or 'none'}), each unreachable for "
+                    f"more than failover_after={core.settings.failover_after:g} s, or drains "
+                    f"({draining or 'none'})",
+                    address=core.conn.address,
+                )
+            made: list[SessionCore] = []
+            target = None
+            try:
+                for lo, hi, target in even_parts(
+                    core.start, core.stop, servers_loads(others, candidates)
+                ):
+                    new = SessionCore(endpoint, target, lo, hi, core.settings)
+                    new.create()
+                    made.append(new)
+                    try:
+                        new.start_with(start(core, new))
+                    except ServiceError as e:
+                        raise new.fail(e) from None
+                return made
+            except PASSED_OVER as e:
+                if isinstance(e, ServerDraining):
+                    endpoint.drain(target, None)
+                candidates.remove(target)
+                for new in made:
+                    new.close()
+            except BaseException:
+                for new in made:
+                    new.close()
+                raise
+
     # -- moves ----------------------------------------------------------------------------------
 
     def settle(self) -> None:
         """After a step or a reset: takes in the servers the membership watch found, notes which
-        servers drain, and moves slices at once (:meth:`plan`, :meth:`split`) until no environment
-        is on a draining server and the loads of the servers that take sessions differ by at most
-        one."""
+        servers drain, and splits or moves slices at once (:func:`plan`, :meth:`split`) until no
+        environment is on a draining server and the targets' loads differ by at most one. A slice
+        whose last step was cut (a failover's, waiting to report it) moves at the next step."""
         endpoint = self.endpoint
         self.take_in()
         for core in self.cores:
             if core.drain_ms > 0:
                 endpoint.drain(core.index, core.drain_ms / 1000)
-        targets = self.targets()
-        key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
+        key, targets = self.key()
         if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
         settled = True
-        for core, parts in self.plan(targets) if targets else []:
-            if not self.split(core, parts):
+        cores = list(self.cores)
+        slices = [
+            (
+                c.index,
+                c.start,
+                c.stop,
+                c.last is not None and c.pending is None and not c.reconnected,
+            )
+            for c in cores
+        ]
+        for k, parts in plan(slices, self.num_envs, targets) if targets else []:
+            if not self.split(cores[k], parts):
                 settled = False  # planned again at the next step, with what the refusal taught
                 break
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self.cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
-        targets = self.targets()
-        key = (len(self.cores), tuple(endpoint.given_up), tuple(endpoint.draining), tuple(targets))
+        key, targets = self.key()
         settled = settled and not self.refused_until and self.balanced(targets)
         self.settled_key = key if settled else None
 
+    def key(self) -> tuple[tuple, list[int]]:
+        """What :meth:`settle` compares with :attr:`settled_key`, and the :meth:`targets`."""
+        e, targets = self.endpoint, self.targets()
+        return (len(self.cores), tuple(e.given_up), tuple(e.draining), tuple(targets)), targets
+
     def take_in(self) -> None:
-        """The servers the membership thread found: given-up ones that answer again are taken
-        back, new replicas added (no more servers than environments)."""
+        """Takes back the given-up servers the membership watch found, and adds new replicas (no
+        more servers than environments)."""
         if self.membership is None:
             return
         endpoint = self.endpoint
@@ -231,40 +298,18 @@ class Fleet:
                 conn.close()
 
     def targets(self) -> list[int]:
-        """The servers slices may move to now: open to new sessions, and not resting after
-        refusing one."""
+        """The servers slices may move to now: open to new sessions and not resting (refused)."""
         now = time.monotonic()
         for j in [j for j, until in self.refused_until.items() if until <= now]:
             del self.refused_until[j]
         return [j for j in self.endpoint.open_to_new() if j not in self.refused_until]
 
-    def loads(self, targets: list[int]) -> dict[int, int]:
-        loads = dict.fromkeys(targets, 0)
-        for c in self.cores:
-            if c.index in loads:
-                loads[c.index] += c.size
-        return loads
-
     def balanced(self, targets: list[int]) -> bool:
         """Every environment is on a server of ``targets``, whose loads differ by at most one."""
-        loads = self.loads(targets)
+        loads = servers_loads(self.cores, targets)
         if not targets or any(c.index not in loads for c in self.cores):
             return not targets
         return max(loads.values()) - min(loads.values()) <= 1
-
-    def plan(self, targets: list[int]) -> list[tuple[SessionCore, list[tuple[int, int, int]]]]:
-        """The slices to split or move now and their new parts (:func:`plan`). A slice whose
-        last step was cut (a failover's, waiting to report it) moves at the next step."""
-        slices = [
-            (
-                c.index,
-                c.start,
-                c.stop,
-                c.last is not None and c.pending is None and not c.reconnected,
-            )
-            for c in self.cores
-        ]
-        return [(self.cores[k], parts) for k, parts in plan(slices, self.num_envs, targets)]
 
     def split(self, core: SessionCore, parts: list[tuple[int, int, int]]) -> bool:
         """Replaces ``core`` by new cores for ``parts`` (``(start, stop, server)``, covering its
@@ -322,17 +367,15 @@ class Fleet:
                     e.details,
                 )
             new.create(self.move_timeout())
-            request = pb.ResetRequest(session_id=new.session_id)
-            first = Batch.from_pb(new.conn.call("Reset", request, timeout=self.move_timeout()))
+            first = new.reset_new(self.move_timeout())
             new.cut_over(*cut(last, first, self.settings.autoreset_mode))
             return False
         new.restored(reply, last)
         return True
 
     def refused(self, dest: int, error: ServiceError) -> None:
-        """Server ``dest`` could not take environments moving to it: one that drains is marked
-        so, one that does not answer is given up, one that refuses otherwise (full) is not
-        asked for a while."""
+        """Server ``dest`` could not take environments: marked draining, given up (no answer), or
+        (full) not asked for :data:`REFUSED_WAIT`."""
         if isinstance(error, ServerDraining):
             self.endpoint.drain(dest, None)
         elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
@@ -341,9 +384,7 @@ class Fleet:
             self.refused_until[dest] = time.monotonic() + REFUSED_WAIT
 
     def move_timeout(self) -> float:
-        """The deadline of the calls that move environments between servers: a server that
-        does not answer within ``failover_after`` is passed over (the env's watch gives it up
-        at the next step), not waited for the whole ``timeout``."""
+        """The deadline of a move's calls: a server silent for ``failover_after`` is passed over."""
         return min(self.options.timeout, self.settings.failover_after)
 
 
@@ -392,6 +433,30 @@ def plan(
     return out
 
 
+def servers_loads(cores: list[SessionCore], servers: list[int]) -> dict[int, int]:
+    """Server index -> environments ``cores`` hold there, for each of ``servers``."""
+    loads = dict.fromkeys(servers, 0)
+    for c in cores:
+        if c.index in loads:
+            loads[c.index] += c.size
+    return loads
+
+
+def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
+    """Environments ``start:stop`` cut into one contiguous part ``(start, stop, server)`` per
+    server of ``loads`` (server -> environments it holds): sizes differ by at most one, the larger
+    to the least loaded (ties: the lower index); empty parts left out."""
+    order = sorted(loads, key=lambda i: (loads[i], i))
+    m, k = stop - start, len(order)
+    out = []
+    for j, server in enumerate(order):
+        size = m // k + (j < m % k)
+        if size:
+            out.append((start, start + size, server))
+            start += size
+    return out
+
+
 def _ready(future: grpc.Future):
     """``ready(deadline)`` of a grpc future: True once it has its outcome."""
 
@@ -409,10 +474,9 @@ def _ready(future: grpc.Future):
 
 
 def interrupted(old: SessionCore, new: SessionCore) -> Batch:
-    """A moved core's Batch for the step in which its server was given up: its environments'
-    episodes end truncated in their last state (``old.last``), and the new session's first
-    Batch (an unseeded Reset: the new server draws each episode's seed) is the autoreset, as
-    after a reconnect."""
-    first = Batch.from_pb(new.conn.call("Reset", pb.ResetRequest(session_id=new.session_id)))
-    last = old.last.slice(new.start - old.start, new.stop - old.start)
-    return new.interrupt(last, first)
+    """A moved core's Batch for the step in which its server was given up: its episodes end
+    truncated in their last state (``old.last``), the new session's unseeded Reset is the
+    autoreset, as after a reconnect."""
+    return new.interrupt(
+        old.last.slice(new.start - old.start, new.stop - old.start), new.reset_new()
+    )

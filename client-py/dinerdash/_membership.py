@@ -1,7 +1,6 @@
-"""Membership: which servers a vector env over several uses, as they hang, come back and appear.
-:func:`await_replies` gives up a server that answers nothing (no call, no health check) for
-``failover_after``; :class:`Membership` finds given-up servers that answer again and a DNS
-name's new replicas, at step boundaries, without blocking (docs/client.md#design-notes).
+"""Membership: :func:`await_replies` gives up a server that answers nothing (no call, no health
+check) for ``failover_after``; :class:`Membership` finds given-up servers that answer again and a
+DNS name's new replicas, at step boundaries, without blocking (docs/client.md#design-notes).
 """
 
 from __future__ import annotations
@@ -19,12 +18,9 @@ from ._endpoint import Endpoint
 from .connection import Connection, ConnectOptions, split_host_port
 from .errors import ServiceError
 
-__all__ = ["Membership", "await_replies", "has_name"]
-
 log = logging.getLogger("dinerdash")
 
-#: Seconds a call may go unanswered before a health check is sent beside it (at most): a quick
-#: call never costs a check.
+#: Seconds a call may go unanswered before a health check is sent beside it (at most).
 PROBE_AFTER = 1.0
 #: Seconds between two health checks of the given-up servers.
 PROBE_EVERY = 1.0
@@ -37,9 +33,8 @@ def await_replies(
     sent: float,
 ) -> None:
     """Waits until every ``ready(deadline)`` of ``waiting`` (server index, ready) is True, giving
-    up each server that answers nothing for ``failover_after`` seconds from ``sent`` (when the
-    calls left) or from its last answer to a health check, as long as another server is live and
-    not silent. Giving a server up closes its channel: its calls end at once (cancelled)."""
+    up (its calls cancelled) each server that answers nothing for ``failover_after`` seconds from
+    ``sent`` or its last health check's answer, while another server is live and answers."""
     probe_after = min(PROBE_AFTER, failover_after / 4)
     pending = list(waiting)
     first = sent + probe_after
@@ -102,10 +97,9 @@ def has_name(address: str | Sequence[str] | None) -> bool:
 
 
 class Membership:
-    """Looks for servers to take in, at the env's step boundaries (:meth:`found`), without blocking:
-    every :data:`PROBE_EVERY` seconds a ``grpc.health.v1`` check goes to each given-up server (on a
-    channel kept for it) and to each new replica of a DNS-name address, and the checks answered
-    SERVING by the next boundary are handed over with their connection."""
+    """Looks for servers to take in at the env's step boundaries (:meth:`found`): every
+    :data:`PROBE_EVERY` seconds a health check goes to each given-up server and each new replica
+    of a DNS-name address; those answered SERVING by then are handed over with their channel."""
 
     def __init__(self, endpoint: Endpoint, options: ConnectOptions) -> None:
         self._endpoint = endpoint

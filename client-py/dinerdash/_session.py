@@ -1,16 +1,18 @@
-"""The session core: environments ``start:stop`` of an env in one batched session on one
-server, and everything both environments do with it (create, reset, step, the transport, and with
-``reconnect=True`` the lost server waited for); and :class:`SessionOwner`, what the two
-environments share. How sessions move between servers: docs/clusters.md#failover.
-
-A core's state (:data:`tests.test_module_graph.SESSION_STATE`) is changed only by its own
-methods; a move between servers makes new cores (:meth:`SessionCore.restored`).
+"""The session core: environments ``start:stop`` of an env in one batched session on one server
+and everything both environments do with it (create, reset, step, the transport, the step thread,
+and with ``reconnect=True`` the lost server waited for); and :class:`SessionOwner`, what the two
+environments share. A core's state (:data:`tests.test_module_graph.SESSION_STATE`) is changed
+only by its own methods; a move between servers makes new cores. Why: docs/clusters.md#failover.
 """
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
-from dataclasses import dataclass, field
+import weakref
+from dataclasses import dataclass
+from types import MethodType
 from typing import Any
 
 import grpc
@@ -18,13 +20,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from . import _shm, _transport
+from . import _shm
 from . import render as _render
 from ._arguments import check_render_mode, config_dict, expert_fields
 from ._batch import Batch, interrupt
 from ._endpoint import Endpoint
 from ._proto import pb
-from ._step_thread import StepThread
 from .connection import Connection, ConnectOptions
 from .errors import (
     EnvClosed,
@@ -36,11 +37,8 @@ from .errors import (
 )
 from .game import NUM_ACTIONS
 
-_WIRE_AUTORESET = {
-    AutoresetMode.NEXT_STEP: pb.AUTORESET_MODE_NEXT_STEP,
-    AutoresetMode.SAME_STEP: pb.AUTORESET_MODE_SAME_STEP,
-    AutoresetMode.DISABLED: pb.AUTORESET_MODE_DISABLED,
-}
+#: Gymnasium's autoreset modes as the protocol's (``AUTORESET_MODE_NEXT_STEP``, ...).
+_WIRE_AUTORESET = {m: pb.AutoresetMode.Value(f"AUTORESET_MODE_{m.name}") for m in AutoresetMode}
 _U64 = 1 << 64
 #: The unsigned dtype of each integer width, for :func:`check_actions`.
 _UNSIGNED = {width: np.dtype(f"u{width}") for width in (1, 2, 4, 8)}
@@ -64,12 +62,12 @@ class Settings:
     #: (``reconnect=True``, several servers); ``None``: it is waited for ``reconnect_timeout``.
     failover_after: float | None = None
     #: Several cores: errors name the environments by their index in the whole env.
-    split: bool = field(default=False)
+    split: bool = False
 
 
 class ServerLost(Exception):
-    """A core's server stayed unreachable past ``failover_after`` (or was given up) while the env
-    has other servers: the env moves the core's environments (:mod:`dinerdash._failover`)."""
+    """A core's server was lost past ``failover_after`` (or given up) while the env has others:
+    its environments move (:meth:`dinerdash._fleet.Fleet.fail_over`)."""
 
     def __init__(self, core: SessionCore, error: ServiceError) -> None:
         super().__init__(
@@ -80,8 +78,7 @@ class ServerLost(Exception):
 
 
 def check_actions(actions: Any, num_envs: int) -> np.ndarray:
-    """``actions`` as ``num_envs`` little-endian int32, each checked before any server steps (a
-    cast would wrap 2**32 + 1 into action 1; a step refused by one server would move others)."""
+    """``actions`` as ``num_envs`` little-endian int32, each checked before any server steps."""
     acts = np.asarray(actions)
     if acts.shape != (num_envs,):
         raise ValueError(f"actions: expected shape ({num_envs},), got {acts.shape}")
@@ -101,8 +98,7 @@ def check_actions(actions: Any, num_envs: int) -> np.ndarray:
 
 
 def close_session(conn: Connection, session_id: str) -> None:
-    """Closes a session, once and briefly: a server that is gone or already forgot the session
-    has nothing left to free."""
+    """Closes a session, once and briefly (errors ignored: nothing is left to free)."""
     try:
         request = pb.CloseSessionRequest(session_id=session_id)
         conn.call("CloseSession", request, timeout=2.0, retries=0)
@@ -111,9 +107,8 @@ def close_session(conn: Connection, session_id: str) -> None:
 
 
 class SessionOwner:
-    """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share:
-    their arguments, :class:`Endpoint`, cores (``_cores``, in environment order), the server's
-    ``Spec`` of their session, and what is read from them the same way."""
+    """What :class:`~dinerdash.DinerDashEnv` and :class:`~dinerdash.DinerDashVectorEnv` share: their
+    arguments, :class:`Endpoint`, cores (``_cores``, in environment order), what is read of them."""
 
     _endpoint: Endpoint
     _cores: list[SessionCore]
@@ -160,9 +155,8 @@ class SessionOwner:
 
     @property
     def transports(self) -> dict[str, str]:
-        """The transport each server's sessions step over now (``{address: "shm" | "grpc"}``, in the
-        order of the first environments they hold; ``"shm,grpc"`` where they differ; a session
-        forked or restored chooses at its first step)."""
+        """The transport each server's sessions step over now: ``{address: "shm" | "grpc"}``
+        (``"shm,grpc"`` where they differ), in the order of their first environments."""
         out: dict[str, list[str]] = {}
         for core in self._cores:
             name = core.transport.name if core.transport is not None else "grpc"
@@ -173,8 +167,7 @@ class SessionOwner:
 
     @property
     def transport_changes(self) -> int:
-        """Sessions whose Steps changed transport since they were opened (shared memory lost,
-        or taken up again by a session reopened after a reconnect)."""
+        """Sessions whose Steps changed transport (shared memory lost, or taken up again)."""
         return self._endpoint.transport_changes
 
     def watch_url(self, index: int = 0) -> str:
@@ -200,8 +193,7 @@ class SessionOwner:
         connect: ConnectOptions | None,
         connection: dict[str, Any],
     ) -> Settings:
-        """Checks and keeps the constructor's arguments both envs take (errors in the name of the
-        env's class, as Python's own); returns the :class:`Settings` of the env's cores."""
+        """Checks and keeps the arguments both envs take; returns their cores' :class:`Settings`."""
         self.render_mode = check_render_mode(render_mode)
         expert_request = expert_fields(expert)
         self.expert = expert_request["expert_actions"]
@@ -235,26 +227,6 @@ class SessionCore:
     """Environments ``start:stop`` of an env, in one session on server ``index`` of its
     :class:`~dinerdash._endpoint.Endpoint`."""
 
-    __slots__ = (
-        "__weakref__",
-        "drain_ms",
-        "endpoint",
-        "index",
-        "last",
-        "last_transport",
-        "offer",
-        "pending",
-        "reconnected",
-        "session_id",
-        "settings",
-        "shm_sent",
-        "spec",
-        "start",
-        "step_thread",
-        "stop",
-        "transport",
-    )
-
     def __init__(
         self, endpoint: Endpoint, index: int, start: int, stop: int, settings: Settings
     ) -> None:
@@ -281,7 +253,7 @@ class SessionCore:
         #: What the session's reply offered of shared memory, and the transport its Steps take
         #: (``None`` until the first Step of a session forked or restored).
         self.offer: _shm.Offer | None = None
-        self.transport: _transport.Transport | None = None
+        self.transport: _shm.Transport | None = None
         #: The transport of the session's last Steps, kept across a reopened session.
         self.last_transport: str | None = None
 
@@ -315,9 +287,8 @@ class SessionCore:
         self.last = last
 
     def cut_over(self, last: Batch, pending: Batch | None) -> None:
-        """This new core's session (created and reset) took over environments whose episodes
-        were cut (:func:`~dinerdash._batch.cut`): ``last`` reports the step just made,
-        ``pending`` (NEXT_STEP) the next one."""
+        """This new core's session took over cut episodes (:func:`~dinerdash._batch.cut`): ``last``
+        reports the step just made, ``pending`` (NEXT_STEP) the next one."""
         self.last, self.pending, self.reconnected = last, pending, True
 
     def take_reconnected(self) -> bool:
@@ -354,12 +325,12 @@ class SessionCore:
         self.offer = _shm.Offer.of(reply)
 
     def attach(self) -> None:
-        """Chooses the session's transport (:func:`dinerdash._transport.open_for`)."""
+        """Chooses the session's transport (:func:`dinerdash._shm.open_for`)."""
         self.detach()
         option = self.endpoint.options.transport
         # gRPC if the choice raises (``transport="shm"`` that cannot be had): said, not silent.
-        self.transport = _transport.GrpcTransport(self.conn, str(self.session_id))
-        self.transport = transport = _transport.open_for(self.offer, self.conn, option)
+        self.transport = _shm.GrpcTransport(self.conn, str(self.session_id))
+        self.transport = transport = _shm.open_for(self.offer, self.conn, option)
         why = "the session was reopened on a server that offers it shared memory"
         if transport.name == "grpc":
             why = "the reopened session could not attach shared memory (see the debug log)"
@@ -382,13 +353,9 @@ class SessionCore:
         self.last_transport = name
 
     def reopen(self, error: ServiceError) -> None:
-        """Waits for the lost server and opens a new session there (``reconnect=True``): for
-        ``failover_after`` when another server is left (then raises :class:`ServerLost`), else
-        for ``reconnect_timeout`` (then raises the error, or
-        :class:`~dinerdash.errors.NoServerLeft` after a failover)."""
-
-        def create(conn: Connection) -> None:
-            self.create()
+        """Waits for the lost server and opens a new session there (``reconnect=True``), for
+        ``failover_after`` when another server is left (then :class:`ServerLost`), else for
+        ``reconnect_timeout`` (then the error, or ``NoServerLeft`` after a failover)."""
 
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
@@ -401,12 +368,12 @@ class SessionCore:
         failover = s.failover_after is not None and len(endpoint.connections) > 1
         if failover and len(endpoint.live()) > 1:
             try:
-                endpoint.reopen(self.index, create, lost, s.failover_after)
+                endpoint.reopen(self.index, self.create, lost, s.failover_after)
             except ServiceTransportError:
                 raise ServerLost(self, error) from None
             return
         try:
-            endpoint.reopen(self.index, create, lost, s.reconnect_timeout)
+            endpoint.reopen(self.index, self.create, lost, s.reconnect_timeout)
         except ServiceTransportError as e:
             if not failover:
                 raise
@@ -431,9 +398,8 @@ class SessionCore:
             self.session_id = None
 
     def fail(self, error: ServiceError) -> ServiceError:
-        """``error``, naming the environments it concerns when the env is split over several
-        servers (``env_index`` becomes the index in the whole env), and, for a lost server
-        without ``reconnect=True``, what would have ridden it out."""
+        """``error`` naming its environments' indices in the whole env when it is split over
+        servers, and, for a lost server without ``reconnect=True``, what would ride it out."""
         lost = isinstance(error, LOST) and not self.settings.reconnect
         if not (self.settings.split or lost):
             return error
@@ -474,9 +440,8 @@ class SessionCore:
         config: pb.GameConfig | None = None,
         mask: np.ndarray | None = None,
     ) -> pb.ResetRequest:
-        """This core's part of a reset of the whole env: environment ``i`` of the env is seeded
-        with ``seed + i`` (or ``seeds[i]``), gets ``arrivals[i]`` when there is one list per
-        environment (else the one list), and is reset when ``mask[i]`` (else all are)."""
+        """This core's part of a reset of the whole env: environment ``i`` seeded ``seed + i`` (or
+        ``seeds[i]``), given ``arrivals[i]`` (or the one list), reset if ``mask[i]`` (or all)."""
         r = pb.ResetRequest(session_id=self.session_id, config=config)
         if mask is not None:
             r.reset_mask = mask[self.start : self.stop].astype(np.uint8).tobytes()
@@ -492,8 +457,8 @@ class SessionCore:
         return r
 
     def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> Batch:
-        """The reply to ``request`` (started as ``future``, or called now). After a lost server
-        (``reconnect=True``) the new session is reset whole, as a new session must be."""
+        """The reply to ``request`` (started as ``future``, or called now); after a lost server
+        (``reconnect=True``) the new session is reset whole."""
         try:
             if future is None:
                 batch = Batch.from_pb(self.conn.call("Reset", request))
@@ -510,37 +475,37 @@ class SessionCore:
         self.last, self.pending = self.read_drain(batch), None
         return batch
 
+    def reset_new(self, timeout: float | None = None) -> Batch:
+        """The Batch of a new session's first Reset, unseeded (its server draws the seeds)."""
+        request = pb.ResetRequest(session_id=self.session_id)
+        return Batch.from_pb(self.conn.call("Reset", request, timeout=timeout))
+
     # -- Step -----------------------------------------------------------------------------------
 
     def step(self, actions: bytes, sent: bool = False) -> Batch:
         """One Step of this core's environments (``actions``: packed int32), blocking; ``sent``:
-        :meth:`start_step` sent it over shared memory, only its reply is awaited."""
-        if sent:
-            batch = self.step_or_recover(actions, sent)
-        elif self.pending is not None:
+        :meth:`start_step` sent it over shared memory, only its reply is awaited. A lost server
+        (``reconnect=True``) is recovered from (:meth:`recover_step`)."""
+        if self.pending is not None and not sent:
             batch, self.pending = self.pending, None
-        elif self.index in self.endpoint.given_up:
-            # Another session on this server found it lost: this one moves too.
-            gone = ServiceTransportError("the server was given up", address=self.conn.address)
-            batch = self.recover_step(gone)
         else:
-            batch = self.step_or_recover(actions)
+            try:
+                if not sent and self.given_up():  # another session found the server lost
+                    raise ServiceTransportError(
+                        "the server was given up", address=self.conn.address
+                    )
+                batch = self.read_drain(self.step_on(actions, sent))
+            except ServiceError as e:
+                # A call cancelled because its server was given up (silent) is lost too.
+                if not (isinstance(e, LOST) or self.given_up()):
+                    raise self.fail(e) from None
+                batch = self.recover_step(e)
         self.last = batch
         return batch
 
-    def step_or_recover(self, actions: bytes, sent: bool = False) -> Batch:
-        """A Step's Batch; a lost server (``reconnect=True``) recovered from."""
-        try:
-            return self.read_drain(self.step_on(actions, sent))
-        except ServiceError as e:
-            # A call cancelled because its server was given up (silent) is lost too.
-            if not (isinstance(e, LOST) or self.given_up()):
-                raise self.fail(e) from None
-            return self.recover_step(e)
-
-    def ready_transport(self) -> _transport.Transport:
-        """The session's transport, attached at its first Step; the last Batch copied first when
-        the next Step overwrites it and a lost server's episodes may have to end in it."""
+    def ready_transport(self) -> _shm.Transport:
+        """The session's transport, attached at its first Step; the last Batch copied when the
+        next Step overwrites it and a lost server's episodes may end in it."""
         if self.transport is None:
             self.attach()
         if self.transport.views and self.last is not None and self.settings.reconnect:
@@ -548,23 +513,23 @@ class SessionCore:
         return self.transport
 
     def step_on(self, actions: bytes, sent: bool = False) -> Batch:
-        """One Step on the session's transport (``sent``: its reply only). Shared memory lost
-        under it changes to gRPC (an event), where the Step is made unless it was abandoned."""
+        """One Step on the session's transport (``sent``: its reply only); shared memory lost under
+        it changes to gRPC, where the Step is made unless it was abandoned."""
         try:
             if sent:
                 return self.transport.receive()
             return self.ready_transport().step(actions)
-        except _transport.Detached as gone:
+        except _shm.Detached as gone:
             self.detach()
-            self.transport = _transport.GrpcTransport(self.conn, self.session_id)
+            self.transport = _shm.GrpcTransport(self.conn, self.session_id)
             self.changed("grpc", gone.reason)
             if gone.error is not None:
                 raise gone.error from None
             return self.transport.step(actions)
 
     def start_step(self, actions: bytes) -> None:
-        """Starts a Step; :meth:`finish_step` returns its Batch. Over shared memory it is sent
-        here (the server steps while the caller works), else by the core's step thread."""
+        """Starts a Step (over shared memory sent here, else by the step thread);
+        :meth:`finish_step` returns its Batch."""
         if (
             self.pending is None
             and self.transport is not None
@@ -598,19 +563,17 @@ class SessionCore:
         return self.step_thread.result()
 
     def recover_step(self, error: ServiceError) -> Batch:
-        """A Batch that reports the interrupted episodes as truncated, after opening a new
-        session for them (``reconnect=True``); raises ``error`` otherwise."""
+        """With ``reconnect=True``, a new session and the Batch that ends the interrupted episodes
+        (truncated); otherwise ``error`` raised."""
         if not self.settings.reconnect or self.last is None:
             raise self.fail(error) from None
         last = self.last
         self.reopen(error)
-        first = Batch.from_pb(self.conn.call("Reset", pb.ResetRequest(session_id=self.session_id)))
-        return self.interrupt(last, first)
+        return self.interrupt(last, self.reset_new())
 
     def interrupt(self, last: Batch, first: Batch) -> Batch:
-        """The Batch of a step that interrupts this core's episodes, whose ``last`` Batch came
-        from a lost session, and starts the new session's, whose Reset replied ``first``
-        (:func:`~dinerdash._batch.interrupt`); ``info["reconnected"]`` will say so."""
+        """The Batch that ends this core's episodes (``last``: the lost session's) and starts the
+        new session's (``first``, its Reset's): :func:`~dinerdash._batch.interrupt`."""
         out, self.pending = interrupt(last, first, self.settings.autoreset_mode)
         self.reconnected = True
         return out
@@ -623,3 +586,60 @@ class SessionCore:
             return self.conn.call("Render", request).text
         except ServiceError as e:
             raise self.fail(e) from None
+
+
+class StepThread:
+    """A thread that makes one session core's blocking gRPC Steps, for ``step_async`` /
+    ``step_wait`` (why not a grpcio future: docs/client.md#design-notes). It ends at
+    :meth:`close`, or when the core whose method the work is is collected (held weakly)."""
+
+    __slots__ = ("_replies", "_reply", "_requests")
+
+    def __init__(self, work: MethodType, name: str) -> None:
+        self._requests: queue.SimpleQueue = queue.SimpleQueue()
+        self._replies: queue.SimpleQueue = queue.SimpleQueue()
+        self._reply: tuple[bool, Any] | None = None
+        threading.Thread(
+            target=_serve,
+            args=(weakref.WeakMethod(work), self._requests, self._replies),
+            name=name,
+            daemon=True,
+        ).start()
+        weakref.finalize(work.__self__, self._requests.put, None)
+
+    def submit(self, item: Any) -> None:
+        self._requests.put(item)
+
+    def wait(self, deadline: float | None = None) -> bool:
+        """True when the reply is in by ``deadline`` (``None``: waits for it); it is then kept for
+        :meth:`result`. An interrupted wait (Ctrl-C) loses nothing: the reply stays queued."""
+        if self._reply is None:
+            timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                self._reply = self._replies.get(timeout=timeout)
+            except queue.Empty:
+                return False
+        return True
+
+    def result(self) -> Any:
+        """The work's return value for the oldest submitted item, or its exception raised."""
+        ok, value = self._reply if self._reply is not None else self._replies.get()
+        self._reply = None
+        if ok:
+            return value
+        raise value
+
+    def close(self) -> None:
+        self._requests.put(None)
+
+
+def _serve(work: weakref.WeakMethod, requests: queue.SimpleQueue, replies: queue.SimpleQueue):
+    while (item := requests.get()) is not None:
+        method = work()
+        if method is None:
+            return
+        try:
+            replies.put((True, method(item)))
+        except BaseException as e:
+            replies.put((False, e))
+        del method

@@ -1,8 +1,11 @@
-"""The same-host data plane (docs/shm.md): a session's Steps through shared memory instead of
-gRPC, when the server runs on this machine as this user (Linux). :func:`attach` opens a session's
-:class:`Channel` (the doorbell's peer checked before anything is sent, the region mapped) or says
-why not; each Step writes the actions into the region, rings, and reads the reply's arrays as
-views of the region (:class:`~dinerdash._batch.Batch`), valid until the next Step is sent.
+"""How a session's Steps travel: a :class:`Transport`, over gRPC (:class:`GrpcTransport`) or
+through shared memory (:class:`ShmTransport`, the same-host data plane of docs/shm.md), chosen by
+:func:`open_for`; Reset and every other call go over gRPC. :func:`attach` opens a session's
+:class:`Channel` when the server runs on this machine as this user (Linux: the doorbell's peer
+checked before anything is sent, the region mapped) or says why not; each Step writes the actions
+into the region, rings, and reads the reply's arrays as views of the region, valid until the next
+Step. Shared memory that ends under a Step raises :class:`Detached`: the session core changes to
+gRPC, a counted and logged event.
 """
 
 from __future__ import annotations
@@ -20,17 +23,16 @@ import socket
 import struct
 import sys
 import time
-from typing import Any
+from typing import Any, NoReturn
 
 import grpc
 import numpy as np
 
 from ._batch import FIELDS as _SHAPES
 from ._batch import Batch
+from ._proto import pb
 from .connection import Connection, split_host_port
-from .errors import ServiceError, ServiceTransportError
-
-__all__ = ["Channel", "Offer", "attach"]
+from .errors import EnvClosed, ServiceError, ServiceTimeout, ServiceTransportError
 
 #: "DDsh" and the layout version this client reads (``server/src/shm/layout.rs``).
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
@@ -83,8 +85,7 @@ class _Untrusted(Exception):
 
 @functools.lru_cache(maxsize=64)
 def _on_this_host(address: str) -> bool:
-    """Whether every address ``address``'s host resolves to is this host's own: a loopback address,
-    or one this host can bind (an address of one of its interfaces)."""
+    """Whether every address ``address``'s host resolves to is loopback or this host's own."""
     try:
         host, port = split_host_port(address)
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
@@ -107,9 +108,8 @@ def _on_this_host(address: str) -> bool:
 
 
 def _check_peer(sock: socket.socket, offer: Offer) -> None:
-    """Raises :class:`_Untrusted` unless the doorbell's peer runs as this user (its uid) and is
-    the process the server's reply named (its pid): read from ``SO_PEERCRED`` before anything
-    is sent, so that a process that took the doorbell's name is told nothing."""
+    """Raises :class:`_Untrusted` unless the doorbell's peer (``SO_PEERCRED``, read before anything
+    is sent) runs as this user and is the process the server's reply named."""
     raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size)
     pid, uid, _ = _UCRED.unpack(raw)
     if uid != os.geteuid():
@@ -128,25 +128,9 @@ def _check_peer(sock: socket.socket, offer: Offer) -> None:
 class Channel:
     """One session's doorbell socket and mapped region."""
 
-    __slots__ = (
-        "_known",
-        "_lengths",
-        "_offsets",
-        "_spin_next",
-        "address",
-        "conn",
-        "mm",
-        "num_envs",
-        "sent",
-        "session_id",
-        "sock",
-        "timeout",
-    )
-
     def __init__(self, offer: Offer, conn: Connection) -> None:
         self.address = conn.address
         self.conn = conn
-        self.session_id = offer.session_id
         self.timeout = conn.timeout
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
         try:
@@ -170,8 +154,7 @@ class Channel:
         except BaseException:
             sock.close()
             raise
-        # Blocking from here (no poll per recv), waking every _TICK to see the deadline and
-        # whether the connection was closed (a server given up: its calls end at once).
+        # Blocking from here, waking every _TICK to see the deadline and a closed connection.
         sock.settimeout(None)
         tick = min(conn.timeout, _TICK)
         seconds = int(tick)
@@ -191,8 +174,7 @@ class Channel:
             struct.unpack_from("<I", self.mm, _TABLE + 8 * i)[0] for i in range(len(FIELDS))
         ]
         self._lengths = np.frombuffer(self.mm, dtype="<u4", count=len(FIELDS), offset=_LENGTHS)
-        #: The lengths of the last reply, and the views of the region they gave (a session's
-        #: replies mostly repeat them).
+        #: The lengths of the last reply, and the views of the region they gave.
         self._known: tuple[bytes, dict[str, np.ndarray]] = (b"", {})
         #: Whether the last reply came within _SPIN: then the next one is polled for.
         self._spin_next = False
@@ -212,8 +194,7 @@ class Channel:
         return self.conn.error_for(method, code, message, status=bytes(reply[9 + size :]) or None)
 
     def send(self, actions: bytes) -> bool:
-        """Writes a Step's ``actions`` into the region and rings: the server steps while the
-        caller works, until :meth:`receive`. False when the doorbell closed (nothing was sent)."""
+        """Writes a Step's ``actions`` into the region and rings; False when the doorbell closed."""
         offset = self._offsets[0]
         self.mm[offset : offset + len(actions)] = actions
         try:
@@ -224,10 +205,9 @@ class Channel:
         return True
 
     def ready(self, timeout: float | None) -> bool:
-        """Whether the outcome of the Step :meth:`send` rang for is in within ``timeout`` seconds
-        (``None``: waits for it), for :meth:`receive` to return or raise at once: its reply, the
-        doorbell's end, the connection closed (a server given up: as a cancelled gRPC call), or the
-        Step's deadline passed (``timeout=`` of the env: a :class:`ServiceTimeout`)."""
+        """Whether the outcome of the Step :meth:`send` rang for (its reply, the doorbell's end,
+        the connection closed, or its deadline passed) is in within ``timeout`` seconds (``None``:
+        waits for it), for :meth:`receive` to return or raise at once."""
         now = time.perf_counter()
         until = None if timeout is None else now + timeout
         poller = select.poll()
@@ -245,8 +225,7 @@ class Channel:
 
     def receive(self) -> Batch | None:
         """The reply of the Step :meth:`send` rang for: its Batch (views of the region, valid
-        until the next Step is sent), the server's typed refusal raised, or ``None`` when the
-        doorbell closed (the Step is then to be made over gRPC)."""
+        until the next Step), its typed refusal raised, or ``None``: the doorbell closed."""
         sent = self.sent
         reply = self._poll(sent) if self._spin_next else None
         while reply is None:
@@ -274,8 +253,7 @@ class Channel:
         return Batch(self.num_envs, views, drain)
 
     def _views(self) -> dict[str, np.ndarray]:
-        """The reply's arrays as read-only views of the region, shaped as :class:`Batch` holds
-        them, for the lengths the last reply wrote (the next Step's reply overwrites them)."""
+        """The reply's arrays as read-only views of the region, for the lengths it wrote."""
         views = {}
         for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
             if not size or name == "actions":
@@ -291,8 +269,7 @@ class Channel:
         return views
 
     def _poll(self, sent: float) -> bytes | None:
-        """The reply if it comes within _SPIN of ``sent``, polled for without sleeping; ``None``
-        when it did not (or the socket failed: the blocking ``recv`` then says how)."""
+        """The reply if it comes within _SPIN of ``sent`` (polled, no sleep), or ``None``."""
         sock, until = self.sock, sent + _SPIN
         while True:
             try:
@@ -314,10 +291,9 @@ class Channel:
 
 
 def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | None:
-    """The shared-memory channel of the session ``offer`` describes (what its CreateSession,
-    Fork or Restore reply offered), on the server of ``conn``, when ``transport`` allows it and
-    it can be opened; else ``None``, the reason logged at debug level, or, for
-    ``transport="shm"``, raised as a :class:`~dinerdash.errors.ServiceTransportError`."""
+    """The shared-memory channel of the session ``offer`` describes, on the server of ``conn``, when
+    ``transport`` allows it and it opens; else ``None``, why logged at debug level (raised as a
+    ``ServiceTransportError`` for ``transport="shm"``)."""
     if transport == "grpc" or offer is None:
         return None
     why = None
@@ -360,3 +336,95 @@ def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | N
             address=conn.address,
         )
     return None
+
+
+class Detached(Exception):
+    """The shared-memory transport ended (private: caught by the session core). ``error``: the
+    error to raise for this Step (a timeout, a cancellation), or ``None``: make it over gRPC."""
+
+    def __init__(self, reason: str, error: ServiceError | None = None) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.error = error
+
+
+class Transport:
+    """One session's Steps: :meth:`step` returns a Step's Batch."""
+
+    name: str
+    views = False
+    split = False
+
+    def step(self, actions: bytes) -> Batch:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class GrpcTransport(Transport):
+    """Steps as gRPC ``Step`` calls on the session's channel."""
+
+    name = "grpc"
+
+    def __init__(self, conn: Connection, session_id: str) -> None:
+        self.conn = conn
+        self.session_id = session_id
+
+    def step(self, actions: bytes) -> Batch:
+        request = pb.StepRequest(session_id=self.session_id, actions=actions)
+        return Batch.from_pb(self.conn.call("Step", request))
+
+
+class ShmTransport(Transport):
+    """Steps through the session's shared-memory :class:`Channel`."""
+
+    name = "shm"
+    views = True
+    split = True
+
+    def __init__(self, channel: Channel) -> None:
+        self.channel = channel
+
+    def step(self, actions: bytes) -> Batch:
+        if not self.send(actions):
+            self._closed()
+        return self.receive()
+
+    def send(self, actions: bytes) -> bool:
+        """Sends a Step and returns at once; False when the doorbell closed (nothing sent)."""
+        return self.channel.send(actions)
+
+    def ready(self, timeout: float | None) -> bool:
+        """Whether the reply of the Step :meth:`send` sent is in within ``timeout``."""
+        return self.channel.ready(timeout)
+
+    def receive(self) -> Batch:
+        """The Batch of the Step :meth:`send` sent; raises :class:`Detached` as :meth:`step`."""
+        try:
+            batch = self.channel.receive()
+        except ServiceTimeout as e:
+            raise Detached("a Step over shared memory timed out", e) from None
+        except EnvClosed as e:
+            raise Detached("a Step over shared memory was cancelled", e) from None
+        if batch is None:
+            self._closed()
+        return batch
+
+    def _closed(self) -> NoReturn:
+        raise Detached(
+            f"the doorbell of the server at {self.channel.address} closed under a Step (the "
+            "server died, drained or forgot the session)"
+        )
+
+    def close(self) -> None:
+        self.channel.close()
+
+
+def open_for(offer: Offer | None, conn: Connection, option: str) -> Transport:
+    """The transport of the session ``offer`` describes: shared memory when ``option`` allows it
+    and it opens (:func:`attach`), else gRPC."""
+    channel = attach(offer, conn, option)
+    if channel is None:
+        return GrpcTransport(conn, offer.session_id if offer is not None else "")
+    return ShmTransport(channel)

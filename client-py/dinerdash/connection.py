@@ -1,10 +1,7 @@
-"""The channel to a DinerDash server and the one call wrapper every RPC goes through.
-
-:class:`ConnectOptions` (how to connect: one value for every environment, rollout and agent
-command), the channel's options, the address rules, the deadline, TLS, the mapping of gRPC
-statuses to :mod:`dinerdash.errors`, and retries: the channel's service config
-(:func:`service_config`), and one helper for what it cannot express
-(:meth:`Connection._retrying`). Which calls are retried, and why: docs/client.md#retries.
+"""The channel to a DinerDash server and the one call wrapper every RPC goes through:
+:class:`ConnectOptions`, the channel's options, the address rules, the deadline, TLS, the typed
+errors (:mod:`dinerdash.errors`), and retries: the channel's service config and one helper for
+what it cannot express (docs/client.md#retries, #the-channel).
 """
 
 from __future__ import annotations
@@ -27,13 +24,14 @@ import grpc
 from ._proto import pb, pb_grpc
 from ._version import warn_if_other_version
 from .errors import (
+    DETAILS_KEY,
     EnvClosed,
     ServiceError,
     ServiceTimeout,
     ServiceTransportError,
     TLSMismatch,
     error_for_status,
-    status_details,
+    trailer,
 )
 
 __all__ = [
@@ -64,8 +62,7 @@ CONNECT_TIMEOUT = 10.0
 SERVICE = "dinerdash.v1.DinerDash"
 #: Calls never retried: a Step applied whose reply was lost would be applied twice.
 NOT_RETRIED = frozenset({"Step", "StepStream"})
-#: Calls retried by :meth:`Connection._retrying` only: a Rollout is committed at its headers, and
-#: ``close()`` asks CloseSession for fewer retries than the channel's.
+#: Calls retried by :meth:`Connection._retrying` only (why: docs/client.md#retries).
 BY_HAND = frozenset({"Rollout", "CloseSession"})
 #: The most retries the channel makes of one call: gRPC caps ``retryPolicy.maxAttempts`` at 5.
 CHANNEL_MAX_RETRIES = 4
@@ -97,9 +94,8 @@ def _duration(seconds: float) -> str:
 
 
 def service_config(retries: int, retry_backoff: float) -> str:
-    """The channel's service config (JSON): every method of :data:`SERVICE` but those of
-    :data:`NOT_RETRIED` and :data:`BY_HAND` retries ``UNAVAILABLE`` up to ``min(retries,
-    CHANNEL_MAX_RETRIES)`` times, after ``retry_backoff`` seconds doubled at each retry."""
+    """The channel's service config (JSON): ``UNAVAILABLE`` retried up to ``retries`` times
+    (at most 4), after ``retry_backoff`` seconds doubled at each, but for those not retried."""
     retries = min(retries, CHANNEL_MAX_RETRIES)
     if retries <= 0:
         return json.dumps({"methodConfig": []})
@@ -154,9 +150,8 @@ def check_seconds_or_none(name: str, value: Any, none: str) -> float | None:
 def tls_credentials(
     tls: bool, tls_ca: str | os.PathLike | bool | None
 ) -> grpc.ChannelCredentials | None:
-    """The channel credentials for ``tls`` / ``tls_ca`` (``None``: ``DINERDASH_TLS_CA``; ``False``:
-    no CA and no environment, as for the local server): ``None`` means plaintext; a CA file means
-    TLS trusting that CA, ``tls=True`` the system's roots."""
+    """The channel credentials (``None``: plaintext) for ``tls`` and ``tls_ca`` (a CA file;
+    ``None``: ``DINERDASH_TLS_CA``; ``False``: none, whatever the environment says)."""
     if tls_ca is None:
         tls_ca = os.environ.get("DINERDASH_TLS_CA") or None
     if tls_ca is not None and tls_ca is not False:
@@ -193,7 +188,7 @@ def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
 
 
 def _why_not_grpc(address: str, timeout: float = 2.0) -> str:
-    """What listens at ``address`` instead of a gRPC server, in words for a failed connect."""
+    """What listens at ``address`` instead of a gRPC server, for a failed connect's message."""
     port = split_host_port(address)[1]
     start = (
         f"start one with `dinerdash-server --port {port}`, or omit `address` (and "
@@ -227,7 +222,7 @@ def split_host_port(address: str) -> tuple[str, int]:
 
 
 def join_host_port(host: str, port: int) -> str:
-    """``host`` and ``port`` as an address, an IPv6 host in brackets."""
+    """``host:port``, an IPv6 host in brackets."""
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
@@ -338,9 +333,8 @@ class ConnectOptions:
 
     @classmethod
     def merged(cls, connect: ConnectOptions | None, caller: str, **keywords: Any) -> ConnectOptions:
-        """``connect`` (``None``: the defaults) with the connection ``keywords`` a function was
-        given beside it put in; a keyword that is no field is refused as Python refuses one, in
-        ``caller``'s name. ``address=None`` keeps ``connect``'s address."""
+        """``connect`` (``None``: the defaults) with the ``keywords`` given beside it put in (one
+        that is no field refused in ``caller``'s name); ``address=None`` keeps its address."""
         unknown = sorted(set(keywords) - set(CONNECT_FIELDS))
         if unknown:
             # Python's own wording ("got an unexpected keyword argument 'x'"), which wrappers
@@ -374,22 +368,18 @@ class ConnectOptions:
 
 
 def _pushback_ms(error: grpc.RpcError) -> int | None:
-    """The retry push-back (:data:`RETRY_PUSHBACK`) a failed call's trailers carry: its
-    milliseconds, -1 for a value that is not a number (gRFC A6: do not retry), ``None`` when
-    there is none."""
-    trailers = getattr(error, "trailing_metadata", None)
-    for key, value in (trailers() if trailers else None) or ():
-        if key == RETRY_PUSHBACK:
-            try:
-                return int(value)
-            except (TypeError, ValueError):
-                return -1
-    return None
+    """The retry push-back's milliseconds a failed call's trailers carry (-1: not a number,
+    do not retry), or ``None``."""
+    value = trailer(error, RETRY_PUSHBACK)
+    try:
+        return None if value is None else int(value)
+    except (TypeError, ValueError):
+        return -1
 
 
 def _serving(reply: bytes) -> bool:
-    """A ``grpc.health.v1.HealthCheckResponse`` is SERVING: its field 1 (a varint) is 1. Decoded
-    by hand, so that the client needs no grpcio-health-checking."""
+    """A ``grpc.health.v1.HealthCheckResponse`` is SERVING (field 1 is 1): decoded by hand, the
+    client needs no grpcio-health-checking."""
     return reply == b"\x08\x01"
 
 
@@ -449,8 +439,7 @@ class Connection:
         self._closed = False
         if not wait:
             return
-        # A first short wait, then the TLS probe, then the rest: a TLS mismatch never gets an
-        # answer, and should say so at once rather than after the whole connect timeout.
+        # A short wait, then a TLS probe: a TLS mismatch says so at once, not after the timeout.
         first = min(connect_timeout, 1.0)
         ready = self.wait_ready(first)
         if not ready:
@@ -466,9 +455,8 @@ class Connection:
             )
 
     def _tls_mismatch(self, final: bool) -> None:
-        """Closes the connection and raises :class:`TLSMismatch` when a failed connect is TLS
-        meeting plaintext, or (``final``: after the whole connect timeout, since a busy TLS server
-        looks the same at first) a certificate the client does not trust."""
+        """Raises :class:`TLSMismatch` (closed) when a failed connect is TLS meeting plaintext,
+        or (``final``: after the whole connect timeout) a certificate the client does not trust."""
         speaks_tls = _speaks_tls(self.address)
         if speaks_tls and not self.tls:
             message = (
@@ -507,16 +495,10 @@ class Connection:
             return e.code() not in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.UNAVAILABLE)
 
     def call(
-        self,
-        method: str,
-        request: Any,
-        *,
-        timeout: float | None = None,
-        retries: int | None = None,
+        self, method: str, request: Any, *, timeout: float | None = None, retries: int | None = None
     ) -> Any:
         """Calls ``method`` (an RPC name such as ``"Step"``) and returns its reply, or raises its
-        typed error. ``UNAVAILABLE`` is retried at most ``retries`` times (default: the
-        connection's), within the one deadline ``timeout``."""
+        typed error; ``UNAVAILABLE`` retried ``retries`` times at most, within ``timeout``."""
         if self._closed:
             self._check_open(method)
         rpc = getattr(self.stub, method)
@@ -545,9 +527,8 @@ class Connection:
         return self._retrying(method, again, error)
 
     def stream(self, method: str, request: Any) -> Iterator[Any]:
-        """Iterates the replies of a server-streaming ``method``, with :meth:`call`'s errors.
-        Only its opening is retried (until its first reply): a stream broken half-way raises. It
-        has no overall deadline: the keepalive pings end it when its server vanishes."""
+        """Iterates the replies of a server-streaming ``method``, with :meth:`call`'s errors; only
+        its opening is retried, and it has no deadline (keepalive pings end it)."""
         self._check_open(method)
         rpc = getattr(self.stub, method)
 
@@ -586,10 +567,9 @@ class Connection:
         retries: int | None = None,
         timeout: float | None = None,
     ) -> Any:
-        """The one retry helper beside the channel's (docs/client.md#retries): ``attempt()``
-        made again after ``UNAVAILABLE`` while the call's ``retries`` last (none for
-        :data:`NOT_RETRIED`), backing off as the channel does, and never after a push-back that
-        says not to (a draining server). ``error``: the first attempt's, made already."""
+        """The one retry helper beside the channel's (docs/client.md#retries): ``attempt()`` made
+        again after ``UNAVAILABLE`` while ``retries`` last, backing off as the channel does,
+        unless pushed back; ``error``: the first attempt's, made already."""
         wanted = 0 if method in NOT_RETRIED else self.retries if retries is None else retries
         made = 0
         while True:
@@ -617,9 +597,9 @@ class Connection:
         self, method: str, error: grpc.RpcError, attempts: int, timeout: float | None = None
     ) -> ServiceError:
         """The typed exception for a failed call (:meth:`error_for`)."""
-        code, details = error.code(), error.details()
+        status = trailer(error, DETAILS_KEY)
         return self.error_for(
-            method, code, details, attempts, timeout, _pushback_ms(error), status_details(error)
+            method, error.code(), error.details(), attempts, timeout, _pushback_ms(error), status
         )
 
     def error_for(
@@ -632,10 +612,8 @@ class Connection:
         pushback: int | None = None,
         status: bytes | None = None,
     ) -> ServiceError:
-        """The typed exception of ``method``'s failure with ``code``, the server's ``details``
-        and ``status`` (its serialized ``google.rpc.Status``), after at most ``attempts``
-        attempts (exactly that many when the channel does not retry ``method``): what gRPC and
-        shared memory raise alike."""
+        """The typed exception of ``method``'s failure (``code``, ``details``, ``status``: a
+        serialized ``google.rpc.Status``) after ``attempts``, over gRPC and shared memory alike."""
         if code == grpc.StatusCode.UNAVAILABLE:
             if attempts == 1:
                 made = "1 attempt"
@@ -663,9 +641,8 @@ class Connection:
         return error_for_status(code, details or "(no message)", self.address, status)
 
     def health(self, timeout: float) -> grpc.Future:
-        """Starts a ``grpc.health.v1`` Check of the whole server (answered while it drains; sent
-        with the token, which a server with a probe port asks for); the future's result is True
-        when it is SERVING. It waits for the channel to connect (docs/client.md#design-notes)."""
+        """Starts a ``grpc.health.v1`` Check of the server, sent with the token and waiting for
+        the channel (docs/client.md#design-notes); the future's result: SERVING."""
         self._check_open("Check")
         if self._health is None:
             self._health = self.channel.unary_unary(

@@ -16,19 +16,13 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from ._arguments import (
-    RENDER_MODES,
-    Config,
-    check_options,
-    make_arrivals,
-    make_config,
-)
+from ._arguments import RENDER_MODES, Config, check_options, make_arrivals, make_config
 from ._batch import decode_one, outcome_one
 from ._endpoint import Endpoint
 from ._proto import pb
-from ._session import SessionCore, SessionOwner, check_actions
+from ._session import SessionCore, SessionOwner, check_actions, close_session
 from .connection import Connection, ConnectOptions
-from .errors import InvalidArgument, SessionNotFound
+from .errors import InvalidArgument
 from .game import NUM_ACTIONS, observation_space
 
 __all__ = ["DinerDashEnv", "Snapshot"]
@@ -37,14 +31,9 @@ __all__ = ["DinerDashEnv", "Snapshot"]
 _ACTION_BYTES = tuple(struct.pack("<i", a) for a in range(NUM_ACTIONS))
 
 
-def _close(core: SessionCore, endpoint: Endpoint) -> None:
-    core.close()
-    endpoint.close()
-
-
 def _integer_action(action: Any) -> int:
-    """An action given as a one-element integer array (``np.array(3)``, ``[3]``); anything else,
-    a float or a string among them, is refused as Gymnasium's ``Discrete`` space refuses it."""
+    """An action given as a one-element integer array (``np.array(3)``, ``[3]``); a float or a
+    string is refused, as Gymnasium's ``Discrete`` refuses it."""
     acts = np.asarray(action)
     if acts.size != 1 or acts.dtype.kind not in "iu":
         raise InvalidArgument(
@@ -55,13 +44,15 @@ def _integer_action(action: Any) -> int:
     return int(acts.reshape(()))
 
 
+def _close(core: SessionCore, endpoint: Endpoint) -> None:
+    core.close()
+    endpoint.close()
+
+
 @dataclass(frozen=True)
 class Snapshot:
-    """A saved environment: the server's snapshot bytes and the observation and info of the state
-    they hold (the server's bytes alone do not say what the agent saw).
-
-    ``data`` restores on this or any server of the same snapshot version.
-    """
+    """A saved environment: the server's snapshot bytes (``data``: restored on any server of the
+    same snapshot version) and the observation and info of the state they hold."""
 
     data: bytes
     observation: np.ndarray
@@ -73,20 +64,9 @@ class Snapshot:
 
 class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     """Diner Dash, ruleset ``v0`` of the DinerDash Gym benchmark (Chen, Ma, Hsu), one game in one
-    session of a ``dinerdash-server``: a thin client. The rules, bit for bit the reference's, are in
-    docs/rules.md; this client's keywords, infos and errors in docs/client.md.
-
-    * Actions: ``Discrete(57)`` (docs/rules.md §4.1): wait, go to a table, hand in the orders, pick
-      up a table's food, drop the dishes, seat a waiting group at a table. One whose preconditions
-      do not hold lets time pass; ``info["action_mask"]`` says which have an effect.
-    * Observations: ``Box(40,)`` of ``float32``, integers with tight bounds per index (§6).
-    * Rewards: the change of the game score (+10 to +50 a service, -500 a group that runs away).
-    * Start: empty tables; 200 arriving groups drawn from the seed (MT19937, as the reference's
-      ``random.seed(seed)``), or ``reset(options={"arrivals": [(type, size), ...]})``.
-    * End: terminated when the configured lives (5) are lost; truncated at ``time_limit`` (none by
-      default) or, with ``reconnect=True``, when the server was lost and the session recreated.
-    * Infos (the same keys at reset and every step): ``action_mask``, ``score``, ``lost``,
-      ``tick``, ``seed``, and with ``expert`` ``expert_action``.
+    session of a ``dinerdash-server``: a thin client. Actions ``Discrete(57)``, observations
+    ``Box(40,)`` of ``float32``, rewards the change of the score; the rules, bit for bit the
+    reference's, are in docs/rules.md; keywords, infos and errors in docs/client.md.
 
     ```python
     env = gymnasium.make("dinerdash:DinerDash-v0", address="localhost:50051", expert=True)
@@ -99,8 +79,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     ``ansi_color``, ``connect`` (a :class:`~dinerdash.ConnectOptions`) and its fields as keywords
     (``timeout``, ``reconnect``, ``tls_ca``, ``token``, ...), each overriding ``connect``'s.
     Reset options: ``arrivals``, ``config``. Extras: :meth:`action_masks`, :meth:`fork`,
-    :meth:`snapshot` / :meth:`restore`, :meth:`watch_url`. ``close()`` frees the session; a later
-    ``reset()`` opens a new one.
+    :meth:`snapshot` / :meth:`restore`, :meth:`watch_url`.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": list(RENDER_MODES), "render_fps": 8}
@@ -129,9 +108,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     # -- session --------------------------------------------------------------------------------
 
     def _open(self) -> None:
-        """Connects and creates the session (at construction, and at a reset after close)."""
-        # A list or a many-address DNS name: one replica at random, so that many single envs
-        # (e.g. under AsyncVectorEnv) spread over the replicas.
+        """Connects and creates the session (at construction, and at a reset after close), on
+        one replica at random: many single envs (e.g. under AsyncVectorEnv) spread over them."""
         self._endpoint = Endpoint(self._options, pick=random.randrange(1 << 30))
         self._core = SessionCore(self._endpoint, 0, 0, 1, self._settings)
         try:
@@ -139,8 +117,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         except BaseException:
             self._endpoint.close()
             raise
-        # close() runs it; so does the interpreter's exit for an env never closed, whose session
-        # would otherwise wait out the server's session TTL.
+        # Run by close(), or at exit for an env never closed (its session would wait out the TTL).
         self._finalizer = weakref.finalize(self, _close, self._core, self._endpoint)
         self._closed = False
 
@@ -214,8 +191,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return self._last_info["action_mask"].copy()
 
     def close(self) -> None:
-        """Closes the session (and the local server, if this env started one). A later
-        ``reset()`` opens a new session; other calls raise :class:`~dinerdash.EnvClosed`."""
+        """Closes the session (and a local server this env started); a later ``reset()`` opens
+        a new one, other calls raise :class:`~dinerdash.EnvClosed`."""
         if not self._closed:
             self._finalizer()
             self._closed = True
@@ -224,9 +201,8 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     # -- extras from the server ---------------------------------------------------------------
 
     def fork(self) -> DinerDashEnv:
-        """A new environment in exactly this one's state (game, random stream), on the same
-        server, with its own session. Close it when done; it lives on the server this env uses
-        (if this env started a local server, closing this env stops it)."""
+        """A new environment in exactly this one's state (game, random stream), with its own
+        session on the same server (a local server this env started stops with this env)."""
         self._check_open("fork()")
         reply = self._conn.call("Fork", pb.ForkRequest(session_id=self.session_id))
         child = copy.copy(self)
@@ -255,19 +231,15 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return Snapshot(reply.snapshot, obs, copy.deepcopy(self._last_info))
 
     def restore(self, snapshot: Snapshot) -> tuple[np.ndarray, dict[str, Any]]:
-        """Replaces this environment's session by one restored from ``snapshot`` (made by this
-        env or any other, on any server of the same snapshot version) and returns the observation
-        and info of the restored state."""
+        """Replaces this environment's session by one restored from ``snapshot`` (of any env, on
+        any server of the same snapshot version); returns its observation and info."""
         self._check_open("restore()")
         reply = self._conn.call("Restore", pb.RestoreRequest(snapshot=bytes(snapshot)))
         old = self.session_id
         self._core.adopt(reply)
         self.spec_proto = reply.spec
         if old is not None:
-            try:
-                self._conn.call("CloseSession", pb.CloseSessionRequest(session_id=old))
-            except SessionNotFound:
-                pass
+            close_session(self._conn, old)
         self._last_obs = snapshot.observation.copy()
         self._last_info = copy.deepcopy(snapshot.info)
         return self._last_obs.copy(), copy.deepcopy(self._last_info)

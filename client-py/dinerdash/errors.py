@@ -1,7 +1,6 @@
-"""The exceptions of the client (the table: docs/client.md#errors). Every gRPC status the server
-returns becomes one of these, carrying the server's message; the class and ``reason``, ``field``
-and ``env_index`` come from the status code and the structured details the server attaches (a
-``google.rpc.Status``: ``ErrorInfo`` and ``BadRequest``), never from the message text.
+"""The exceptions of the client (the table: docs/client.md#errors). Every gRPC status becomes one
+of these, with the server's message; the class, ``reason``, ``field`` and ``env_index`` come from
+the status code and its structured details (``ErrorInfo``, ``BadRequest``), never from the text.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ __all__ = [
 #: The ``ErrorInfo.domain`` of the DinerDash service's errors.
 ERROR_DOMAIN = "dinerdash.v1"
 #: The trailer that carries a serialized ``google.rpc.Status`` (the gRPC rich error model).
-_DETAILS_KEY = "grpc-status-details-bin"
+DETAILS_KEY = "grpc-status-details-bin"
 
 
 class ServiceError(Exception):
@@ -131,10 +130,9 @@ class TLSMismatch(ServiceTransportError):
 
 
 class NoServerLeft(ServiceTransportError):
-    """Every server of a vector env spread over several was lost: with ``reconnect=True`` and
-    ``failover_after``, the environments of a lost server move to the servers left, and this is
-    raised when none is left (the last one did not come back within ``reconnect_timeout``, or the
-    last ones were lost together)."""
+    """Every server of a vector env spread over several was lost (``reconnect=True``,
+    ``failover_after``): the last did not come back within ``reconnect_timeout``, or the last ones
+    were lost together."""
 
 
 class EnvClosed(ServiceError):
@@ -189,11 +187,11 @@ def error_for_status(
     )
 
 
-def status_details(error: grpc.RpcError) -> bytes | None:
-    """The serialized ``google.rpc.Status`` a failed call's trailers carry, if any."""
+def trailer(error: grpc.RpcError, key: str) -> Any:
+    """A failed call's trailer ``key`` (e.g. :data:`DETAILS_KEY`), or ``None``."""
     trailers = getattr(error, "trailing_metadata", None)
-    for key, value in (trailers() if trailers else None) or ():
-        if key == _DETAILS_KEY:
+    for name, value in (trailers() if trailers else None) or ():
+        if name == key:
             return value
     return None
 

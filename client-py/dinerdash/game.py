@@ -50,12 +50,10 @@ OBSERVATION_SIZE = 40
 
 #: The inclusive bounds of each observation index that a ruleset ``v0`` server sends in its Spec.
 OBSERVATION_LOW = np.array(
-    [0, 0, -1] * NUM_TABLES + [0] * NUM_TABLES + [0, 0] * QUEUE_CAPACITY + [0, 0],
-    dtype=np.float32,
+    [0, 0, -1] * NUM_TABLES + [0] * NUM_TABLES + [0, 0] * QUEUE_CAPACITY + [0, 0], dtype=np.float32
 )
 OBSERVATION_HIGH = np.array(
-    [6, 6, 4] * NUM_TABLES + [1] * NUM_TABLES + [4, 6] * QUEUE_CAPACITY + [18, 18],
-    dtype=np.float32,
+    [6, 6, 4] * NUM_TABLES + [1] * NUM_TABLES + [4, 6] * QUEUE_CAPACITY + [18, 18], dtype=np.float32
 )
 OBSERVATION_LOW.flags.writeable = False
 OBSERVATION_HIGH.flags.writeable = False

@@ -18,27 +18,14 @@ from gymnasium.error import AlreadyPendingCallError, NoAsyncCallError
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from ._arguments import (
-    RENDER_MODES,
-    Config,
-    check_options,
-    make_arrivals,
-    make_config,
-)
+from ._arguments import RENDER_MODES, Config, check_options, make_arrivals, make_config
 from ._batch import Batch, decode, join
 from ._endpoint import Endpoint
 from ._fleet import Fleet
 from ._proto import pb
-from ._session import (
-    SessionCore,
-    SessionOwner,
-    check_actions,
-)
+from ._session import SessionCore, SessionOwner, check_actions
 from .connection import ConnectOptions
-from .errors import (
-    EnvClosed,
-    InvalidArgument,
-)
+from .errors import EnvClosed, InvalidArgument
 from .game import observation_space
 
 __all__ = ["DinerDashVectorEnv"]
@@ -122,8 +109,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     # -- sessions -------------------------------------------------------------------------------
 
     def _open(self) -> None:
-        """Opens the fleet: connects and creates one session per server (at construction, and
-        at a reset after close)."""
+        """Opens the fleet (at construction, and at a reset after close)."""
         self._fleet = Fleet(self._options, self._settings)
         self.spec_proto: pb.Spec = self._fleet.spec
         #: A step_async() was sent and step_wait() has not collected it yet.
@@ -135,14 +121,12 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     @property
     def fleet(self) -> Fleet:
-        """The servers and sessions this env steps (:class:`~dinerdash._fleet.Fleet`; its
-        ``cores`` are the sessions, in environment order, each with its ``transport``). For the
-        package's bench and the tests that look inside a step; not a stable API."""
+        """The servers and sessions this env steps (:class:`~dinerdash._fleet.Fleet`), for the
+        bench and the tests that look inside a step; not a stable API."""
         return self._fleet
 
     @property
     def _cores(self) -> list[SessionCore]:
-        """The fleet's sessions, in environment order."""
         return self._fleet.cores
 
     @property
@@ -151,15 +135,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     @property
     def addresses(self) -> list[str]:
-        """The servers serving now, in the order of the first environments they hold (after a
-        failover a server may hold several slices; the servers given up are left out)."""
+        """The servers serving now, in the order of the first environments they hold."""
         return list(dict.fromkeys(c.conn.address for c in self._cores))
 
     @property
     def lost_addresses(self) -> list[str]:
-        """The servers given up (``reconnect=True``: unreachable or silent past
-        ``failover_after``, or drained), in the order they were lost; one that answers its
-        health check again is taken back and leaves this list."""
+        """The servers given up (lost past ``failover_after``, or drained), in the order they
+        were lost, until one is taken back."""
         return [self._endpoint.addresses[i] for i in self._endpoint.given_up]
 
     @property
@@ -169,22 +151,18 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     @property
     def rejoins(self) -> int:
-        """Servers taken in since the env's sessions were opened: given-up ones that answered
-        again, and a DNS name's new replicas."""
+        """Servers taken back or in (a DNS name's new replicas) since the sessions opened."""
         return self._endpoint.rejoins
 
     @property
     def moves(self) -> int:
-        """Environments moved to another server by Snapshot and Restore (off a draining server,
-        onto a server taken in, or to even the loads), each exactly as it was. Not counted: a
-        failover's (their episodes restart) and those a server refused to restore (another
-        snapshot version: their episodes restart too)."""
+        """Environments moved exactly, by Snapshot and Restore, to another server; not a
+        failover's nor a refused Restore's, whose episodes restart (docs/client.md)."""
         return self._fleet.moves
 
     @property
     def env_slices(self) -> list[tuple[str, slice]]:
-        """Which server holds which environments: one entry per contiguous run of a session's
-        environments, in environment order (after a failover a server holds several)."""
+        """Which server holds which environments: one entry per session, in environment order."""
         return [(c.conn.address, slice(c.start, c.stop)) for c in self._cores]
 
     @property
@@ -194,10 +172,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     # -- Gymnasium API --------------------------------------------------------------------------
 
     def reset(
-        self,
-        *,
-        seed: int | Sequence[int] | None = None,
-        options: dict[str, Any] | None = None,
+        self, *, seed: int | Sequence[int] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         seed_list = None
         if seed is None or isinstance(seed, (int, np.integer)):
@@ -281,15 +256,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return self.decode_step(self._finish())
 
     def step_async(self, actions: Any) -> None:
-        """Sends this step's ``actions`` to the server(s) and returns at once; :meth:`step_wait`
-        returns the step's results. Meanwhile the caller works (e.g. steps a second vector env),
-        so that neither the server waits for the caller nor the caller for the network.
-
-        The actions are checked here, before anything is sent, as :meth:`step` checks them.
-        Another ``step_async``, a ``step()``, ``reset()``, ``render()`` or ``action_masks()``
-        before the ``step_wait`` raises ``gymnasium.error.AlreadyPendingCallError``;
-        ``close()`` drops the pending step (the server may or may not have applied it). Each
-        server's calls are made by a thread of this env, started at the first ``step_async``."""
+        """Checks and sends this step's ``actions`` and returns at once; :meth:`step_wait`
+        returns its results. Any other call but ``close()`` before that raises
+        ``AlreadyPendingCallError`` (docs/client.md#pipelining-step_async-and-step_wait)."""
         wire = check_actions(actions, self.num_envs)
         self._check_idle("step_async()")
         self._check_open("step_async()")
@@ -298,13 +267,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def step_wait(
         self, timeout: float | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """The results of the step sent by :meth:`step_async`: exactly what :meth:`step` would
-        have returned, errors, autoreset and ``reconnect=True`` included.
-
-        Without a pending ``step_async`` it raises ``gymnasium.error.NoAsyncCallError``. With a
-        ``timeout`` (seconds) and no reply by then it raises ``multiprocessing.TimeoutError`` and,
-        unlike Gymnasium's ``AsyncVectorEnv``, the step stays pending: call ``step_wait`` again
-        (its calls are in flight and each has the env's ``timeout=`` deadline)."""
+        """The results of the step :meth:`step_async` sent, as :meth:`step` returns them. No
+        reply within ``timeout`` seconds: ``multiprocessing.TimeoutError``, the step still
+        pending (call ``step_wait`` again); none sent: ``NoAsyncCallError``."""
         if not self._pending:
             raise NoAsyncCallError("step_wait() without a step_async() before it", "step")
         if timeout is not None:
@@ -328,9 +293,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._pending = True
 
     def _finish(self) -> list[Batch]:
-        """Every core's Batch of the pending step (:meth:`Fleet.finish
-        <dinerdash._fleet.Fleet.finish>`); an interrupted wait (Ctrl-C) leaves the step pending,
-        to be collected by ``step_wait()``."""
+        """Every core's Batch of the pending step; an interrupted wait (Ctrl-C) leaves it
+        pending."""
         self._fleet.wait()
         self._pending = False
         return self._fleet.finish()
@@ -345,8 +309,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     def decode_step(self, batches: list[Batch]):
         """The step's ``(obs, rewards, terminated, truncated, info)`` from the sessions' replies
-        (``batches``, in environment order): what :meth:`step` and :meth:`step_wait` end in. It
-        advances the env's episode seeds, so only the bench calls it besides them, to time it."""
+        (``batches``, in environment order). It advances the episode seeds: only the bench calls
+        it besides :meth:`step` and :meth:`step_wait`, to time it."""
         n = self.num_envs
         batch = join(batches)
         everyone = self._everyone
@@ -362,19 +326,17 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         if resets:
             self._seeds = np.where(reset, batch["seeds"].astype(np.int64), self._seeds)
         info["seed"], info["_seed"] = self._seeds.copy(), everyone.copy()
-        if resets:
-            reset = reset.copy()
-            if self.autoreset_mode == AutoresetMode.SAME_STEP:
-                final, final_info = decode(batch, self.expert, "final_", reset)
-                final_info["seed"] = np.where(reset, ended_seeds, 0)
-                final_info["_seed"] = reset.copy()
-                final_obs = np.full(n, None, dtype=object)
-                for i in np.flatnonzero(reset):  # only the environments that just ended
-                    final_obs[i] = final[i]
-                info["final_obs"] = final_obs
-                info["_final_obs"] = reset.copy()
-                info["final_info"] = final_info
-                info["_final_info"] = reset.copy()
+        if resets and self.autoreset_mode == AutoresetMode.SAME_STEP:
+            final, final_info = decode(batch, self.expert, "final_", reset)
+            final_info["seed"] = np.where(reset, ended_seeds, 0)
+            final_info["_seed"] = reset.copy()
+            final_obs = np.full(n, None, dtype=object)
+            for i in np.flatnonzero(reset):  # only the environments that just ended
+                final_obs[i] = final[i]
+            info["final_obs"] = final_obs
+            info["_final_obs"] = reset.copy()
+            info["final_info"] = final_info
+            info["_final_info"] = reset.copy()
         cut = [c for c in self._cores if c.reconnected]
         if cut:
             lost = np.zeros(n, dtype=np.bool_)
@@ -392,8 +354,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         return obs, info["score"], info["lost"]
 
     def close_extras(self, **kwargs: Any) -> None:
-        """Closes the sessions (and the local server, if this env started one). A later full
-        ``reset()`` opens new sessions; other calls raise :class:`~dinerdash.EnvClosed`."""
+        """Closes the sessions (and a local server this env started); a later full ``reset()``
+        opens new ones."""
         if not self._closed:
             self._pending = False  # the cores' threads end as the sessions close
             self._fleet.close()
