@@ -3,7 +3,8 @@
 //! named for what it holds, the pools, rather than for the resource they spend.
 //!
 //! - [`CpuPool`]: Rollout episodes (in chunks of [`crate::rollout::ROLLOUT_CHUNK`]) and the
-//!   Reset, Step, Render, Snapshot and Fork of planner-labelled sessions. Such work runs on
+//!   Reset, Step, Render, Snapshot and Fork of planner-labelled sessions (a large Step's only
+//!   until it hands its chunks to the stepping threads). Such work runs on
 //!   tokio's blocking threads, never on the async workers that serve Step and Reset, and at most
 //!   `workers` jobs run at once, so a flood of heavy requests queues here instead of starving
 //!   every other client. Waiting jobs queue per tenant ([`Turn`]) and a freed worker goes to the
@@ -26,6 +27,16 @@
 //! threads, plus the callers of small Steps (async workers, shared-memory threads, CpuPool
 //! workers) that run their own. An async worker that hands a large Step over gives its other
 //! tasks to another thread first (`block_in_place`), so small Steps keep being served.
+//!
+//! A CpuPool job that hands a large Step's chunks over gives its worker back before it sleeps
+//! ([`CpuPermit::hold_while`]): the chunks' CPU is the stepping threads', so another tenant's
+//! planner Step takes the worker meanwhile instead of waiting for the whole large Step. The job
+//! then ends without a worker (what is left of its Step is the session's bookkeeping, no planner
+//! decision). Giving the worker back cannot deadlock: the job waits only for its chunks. Taking
+//! one again under the session's lock could: a Render of the same session may hold the freed
+//! worker while it waits for that lock. So the workers bound the planner decisions made on
+//! callers' threads, the stepping threads those of large Steps, and each sleeping caller holds
+//! a blocking thread and its session's lock, nothing of either pool.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock, PoisonError};
@@ -133,13 +144,9 @@ impl CpuPool {
         F: FnOnce() -> R + Send + 'static,
         R: Send + 'static,
     {
-        tokio::task::spawn_blocking(move || {
-            let result = job();
-            drop(permit);
-            result
-        })
-        .await
-        .map_err(|e| CpuError::Failed(e.to_string()))
+        tokio::task::spawn_blocking(move || permit.hold_while(job))
+            .await
+            .map_err(|e| CpuError::Failed(e.to_string()))
     }
 }
 
@@ -162,6 +169,36 @@ impl Turn {
 pub struct CpuPermit {
     /// The pool it is given back to (none once handed on).
     queue: Option<Arc<Queue>>,
+}
+
+impl CpuPermit {
+    /// Runs `job` on this thread under the permit, which is released when the job ends, or
+    /// earlier: when the job hands a large Step's chunks to the [`StepPool`] and sleeps until
+    /// they are done, it gives the worker back meanwhile (the chunks' CPU is the stepping
+    /// threads'), and ends without it (see the module doc).
+    pub fn hold_while<R>(self, job: impl FnOnce() -> R) -> R {
+        /// Puts back what the thread held before, releasing the permit if still held, also
+        /// when the job panics.
+        struct Ends(Option<CpuPermit>);
+        impl Drop for Ends {
+            fn drop(&mut self) {
+                drop(HELD.replace(self.0.take()));
+            }
+        }
+        let _ends = Ends(HELD.replace(Some(self)));
+        job()
+    }
+}
+
+thread_local! {
+    /// The permit of the [`CpuPool`] job running on this thread ([`CpuPermit::hold_while`]).
+    static HELD: std::cell::Cell<Option<CpuPermit>> = const { std::cell::Cell::new(None) };
+}
+
+/// Gives back the worker of the [`CpuPool`] job running on this thread, if it holds one: the
+/// job is about to sleep until the stepping threads have run its chunks.
+fn give_back_held_worker() {
+    drop(HELD.take());
 }
 
 impl Drop for CpuPermit {
@@ -370,9 +407,10 @@ impl StepPool {
     }
 
     /// Runs `work` on every piece, the pieces in parallel on the stepping threads while the
-    /// caller sleeps, and returns the first error in the pieces' order (or runs them in order on
-    /// the caller's thread, when there is one piece or the threads could not be started). Work
-    /// must take no lock and submit nothing to either pool (see the module doc).
+    /// caller sleeps (giving back its [`CpuPool`] worker if it holds one), and returns the
+    /// first error in the pieces' order (or runs them in order on the caller's thread, when
+    /// there is one piece or the threads could not be started). Work must take no lock and
+    /// submit nothing to either pool (see the module doc).
     pub fn run<T, E, W>(&self, pieces: Vec<T>, work: W) -> Result<(), E>
     where
         T: Send,
@@ -387,6 +425,7 @@ impl StepPool {
         let Some(threads) = threads else {
             return pieces.into_iter().try_for_each(work);
         };
+        give_back_held_worker();
         let results: Vec<Result<(), E>> = hand_over(|| {
             use rayon::iter::{IntoParallelIterator, ParallelIterator};
             threads.install(|| pieces.into_par_iter().map(&work).collect())
@@ -585,6 +624,52 @@ mod tests {
             min_planner_envs: 2,
         });
         assert_eq!(pool.run(vec![1, 2], |_: i32| Ok::<(), ()>(())), Ok(()));
+    }
+
+    #[test]
+    fn a_job_sleeping_on_the_stepping_threads_gives_its_worker_back_for_good() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let cpu = CpuPool::new(1);
+        let steps = StepPool::new(Stepping {
+            threads: 2,
+            min_envs: 2,
+            min_planner_envs: 2,
+        });
+        let permit = cpu.acquire_blocking(Turn(0), runtime.handle()).unwrap();
+        // Another tenant's job waits for the one worker...
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (other, handle) = (cpu.clone(), runtime.handle().clone());
+        let waiter = std::thread::spawn(move || {
+            let permit = other.acquire_blocking(Turn(1), &handle).unwrap();
+            tx.send(()).unwrap();
+            drop(permit);
+        });
+        // ...and gets it while the job holding it sleeps until its chunks are done: a chunk
+        // waits for the other job's start.
+        let rx = Mutex::new(rx);
+        let stepped = permit.hold_while(|| {
+            steps.run(vec![0, 1], |i: usize| match i {
+                0 => rx
+                    .lock()
+                    .unwrap()
+                    .recv_timeout(std::time::Duration::from_secs(60))
+                    .map_err(|_| "the worker was held while the chunks ran"),
+                _ => Ok(()),
+            })
+        });
+        assert_eq!(stepped, Ok(()));
+        waiter.join().unwrap();
+        // The job ended without taking a worker again: the one worker is free, once.
+        assert_eq!(cpu.queue.lock().free, 1);
+        // A job of one chunk runs on its caller's thread and keeps its worker to its end.
+        let permit = cpu.acquire_blocking(Turn(0), runtime.handle()).unwrap();
+        permit.hold_while(|| {
+            assert_eq!(steps.run(vec![0], |_: i32| Ok::<(), ()>(())), Ok(()));
+            assert_eq!(cpu.queue.lock().free, 0);
+        });
+        assert_eq!(cpu.queue.lock().free, 1);
     }
 
     #[tokio::test]

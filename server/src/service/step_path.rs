@@ -68,7 +68,7 @@ impl StepPath {
 
     /// As [`StepPath::run`], from a thread outside the runtime that may block: a planner
     /// session's job waits for a permit of the same pool (driven by `runtime`) and runs here
-    /// while this thread holds it.
+    /// while this thread holds it (a large Step gives it back to sleep, as on the pool).
     pub fn run_blocking<F>(
         &self,
         runtime: &tokio::runtime::Handle,
@@ -84,11 +84,7 @@ impl StepPath {
                 .cpu
                 .acquire_blocking(Turn::of(session.tenant()), runtime)
             {
-                Ok(permit) => {
-                    let result = job(&session);
-                    drop(permit);
-                    result
-                }
+                Ok(permit) => permit.hold_while(|| job(&session)),
                 Err(e) => Err(SessionError::Internal(e.to_string())),
             }
         } else {
