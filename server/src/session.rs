@@ -30,7 +30,7 @@ pub use shm_secret::{SHM_SECRET_BYTES, ShmSecret};
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
 use crate::metrics::Metrics;
-use crate::pools::{StepPool, Stepping};
+use crate::pools::{StepPool, Stepping, Turn};
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
 
@@ -362,7 +362,7 @@ impl FoundSession {
     /// Resets every environment of the session.
     pub fn reset(&self, args: &ResetArgs) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
-        let batch = envs.reset_on(args, &self.pool)?;
+        let batch = envs.reset_on(args, &self.pool, Turn::of(self.tenant()))?;
         self.session.was_reset(&envs, &batch);
         drop(envs);
         let m = &self.metrics;
@@ -373,7 +373,7 @@ impl FoundSession {
     /// Steps every environment of the session.
     pub fn step(&self, actions: &[u8]) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
-        let batch = envs.step_on(actions, &self.pool)?;
+        let batch = envs.step_on(actions, &self.pool, Turn::of(self.tenant()))?;
         self.session.stepped(&envs, actions, &batch);
         drop(envs);
         let m = &self.metrics;

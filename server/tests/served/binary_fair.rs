@@ -228,13 +228,37 @@ async fn planner_session(
     (id, batch)
 }
 
+/// One Step of `token`'s session `id` playing each environment's expert action in `batch`, its
+/// last Batch: the next Batch and how long the Step took.
+async fn expert_step(
+    client: &mut DinerDashClient<Channel>,
+    token: &str,
+    id: &str,
+    batch: &pb::Batch,
+) -> (pb::Batch, Duration) {
+    let actions: Vec<i32> = batch.expert_actions.iter().map(|&x| i32::from(x)).collect();
+    let request = pb::StepRequest {
+        session_id: id.to_owned(),
+        actions: pack(&actions),
+    };
+    let started = Instant::now();
+    let next = client
+        .step(authed(token, request))
+        .await
+        .unwrap()
+        .into_inner();
+    (next, started.elapsed())
+}
+
 /// Environments of each of A's sessions: the most the default `--max-envs-per-session`
 /// allows, a whole Step of one of them many chunks of planner decisions long.
 const LARGE: u32 = dinerdash_server::session::DEFAULT_MAX_ENVS_PER_SESSION;
 /// Steps of each of A's sessions before they are timed (and B starts).
 const A_WARM_UP: usize = 3;
-/// B's timed Steps beside A's large ones.
-const B_SMALL_STEPS: usize = 30;
+/// Environments of B's large session: cut in chunks, but a small Step beside A's.
+const B_LARGE: u32 = 256;
+/// B's timed Steps beside A's large ones, small and large in turn.
+const B_STEPS_BESIDE: usize = 40;
 
 #[tokio::test]
 async fn a_tenants_large_planner_steps_leave_another_tenant_its_turn() {
@@ -248,6 +272,8 @@ async fn a_tenants_large_planner_steps_leave_another_tenant_its_turn() {
     let url = format!("http://{}", server.addr);
     let mut b = DinerDashClient::connect(url.clone()).await.unwrap();
     let (b_id, mut b_batch) = planner_session(&mut b, TOKEN_B, 1, 3, None).await;
+    // And a large one (its Steps cut in chunks on the stepping threads), small beside A's.
+    let (b_large, mut b_large_batch) = planner_session(&mut b, TOKEN_B, B_LARGE, 4, None).await;
 
     // A's sessions, each stepped in a loop of its own until told to stop, in a busy game
     // (groups every other tick, never over) whose planner decisions weigh: each Step's time
@@ -273,16 +299,10 @@ async fn a_tenants_large_planner_steps_leave_another_tenant_its_turn() {
                 if stop.load(std::sync::atomic::Ordering::SeqCst) {
                     break;
                 }
-                let actions: Vec<i32> =
-                    batch.expert_actions.iter().map(|&x| i32::from(x)).collect();
-                let started = Instant::now();
-                let request = pb::StepRequest {
-                    session_id: id.clone(),
-                    actions: pack(&actions),
-                };
-                batch = a.step(authed(TOKEN_A, request)).await.unwrap().into_inner();
+                let took;
+                (batch, took) = expert_step(&mut a, TOKEN_A, &id, &batch).await;
                 if step >= A_WARM_UP {
-                    times.push(started.elapsed());
+                    times.push(took);
                 } else if step + 1 == A_WARM_UP {
                     let _ = under_way.send(());
                 }
@@ -295,14 +315,21 @@ async fn a_tenants_large_planner_steps_leave_another_tenant_its_turn() {
     }
     let from = Instant::now();
 
-    // B's small planner Steps meanwhile, a few milliseconds apart, so that they fall in every
-    // part of A's Steps.
-    let mut waits = Vec::new();
-    for i in 0..B_SMALL_STEPS {
+    // B's small and large planner Steps meanwhile, in turn, a few milliseconds apart, so that
+    // they fall in every part of A's Steps.
+    let (mut waits, mut large_waits) = (Vec::new(), Vec::new());
+    for i in 0..B_STEPS_BESIDE {
         tokio::time::sleep(Duration::from_millis(3 + (i % 7) as u64 * 4)).await;
-        let (next, took) = timed_step(&mut b, &b_id, i32::from(b_batch.expert_actions[0])).await;
-        b_batch = next;
-        waits.push(took);
+        if i % 2 == 0 {
+            let (next, took) =
+                timed_step(&mut b, &b_id, i32::from(b_batch.expert_actions[0])).await;
+            b_batch = next;
+            waits.push(took);
+        } else {
+            let took;
+            (b_large_batch, took) = expert_step(&mut b, TOKEN_B, &b_large, &b_large_batch).await;
+            large_waits.push(took);
+        }
     }
     let b_span = from.elapsed();
     stop.store(true, std::sync::atomic::Ordering::SeqCst);
@@ -312,19 +339,29 @@ async fn a_tenants_large_planner_steps_leave_another_tenant_its_turn() {
     }
     a_times.sort();
     waits.sort();
+    large_waits.sort();
     let a_median = a_times[a_times.len() / 2];
-    let b_max = *waits.last().unwrap();
+    let (b_max, b_large_max) = (*waits.last().unwrap(), *large_waits.last().unwrap());
     eprintln!(
         "A's {sessions} sessions of {LARGE} planner environments: {} Steps, median {a_median:?}; \
-         B's {B_SMALL_STEPS} one-environment planner Steps beside them (in {b_span:?}): median \
-         {:?}, max {b_max:?}",
+         beside them (in {b_span:?}) B's one-environment planner Steps: median {:?}, max \
+         {b_max:?}; B's {B_LARGE}-environment ones: median {:?}, max {b_large_max:?}",
         a_times.len(),
-        waits[waits.len() / 2]
+        waits[waits.len() / 2],
+        large_waits[large_waits.len() / 2],
+    );
+    assert!(!a_times.is_empty());
+    // B's large Steps' chunks take turns with A's on the stepping threads: before, they waited
+    // for A's Steps already there (first come, first served).
+    assert!(
+        b_large_max * 2 < a_median,
+        "B's slowest {B_LARGE}-environment Step {b_large_max:?} is not well below A's median \
+         Step {a_median:?}"
     );
     // B waits about a chunk, not a Step of A's: before, a worker held for A's whole Step kept
     // B waiting about as long as one (its slowest Step a whole one of A's or more).
     assert!(
-        !a_times.is_empty() && b_max * 2 < a_median,
+        b_max * 2 < a_median,
         "B's slowest small Step {b_max:?} is not well below A's median large Step {a_median:?}"
     );
     drop(server);
