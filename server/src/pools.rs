@@ -15,14 +15,20 @@
 //!   transport asked.
 //! - [`StepPool`]: the threads that step one large session's environments in chunks at once
 //!   ([`Stepping`] says when a Step is large enough). Only chunks of large Steps run there;
-//!   small Steps stay on their caller's thread and never queue behind them.
+//!   small Steps stay on their caller's thread and never queue behind them. A chunk runs under
+//!   a slot, one a thread, taken in its tenant's turn from a queue like the CpuPool's, and a
+//!   thread that has run a chunk gives its slot to another tenant waiting for one: another
+//!   tenant's large Step waits about a chunk (planner chunks are small:
+//!   `MAX_PLANNER_CHUNK_ENVS`), not for the Steps already there.
 //!
 //! # Why the two pools neither deadlock nor oversubscribe
 //! A planner-labelled Step runs on a [`CpuPool`] blocking thread; when it is large it hands its
 //! chunks to the [`StepPool`] and that thread sleeps until they are done. Chunk work touches
 //! only its own environments and Batch rows: it takes no lock, awaits nothing and never submits
 //! work to either pool, so a chunk cannot wait on anything its caller holds (the caller holds
-//! the session's lock; chunks run under it, on data borrowed from it). The callers of large
+//! the session's lock; chunks run under it, on data borrowed from it). The caller waits for
+//! stepping slots with that lock held, but a slot is held only by a running chunk, which ends
+//! whatever else waits: the order in which tenants' chunks run cannot deadlock. The callers of large
 //! Steps sleep while their chunks run, so the CPU-busy threads are at most the stepping
 //! threads, plus the callers of small Steps (async workers, shared-memory threads, CpuPool
 //! workers) that run their own. An async worker that hands a large Step over gives its other
