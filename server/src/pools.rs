@@ -42,7 +42,9 @@
 //! one again under the session's lock could: a Render of the same session may hold the freed
 //! worker while it waits for that lock. So the workers bound the planner decisions made on
 //! callers' threads, the stepping threads those of large Steps, and each sleeping caller holds
-//! a blocking thread and its session's lock, nothing of either pool.
+//! a blocking thread and its session's lock, nothing of either pool. The service's calls on a
+//! planner session wait for the one before them ([`crate::session::FoundSession::queue`])
+//! before they ask for a worker, so a worker does not wait for that lock either.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock, PoisonError};

@@ -282,6 +282,9 @@ pub struct Session {
     watch: watch::Watch,
     /// What the shared-memory hello must carry for this session ([`Store::find_shm`]).
     shm_secret: ShmSecret,
+    /// Where the calls that run on the CPU pool wait for the one before them, without a worker
+    /// ([`FoundSession::queue`]).
+    queue: Arc<tokio::sync::Semaphore>,
 }
 
 impl Session {
@@ -325,6 +328,17 @@ impl FoundSession {
     /// N (no lock: fixed at creation).
     pub fn num_envs(&self) -> usize {
         self.session.num_envs
+    }
+
+    /// The session's turn among the calls on the CPU pool that lock it: a caller waits here,
+    /// holding no worker, until the call before it ends, and holds the returned permit until
+    /// its own ends. So a worker never waits for the lock of a session whose large Step gave its
+    /// worker back (see [`crate::pools`]).
+    pub async fn queue(&self) -> tokio::sync::OwnedSemaphorePermit {
+        Arc::clone(&self.session.queue)
+            .acquire_owned()
+            .await
+            .expect("a session's queue is never closed")
     }
 
     /// Whose share the session counts against.
@@ -506,6 +520,7 @@ impl Store {
             tally: watch::Tally::default(),
             watch: watch::Watch::default(),
             shm_secret: ShmSecret::random()?,
+            queue: Arc::new(tokio::sync::Semaphore::new(1)),
         });
         let spec = session.spec();
         let id = loop {
