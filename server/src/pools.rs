@@ -3,7 +3,8 @@
 //! named for what it holds, the pools, rather than for the resource they spend.
 //!
 //! - [`CpuPool`]: Rollout episodes (in chunks of [`crate::rollout::ROLLOUT_CHUNK`]) and the
-//!   Reset, Step, Render, Snapshot and Fork of planner-labelled sessions. Such work runs on
+//!   Reset, Step, Render, Snapshot and Fork of planner-labelled sessions (a large Step's only
+//!   until it hands its chunks to the stepping threads). Such work runs on
 //!   tokio's blocking threads, never on the async workers that serve Step and Reset, and at most
 //!   `workers` jobs run at once, so a flood of heavy requests queues here instead of starving
 //!   every other client. Waiting jobs queue per tenant ([`Turn`]) and a freed worker goes to the
@@ -14,18 +15,36 @@
 //!   transport asked.
 //! - [`StepPool`]: the threads that step one large session's environments in chunks at once
 //!   ([`Stepping`] says when a Step is large enough). Only chunks of large Steps run there;
-//!   small Steps stay on their caller's thread and never queue behind them.
+//!   small Steps stay on their caller's thread and never queue behind them. A chunk runs under
+//!   a slot, one a thread, taken in its tenant's turn from a queue like the CpuPool's, and a
+//!   thread that has run a chunk gives its slot to another tenant waiting for one: another
+//!   tenant's large Step waits about a chunk (planner chunks are small:
+//!   `MAX_PLANNER_CHUNK_ENVS`), not for the Steps already there.
 //!
 //! # Why the two pools neither deadlock nor oversubscribe
 //! A planner-labelled Step runs on a [`CpuPool`] blocking thread; when it is large it hands its
 //! chunks to the [`StepPool`] and that thread sleeps until they are done. Chunk work touches
 //! only its own environments and Batch rows: it takes no lock, awaits nothing and never submits
 //! work to either pool, so a chunk cannot wait on anything its caller holds (the caller holds
-//! the session's lock; chunks run under it, on data borrowed from it). The callers of large
+//! the session's lock; chunks run under it, on data borrowed from it). The caller waits for
+//! stepping slots with that lock held, but a slot is held only by a running chunk, which ends
+//! whatever else waits: the order in which tenants' chunks run cannot deadlock. The callers of large
 //! Steps sleep while their chunks run, so the CPU-busy threads are at most the stepping
 //! threads, plus the callers of small Steps (async workers, shared-memory threads, CpuPool
 //! workers) that run their own. An async worker that hands a large Step over gives its other
 //! tasks to another thread first (`block_in_place`), so small Steps keep being served.
+//!
+//! A CpuPool job that hands a large Step's chunks over gives its worker back before it sleeps
+//! ([`CpuPermit::hold_while`]): the chunks' CPU is the stepping threads', so another tenant's
+//! planner Step takes the worker meanwhile instead of waiting for the whole large Step. The job
+//! then ends without a worker (what is left of its Step is the session's bookkeeping, no planner
+//! decision). Giving the worker back cannot deadlock: the job waits only for its chunks. Taking
+//! one again under the session's lock could: a Render of the same session may hold the freed
+//! worker while it waits for that lock. So the workers bound the planner decisions made on
+//! callers' threads, the stepping threads those of large Steps, and each sleeping caller holds
+//! a blocking thread and its session's lock, nothing of either pool. The service's calls on a
+//! planner session wait for the one before them ([`crate::session::FoundSession::queue`])
+//! before they ask for a worker, so a worker does not wait for that lock either.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex, MutexGuard, OnceLock, PoisonError};
@@ -60,12 +79,7 @@ impl CpuPool {
     pub fn new(workers: usize) -> CpuPool {
         let max = workers.max(1);
         CpuPool {
-            queue: Arc::new(Queue {
-                state: Mutex::new(Waiting {
-                    free: max,
-                    ..Waiting::default()
-                }),
-            }),
+            queue: Queue::of(max),
             max,
         }
     }
@@ -133,19 +147,16 @@ impl CpuPool {
         F: FnOnce() -> R + Send + 'static,
         R: Send + 'static,
     {
-        tokio::task::spawn_blocking(move || {
-            let result = job();
-            drop(permit);
-            result
-        })
-        .await
-        .map_err(|e| CpuError::Failed(e.to_string()))
+        tokio::task::spawn_blocking(move || permit.hold_while(job))
+            .await
+            .map_err(|e| CpuError::Failed(e.to_string()))
     }
 }
 
-/// Which tenant a job of the [`CpuPool`] is run for: the pool serves tenants in turn, not jobs
-/// in order of arrival. Made from the tenant a session or a Rollout is charged to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+/// Which tenant a job of the [`CpuPool`] or a Step's chunks on the [`StepPool`] are run for:
+/// the pools serve tenants in turn, not jobs in order of arrival. Made from the tenant a
+/// session or a Rollout is charged to; the default is nobody's (one tenant's, in tests).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
 pub struct Turn(usize);
 
 impl Turn {
@@ -162,6 +173,59 @@ impl Turn {
 pub struct CpuPermit {
     /// The pool it is given back to (none once handed on).
     queue: Option<Arc<Queue>>,
+}
+
+impl CpuPermit {
+    /// Runs `job` on this thread under the permit, which is released when the job ends, or
+    /// earlier: when the job hands a large Step's chunks to the [`StepPool`] and sleeps until
+    /// they are done, it gives the worker back meanwhile (the chunks' CPU is the stepping
+    /// threads'), and ends without it (see the module doc).
+    pub fn hold_while<R>(self, job: impl FnOnce() -> R) -> R {
+        /// Puts back what the thread held before, releasing the permit if still held, also
+        /// when the job panics.
+        struct Ends(Option<CpuPermit>);
+        impl Drop for Ends {
+            fn drop(&mut self) {
+                drop(HELD.replace(self.0.take()));
+            }
+        }
+        let _ends = Ends(HELD.replace(Some(self)));
+        job()
+    }
+}
+
+thread_local! {
+    /// The permit of the [`CpuPool`] job running on this thread ([`CpuPermit::hold_while`]).
+    static HELD: std::cell::Cell<Option<CpuPermit>> = const { std::cell::Cell::new(None) };
+}
+
+/// Gives back the worker of the [`CpuPool`] job running on this thread, if it holds one: the
+/// job is about to sleep until the stepping threads have run its chunks.
+fn give_back_held_worker() {
+    drop(HELD.take());
+}
+
+/// Waits on this thread for `future` (a permit's hand-over), parked between its wake-ups: from
+/// a thread outside any runtime, an async worker inside `block_in_place`, or a current-thread
+/// runtime's own thread alike (which a runtime's `block_on` refuses).
+fn park_until<F: std::future::Future>(future: F) -> F::Output {
+    use std::task::{Context, Poll, Wake, Waker};
+    /// Wakes the parked thread.
+    struct Unpark(std::thread::Thread);
+    impl Wake for Unpark {
+        fn wake(self: Arc<Self>) {
+            self.0.unpark();
+        }
+    }
+    let waker = Waker::from(Arc::new(Unpark(std::thread::current())));
+    let mut cx = Context::from_waker(&waker);
+    let mut future = std::pin::pin!(future);
+    loop {
+        if let Poll::Ready(output) = future.as_mut().poll(&mut cx) {
+            return output;
+        }
+        std::thread::park();
+    }
 }
 
 impl Drop for CpuPermit {
@@ -207,6 +271,29 @@ impl Waiting {
 }
 
 impl Queue {
+    /// `free` workers, none held.
+    fn of(free: usize) -> Arc<Queue> {
+        Arc::new(Queue {
+            state: Mutex::new(Waiting {
+                free,
+                ..Waiting::default()
+            }),
+        })
+    }
+
+    /// A worker for `turn`, waited for on this thread (parked, whatever runtime it is in).
+    fn enter_blocking(self: &Arc<Self>, turn: Turn) -> Option<CpuPermit> {
+        match self.enter(turn) {
+            Ok(permit) => Some(permit),
+            Err(handed) => park_until(handed).ok(),
+        }
+    }
+
+    /// Whether a tenant other than `turn`'s waits for a worker.
+    fn others_wait(&self, turn: Turn) -> bool {
+        self.lock().turns.iter().any(|&t| t != turn)
+    }
+
     /// A worker for `turn` at once, or the receiver its permit will come through.
     fn enter(self: &Arc<Self>, turn: Turn) -> Result<CpuPermit, oneshot::Receiver<CpuPermit>> {
         let mut guard = self.lock();
@@ -267,6 +354,9 @@ const MIN_CHUNK_ENVS: usize = 128;
 /// Chunks per stepping thread: planner decisions vary in cost, so more, smaller chunks even the
 /// threads out (the pool's idle threads steal the ones left).
 const CHUNKS_PER_THREAD: usize = 4;
+/// Most planner-labelled environments in one chunk: another tenant's chunk waits for one chunk
+/// at most, a few milliseconds of planner decisions, however large the session.
+const MAX_PLANNER_CHUNK_ENVS: usize = 128;
 
 /// When a session's Reset or Step is spread over threads, and over how many.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -315,9 +405,15 @@ impl Stepping {
             return 1;
         }
         // At least two chunks (the threshold asked for parallel), each of at least
-        // `chunk_envs` when there are enough, at most a few per thread.
+        // `chunk_envs` when there are enough, at most a few per thread; planner chunks of at
+        // most MAX_PLANNER_CHUNK_ENVS.
         let most = self.threads.saturating_mul(CHUNKS_PER_THREAD);
-        (num_envs / chunk_envs).clamp(2, most.max(2)).min(num_envs)
+        let chunks = (num_envs / chunk_envs).clamp(2, most.max(2)).min(num_envs);
+        if planner {
+            chunks.max(num_envs.div_ceil(MAX_PLANNER_CHUNK_ENVS))
+        } else {
+            chunks
+        }
     }
 }
 
@@ -327,9 +423,19 @@ impl Stepping {
 pub struct StepPool {
     /// When to go parallel, and the pool's size.
     stepping: Stepping,
-    /// The threads, once a Step needed them; an error if they could not be started (Steps then
-    /// run on their caller's thread).
-    pool: OnceLock<Result<rayon::ThreadPool, String>>,
+    /// The threads and their slots, once a Step needed them; an error if they could not be
+    /// started (Steps then run on their caller's thread).
+    pool: OnceLock<Result<Threads, String>>,
+}
+
+/// The stepping threads, and one slot for each, which the Steps' callers take in their
+/// tenants' turns: a chunk runs only under a slot.
+#[derive(Debug)]
+struct Threads {
+    /// The threads.
+    pool: rayon::ThreadPool,
+    /// Their slots: a [`Queue`] of as many workers.
+    slots: Arc<Queue>,
 }
 
 /// A pool that steps every session on its caller's thread (and never starts one).
@@ -355,12 +461,17 @@ impl StepPool {
     }
 
     /// The threads, started on the first call.
-    fn threads(&self) -> Option<&rayon::ThreadPool> {
+    fn threads(&self) -> Option<&Threads> {
         let pool = self.pool.get_or_init(|| {
+            let threads = self.stepping.threads.max(1);
             rayon::ThreadPoolBuilder::new()
-                .num_threads(self.stepping.threads.max(1))
+                .num_threads(threads)
                 .thread_name(|i| format!("dinerdash-step-{i}"))
                 .build()
+                .map(|pool| Threads {
+                    pool,
+                    slots: Queue::of(threads),
+                })
                 .map_err(|e| {
                     tracing::warn!("cannot start the stepping threads, stepping serially: {e}");
                     e.to_string()
@@ -370,10 +481,14 @@ impl StepPool {
     }
 
     /// Runs `work` on every piece, the pieces in parallel on the stepping threads while the
-    /// caller sleeps, and returns the first error in the pieces' order (or runs them in order on
-    /// the caller's thread, when there is one piece or the threads could not be started). Work
-    /// must take no lock and submit nothing to either pool (see the module doc).
-    pub fn run<T, E, W>(&self, pieces: Vec<T>, work: W) -> Result<(), E>
+    /// caller sleeps (giving back its [`CpuPool`] worker if it holds one), and returns the
+    /// first error in the pieces' order (or runs them in order on the caller's thread, when
+    /// there is one piece or the threads could not be started). Work must take no lock and
+    /// submit nothing to either pool (see the module doc).
+    ///
+    /// The threads serve tenants in turn: each runs the pieces of a Step under a slot taken in
+    /// `turn`, and gives the slot back after a piece when another tenant waits for one.
+    pub fn run<T, E, W>(&self, turn: Turn, pieces: Vec<T>, work: W) -> Result<(), E>
     where
         T: Send,
         E: Send,
@@ -387,11 +502,44 @@ impl StepPool {
         let Some(threads) = threads else {
             return pieces.into_iter().try_for_each(work);
         };
-        let results: Vec<Result<(), E>> = hand_over(|| {
-            use rayon::iter::{IntoParallelIterator, ParallelIterator};
-            threads.install(|| pieces.into_par_iter().map(&work).collect())
+        give_back_held_worker();
+        let left = Mutex::new(pieces.into_iter().enumerate());
+        let first_error: Mutex<Option<(usize, E)>> = Mutex::new(None);
+        let next = || left.lock().unwrap_or_else(PoisonError::into_inner).next();
+        let (work, next, first) = (&work, &next, &first_error);
+        let slots = &threads.slots;
+        hand_over(|| {
+            threads.pool.in_place_scope(|scope| {
+                // One runner a slot, while pieces are left: it runs them until none is, or
+                // until another tenant waits for its slot.
+                while let Some(slot) = slots.enter_blocking(turn) {
+                    let Some(piece) = next() else { break };
+                    scope.spawn(move |_| {
+                        let _slot = slot;
+                        let mut piece = Some(piece);
+                        while let Some((i, p)) = piece.take().or_else(next) {
+                            if let Err(e) = work(p) {
+                                let mut first =
+                                    first.lock().unwrap_or_else(PoisonError::into_inner);
+                                if first.as_ref().is_none_or(|(j, _)| i < *j) {
+                                    *first = Some((i, e));
+                                }
+                            }
+                            if slots.others_wait(turn) {
+                                break;
+                            }
+                        }
+                    });
+                }
+            });
         });
-        results.into_iter().collect()
+        match first_error
+            .into_inner()
+            .unwrap_or_else(PoisonError::into_inner)
+        {
+            Some((_, e)) => Err(e),
+            None => Ok(()),
+        }
     }
 }
 
@@ -540,6 +688,12 @@ mod tests {
         assert_eq!(two.chunks(256, true), 8);
         let many = Stepping { threads: 16, ..two };
         assert_eq!(many.chunks(256, true), 64);
+        // Planner chunks of at most MAX_PLANNER_CHUNK_ENVS however large the session.
+        assert_eq!(two.chunks(16_384, true), 16_384 / MAX_PLANNER_CHUNK_ENVS);
+        assert_eq!(
+            two.chunks(16_385, true),
+            16_384 / MAX_PLANNER_CHUNK_ENVS + 1
+        );
         assert_eq!(many.chunks(4096, false), 32);
     }
 
@@ -551,13 +705,16 @@ mod tests {
             min_planner_envs: 2,
         });
         let done = AtomicUsize::new(0);
-        let result = pool.run((0..16).collect(), |i: usize| {
+        let result = pool.run(Turn(0), (0..16).collect(), |i: usize| {
             done.fetch_add(1, Ordering::SeqCst);
             if i % 5 == 3 { Err(i) } else { Ok(()) }
         });
         assert_eq!(result, Err(3));
         assert_eq!(done.load(Ordering::SeqCst), 16);
-        assert_eq!(pool.run(vec![1, 2], |_: i32| Ok::<(), ()>(())), Ok(()));
+        assert_eq!(
+            pool.run(Turn(0), vec![1, 2], |_: i32| Ok::<(), ()>(())),
+            Ok(())
+        );
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -570,10 +727,11 @@ mod tests {
         // On a worker of a multi-threaded runtime and on a blocking thread alike.
         let on_worker = {
             let pool = Arc::clone(&pool);
-            tokio::spawn(async move { pool.run(vec![1, 2, 3], |_: i32| Ok::<(), ()>(())) })
+            tokio::spawn(async move { pool.run(Turn(0), vec![1, 2, 3], |_: i32| Ok::<(), ()>(())) })
         };
         assert_eq!(on_worker.await.unwrap(), Ok(()));
-        let blocking = tokio::task::spawn_blocking(move || pool.run(vec![1, 2], |_: i32| Err(7)));
+        let blocking =
+            tokio::task::spawn_blocking(move || pool.run(Turn(0), vec![1, 2], |_: i32| Err(7)));
         assert_eq!(blocking.await.unwrap(), Err(7));
     }
 
@@ -584,7 +742,101 @@ mod tests {
             min_envs: 2,
             min_planner_envs: 2,
         });
-        assert_eq!(pool.run(vec![1, 2], |_: i32| Ok::<(), ()>(())), Ok(()));
+        assert_eq!(
+            pool.run(Turn(0), vec![1, 2], |_: i32| Ok::<(), ()>(())),
+            Ok(())
+        );
+    }
+
+    #[test]
+    fn a_job_sleeping_on_the_stepping_threads_gives_its_worker_back_for_good() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let cpu = CpuPool::new(1);
+        let steps = StepPool::new(Stepping {
+            threads: 2,
+            min_envs: 2,
+            min_planner_envs: 2,
+        });
+        let permit = cpu.acquire_blocking(Turn(0), runtime.handle()).unwrap();
+        // Another tenant's job waits for the one worker...
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (other, handle) = (cpu.clone(), runtime.handle().clone());
+        let waiter = std::thread::spawn(move || {
+            let permit = other.acquire_blocking(Turn(1), &handle).unwrap();
+            tx.send(()).unwrap();
+            drop(permit);
+        });
+        // ...and gets it while the job holding it sleeps until its chunks are done: a chunk
+        // waits for the other job's start.
+        let rx = Mutex::new(rx);
+        let stepped = permit.hold_while(|| {
+            steps.run(Turn(0), vec![0, 1], |i: usize| match i {
+                0 => rx
+                    .lock()
+                    .unwrap()
+                    .recv_timeout(std::time::Duration::from_secs(60))
+                    .map_err(|_| "the worker was held while the chunks ran"),
+                _ => Ok(()),
+            })
+        });
+        assert_eq!(stepped, Ok(()));
+        waiter.join().unwrap();
+        // The job ended without taking a worker again: the one worker is free, once.
+        assert_eq!(cpu.queue.lock().free, 1);
+        // A job of one chunk runs on its caller's thread and keeps its worker to its end.
+        let permit = cpu.acquire_blocking(Turn(0), runtime.handle()).unwrap();
+        permit.hold_while(|| {
+            assert_eq!(
+                steps.run(Turn(0), vec![0], |_: i32| Ok::<(), ()>(())),
+                Ok(())
+            );
+            assert_eq!(cpu.queue.lock().free, 0);
+        });
+        assert_eq!(cpu.queue.lock().free, 1);
+    }
+
+    #[test]
+    fn the_stepping_threads_serve_tenants_in_turn() {
+        let pool = StepPool::new(Stepping {
+            threads: 2,
+            min_envs: 2,
+            min_planner_envs: 2,
+        });
+        let started = Mutex::new(Vec::new());
+        let (a_began, b_may_start) = std::sync::mpsc::channel();
+        let a_began = Mutex::new(Some(a_began));
+        std::thread::scope(|s| {
+            // Tenant A's Step of 40 pieces of 5 ms each...
+            s.spawn(|| {
+                pool.run(Turn(1), (0..40).collect(), |i: usize| {
+                    started.lock().unwrap().push(('a', i));
+                    if let Some(began) = a_began.lock().unwrap().take() {
+                        began.send(()).unwrap();
+                    }
+                    std::thread::sleep(std::time::Duration::from_millis(5));
+                    Ok::<(), ()>(())
+                })
+            });
+            // ...then tenant B's of two pieces: they start within a few of A's, not after all.
+            b_may_start.recv().unwrap();
+            let b_from = started.lock().unwrap().len();
+            pool.run(Turn(2), vec![0, 1], |i: usize| {
+                started.lock().unwrap().push(('b', i));
+                Ok::<(), ()>(())
+            })
+            .unwrap();
+            let order = started.lock().unwrap().clone();
+            let b_last = order.iter().rposition(|(t, _)| *t == 'b').unwrap();
+            assert!(
+                b_last - b_from <= 6,
+                "B's pieces waited for {} of A's: {order:?}",
+                b_last - b_from - 1
+            );
+        });
+        let order = started.into_inner().unwrap();
+        assert_eq!(order.len(), 42, "every piece ran once");
     }
 
     #[tokio::test]

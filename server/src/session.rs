@@ -30,7 +30,7 @@ pub use shm_secret::{SHM_SECRET_BYTES, ShmSecret};
 
 use crate::budget::{Budget, BudgetError, Charge, DEFAULT_MAX_MEMORY, Tenant};
 use crate::metrics::Metrics;
-use crate::pools::{StepPool, Stepping};
+use crate::pools::{StepPool, Stepping, Turn};
 use crate::shutdown::Shutdown;
 use crate::sim::Config;
 
@@ -282,6 +282,9 @@ pub struct Session {
     watch: watch::Watch,
     /// What the shared-memory hello must carry for this session ([`Store::find_shm`]).
     shm_secret: ShmSecret,
+    /// Where the calls that run on the CPU pool wait for the one before them, without a worker
+    /// ([`FoundSession::queue`]).
+    queue: Arc<tokio::sync::Semaphore>,
 }
 
 impl Session {
@@ -327,6 +330,17 @@ impl FoundSession {
         self.session.num_envs
     }
 
+    /// The session's turn among the calls on the CPU pool that lock it: a caller waits here,
+    /// holding no worker, until the call before it ends, and holds the returned permit until
+    /// its own ends. So a worker never waits for the lock of a session whose large Step gave its
+    /// worker back (see [`crate::pools`]).
+    pub async fn queue(&self) -> tokio::sync::OwnedSemaphorePermit {
+        Arc::clone(&self.session.queue)
+            .acquire_owned()
+            .await
+            .expect("a session's queue is never closed")
+    }
+
     /// Whose share the session counts against.
     pub fn tenant(&self) -> &Arc<Tenant> {
         self.session._charge.tenant()
@@ -362,7 +376,7 @@ impl FoundSession {
     /// Resets every environment of the session.
     pub fn reset(&self, args: &ResetArgs) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
-        let batch = envs.reset_on(args, &self.pool)?;
+        let batch = envs.reset_on(args, &self.pool, Turn::of(self.tenant()))?;
         self.session.was_reset(&envs, &batch);
         drop(envs);
         let m = &self.metrics;
@@ -373,7 +387,7 @@ impl FoundSession {
     /// Steps every environment of the session.
     pub fn step(&self, actions: &[u8]) -> Result<Batch, SessionError> {
         let mut envs = self.session.lock();
-        let batch = envs.step_on(actions, &self.pool)?;
+        let batch = envs.step_on(actions, &self.pool, Turn::of(self.tenant()))?;
         self.session.stepped(&envs, actions, &batch);
         drop(envs);
         let m = &self.metrics;
@@ -506,6 +520,7 @@ impl Store {
             tally: watch::Tally::default(),
             watch: watch::Watch::default(),
             shm_secret: ShmSecret::random()?,
+            queue: Arc::new(tokio::sync::Semaphore::new(1)),
         });
         let spec = session.spec();
         let id = loop {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use dinerdash_server::budget::{Share, Tenant};
 use dinerdash_server::cmd::ceiling::Actions;
-use dinerdash_server::pools::{SERIAL, StepPool, Stepping};
+use dinerdash_server::pools::{SERIAL, StepPool, Stepping, Turn};
 use dinerdash_server::session::{
     Autoreset, Batch, Caller, Envs, ExpertActions, Limits, ResetArgs, SessionOptions, Store,
 };
@@ -59,15 +59,18 @@ fn compare(n: usize, expert: ExpertActions, autoreset: Autoreset, steps: usize, 
     let mut serial = Envs::new(n, config, options, Some(7)).unwrap();
     let mut parallel = Envs::new(n, config, options, Some(7)).unwrap();
     let first = ResetArgs::default();
-    let a = serial.reset_on(&first, &SERIAL).unwrap();
-    assert_eq!(a, parallel.reset_on(&first, &pool).unwrap());
+    let a = serial.reset_on(&first, &SERIAL, Turn::default()).unwrap();
+    assert_eq!(
+        a,
+        parallel.reset_on(&first, &pool, Turn::default()).unwrap()
+    );
     let what = format!("N={n} {expert:?} {autoreset:?}");
     let mut actions = Actions(n as u64);
     let mut episode_ends = 0;
     for t in 0..steps {
         let a = actions.next(n);
-        let one = serial.step_on(&a, &SERIAL).unwrap();
-        let many = parallel.step_on(&a, &pool).unwrap();
+        let one = serial.step_on(&a, &SERIAL, Turn::default()).unwrap();
+        let many = parallel.step_on(&a, &pool, Turn::default()).unwrap();
         assert!(one == many, "{what}: step {t} differs");
         let done = ended(&one);
         episode_ends += done.iter().filter(|&&d| d).count();
@@ -87,9 +90,9 @@ fn compare(n: usize, expert: ExpertActions, autoreset: Autoreset, steps: usize, 
                 reset_mask: mask,
                 ..ResetArgs::default()
             };
-            let one = serial.reset_on(&args, &SERIAL).unwrap();
+            let one = serial.reset_on(&args, &SERIAL, Turn::default()).unwrap();
             assert!(
-                one == parallel.reset_on(&args, &pool).unwrap(),
+                one == parallel.reset_on(&args, &pool, Turn::default()).unwrap(),
                 "{what}: reset after step {t} differs"
             );
         }

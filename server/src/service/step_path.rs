@@ -43,8 +43,9 @@ impl StepPath {
 
     /// Runs `job` (the found session's Step or Reset, or its Render, Snapshot or Fork, which
     /// wait for its lock) here, or on the pool's blocking threads for a planner session, whose
-    /// Step may hold that lock for long; a refusal (the lookup's or the job's) is counted and
-    /// returned as its status.
+    /// Step may hold that lock for long: after the session's calls before it, waited for
+    /// without a worker ([`FoundSession::queue`]). A refusal (the lookup's or the job's) is
+    /// counted and returned as its status.
     pub async fn run<F, R>(
         &self,
         found: Result<FoundSession, SessionError>,
@@ -56,8 +57,13 @@ impl StepPath {
     {
         let session = found.map_err(|e| self.fail(e))?;
         let result = if Self::heavy(&session) {
+            let queued = session.queue().await;
             self.cpu
-                .run(Turn::of(session.tenant()), move || job(&session))
+                .run(Turn::of(session.tenant()), move || {
+                    let result = job(&session);
+                    drop(queued);
+                    result
+                })
                 .await
                 .unwrap_or_else(|e| Err(SessionError::Internal(e.to_string())))
         } else {
@@ -68,7 +74,7 @@ impl StepPath {
 
     /// As [`StepPath::run`], from a thread outside the runtime that may block: a planner
     /// session's job waits for a permit of the same pool (driven by `runtime`) and runs here
-    /// while this thread holds it.
+    /// while this thread holds it (a large Step gives it back to sleep, as on the pool).
     pub fn run_blocking<F>(
         &self,
         runtime: &tokio::runtime::Handle,
@@ -80,13 +86,14 @@ impl StepPath {
     {
         let session = found.map_err(|e| self.fail(e))?;
         let result = if Self::heavy(&session) {
+            let queued = runtime.block_on(session.queue());
             match self
                 .cpu
                 .acquire_blocking(Turn::of(session.tenant()), runtime)
             {
                 Ok(permit) => {
-                    let result = job(&session);
-                    drop(permit);
+                    let result = permit.hold_while(|| job(&session));
+                    drop(queued);
                     result
                 }
                 Err(e) => Err(SessionError::Internal(e.to_string())),

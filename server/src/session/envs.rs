@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use super::SessionError;
 use crate::policy::{Planner, expert_action};
-use crate::pools::{self, StepPool};
+use crate::pools::{self, StepPool, Turn};
 use crate::sim::{
     Config, Game, MAX_ARRIVALS, NUM_ACTIONS, OBSERVATION_SIZE, ResetInfo, StepOutcome, render,
     snapshot,
@@ -521,12 +521,17 @@ impl Envs {
     /// Resets every environment, or those of `reset_mask` (all of the request is checked first),
     /// on the caller's thread.
     pub fn reset(&mut self, args: &ResetArgs) -> Result<Batch, SessionError> {
-        self.reset_on(args, &pools::SERIAL)
+        self.reset_on(args, &pools::SERIAL, Turn::default())
     }
 
-    /// [`Envs::reset`], in chunks on `pool`'s threads when the session is large enough for it:
-    /// the same Batch and the same environments after it as on one thread.
-    pub fn reset_on(&mut self, args: &ResetArgs, pool: &StepPool) -> Result<Batch, SessionError> {
+    /// [`Envs::reset`], in chunks on `pool`'s threads in `turn` when the session is large enough
+    /// for it: the same Batch and the same environments after it as on one thread.
+    pub fn reset_on(
+        &mut self,
+        args: &ResetArgs,
+        pool: &StepPool,
+        turn: Turn,
+    ) -> Result<Batch, SessionError> {
         let n = self.envs.len();
         let invalid = |msg: String| Err(SessionError::InvalidArgument(msg));
         if args.seed.is_some() && !args.seeds.is_empty() {
@@ -589,7 +594,7 @@ impl Envs {
         if chunks <= 1 {
             work(whole)?;
         } else {
-            pool.run(whole.cut(chunks), work)?;
+            pool.run(turn, whole.cut(chunks), work)?;
         }
         Ok(batch)
     }
@@ -597,12 +602,17 @@ impl Envs {
     /// One action per environment, as N little-endian int32 (all checked first), on the
     /// caller's thread.
     pub fn step(&mut self, actions: &[u8]) -> Result<Batch, SessionError> {
-        self.step_on(actions, &pools::SERIAL)
+        self.step_on(actions, &pools::SERIAL, Turn::default())
     }
 
-    /// [`Envs::step`], in chunks on `pool`'s threads when the session is large enough for it:
-    /// the same Batch and the same environments after it as on one thread.
-    pub fn step_on(&mut self, actions: &[u8], pool: &StepPool) -> Result<Batch, SessionError> {
+    /// [`Envs::step`], in chunks on `pool`'s threads in `turn` when the session is large enough
+    /// for it: the same Batch and the same environments after it as on one thread.
+    pub fn step_on(
+        &mut self,
+        actions: &[u8],
+        pool: &StepPool,
+        turn: Turn,
+    ) -> Result<Batch, SessionError> {
         let n = self.envs.len();
         if actions.len() != 4 * n {
             return Err(SessionError::InvalidArgument(format!(
@@ -639,7 +649,7 @@ impl Envs {
         if chunks <= 1 {
             work(whole)?;
         } else {
-            pool.run(whole.cut(chunks), work)?;
+            pool.run(turn, whole.cut(chunks), work)?;
         }
         Ok(batch)
     }
