@@ -15,11 +15,12 @@
 //!   transport asked.
 //! - [`StepPool`]: the threads that step one large session's environments in chunks at once
 //!   ([`Stepping`] says when a Step is large enough). Only chunks of large Steps run there;
-//!   small Steps stay on their caller's thread and never queue behind them. A chunk runs under
-//!   a slot, one a thread, taken in its tenant's turn from a queue like the CpuPool's, and a
-//!   thread that has run a chunk gives its slot to another tenant waiting for one: another
-//!   tenant's large Step waits about a chunk (planner chunks are small:
-//!   `MAX_PLANNER_CHUNK_ENVS`), not for the Steps already there.
+//!   small Steps stay on their caller's thread and never queue behind them. A planner Step's
+//!   chunk runs under a slot, one a thread, taken in its tenant's turn from a queue like the
+//!   CpuPool's, and a thread that has run a chunk gives its slot to another tenant waiting for
+//!   one: another tenant's large planner Step waits about a chunk (planner chunks are small:
+//!   `MAX_PLANNER_CHUNK_ENVS`), not for the Steps already there. Plain Steps' chunks
+//!   (microseconds each) go first come, first served ([`StepPool::run_first_come`]).
 //!
 //! # Why the two pools neither deadlock nor oversubscribe
 //! A planner-labelled Step runs on a [`CpuPool`] blocking thread; when it is large it hands its
@@ -289,6 +290,17 @@ impl Queue {
         }
     }
 
+    /// A worker if one is free now (no job waits then, so taking it jumps no queue).
+    fn try_enter(self: &Arc<Self>) -> Option<CpuPermit> {
+        let mut waiting = self.lock();
+        (waiting.free > 0).then(|| {
+            waiting.free -= 1;
+            CpuPermit {
+                queue: Some(Arc::clone(self)),
+            }
+        })
+    }
+
     /// Whether a tenant other than `turn`'s waits for a worker.
     fn others_wait(&self, turn: Turn) -> bool {
         self.lock().turns.iter().any(|&t| t != turn)
@@ -460,6 +472,16 @@ impl StepPool {
         self.stepping.chunks(num_envs, planner)
     }
 
+    /// The threads for `pieces` pieces, if more than one and the threads could be started, with
+    /// the caller's [`CpuPool`] worker given back (it sleeps while they run).
+    fn parallel(&self, pieces: usize) -> Option<&Threads> {
+        let threads = if pieces > 1 { self.threads() } else { None };
+        if threads.is_some() {
+            give_back_held_worker();
+        }
+        threads
+    }
+
     /// The threads, started on the first call.
     fn threads(&self) -> Option<&Threads> {
         let pool = self.pool.get_or_init(|| {
@@ -480,6 +502,28 @@ impl StepPool {
         pool.as_ref().ok()
     }
 
+    /// [`StepPool::run`] without turns, for Steps and Resets without planner labels: their
+    /// pieces take microseconds (a whole Step of the largest session, a few ms), so they go to
+    /// the threads first come, first served, without the slots' bookkeeping, which cost a
+    /// quarter of a 1,024-environment Step's rate (docs/benchmarks.md).
+    pub fn run_first_come<T, E, W>(&self, pieces: Vec<T>, work: W) -> Result<(), E>
+    where
+        T: Send,
+        E: Send,
+        W: Fn(T) -> Result<(), E> + Sync + Send,
+    {
+        let Some(threads) = self.parallel(pieces.len()) else {
+            return pieces.into_iter().try_for_each(work);
+        };
+        let results: Vec<Result<(), E>> = hand_over(|| {
+            use rayon::iter::{IntoParallelIterator, ParallelIterator};
+            threads
+                .pool
+                .install(|| pieces.into_par_iter().map(&work).collect())
+        });
+        results.into_iter().collect()
+    }
+
     /// Runs `work` on every piece, the pieces in parallel on the stepping threads while the
     /// caller sleeps (giving back its [`CpuPool`] worker if it holds one), and returns the
     /// first error in the pieces' order (or runs them in order on the caller's thread, when
@@ -494,44 +538,47 @@ impl StepPool {
         E: Send,
         W: Fn(T) -> Result<(), E> + Sync + Send,
     {
-        let threads = if pieces.len() > 1 {
-            self.threads()
-        } else {
-            None
-        };
-        let Some(threads) = threads else {
+        let Some(threads) = self.parallel(pieces.len()) else {
             return pieces.into_iter().try_for_each(work);
         };
-        give_back_held_worker();
-        let left = Mutex::new(pieces.into_iter().enumerate());
+        let left = Mutex::new(pieces.into_iter().enumerate().peekable());
         let first_error: Mutex<Option<(usize, E)>> = Mutex::new(None);
-        let next = || left.lock().unwrap_or_else(PoisonError::into_inner).next();
+        let lock = || left.lock().unwrap_or_else(PoisonError::into_inner);
+        let next = || lock().next();
         let (work, next, first) = (&work, &next, &first_error);
         let slots = &threads.slots;
+        // Each round takes a slot in `turn` (waiting behind other tenants), then whatever slots
+        // are free, one runner each; the runners run pieces until none is left, or until
+        // another tenant waits for a slot. Pieces left by runners that gave way wait for the
+        // next round, in turn again.
         hand_over(|| {
-            threads.pool.in_place_scope(|scope| {
-                // One runner a slot, while pieces are left: it runs them until none is, or
-                // until another tenant waits for its slot.
-                while let Some(slot) = slots.enter_blocking(turn) {
-                    let Some(piece) = next() else { break };
-                    scope.spawn(move |_| {
-                        let _slot = slot;
-                        let mut piece = Some(piece);
-                        while let Some((i, p)) = piece.take().or_else(next) {
-                            if let Err(e) = work(p) {
-                                let mut first =
-                                    first.lock().unwrap_or_else(PoisonError::into_inner);
-                                if first.as_ref().is_none_or(|(j, _)| i < *j) {
-                                    *first = Some((i, e));
+            while lock().peek().is_some() {
+                let Some(slot) = slots.enter_blocking(turn) else {
+                    break;
+                };
+                threads.pool.in_place_scope(|scope| {
+                    let mut slot = Some(slot);
+                    while let Some(held) = slot.take().or_else(|| slots.try_enter()) {
+                        let Some(piece) = next() else { break };
+                        scope.spawn(move |_| {
+                            let _slot = held;
+                            let mut piece = Some(piece);
+                            while let Some((i, p)) = piece.take().or_else(next) {
+                                if let Err(e) = work(p) {
+                                    let mut first =
+                                        first.lock().unwrap_or_else(PoisonError::into_inner);
+                                    if first.as_ref().is_none_or(|(j, _)| i < *j) {
+                                        *first = Some((i, e));
+                                    }
+                                }
+                                if slots.others_wait(turn) {
+                                    break;
                                 }
                             }
-                            if slots.others_wait(turn) {
-                                break;
-                            }
-                        }
-                    });
-                }
-            });
+                        });
+                    }
+                });
+            }
         });
         match first_error
             .into_inner()

@@ -590,11 +590,16 @@ impl Envs {
         let mut batch = Batch::zeroed(n, &options, false);
         let whole = Run::whole(&mut self.envs, &mut batch, &[]);
         let work = |run: Run<'_>| reset_run(run, args, base, &options);
-        let chunks = pool.chunks(n, options.expert_actions == ExpertActions::Planner);
+        let planner = options.expert_actions == ExpertActions::Planner;
+        let chunks = pool.chunks(n, planner);
         if chunks <= 1 {
             work(whole)?;
         } else {
-            pool.run(turn, whole.cut(chunks), work)?;
+            if planner {
+                pool.run(turn, whole.cut(chunks), work)?;
+            } else {
+                pool.run_first_come(whole.cut(chunks), work)?;
+            }
         }
         Ok(batch)
     }
@@ -645,11 +650,16 @@ impl Envs {
         let mut batch = Batch::zeroed(n, &options, mode == Autoreset::SameStep);
         let whole = Run::whole(&mut self.envs, &mut batch, actions);
         let work = |run: Run<'_>| step_run(run, &options);
-        let chunks = pool.chunks(n, options.expert_actions == ExpertActions::Planner);
+        let planner = options.expert_actions == ExpertActions::Planner;
+        let chunks = pool.chunks(n, planner);
         if chunks <= 1 {
             work(whole)?;
         } else {
-            pool.run(turn, whole.cut(chunks), work)?;
+            if planner {
+                pool.run(turn, whole.cut(chunks), work)?;
+            } else {
+                pool.run_first_come(whole.cut(chunks), work)?;
+            }
         }
         Ok(batch)
     }
