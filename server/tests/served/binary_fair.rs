@@ -80,23 +80,7 @@ async fn a_tenants_rollouts_leave_another_tenant_its_turn_on_the_cpu_pool() {
     let mut b = DinerDashClient::connect(url).await.unwrap();
 
     // B's planner session, and its Steps' time with the pool idle.
-    let created = b
-        .create_session(authed(
-            TOKEN_B,
-            pb::CreateSessionRequest {
-                expert_policy: pb::Policy::Planner.into(),
-                ..create_request(1, pb::AutoresetMode::NextStep, Some(3))
-            },
-        ))
-        .await
-        .unwrap()
-        .into_inner();
-    let id = created.session_id;
-    let reset = pb::ResetRequest {
-        session_id: id.clone(),
-        ..Default::default()
-    };
-    let mut batch = b.reset(authed(TOKEN_B, reset)).await.unwrap().into_inner();
+    let (id, mut batch) = planner_session(&mut b, TOKEN_B, 1, 3, None).await;
     let mut idle = Vec::new();
     for _ in 0..B_STEPS {
         let (next, took) = timed_step(&mut b, &id, i32::from(batch.expert_actions[0])).await;
