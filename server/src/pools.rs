@@ -29,8 +29,8 @@
 //! work to either pool, so a chunk cannot wait on anything its caller holds (the caller holds
 //! the session's lock; chunks run under it, on data borrowed from it). The caller waits for
 //! stepping slots with that lock held, but a slot is held only by a running chunk, which ends
-//! whatever else waits: the order in which tenants' chunks run cannot deadlock. The callers of large
-//! Steps sleep while their chunks run, so the CPU-busy threads are at most the stepping
+//! whatever else waits: the order in which tenants' chunks run cannot deadlock. The callers of
+//! large Steps sleep while their chunks run, so the CPU-busy threads are at most the stepping
 //! threads, plus the callers of small Steps (async workers, shared-memory threads, CpuPool
 //! workers) that run their own. An async worker that hands a large Step over gives its other
 //! tasks to another thread first (`block_in_place`), so small Steps keep being served.
@@ -282,11 +282,13 @@ impl Queue {
         })
     }
 
-    /// A worker for `turn`, waited for on this thread (parked, whatever runtime it is in).
-    fn enter_blocking(self: &Arc<Self>, turn: Turn) -> Option<CpuPermit> {
+    /// A worker for `turn`, waited for on this thread (parked, whatever runtime it is in). The
+    /// queue is the stepping slots', which live as long as the threads that borrow them, so a
+    /// waiting job's sender is never dropped unanswered.
+    fn enter_blocking(self: &Arc<Self>, turn: Turn) -> CpuPermit {
         match self.enter(turn) {
-            Ok(permit) => Some(permit),
-            Err(handed) => park_until(handed).ok(),
+            Ok(permit) => permit,
+            Err(handed) => park_until(handed).expect("the stepping slots' queue is never closed"),
         }
     }
 
@@ -553,9 +555,7 @@ impl StepPool {
         // next round, in turn again.
         hand_over(|| {
             while lock().peek().is_some() {
-                let Some(slot) = slots.enter_blocking(turn) else {
-                    break;
-                };
+                let slot = slots.enter_blocking(turn);
                 threads.pool.in_place_scope(|scope| {
                     let mut slot = Some(slot);
                     while let Some(held) = slot.take().or_else(|| slots.try_enter()) {
@@ -609,6 +609,22 @@ mod tests {
     use super::*;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
+    /// Tenant 1's job asking `pool` for a worker from a thread of its own: `rx` says when it got
+    /// one (it gives it back at once).
+    fn other_tenant_waits(
+        pool: &CpuPool,
+        handle: &tokio::runtime::Handle,
+    ) -> (std::sync::mpsc::Receiver<()>, std::thread::JoinHandle<()>) {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (other, handle) = (pool.clone(), handle.clone());
+        let waiter = std::thread::spawn(move || {
+            let permit = other.acquire_blocking(Turn(1), &handle).unwrap();
+            tx.send(()).unwrap();
+            drop(permit);
+        });
+        (rx, waiter)
+    }
+
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn never_runs_more_jobs_than_workers() {
         let pool = CpuPool::new(2);
@@ -639,13 +655,7 @@ mod tests {
             .unwrap();
         let pool = CpuPool::new(1);
         let held = pool.acquire_blocking(Turn(0), runtime.handle()).unwrap();
-        let (tx, rx) = std::sync::mpsc::channel();
-        let (other, handle) = (pool.clone(), runtime.handle().clone());
-        let waiter = std::thread::spawn(move || {
-            let permit = other.acquire_blocking(Turn(1), &handle).unwrap();
-            tx.send(()).unwrap();
-            drop(permit);
-        });
+        let (rx, waiter) = other_tenant_waits(&pool, runtime.handle());
         // Not while the only worker is held (however long this side waits)...
         assert!(
             rx.recv_timeout(std::time::Duration::from_millis(50))
@@ -808,13 +818,7 @@ mod tests {
         });
         let permit = cpu.acquire_blocking(Turn(0), runtime.handle()).unwrap();
         // Another tenant's job waits for the one worker...
-        let (tx, rx) = std::sync::mpsc::channel();
-        let (other, handle) = (cpu.clone(), runtime.handle().clone());
-        let waiter = std::thread::spawn(move || {
-            let permit = other.acquire_blocking(Turn(1), &handle).unwrap();
-            tx.send(()).unwrap();
-            drop(permit);
-        });
+        let (rx, waiter) = other_tenant_waits(&cpu, runtime.handle());
         // ...and gets it while the job holding it sleeps until its chunks are done: a chunk
         // waits for the other job's start.
         let rx = Mutex::new(rx);
