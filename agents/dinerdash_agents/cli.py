@@ -135,6 +135,7 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
         "epochs": args.epochs,
         "seat_weight": args.seat_weight,
         "memory": True if args.memory else None,
+        "timers": True if args.timers else None,
     }
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
@@ -389,6 +390,13 @@ def _parser() -> argparse.ArgumentParser:
         help="dagger, dagger-recurrent: the learner also sees, per table and queue place, the "
         "steps since its group's patience level changed (computed from the episode's "
         "observations)",
+    )
+    p.add_argument(
+        "--timers",
+        action="store_true",
+        help="dagger, with --memory: the memory also holds, per table, the steps since its "
+        "status changed and since its order reached the kitchen, and the steps since the last "
+        "group arrived",
     )
     p.add_argument(
         "--kind",

@@ -104,6 +104,8 @@ class DaggerConfig:
     validation_episodes: int = 50
     #: The learner also sees :class:`MemoryFeatures` of the episode's observations so far.
     memory: bool = False
+    #: With ``memory``, the features also hold the tables' timers (``MemoryFeatures(timers=True)``).
+    timers: bool = False
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -117,6 +119,8 @@ class DaggerConfig:
                 raise AgentsError(f"{name} must be at least 1 (got {getattr(self, name)})")
         if not 0.0 <= self.p <= 1.0:
             raise AgentsError(f"p must be in [0, 1] (got {self.p})")
+        if self.timers and not self.memory:
+            raise AgentsError("timers are memory features: they need memory")
 
     def to_json(self) -> dict:
         return {**asdict(self), "betas": betas(self)}
@@ -142,6 +146,12 @@ MEMORY_SLOTS = NUM_TABLES + QUEUE_CAPACITY
 #: Per slot: steps since its level changed / MEMORY_CAP; 1 for a type-2 group (its patience
 #: started at level 4); 1 once its level has changed since it arrived.
 MEMORY_SIZE = 3 * MEMORY_SLOTS
+#: The timers count up to this many steps (reading, eating and cooking last 10, and groups
+#: arrive every 9 steps while the queue has room).
+TIMER_CAP = 16
+#: Per table, the steps since its status changed and since its order reached the kitchen (0:
+#: no order there); then the steps since the last group arrived. Each / :data:`TIMER_CAP`.
+TIMERS_SIZE = 2 * NUM_TABLES + 1
 
 
 class _Group:
@@ -181,14 +191,55 @@ def is_episode_start(obs: np.ndarray) -> bool:
     )
 
 
+class _Timers:
+    """One environment's timers (see :class:`MemoryFeatures`): an order reached the kitchen when
+    it left the hands while its table still waits for food, and left it when the food is on a
+    counter or the table no longer waits."""
+
+    def __init__(self, obs: np.ndarray) -> None:
+        self.status = [int(x) for x in obs[0 : 3 * NUM_TABLES : 3]]
+        self.since_status = [0] * NUM_TABLES
+        self.kitchen = [-1] * NUM_TABLES  # steps since it got the table's order, or -1
+        self.orders = _orders_in_hand(obs)
+        self.since_arrival = 0
+
+    def step(self, obs: np.ndarray, arrived: bool) -> None:
+        orders = _orders_in_hand(obs)
+        for t in range(NUM_TABLES):
+            status = int(obs[3 * t])
+            if status == self.status[t]:
+                self.since_status[t] = min(self.since_status[t] + 1, TIMER_CAP)
+            else:
+                self.status[t], self.since_status[t] = status, 0
+            if status != 3 or obs[18 + t]:
+                self.kitchen[t] = -1
+            elif self.kitchen[t] >= 0:
+                self.kitchen[t] = min(self.kitchen[t] + 1, TIMER_CAP)
+            elif t in self.orders and t not in orders:
+                self.kitchen[t] = 0
+        self.orders = orders
+        self.since_arrival = 0 if arrived else min(self.since_arrival + 1, TIMER_CAP)
+
+    def features(self) -> list[float]:
+        kitchen = [min(k + 1, TIMER_CAP) if k >= 0 else 0 for k in self.kitchen]
+        return [x / TIMER_CAP for x in (*self.since_status, *kitchen, self.since_arrival)]
+
+
+def _orders_in_hand(obs: np.ndarray) -> set[int]:
+    """The tables (0..5) whose order is in a hand."""
+    return {int(h) - 1 for h in obs[38:40] if 1 <= h <= NUM_TABLES}
+
+
 class _Memory:
     """One environment's patience memory (see :class:`MemoryFeatures`)."""
 
-    def __init__(self, obs: np.ndarray) -> None:
+    def __init__(self, obs: np.ndarray, timers: bool = False) -> None:
         self.tables: list[_Group | None] = [None] * NUM_TABLES
         self.queue = [_Group(level, size) for level, size in _queue(obs)]
+        self.timers = _Timers(obs) if timers else None
 
     def step(self, obs: np.ndarray) -> None:
+        arrived = False
         # The queue: new places matched in order to the old groups whose size is the same and
         # whose level is the same or one lower; unmatched old groups left (seated or walked
         # out), unmatched new ones at the back arrived.
@@ -205,6 +256,7 @@ class _Memory:
                 i += 1
             else:
                 queue.append(_Group(level, size))
+                arrived = True
         left.extend(old[i:])
         self.queue = queue
         # The tables: a group newly at a table is the first group that left the queue and fits.
@@ -223,13 +275,17 @@ class _Memory:
                         break
                 else:
                     self.tables[t] = _Group(level, 0)
+        if self.timers is not None:
+            self.timers.step(obs, arrived)
 
     def features(self) -> np.ndarray:
         out = np.zeros((MEMORY_SLOTS, 3), np.float32)
         for k, g in enumerate(self.tables + self.queue):
             if g is not None:
                 out[k] = (g.count / MEMORY_CAP, float(g.type2), float(g.changed))
-        return out.reshape(-1)
+        if self.timers is None:
+            return out.reshape(-1)
+        return np.concatenate([out.reshape(-1), np.array(self.timers.features(), np.float32)])
 
 
 class MemoryFeatures:
@@ -243,10 +299,15 @@ class MemoryFeatures:
     (whoever acted) and training, validation and ``evaluate`` compute them alike. (An
     unchanged start, the first group still waiting alone, goes on counting.)
 
-    ``augment(obs)`` takes a batch (B, 40), one step of B environments, and returns (B, 40 +
-    :data:`MEMORY_SIZE`); a batch of another size starts every memory afresh."""
+    With ``timers`` (issue 49's experiment, docs/agents.md), also :data:`TIMERS_SIZE` timers
+    after those: per table the steps since its status changed and since its order reached the
+    kitchen, and the steps since the last group arrived.
 
-    def __init__(self) -> None:
+    ``augment(obs)`` takes a batch (B, 40), one step of B environments, and returns (B, 40 +
+    :func:`memory_size`); a batch of another size starts every memory afresh."""
+
+    def __init__(self, timers: bool = False) -> None:
+        self.timers = timers
         self._memories: list[_Memory] = []
         self._last = np.zeros((0, OBSERVATION_SIZE), np.float32)
 
@@ -256,11 +317,11 @@ class MemoryFeatures:
             raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
         fresh = len(self._memories) != len(obs)
         if fresh:
-            self._memories = [_Memory(o) for o in obs]
+            self._memories = [_Memory(o, self.timers) for o in obs]
         else:
             for k, (o, last) in enumerate(zip(obs, self._last, strict=True)):
                 if is_episode_start(o) and not np.array_equal(o, last):
-                    self._memories[k] = _Memory(o)
+                    self._memories[k] = _Memory(o, self.timers)
                 else:
                     self._memories[k].step(o)
         self._last = obs.copy()
@@ -268,9 +329,19 @@ class MemoryFeatures:
         return np.concatenate([obs, feats], axis=1)
 
 
+def memory_size(memory: bool, timers: bool = False) -> int:
+    """How many memory features follow the observation."""
+    return (MEMORY_SIZE + (TIMERS_SIZE if timers else 0)) if memory else 0
+
+
+def memory_view(memory: bool, timers: bool = False) -> Callable[[np.ndarray], np.ndarray] | None:
+    """A policy's view of its observations: with ``memory``, a fresh :class:`MemoryFeatures`."""
+    return MemoryFeatures(timers).augment if memory else None
+
+
 def input_size(config: DaggerConfig) -> int:
     """The learner's input width: the observation, and the memory features with ``memory``."""
-    return OBSERVATION_SIZE + (MEMORY_SIZE if config.memory else 0)
+    return OBSERVATION_SIZE + memory_size(config.memory, config.timers)
 
 
 class DaggerNet(eqx.Module):
@@ -593,8 +664,7 @@ def fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed
 
 
 def _view(config: DaggerConfig) -> Callable[[np.ndarray], np.ndarray] | None:
-    """A policy's view of its observations: with ``memory``, a fresh :class:`MemoryFeatures`."""
-    return MemoryFeatures().augment if config.memory else None
+    return memory_view(config.memory, config.timers)
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``dagger`` checkpoint.

@@ -99,6 +99,11 @@ class KickstartConfig(PPOConfig):
         """Whether the actor sees the DAgger learner's memory features."""
         return bool(self.dagger_config and self.dagger_config.get("memory"))
 
+    @property
+    def timers(self) -> bool:
+        """Whether those features hold the timers too."""
+        return bool(self.dagger_config and self.dagger_config.get("timers"))
+
 
 def config_from_json(values: dict) -> KickstartConfig:
     return KickstartConfig(**values)
@@ -221,7 +226,7 @@ class KickstartTrainer(Trainer):
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
-        width = OBSERVATION_SIZE + (dagger.MEMORY_SIZE if config.memory else 0)
+        width = OBSERVATION_SIZE + dagger.memory_size(config.memory, config.timers)
         self._buffers = Rollout(config.num_steps, config.num_envs, expert=True, width=width)
 
     def view(self):
@@ -259,7 +264,7 @@ def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> di
 def _view(config: KickstartConfig):
     """An actor with memory sees its observations with a fresh
     :class:`~dinerdash_agents.dagger.MemoryFeatures` beside them (as it did when it learnt)."""
-    return dagger.MemoryFeatures().augment if config.memory else None
+    return dagger.memory_view(config.memory, config.timers)
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo-kickstart`` checkpoint.

@@ -80,6 +80,8 @@ class Learner:
     policy: Callable[[Any, dict[str, Any]], checkpoint.BasePolicy]
     #: What the progress line and the curve's title call it.
     label: Callable[[Any], str]
+    #: The memory features a round records beside the observations (None: none).
+    memory: Callable[[Any], MemoryFeatures | None]
 
 
 #: The learners, by their config's type.
@@ -92,6 +94,7 @@ LEARNERS: dict[type, Learner] = {
         dagger.fit_round,
         checkpoint.Policy,
         lambda config: f"DAgger, teacher {config.teacher}",
+        lambda config: MemoryFeatures(config.timers) if config.memory else None,
     ),
     RecurrentConfig: Learner(
         recurrent.ALGORITHM,
@@ -103,6 +106,7 @@ LEARNERS: dict[type, Learner] = {
         ),
         recurrent.RecurrentPolicy,
         lambda config: f"sequence DAgger ({config.kind}), teacher {config.teacher}",
+        lambda config: MemoryFeatures() if config.memory else None,
     ),
 }
 
@@ -171,7 +175,7 @@ def _train(
                 beta,
                 round_seeds,
                 rng,
-                MemoryFeatures() if config.memory else None,
+                learner.memory(config),
             )
         finally:
             envs.close()

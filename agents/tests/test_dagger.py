@@ -284,3 +284,38 @@ def test_a_checkpoint_with_memory_plays_through_its_own_memory(tmp_path: Path) -
     expected = dagger.greedy_actions(model, dagger.MemoryFeatures().augment(obs), mask)
     np.testing.assert_array_equal(policy.act(obs, mask), expected)
     assert dagger.input_size(config) == OBSERVATION_SIZE + dagger.MEMORY_SIZE
+
+
+def test_the_timers_follow_reading_eating_cooking_and_arrivals(server_address: str) -> None:
+    """An expert episode's timers against the rules' fixed durations: reading and eating last 10
+    steps, an order handed to the kitchen is food on a counter 10 steps later, and a group
+    arrives every 9 steps while the queue has room."""
+    from dinerdash import DinerDashEnv
+
+    memory = dagger.MemoryFeatures(timers=True)
+    timers = OBSERVATION_SIZE + dagger.MEMORY_SIZE
+    with DinerDashEnv(address=server_address, expert=True) as env:
+        obs, info = env.reset(seed=7)
+        last, rows = obs, [memory.augment(obs[None])[0]]
+        assert rows[0].shape == (timers + dagger.TIMERS_SIZE,)
+        seen = {"reading": 0, "eating": 0, "cooking": 0, "arrival": 0}
+        for _ in range(600):
+            obs, _, terminated, truncated, info = env.step(info["expert_action"])
+            row = memory.augment(obs[None])[0]
+            before = np.rint(rows[-1][timers:] * dagger.TIMER_CAP).astype(int)
+            for t in range(6):
+                was, now = int(last[3 * t]), int(obs[3 * t])
+                if (was, now) in ((1, 2), (4, 6)):
+                    assert before[t] == 9, (t, was, now)
+                    seen["reading" if was == 1 else "eating"] += 1
+                if last[18 + t] == 0 and obs[18 + t] == 1:
+                    assert before[6 + t] == 10, t
+                    seen["cooking"] += 1
+            if len(dagger._queue(obs)) > len(dagger._queue(last)):
+                assert round(row[-1] * dagger.TIMER_CAP) == 0
+                seen["arrival"] += 1
+            last = obs
+            rows.append(row)
+            if terminated or truncated:
+                break
+    assert min(seen.values()) >= 5, seen
