@@ -269,10 +269,13 @@ def test_memory_follows_each_groups_patience_through_the_queue_and_to_its_table(
     assert _slot(last[0], 0)[0] == dagger.MEMORY_CAP
 
 
-def test_a_checkpoint_with_memory_plays_through_its_own_memory(tmp_path: Path) -> None:
+@pytest.mark.parametrize("timers", [False, True])
+def test_a_checkpoint_with_memory_plays_through_its_own_memory(
+    tmp_path: Path, timers: bool
+) -> None:
     from dinerdash_agents import checkpoint
 
-    config = dagger.DaggerConfig(memory=True, hidden=8, layers=1)
+    config = dagger.DaggerConfig(memory=True, timers=timers, hidden=8, layers=1)
     model = dagger.init(config, 0)
     description = {"name": "m", "algorithm": "dagger", "config": config.to_json()}
     checkpoint.save(tmp_path / "m", model, description)
@@ -281,9 +284,12 @@ def test_a_checkpoint_with_memory_plays_through_its_own_memory(tmp_path: Path) -
     obs = np.stack([start, _restaurant(queue=[(2, 2)])])
     mask = np.zeros((2, NUM_ACTIONS), np.bool_)
     mask[:, :2] = True
-    expected = dagger.greedy_actions(model, dagger.MemoryFeatures().augment(obs), mask)
+    expected = dagger.greedy_actions(model, dagger.MemoryFeatures(timers).augment(obs), mask)
     np.testing.assert_array_equal(policy.act(obs, mask), expected)
-    assert dagger.input_size(config) == OBSERVATION_SIZE + dagger.MEMORY_SIZE
+    timer_size = dagger.TIMERS_SIZE if timers else 0
+    assert dagger.input_size(config) == OBSERVATION_SIZE + dagger.MEMORY_SIZE + timer_size
+    with pytest.raises(AgentsError, match="need memory"):
+        dagger.DaggerConfig(timers=True)
 
 
 def test_the_timers_follow_reading_eating_cooking_and_arrivals(server_address: str) -> None:

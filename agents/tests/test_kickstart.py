@@ -177,8 +177,9 @@ def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
 ):
     from dinerdash_agents import checkpoint, dagger
 
-    # A DAgger learner with memory features (untrained: what matters is its input's shape).
-    config = dagger.DaggerConfig(memory=True, hidden=32, layers=2)
+    # A DAgger learner with memory features and timers (untrained: what matters is its input's
+    # shape; the committed ppo-kickstart-memory replays the features without timers).
+    config = dagger.DaggerConfig(memory=True, timers=True, hidden=32, layers=2)
     init = tmp_path / "dagger"
     description = {"name": "d", "algorithm": "dagger", "config": config.to_json()}
     checkpoint.save(init, dagger.init(config, 3), description)
@@ -195,13 +196,14 @@ def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
         teacher="expert",
         progress=False,
     )
-    width = OBSERVATION_SIZE + dagger.MEMORY_SIZE
+    width = OBSERVATION_SIZE + dagger.MEMORY_SIZE + dagger.TIMERS_SIZE
     assert trainer._buffers.obs.shape == (32, 8, width)
     # The memory features the actor acted on: counts in [0, 1], some of them under way.
     memory = trainer._buffers.obs[..., OBSERVATION_SIZE:]
     assert memory.min() >= 0 and memory.max() <= 1 and memory.any()
     saved = json.loads((out / "checkpoint.json").read_text())["config"]
     assert saved["init_algorithm"] == "dagger" and saved["dagger_config"]["memory"] is True
+    assert saved["dagger_config"]["timers"] is True
     # Played from its checkpoint, it sees its memory as the DAgger learner does: the same
     # actions, so the same scores, on the same seeds.
     seeds = {"seed": 2000, "address": server_address, "num_envs": 4, "max_steps": 400}
