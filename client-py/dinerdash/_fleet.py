@@ -255,15 +255,7 @@ class Fleet:
             return  # nothing changed since the slices were where they should be: the common step
         settled = True
         cores = list(self.cores)
-        slices = [
-            (
-                c.index,
-                c.start,
-                c.stop,
-                c.last is not None and c.pending is None and not c.reconnected,
-            )
-            for c in cores
-        ]
+        slices = [(c.index, c.start, c.stop, c.movable()) for c in cores]
         for k, parts in plan(slices, self.num_envs, targets) if targets else []:
             if not self.split(cores[k], parts):
                 settled = False  # planned again at the next step, with what the refusal taught
@@ -287,13 +279,11 @@ class Fleet:
             return
         endpoint = self.endpoint
         for index, conn in self.membership.found():
+            new = index is None and conn.address not in endpoint.addresses
             if index is not None and index in endpoint.given_up:
                 endpoint.take_back(index, conn)
-            elif index is None and conn.address not in endpoint.addresses:
-                if len(endpoint.live()) < self.num_envs:
-                    endpoint.add(conn)
-                else:
-                    conn.close()
+            elif new and len(endpoint.live()) < self.num_envs:
+                endpoint.add(conn)
             else:
                 conn.close()
 

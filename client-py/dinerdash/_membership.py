@@ -5,7 +5,6 @@ DNS name's new replicas, at step boundaries, without blocking (docs/client.md#de
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 import threading
 import time
@@ -15,7 +14,7 @@ import grpc
 
 from . import connection
 from ._endpoint import Endpoint
-from .connection import Connection, ConnectOptions, split_host_port
+from .connection import Connection, ConnectOptions, is_ip, split_host_port
 from .errors import ServiceError
 
 log = logging.getLogger("dinerdash")
@@ -82,18 +81,11 @@ def await_replies(
 
 def has_name(address: str | Sequence[str] | None) -> bool:
     """``address`` names a host by DNS name (which may resolve to other replicas later)."""
-    if address is None:
-        return False
     try:
-        items = connection.parse_addresses(address)
+        items = [] if address is None else connection.parse_addresses(address)
     except ValueError:
         return False
-    for item in items:
-        try:
-            ipaddress.ip_address(split_host_port(item)[0])
-        except ValueError:
-            return True
-    return False
+    return not all(is_ip(split_host_port(item)[0]) for item in items)
 
 
 class Membership:

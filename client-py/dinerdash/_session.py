@@ -157,12 +157,9 @@ class SessionOwner:
     def transports(self) -> dict[str, str]:
         """The transport each server's sessions step over now: ``{address: "shm" | "grpc"}``
         (``"shm,grpc"`` where they differ), in the order of their first environments."""
-        out: dict[str, list[str]] = {}
+        out: dict[str, dict[str, None]] = {}
         for core in self._cores:
-            name = core.transport.name if core.transport is not None else "grpc"
-            names = out.setdefault(core.conn.address, [])
-            if name not in names:
-                names.append(name)
+            out.setdefault(core.conn.address, {})[getattr(core.transport, "name", "grpc")] = None
         return {address: ",".join(names) for address, names in out.items()}
 
     @property
@@ -268,6 +265,10 @@ class SessionCore:
 
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up
+
+    def movable(self) -> bool:
+        """Its environments may move now: reset, and no step cut by a failover still to report."""
+        return self.last is not None and self.pending is None and not self.reconnected
 
     def read_drain(self, batch: Batch) -> Batch:
         """``batch``, its server's ``drain_remaining_ms`` kept."""
@@ -533,7 +534,7 @@ class SessionCore:
         if (
             self.pending is None
             and self.transport is not None
-            and self.transport.split
+            and self.transport.views
             and not self.given_up()
             and self.ready_transport().send(actions)
         ):
@@ -592,8 +593,6 @@ class StepThread:
     """A thread that makes one session core's blocking gRPC Steps, for ``step_async`` /
     ``step_wait`` (why not a grpcio future: docs/client.md#design-notes). It ends at
     :meth:`close`, or when the core whose method the work is is collected (held weakly)."""
-
-    __slots__ = ("_replies", "_reply", "_requests")
 
     def __init__(self, work: MethodType, name: str) -> None:
         self._requests: queue.SimpleQueue = queue.SimpleQueue()

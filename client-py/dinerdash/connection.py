@@ -249,24 +249,25 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
     for item in parse_addresses(address):
         host, port = split_host_port(item)
         try:
-            ipaddress.ip_address(host)
-            out.append(item)
-            continue
-        except ValueError:
-            pass
-        try:
-            infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+            infos = [] if is_ip(host) else socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
         except OSError:
-            out.append(item)
-            continue
+            infos = []
         v4 = [i[4][0] for i in infos if i[0] == socket.AF_INET]
-        v6 = [i[4][0] for i in infos if i[0] == socket.AF_INET6]
-        ips = list(dict.fromkeys(v4 or v6))
+        ips = list(dict.fromkeys(v4 or [i[4][0] for i in infos if i[0] == socket.AF_INET6]))
         if len(ips) <= 1:
             out.append(item)  # one server: keep the name (nicer in messages, TLS-friendly)
         else:
             out.extend(join_host_port(ip, port) for ip in ips)
     return out
+
+
+def is_ip(host: str) -> bool:
+    """``host`` is an IP address, not a name."""
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -356,15 +357,8 @@ class ConnectOptions:
     def connect(self, address: str, wait: bool = True) -> Connection:
         """A :class:`Connection` to one server, with these options (``wait=False``: returned at
         once, without waiting for the server to answer)."""
-        return Connection(
-            address,
-            token=self.token,
-            connect_timeout=self.connect_timeout,
-            timeout=self.timeout,
-            tls=self.tls,
-            tls_ca=self.tls_ca,
-            wait=wait,
-        )
+        fields = ("token", "connect_timeout", "timeout", "tls", "tls_ca")
+        return Connection(address, wait=wait, **{f: getattr(self, f) for f in fields})
 
 
 def _pushback_ms(error: grpc.RpcError) -> int | None:
