@@ -39,10 +39,6 @@ REFUSED_WAIT = 10.0
 #: A server that refuses a failover's new session for one of these is passed over, not given up.
 PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
 
-#: ``start(lost_core, new_core)``: resets the new core's session (created) and returns the Batch
-#: its environments report.
-Start = Callable[[SessionCore, SessionCore], Batch]
-
 
 class Fleet:
     """The servers and slices of one vector env (see the module's doc)."""
@@ -116,12 +112,12 @@ class Fleet:
         return self.collect(SessionCore.finish_step, self.failover_on())
 
     def collect(
-        self, outcome: Callable[[SessionCore], object], settle: bool, start: Start | None = None
+        self, outcome: Callable[[SessionCore], object], settle: bool, given: dict | None = None
     ) -> list[Batch]:
         """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's (or
-        reset's): every core is updated before the first error is raised, a lost server's
-        environments move first (:meth:`fail_over`, started by ``start``, default
-        :func:`interrupted`), and with ``settle`` slices then move (:meth:`settle`)."""
+        reset's, ``given``): every core is updated before the first error is raised, a lost
+        server's environments move first (:meth:`fail_over`), and with ``settle`` slices then move
+        (:meth:`settle`)."""
         error, lost = None, []
         for core in self.cores:
             try:
@@ -132,7 +128,7 @@ class Fleet:
                 if error is None:
                     error = e
         if lost:
-            self.fail_over(lost, start or interrupted)
+            self.fail_over(lost, given)
         if error is not None:
             raise error
         if settle:
@@ -143,10 +139,6 @@ class Fleet:
         """Resets the environments of ``mask`` (all: ``None``) with ``given`` (the keywords of
         :meth:`~dinerdash._session.SessionCore.reset_request`); returns which environments' cores
         were called (a core with none in the mask keeps its state)."""
-
-        def start(old: SessionCore, new: SessionCore) -> Batch:
-            return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
-
         called = np.zeros(self.num_envs, np.bool_)
         calls = {}
         for core in self.cores:
@@ -158,7 +150,7 @@ class Fleet:
         if self.watched():
             waiting = [(c.index, _ready(f)) for c, (_, f) in calls.items() if f is not None]
             await_replies(waiting, self.endpoint, self.settings.failover_after, time.monotonic())
-        self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), start)
+        self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), given)
         return called
 
     def close(self) -> None:
@@ -178,9 +170,9 @@ class Fleet:
 
     # -- failover -------------------------------------------------------------------------------
 
-    def fail_over(self, lost: list[SessionCore], start: Start) -> None:
-        """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`);
-        the other cores are not touched."""
+    def fail_over(self, lost: list[SessionCore], given: dict | None) -> None:
+        """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`,
+        ``given``: a reset's keywords); the other cores are not touched."""
         for core in lost:
             after = core.settings.failover_after
             self.endpoint.give_up(core.index, f"unreachable past failover_after={after:g} s")
@@ -189,17 +181,18 @@ class Fleet:
         made: list[SessionCore] = []
         try:
             for core in lost:
-                made += self.move(core, kept + made, start)
+                made += self.move(core, kept + made, given)
         except BaseException:
             for new in made:
                 new.close()
             raise
         self.cores = sorted(kept + made, key=lambda c: c.start)
 
-    def move(self, core: SessionCore, others: list[SessionCore], start: Start) -> list[SessionCore]:
+    def move(self, core: SessionCore, others: list[SessionCore], given: dict | None) -> list:
         """New cores for the environments of ``core`` (its server given up) on the servers that
-        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started by
-        ``start``; a server that refuses one (:data:`PASSED_OVER`) is passed over."""
+        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started
+        (:meth:`~dinerdash._session.SessionCore.start_after`); a server that refuses one
+        (:data:`PASSED_OVER`) is passed over."""
         endpoint = core.endpoint
         candidates = [i for i in endpoint.open_to_new() if i != core.index]
         while True:
@@ -223,7 +216,7 @@ class Fleet:
                     new.create()
                     made.append(new)
                     try:
-                        new.start_with(start(core, new))
+                        new.start_after(core, given)
                     except ServiceError as e:
                         raise new.fail(e) from None
                 return made
@@ -461,12 +454,3 @@ def _ready(future: grpc.Future):
         return True
 
     return ready
-
-
-def interrupted(old: SessionCore, new: SessionCore) -> Batch:
-    """A moved core's Batch for the step in which its server was given up: its episodes end
-    truncated in their last state (``old.last``), the new session's unseeded Reset is the
-    autoreset, as after a reconnect."""
-    return new.interrupt(
-        old.last.slice(new.start - old.start, new.stop - old.start), new.reset_new()
-    )

@@ -35,11 +35,7 @@ def await_replies(
     up (its calls cancelled) each server that answers nothing for ``failover_after`` seconds from
     ``sent`` or its last health check's answer, while another server is live and answers."""
     probe_after = min(PROBE_AFTER, failover_after / 4)
-    pending = list(waiting)
-    first = sent + probe_after
-    pending = [(i, ready) for i, ready in pending if not ready(first)]
-    if not pending:
-        return
+    pending = [(i, ready) for i, ready in waiting if not ready(sent + probe_after)]
     heard: dict[int, float] = {}  # server -> last answer (or ``sent``)
     probes: dict[int, grpc.Future] = {}
     while pending:
@@ -60,22 +56,16 @@ def await_replies(
                     )
                 except ServiceError:
                     pass
-        still = {i for i, ready in pending if not ready(now)}
-        silent = [
-            i
-            for i, t in heard.items()
-            if i in still and i not in endpoint.given_up and now - t >= failover_after
-        ]
-        if silent:
-            answering = [i for i in endpoint.live() if i not in silent]
-            if answering:
-                for i in silent:
-                    endpoint.give_up(
-                        i,
-                        f"it answered nothing (no call, no health check) for "
-                        f"{now - heard[i]:.1f} s, past failover_after={failover_after:g} s",
-                    )
-                    probes.pop(i, None)
+        still = {i for i, ready in pending if not ready(now)} - set(endpoint.given_up)
+        silent = [i for i, t in heard.items() if i in still and now - t >= failover_after]
+        if silent and any(i not in silent for i in endpoint.live()):
+            for i in silent:
+                endpoint.give_up(
+                    i,
+                    f"it answered nothing (no call, no health check) for {now - heard[i]:.1f} s, "
+                    f"past failover_after={failover_after:g} s",
+                )
+                probes.pop(i, None)
         pending = [(i, r) for i, r in pending if not r(time.monotonic() + 0.05)]
 
 

@@ -277,9 +277,15 @@ class SessionCore:
 
     # -- what the env reports -------------------------------------------------------------------
 
-    def start_with(self, batch: Batch) -> None:
-        """``batch`` is what this new core's environments (moved by a failover) report."""
-        self.last = batch
+    def start_after(self, lost: SessionCore, given: dict | None) -> None:
+        """This new core's session (created) takes over environments of ``lost``'s (its server
+        given up): reset with ``given`` (a reset's keywords), or at a step, their episodes end
+        truncated in their last state, the unseeded Reset the autoreset (as after a reconnect)."""
+        if given is not None:
+            self.last = Batch.from_pb(self.conn.call("Reset", self.reset_request(**given)))
+        else:
+            last = lost.last.slice(self.start - lost.start, self.stop - lost.start)
+            self.last = self.interrupt(last, self.reset_new())
 
     def restored(self, reply: pb.CreateSessionResponse, last: Batch) -> None:
         """This new core's session is Restore's ``reply`` (environments moved exactly); ``last``

@@ -116,14 +116,11 @@ def call_timeout(timeout: float | None) -> float:
     """The deadline of each call, in seconds: ``timeout``, else ``DINERDASH_TIMEOUT``, else
     :data:`DEFAULT_TIMEOUT`. Always finite and positive."""
     if timeout is None:
-        text = os.environ.get("DINERDASH_TIMEOUT", "").strip()
-        if text:
-            try:
-                timeout = float(text)
-            except ValueError:
-                raise ValueError(f"DINERDASH_TIMEOUT: expected seconds, got {text!r}") from None
-        else:
-            timeout = DEFAULT_TIMEOUT
+        text = os.environ.get("DINERDASH_TIMEOUT", "").strip() or str(DEFAULT_TIMEOUT)
+        try:
+            timeout = float(text)
+        except ValueError:
+            raise ValueError(f"DINERDASH_TIMEOUT: expected seconds, got {text!r}") from None
     timeout = float(timeout)
     if not 0 < timeout < float("inf"):
         raise ValueError(f"timeout: expected a positive number of seconds, got {timeout!r}")
