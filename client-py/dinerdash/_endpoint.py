@@ -29,8 +29,7 @@ class Endpoint:
         self.server: LocalServer | None = None
         self.connections: list[Connection] = []
         address = options.address
-        if address is None:
-            address = os.environ.get("DINERDASH_ADDRESS") or None
+        address = (os.environ.get("DINERDASH_ADDRESS") or None) if address is None else address
         if address is not None:
             addresses = connection.resolve_replicas(address)
         else:

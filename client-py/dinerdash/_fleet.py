@@ -59,12 +59,8 @@ class Fleet:
         self.version_warned = False
         k = len(endpoint.connections)
         settings.split = k > 1
-        sizes = [n // k + (j < n % k) for j in range(k)]
-        self.cores: list[SessionCore] = []
-        start = 0
-        for j, size in enumerate(sizes):
-            self.cores.append(SessionCore(endpoint, j, start, start + size, settings))
-            start += size
+        parts = even_parts(0, n, dict.fromkeys(range(k), 0)) or [(0, 0, 0)]  # N = 0: refused
+        self.cores = [SessionCore(endpoint, j, lo, hi, settings) for lo, hi, j in parts]
         try:
             for core in self.cores:
                 self.spec: pb.Spec = core.create()
@@ -207,11 +203,9 @@ class Fleet:
                     address=core.conn.address,
                 )
             made: list[SessionCore] = []
-            target = None
+            parts = even_parts(core.start, core.stop, servers_loads(others, candidates))
             try:
-                for lo, hi, target in even_parts(
-                    core.start, core.stop, servers_loads(others, candidates)
-                ):
+                for lo, hi, target in parts:
                     new = SessionCore(endpoint, target, lo, hi, core.settings)
                     new.create()
                     made.append(new)
@@ -220,16 +214,14 @@ class Fleet:
                     except ServiceError as e:
                         raise new.fail(e) from None
                 return made
-            except PASSED_OVER as e:
+            except BaseException as e:
+                for new in made:
+                    new.close()
+                if not isinstance(e, PASSED_OVER):
+                    raise
                 if isinstance(e, ServerDraining):
                     endpoint.drain(target, None)
                 candidates.remove(target)
-                for new in made:
-                    new.close()
-            except BaseException:
-                for new in made:
-                    new.close()
-                raise
 
     # -- moves ----------------------------------------------------------------------------------
 
@@ -299,16 +291,13 @@ class Fleet:
         environments): a Snapshot of each range, restored on its server; then ``core``'s session is
         closed. False (nothing changed) when a server cannot take its part or the Snapshot fails."""
         made: list[SessionCore] = []
-        done, moved = False, 0
+        moved = 0
         try:
             for lo, hi, dest in parts:
                 request = pb.SnapshotRequest(
                     session_id=core.session_id, env_start=lo - core.start, env_count=hi - lo
                 )
-                try:
-                    snapshot = core.conn.call("Snapshot", request, timeout=self.move_timeout())
-                except ServiceError:
-                    return False
+                snapshot = core.conn.call("Snapshot", request, timeout=self.move_timeout())
                 new = SessionCore(self.endpoint, dest, lo, hi, self.settings)
                 made.append(new)
                 last = core.last.slice(lo - core.start, hi - core.start).copy()
@@ -317,16 +306,17 @@ class Fleet:
                         moved += hi - lo
                 except ServiceError as e:
                     self.refused(dest, e)
-                    return False
-            done = True
-        finally:
-            if not done:
-                for new in made:
-                    new.close()
+                    raise
+        except BaseException as e:
+            for new in made:
+                new.close()
+            if isinstance(e, ServiceError):
+                return False
+            raise
         core.close()
-        self.cores.remove(core)
-        self.cores.extend(made)
-        self.cores.sort(key=lambda c: c.start)
+        self.cores = sorted(
+            [*made, *(c for c in self.cores if c is not core)], key=lambda c: c.start
+        )
         self.moves += moved
         return True
 
@@ -334,10 +324,9 @@ class Fleet:
         """Opens ``new``'s session from ``snapshot`` (``last``: its environments' Batch of the step
         just made). True when restored; False when cut (another snapshot version: new episodes,
         :func:`~dinerdash._batch.cut`, said once as a warning)."""
+        timeout = self.move_timeout()
         try:
-            reply = new.conn.call(
-                "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.move_timeout()
-            )
+            reply = new.conn.call("Restore", pb.RestoreRequest(snapshot=snapshot), timeout=timeout)
         except InvalidArgument as e:
             if not self.version_warned:
                 self.version_warned = True
@@ -349,9 +338,8 @@ class Fleet:
                     old.conn.address,
                     e.details,
                 )
-            new.create(self.move_timeout())
-            first = new.reset_new(self.move_timeout())
-            new.cut_over(*cut(last, first, self.settings.autoreset_mode))
+            new.create(timeout)
+            new.cut_over(*cut(last, new.reset_new(timeout), self.settings.autoreset_mode))
             return False
         new.restored(reply, last)
         return True

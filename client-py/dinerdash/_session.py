@@ -363,7 +363,6 @@ class SessionCore:
         """Waits for the lost server and opens a new session there (``reconnect=True``), for
         ``failover_after`` when another server is left (then :class:`ServerLost`), else for
         ``reconnect_timeout`` (then the error, or ``NoServerLeft`` after a failover)."""
-
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
             raise ServerLost(self, error)
@@ -373,15 +372,13 @@ class SessionCore:
             else f"the session ({error})"
         )
         failover = s.failover_after is not None and len(endpoint.connections) > 1
-        if failover and len(endpoint.live()) > 1:
-            try:
-                endpoint.reopen(self.index, self.create, lost, s.failover_after)
-            except ServiceTransportError:
-                raise ServerLost(self, error) from None
-            return
+        others = failover and len(endpoint.live()) > 1
         try:
-            endpoint.reopen(self.index, self.create, lost, s.reconnect_timeout)
+            wait = s.failover_after if others else s.reconnect_timeout
+            endpoint.reopen(self.index, self.create, lost, wait)
         except ServiceTransportError as e:
+            if others:
+                raise ServerLost(self, error) from None
             if not failover:
                 raise
             before = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)

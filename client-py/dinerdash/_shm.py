@@ -158,10 +158,8 @@ class Channel:
             raise
         # Blocking from here, waking every _TICK to see the deadline and a closed connection.
         sock.settimeout(None)
-        tick = min(conn.timeout, _TICK)
-        seconds = int(tick)
-        micros = int((tick - seconds) * 1e6)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", seconds, micros))
+        tick = int(min(conn.timeout, _TICK) * 1e6)  # microseconds, under a second
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", 0, tick))
         self.sock = sock
         magic, version, n, fields = struct.unpack_from("<IIII", self.mm, 0)
         if (magic, version, fields) != (_MAGIC, _VERSION, len(FIELDS)):
