@@ -9,6 +9,7 @@ lost server's environments get new sessions on the servers left (:meth:`Fleet.fa
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 
@@ -65,9 +66,7 @@ class Fleet:
             for core in self.cores:
                 self.spec: pb.Spec = core.create()
         except BaseException:
-            for core in self.cores:
-                core.close()
-            endpoint.close()
+            self.close()
             raise
         # Membership for several servers, or a DNS name that may come to name several.
         if self.failover_on() and endpoint.server is None:
@@ -238,13 +237,11 @@ class Fleet:
         key, targets = self.key()
         if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
-        settled = True
         cores = list(self.cores)
         slices = [(c.index, c.start, c.stop, c.movable()) for c in cores]
-        for k, parts in plan(slices, self.num_envs, targets) if targets else []:
-            if not self.split(cores[k], parts):
-                settled = False  # planned again at the next step, with what the refusal taught
-                break
+        moves = plan(slices, self.num_envs, targets) if targets else []
+        # The first refused stops the moves: planned again at the next step, knowing the refusal.
+        settled = all(self.split(cores[k], parts) for k, parts in moves)
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self.cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
@@ -431,14 +428,10 @@ def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, 
 def _ready(future: grpc.Future):
     """``ready(deadline)`` of a grpc future: True once it has its outcome."""
 
+    done = threading.Event()
+    future.add_done_callback(lambda _: done.set())
+
     def ready(deadline: float | None) -> bool:
-        timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
-        try:
-            future.exception(timeout=timeout)
-        except grpc.FutureTimeoutError:
-            return False
-        except grpc.FutureCancelledError:
-            pass
-        return True
+        return done.wait(None if deadline is None else max(0.0, deadline - time.monotonic()))
 
     return ready

@@ -453,11 +453,9 @@ class SessionCore:
             r.seeds.extend(seeds[self.start : self.stop])
         elif seed is not None:
             r.seed = (int(seed) + self.start) % _U64
-        if arrivals:
-            if len(arrivals) == 1 or not self.settings.split:
-                r.arrivals.extend(arrivals)
-            else:
-                r.arrivals.extend(arrivals[self.start : self.stop])
+        if arrivals and len(arrivals) > 1 and self.settings.split:
+            arrivals = arrivals[self.start : self.stop]  # one list per environment
+        r.arrivals.extend(arrivals or ())
         return r
 
     def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> Batch:

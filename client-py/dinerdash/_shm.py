@@ -1,8 +1,8 @@
 """How a session's Steps travel: a :class:`Transport`, over gRPC (:class:`GrpcTransport`) or
 through shared memory (:class:`ShmTransport`, the same-host data plane of docs/shm.md), chosen by
-:func:`open_for`; Reset and every other call go over gRPC. :func:`attach` opens a session's
-:class:`Channel` (the doorbell, its peer checked, and the mapped region) or says why not. Shared
-memory that ends under a Step raises :class:`Detached`: the session core changes to gRPC.
+:func:`open_for`, which opens a session's :class:`Channel` (the doorbell, its peer checked, and the
+mapped region) or says why not; Reset and every other call go over gRPC. Shared memory that ends
+under a Step raises :class:`Detached`: the session core changes to gRPC.
 """
 
 from __future__ import annotations
@@ -93,20 +93,14 @@ def _on_this_host(address: str) -> bool:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (OSError, ValueError, UnicodeError):
         return False
-    if not infos:
-        return False
     for family, _, _, _, sockaddr in infos:
-        try:
-            if ipaddress.ip_address(sockaddr[0].partition("%")[0]).is_loopback:
-                continue
-        except ValueError:
+        try:  # not loopback: one of this host's addresses if a socket binds to it
+            if not ipaddress.ip_address(sockaddr[0].partition("%")[0]).is_loopback:
+                with socket.socket(family, socket.SOCK_DGRAM) as probe:
+                    probe.bind((sockaddr[0], 0, *sockaddr[2:]))
+        except (ValueError, OSError):
             return False
-        try:
-            with socket.socket(family, socket.SOCK_DGRAM) as probe:
-                probe.bind((sockaddr[0], 0, *sockaddr[2:]))
-        except OSError:
-            return False
-    return True
+    return bool(infos)
 
 
 def _check_peer(sock: socket.socket, offer: Offer) -> None:
@@ -297,12 +291,12 @@ class Channel:
             pass
 
 
-def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | None:
-    """The shared-memory channel of the session ``offer`` describes, on the server of ``conn``, when
-    ``transport`` allows it and it opens; else ``None``, why logged at debug level (raised as a
-    ``ServiceTransportError`` for ``transport="shm"``)."""
+def open_for(offer: Offer | None, conn: Connection, transport: str) -> Transport:
+    """The transport of the session ``offer`` describes, on the server of ``conn``: shared memory
+    when ``transport`` allows it and its :class:`Channel` opens; else gRPC, why logged at debug
+    level (raised as a ``ServiceTransportError`` for ``transport="shm"``)."""
     if transport == "grpc" or offer is None:
-        return None
+        return GrpcTransport(conn, offer.session_id if offer is not None else "")
     why = None
     if sys.platform != "linux":
         why = "shared memory needs Linux"
@@ -323,7 +317,7 @@ def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | N
         )
     else:
         try:
-            return Channel(offer, conn)
+            return ShmTransport(Channel(offer, conn))
         except (ConnectionRefusedError, FileNotFoundError):
             why = (
                 f"the server at {conn.address} is not on this machine (or runs in another "
@@ -342,7 +336,7 @@ def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | N
             f"transport='shm': {why}; use transport='auto' to fall back to gRPC",
             address=conn.address,
         )
-    return None
+    return GrpcTransport(conn, offer.session_id)
 
 
 class Transport:
@@ -395,12 +389,3 @@ class ShmTransport(Transport):
 
     def close(self) -> None:
         self.channel.close()
-
-
-def open_for(offer: Offer | None, conn: Connection, option: str) -> Transport:
-    """The transport of the session ``offer`` describes: shared memory when ``option`` allows it
-    and it opens (:func:`attach`), else gRPC."""
-    channel = attach(offer, conn, option)
-    if channel is None:
-        return GrpcTransport(conn, offer.session_id if offer is not None else "")
-    return ShmTransport(channel)

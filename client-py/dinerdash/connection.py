@@ -340,8 +340,7 @@ class ConnectOptions:
             raise TypeError(
                 f"{caller}() got an unexpected keyword argument {unknown[0]!r}"
                 + (f" (and {', '.join(map(repr, unknown[1:]))})" if unknown[1:] else "")
-                + "; "
-                f"the connection keywords are {', '.join(CONNECT_FIELDS)}"
+                + f"; the connection keywords are {', '.join(CONNECT_FIELDS)}"
             )
         if keywords.get("address", 0) is None:
             del keywords["address"]
@@ -606,12 +605,9 @@ class Connection:
         """The typed exception of ``method``'s failure (``code``, ``details``, ``status``: a
         serialized ``google.rpc.Status``) after ``attempts``, over gRPC and shared memory alike."""
         if code == grpc.StatusCode.UNAVAILABLE:
-            if attempts == 1:
-                made = "1 attempt"
-            elif self._channel_attempts(method) == 1:
-                made = f"{attempts} attempts"
-            else:
-                made = f"up to {attempts} attempts"
+            made = "1 attempt" if attempts == 1 else f"{attempts} attempts"
+            if attempts > 1 and self._channel_attempts(method) > 1:
+                made = "up to " + made
             if pushback is not None and pushback < 0:
                 made += "; it asked not to be retried"
             details = (

@@ -80,11 +80,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         **connection: Any,
     ) -> None:
         mode = AutoresetMode(autoreset_mode)
-        self.metadata = {
-            "render_modes": list(RENDER_MODES),
-            "render_fps": 8,
-            "autoreset_mode": mode,
-        }
+        self.metadata = dict(render_modes=list(RENDER_MODES), render_fps=8, autoreset_mode=mode)
         self.autoreset_mode = mode
         self.num_envs = int(num_envs)
         self._settings = settings = self._take_arguments(
@@ -320,10 +316,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             final_obs = np.full(n, None, dtype=object)
             for i in np.flatnonzero(reset):  # only the environments that just ended
                 final_obs[i] = final[i]
-            info["final_obs"] = final_obs
-            info["_final_obs"] = reset.copy()
-            info["final_info"] = final_info
-            info["_final_info"] = reset.copy()
+            info["final_obs"], info["_final_obs"] = final_obs, reset.copy()
+            info["final_info"], info["_final_info"] = final_info, reset.copy()
         cut = [c for c in self._cores if c.reconnected]
         if cut:
             lost = np.zeros(n, dtype=np.bool_)
