@@ -71,7 +71,7 @@ class Fleet:
         # Membership for several servers, or a DNS name that may come to name several.
         if self.failover_on() and endpoint.server is None:
             if len(endpoint.connections) > 1 or has_name(options.address):
-                self.membership = Membership(endpoint, options)
+                self.membership = Membership(endpoint)
 
     # -- a step and a reset --------------------------------------------------------------------
 

@@ -14,7 +14,7 @@ import grpc
 
 from . import connection
 from ._endpoint import Endpoint
-from .connection import Connection, ConnectOptions, is_ip, split_host_port
+from .connection import Connection, is_ip, split_host_port
 from .errors import ServiceError
 
 log = logging.getLogger("dinerdash")
@@ -83,9 +83,9 @@ class Membership:
     :data:`PROBE_EVERY` seconds a health check goes to each given-up server and each new replica
     of a DNS-name address; those answered SERVING by then are handed over with their channel."""
 
-    def __init__(self, endpoint: Endpoint, options: ConnectOptions) -> None:
+    def __init__(self, endpoint: Endpoint) -> None:
         self._endpoint = endpoint
-        self._options = endpoint.options
+        self._options = options = endpoint.options
         self._address = options.address
         #: address -> (index or None for a new replica, connection, health check in flight).
         self._probes: dict[str, tuple[int | None, Connection, grpc.Future | None]] = {}

@@ -175,13 +175,12 @@ def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
         sock = socket.create_connection((host, port), timeout=timeout)
     except OSError:
         return None
-    try:
-        with context.wrap_socket(sock, server_hostname=host):
-            return True
-    except (OSError, ssl.SSLError):
-        return False
-    finally:
-        sock.close()
+    with sock:
+        try:
+            with context.wrap_socket(sock, server_hostname=host):
+                return True
+        except OSError:  # ssl.SSLError included
+            return False
 
 
 def _why_not_grpc(address: str, timeout: float = 2.0) -> str:
