@@ -270,11 +270,6 @@ class SessionCore:
         """Its environments may move now: reset, and no step cut by a failover still to report."""
         return self.last is not None and self.pending is None and not self.reconnected
 
-    def read_drain(self, batch: Batch) -> Batch:
-        """``batch``, its server's ``drain_remaining_ms`` kept."""
-        self.drain_ms = batch.drain_ms
-        return batch
-
     # -- what the env reports -------------------------------------------------------------------
 
     def start_after(self, lost: SessionCore, given: dict | None) -> None:
@@ -474,7 +469,7 @@ class SessionCore:
             request.session_id = self.session_id
             request.ClearField("reset_mask")
             batch = Batch.from_pb(self.conn.call("Reset", request))
-        self.last, self.pending = self.read_drain(batch), None
+        self.last, self.pending, self.drain_ms = batch, None, batch.drain_ms
         return batch
 
     def reset_new(self, timeout: float | None = None) -> Batch:
@@ -496,7 +491,8 @@ class SessionCore:
                     raise ServiceTransportError(
                         "the server was given up", address=self.conn.address
                     )
-                batch = self.read_drain(self.step_on(actions, sent))
+                batch = self.step_on(actions, sent)
+                self.drain_ms = batch.drain_ms
             except ServiceError as e:
                 # A call cancelled because its server was given up (silent) is lost too.
                 if not (isinstance(e, LOST) or self.given_up()):
