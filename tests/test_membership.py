@@ -23,7 +23,7 @@ from collections import Counter
 import numpy as np
 import pytest
 from dinerdash import DinerDashVectorEnv, ServiceTimeout, ServiceTransportError
-from dinerdash._membership import PROBE_EVERY
+from dinerdash._fleet import PROBE_EVERY
 from gymnasium.vector import AutoresetMode
 
 from .cpu_wait import CpuWait

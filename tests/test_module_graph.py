@@ -168,7 +168,7 @@ LAYERS = [
     {"dinerdash._batch", "dinerdash.errors", "dinerdash._version"},
     {"dinerdash.connection", "dinerdash.server", "dinerdash._arguments"},
     {"dinerdash._shm", "dinerdash._endpoint"},
-    {"dinerdash._session", "dinerdash._membership"},
+    {"dinerdash._session"},
     {"dinerdash._fleet"},
     {"dinerdash.env", "dinerdash.vector"},
 ]

@@ -110,7 +110,7 @@ def test_shm_away_from_the_server_says_why_and_auto_falls_back(start_server) -> 
         offer = _shm.Offer(env.session_id, "dinerdash-0-on-another-host", b"s" * 32, bare.pid)
         with Connection(env.address) as conn:
             with pytest.raises(ServiceTransportError, match="not on this machine"):
-                _shm.attach(offer, conn, "shm")
+                _shm.open_for(offer, conn, "shm")
     finally:
         env.close()
     with pytest.raises(ValueError, match="transport"):
@@ -261,8 +261,9 @@ def test_closing_envs_unmaps_their_regions(server) -> None:
 
 
 class _Core:
-    """What :func:`dinerdash._shm.attach` is given for a session, for a server at ``address``
-    that is never called; ``attach()`` as the session core calls it, ``channel`` its result."""
+    """What :func:`dinerdash._shm.open_for` is given for a session, for a server at ``address``
+    that is never called; ``attach()`` as the session core calls it, ``channel`` its shared-memory
+    channel (``None``: gRPC)."""
 
     def __init__(self, address: str, transport: str) -> None:
         self.conn = SimpleNamespace(address=address, timeout=5.0, _closed=False)
@@ -272,7 +273,8 @@ class _Core:
         self.channel = None
 
     def attach(self) -> None:
-        self.channel = _shm.attach(self.offer, self.conn, self.transport)
+        transport = _shm.open_for(self.offer, self.conn, self.transport)
+        self.channel = getattr(transport, "channel", None)
 
 
 def _offered(core: _Core, doorbell: str, secret: bytes, pid: int) -> None:

@@ -69,12 +69,8 @@ def _arrival(group: Any) -> pb.Arrival:
 
 def _is_arrival_list(value: Any) -> bool:
     """True for one list of groups (its first entry a (type, size) pair or a mapping)."""
-    if len(value) == 0:
-        return True
-    first = value[0]
-    if isinstance(first, Mapping):
-        return True
-    return len(first) == 2 and all(np.ndim(x) == 0 for x in first)
+    first = value[0] if len(value) else {}
+    return isinstance(first, Mapping) or (len(first) == 2 and all(np.ndim(x) == 0 for x in first))
 
 
 def make_arrivals(arrivals: Any, num_envs: int = 1) -> list[pb.ArrivalList]:

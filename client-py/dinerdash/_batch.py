@@ -127,12 +127,7 @@ class Batch:
 
     def replace(self, **changes: np.ndarray | None) -> Batch:
         """This Batch with some fields replaced (``None``: removed)."""
-        fields = dict(self.fields)
-        for name, value in changes.items():
-            if value is None:
-                fields.pop(name, None)
-            else:
-                fields[name] = value
+        fields = {k: v for k, v in {**self.fields, **changes}.items() if v is not None}
         return Batch(self.num_envs, fields, self.drain_ms)
 
     def slice(self, lo: int, hi: int) -> Batch:
@@ -204,23 +199,17 @@ def decode(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Observations ``(N, 40) float32`` and infos of ``batch``'s state (``prefix="final_"``: of the
     episodes that ended), ``present`` each key's ``_key`` mask (default: all; copied)."""
-    n = batch.num_envs
     if present is None:
-        present = np.ones(n, dtype=np.bool_)
-
-    def field(name: str) -> np.ndarray:
-        value = batch.get(prefix + name)
-        return _empty(name, n) if value is None else value
-
-    obs = field("observations").astype(np.float32)
+        present = np.ones(batch.num_envs, dtype=np.bool_)
+    obs = batch[prefix + "observations"].astype(np.float32)
     info: dict[str, Any] = {
-        "action_mask": field("action_masks").copy(),
-        "score": field("scores").astype(np.int64),
-        "lost": field("lost").astype(np.int64),
-        "tick": field("ticks").astype(np.int64),
+        "action_mask": batch[prefix + "action_masks"].copy(),
+        "score": batch[prefix + "scores"].astype(np.int64),
+        "lost": batch[prefix + "lost"].astype(np.int64),
+        "tick": batch[prefix + "ticks"].astype(np.int64),
     }
     if expert:
-        info["expert_action"] = field("expert_actions").astype(np.int64)
+        info["expert_action"] = batch[prefix + "expert_actions"].astype(np.int64)
     for key in list(info):
         info[f"_{key}"] = present.copy()
     return obs, info

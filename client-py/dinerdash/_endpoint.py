@@ -29,8 +29,7 @@ class Endpoint:
         self.server: LocalServer | None = None
         self.connections: list[Connection] = []
         address = options.address
-        if address is None:
-            address = os.environ.get("DINERDASH_ADDRESS") or None
+        address = (os.environ.get("DINERDASH_ADDRESS") or None) if address is None else address
         if address is not None:
             addresses = connection.resolve_replicas(address)
         else:
@@ -40,9 +39,7 @@ class Endpoint:
             addresses = [self.server.address]
         if pick is not None:
             addresses = [addresses[pick % len(addresses)]]
-        if max_servers is not None:
-            addresses = addresses[:max_servers]
-        self.addresses = addresses
+        self.addresses = addresses[:max_servers]  # None: all
         #: The indices of the servers given up, in the order they were lost.
         self.given_up: list[int] = []
         #: Draining servers: index -> the time.monotonic() by which their sessions must be gone.
@@ -53,7 +50,7 @@ class Endpoint:
         #: Sessions whose transport changed (shared memory lost, or taken up again).
         self.transport_changes = 0
         try:
-            for a in addresses:
+            for a in self.addresses:
                 self.connections.append(self.options.connect(a))
         except BaseException:
             self.close()
@@ -128,13 +125,12 @@ class Endpoint:
         self.rejoins += 1
         log.info("took back the server at %s: it answers again", self.addresses[index])
 
-    def add(self, conn: Connection) -> int:
-        """A new server (``conn``'s address, e.g. a DNS name's new replica) taken in; its index."""
+    def add(self, conn: Connection) -> None:
+        """A new server (``conn``'s address, e.g. a DNS name's new replica) taken in."""
         self.addresses.append(conn.address)
         self.connections.append(conn)
         self.rejoins += 1
         log.info("took in the server at %s: a new replica", conn.address)
-        return len(self.connections) - 1
 
     def drain(self, index: int, remaining: float | None) -> None:
         """Server ``index`` drains, ``remaining`` seconds before its deadline (``None``: unsaid)."""

@@ -1,26 +1,29 @@
-"""The fleet: a vector env's servers (:class:`~dinerdash._endpoint.Endpoint`, the
-:class:`~dinerdash._membership.Membership` watch) and its slices, session cores each holding a
-contiguous range of environments, in environment order. After each step or reset
-(:meth:`Fleet.settle`) slices move at once by Snapshot and Restore, exactly (:func:`plan`); a
-lost server's environments get new sessions on the servers left (:meth:`Fleet.fail_over`,
-:func:`even_parts`). Why: docs/clusters.md#failover.
+"""The fleet: a vector env's servers (:class:`~dinerdash._endpoint.Endpoint`) and its slices,
+session cores each holding a contiguous range of environments, in environment order. After each
+step or reset (:meth:`Fleet.settle`) slices move at once by Snapshot and Restore, exactly
+(:func:`plan`); a lost server's environments get new sessions on the servers left
+(:meth:`Fleet.fail_over`, :func:`even_parts`). Why: docs/clusters.md#failover. Its watch:
+:func:`await_replies` gives up a server that answers nothing (no call, no health check) for
+``failover_after``; :class:`Membership` finds given-up servers that answer again and a DNS name's
+new replicas, at step boundaries, without blocking (docs/client.md#design-notes).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import grpc
 import numpy as np
 
+from . import connection
 from ._batch import Batch, cut
 from ._endpoint import Endpoint
-from ._membership import Membership, await_replies, has_name
 from ._proto import pb
 from ._session import ServerLost, SessionCore, Settings
-from .connection import ConnectOptions
+from .connection import Connection, ConnectOptions, is_ip, split_host_port
 from .errors import (
     InvalidArgument,
     NoServerLeft,
@@ -38,10 +41,10 @@ log = logging.getLogger("dinerdash")
 REFUSED_WAIT = 10.0
 #: A server that refuses a failover's new session for one of these is passed over, not given up.
 PASSED_OVER = (ServiceTransportError, ResourceExhausted, SessionNotFound)
-
-#: ``start(lost_core, new_core)``: resets the new core's session (created) and returns the Batch
-#: its environments report.
-Start = Callable[[SessionCore, SessionCore], Batch]
+#: Seconds a call may go unanswered before a health check is sent beside it (at most).
+PROBE_AFTER = 1.0
+#: Seconds between two health checks of the given-up servers.
+PROBE_EVERY = 1.0
 
 
 class Fleet:
@@ -63,24 +66,18 @@ class Fleet:
         self.version_warned = False
         k = len(endpoint.connections)
         settings.split = k > 1
-        sizes = [n // k + (j < n % k) for j in range(k)]
-        self.cores: list[SessionCore] = []
-        start = 0
-        for j, size in enumerate(sizes):
-            self.cores.append(SessionCore(endpoint, j, start, start + size, settings))
-            start += size
+        parts = even_parts(0, n, dict.fromkeys(range(k), 0)) or [(0, 0, 0)]  # N = 0: refused
+        self.cores = [SessionCore(endpoint, j, lo, hi, settings) for lo, hi, j in parts]
         try:
             for core in self.cores:
                 self.spec: pb.Spec = core.create()
         except BaseException:
-            for core in self.cores:
-                core.close()
-            endpoint.close()
+            self.close()
             raise
         # Membership for several servers, or a DNS name that may come to name several.
         if self.failover_on() and endpoint.server is None:
             if len(endpoint.connections) > 1 or has_name(options.address):
-                self.membership = Membership(endpoint, options)
+                self.membership = Membership(endpoint)
 
     # -- a step and a reset --------------------------------------------------------------------
 
@@ -116,12 +113,12 @@ class Fleet:
         return self.collect(SessionCore.finish_step, self.failover_on())
 
     def collect(
-        self, outcome: Callable[[SessionCore], object], settle: bool, start: Start | None = None
+        self, outcome: Callable[[SessionCore], object], settle: bool, given: dict | None = None
     ) -> list[Batch]:
         """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's (or
-        reset's): every core is updated before the first error is raised, a lost server's
-        environments move first (:meth:`fail_over`, started by ``start``, default
-        :func:`interrupted`), and with ``settle`` slices then move (:meth:`settle`)."""
+        reset's, ``given``): every core is updated before the first error is raised, a lost
+        server's environments move first (:meth:`fail_over`), and with ``settle`` slices then move
+        (:meth:`settle`)."""
         error, lost = None, []
         for core in self.cores:
             try:
@@ -132,7 +129,7 @@ class Fleet:
                 if error is None:
                     error = e
         if lost:
-            self.fail_over(lost, start or interrupted)
+            self.fail_over(lost, given)
         if error is not None:
             raise error
         if settle:
@@ -143,10 +140,6 @@ class Fleet:
         """Resets the environments of ``mask`` (all: ``None``) with ``given`` (the keywords of
         :meth:`~dinerdash._session.SessionCore.reset_request`); returns which environments' cores
         were called (a core with none in the mask keeps its state)."""
-
-        def start(old: SessionCore, new: SessionCore) -> Batch:
-            return Batch.from_pb(new.conn.call("Reset", new.reset_request(**given)))
-
         called = np.zeros(self.num_envs, np.bool_)
         calls = {}
         for core in self.cores:
@@ -158,7 +151,7 @@ class Fleet:
         if self.watched():
             waiting = [(c.index, _ready(f)) for c, (_, f) in calls.items() if f is not None]
             await_replies(waiting, self.endpoint, self.settings.failover_after, time.monotonic())
-        self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), start)
+        self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), given)
         return called
 
     def close(self) -> None:
@@ -178,9 +171,9 @@ class Fleet:
 
     # -- failover -------------------------------------------------------------------------------
 
-    def fail_over(self, lost: list[SessionCore], start: Start) -> None:
-        """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`);
-        the other cores are not touched."""
+    def fail_over(self, lost: list[SessionCore], given: dict | None) -> None:
+        """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`,
+        ``given``: a reset's keywords); the other cores are not touched."""
         for core in lost:
             after = core.settings.failover_after
             self.endpoint.give_up(core.index, f"unreachable past failover_after={after:g} s")
@@ -189,17 +182,18 @@ class Fleet:
         made: list[SessionCore] = []
         try:
             for core in lost:
-                made += self.move(core, kept + made, start)
+                made += self.move(core, kept + made, given)
         except BaseException:
             for new in made:
                 new.close()
             raise
         self.cores = sorted(kept + made, key=lambda c: c.start)
 
-    def move(self, core: SessionCore, others: list[SessionCore], start: Start) -> list[SessionCore]:
+    def move(self, core: SessionCore, others: list[SessionCore], given: dict | None) -> list:
         """New cores for the environments of ``core`` (its server given up) on the servers that
-        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started by
-        ``start``; a server that refuses one (:data:`PASSED_OVER`) is passed over."""
+        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started
+        (:meth:`~dinerdash._session.SessionCore.start_after`); a server that refuses one
+        (:data:`PASSED_OVER`) is passed over."""
         endpoint = core.endpoint
         candidates = [i for i in endpoint.open_to_new() if i != core.index]
         while True:
@@ -214,29 +208,25 @@ class Fleet:
                     address=core.conn.address,
                 )
             made: list[SessionCore] = []
-            target = None
+            parts = even_parts(core.start, core.stop, servers_loads(others, candidates))
             try:
-                for lo, hi, target in even_parts(
-                    core.start, core.stop, servers_loads(others, candidates)
-                ):
+                for lo, hi, target in parts:
                     new = SessionCore(endpoint, target, lo, hi, core.settings)
                     new.create()
                     made.append(new)
                     try:
-                        new.start_with(start(core, new))
+                        new.start_after(core, given)
                     except ServiceError as e:
                         raise new.fail(e) from None
                 return made
-            except PASSED_OVER as e:
+            except BaseException as e:
+                for new in made:
+                    new.close()
+                if not isinstance(e, PASSED_OVER):
+                    raise
                 if isinstance(e, ServerDraining):
                     endpoint.drain(target, None)
                 candidates.remove(target)
-                for new in made:
-                    new.close()
-            except BaseException:
-                for new in made:
-                    new.close()
-                raise
 
     # -- moves ----------------------------------------------------------------------------------
 
@@ -253,21 +243,11 @@ class Fleet:
         key, targets = self.key()
         if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
-        settled = True
         cores = list(self.cores)
-        slices = [
-            (
-                c.index,
-                c.start,
-                c.stop,
-                c.last is not None and c.pending is None and not c.reconnected,
-            )
-            for c in cores
-        ]
-        for k, parts in plan(slices, self.num_envs, targets) if targets else []:
-            if not self.split(cores[k], parts):
-                settled = False  # planned again at the next step, with what the refusal taught
-                break
+        slices = [(c.index, c.start, c.stop, c.movable()) for c in cores]
+        moves = plan(slices, self.num_envs, targets) if targets else []
+        # The first refused stops the moves: planned again at the next step, knowing the refusal.
+        settled = all(self.split(cores[k], parts) for k, parts in moves)
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self.cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
@@ -287,13 +267,11 @@ class Fleet:
             return
         endpoint = self.endpoint
         for index, conn in self.membership.found():
+            new = index is None and conn.address not in endpoint.addresses
             if index is not None and index in endpoint.given_up:
                 endpoint.take_back(index, conn)
-            elif index is None and conn.address not in endpoint.addresses:
-                if len(endpoint.live()) < self.num_envs:
-                    endpoint.add(conn)
-                else:
-                    conn.close()
+            elif new and len(endpoint.live()) < self.num_envs:
+                endpoint.add(conn)
             else:
                 conn.close()
 
@@ -316,16 +294,13 @@ class Fleet:
         environments): a Snapshot of each range, restored on its server; then ``core``'s session is
         closed. False (nothing changed) when a server cannot take its part or the Snapshot fails."""
         made: list[SessionCore] = []
-        done, moved = False, 0
+        moved = 0
         try:
             for lo, hi, dest in parts:
                 request = pb.SnapshotRequest(
                     session_id=core.session_id, env_start=lo - core.start, env_count=hi - lo
                 )
-                try:
-                    snapshot = core.conn.call("Snapshot", request, timeout=self.move_timeout())
-                except ServiceError:
-                    return False
+                snapshot = core.conn.call("Snapshot", request, timeout=self.move_timeout())
                 new = SessionCore(self.endpoint, dest, lo, hi, self.settings)
                 made.append(new)
                 last = core.last.slice(lo - core.start, hi - core.start).copy()
@@ -334,16 +309,17 @@ class Fleet:
                         moved += hi - lo
                 except ServiceError as e:
                     self.refused(dest, e)
-                    return False
-            done = True
-        finally:
-            if not done:
-                for new in made:
-                    new.close()
+                    raise
+        except BaseException as e:
+            for new in made:
+                new.close()
+            if isinstance(e, ServiceError):
+                return False
+            raise
         core.close()
-        self.cores.remove(core)
-        self.cores.extend(made)
-        self.cores.sort(key=lambda c: c.start)
+        self.cores = sorted(
+            [*made, *(c for c in self.cores if c is not core)], key=lambda c: c.start
+        )
         self.moves += moved
         return True
 
@@ -351,10 +327,9 @@ class Fleet:
         """Opens ``new``'s session from ``snapshot`` (``last``: its environments' Batch of the step
         just made). True when restored; False when cut (another snapshot version: new episodes,
         :func:`~dinerdash._batch.cut`, said once as a warning)."""
+        timeout = self.move_timeout()
         try:
-            reply = new.conn.call(
-                "Restore", pb.RestoreRequest(snapshot=snapshot), timeout=self.move_timeout()
-            )
+            reply = new.conn.call("Restore", pb.RestoreRequest(snapshot=snapshot), timeout=timeout)
         except InvalidArgument as e:
             if not self.version_warned:
                 self.version_warned = True
@@ -366,9 +341,8 @@ class Fleet:
                     old.conn.address,
                     e.details,
                 )
-            new.create(self.move_timeout())
-            first = new.reset_new(self.move_timeout())
-            new.cut_over(*cut(last, first, self.settings.autoreset_mode))
+            new.create(timeout)
+            new.cut_over(*cut(last, new.reset_new(timeout), self.settings.autoreset_mode))
             return False
         new.restored(reply, last)
         return True
@@ -460,23 +434,137 @@ def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, 
 def _ready(future: grpc.Future):
     """``ready(deadline)`` of a grpc future: True once it has its outcome."""
 
+    done = threading.Event()
+    future.add_done_callback(lambda _: done.set())
+
     def ready(deadline: float | None) -> bool:
-        timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
-        try:
-            future.exception(timeout=timeout)
-        except grpc.FutureTimeoutError:
-            return False
-        except grpc.FutureCancelledError:
-            pass
-        return True
+        return done.wait(None if deadline is None else max(0.0, deadline - time.monotonic()))
 
     return ready
 
 
-def interrupted(old: SessionCore, new: SessionCore) -> Batch:
-    """A moved core's Batch for the step in which its server was given up: its episodes end
-    truncated in their last state (``old.last``), the new session's unseeded Reset is the
-    autoreset, as after a reconnect."""
-    return new.interrupt(
-        old.last.slice(new.start - old.start, new.stop - old.start), new.reset_new()
-    )
+def await_replies(
+    waiting: Sequence[tuple[int, Callable[[float | None], bool]]],
+    endpoint: Endpoint,
+    failover_after: float,
+    sent: float,
+) -> None:
+    """Waits until every ``ready(deadline)`` of ``waiting`` (server index, ready) is True, giving
+    up (its calls cancelled) each server that answers nothing for ``failover_after`` seconds from
+    ``sent`` or its last health check's answer, while another server is live and answers."""
+    probe_after = min(PROBE_AFTER, failover_after / 4)
+    pending = [(i, ready) for i, ready in waiting if not ready(sent + probe_after)]
+    heard: dict[int, float] = {}  # server -> last answer (or ``sent``)
+    probes: dict[int, grpc.Future] = {}
+    while pending:
+        now = time.monotonic()
+        for i in {i for i, _ in pending}:
+            if i in endpoint.given_up:
+                continue
+            heard.setdefault(i, sent)
+            probe = probes.get(i)
+            if probe is not None and probe.done():
+                del probes[i]
+                if not probe.cancelled() and probe.exception() is None:
+                    heard[i] = now
+            if i not in probes and now - heard[i] >= probe_after:
+                try:
+                    probes[i] = endpoint.connections[i].health(
+                        max(0.05, failover_after - (now - heard[i]))
+                    )
+                except ServiceError:
+                    pass
+        still = {i for i, ready in pending if not ready(now)} - set(endpoint.given_up)
+        silent = [i for i, t in heard.items() if i in still and now - t >= failover_after]
+        if silent and any(i not in silent for i in endpoint.live()):
+            for i in silent:
+                endpoint.give_up(
+                    i,
+                    f"it answered nothing (no call, no health check) for {now - heard[i]:.1f} s, "
+                    f"past failover_after={failover_after:g} s",
+                )
+                probes.pop(i, None)
+        pending = [(i, r) for i, r in pending if not r(time.monotonic() + 0.05)]
+
+
+def has_name(address: str | Sequence[str] | None) -> bool:
+    """``address`` names a host by DNS name (which may resolve to other replicas later)."""
+    try:
+        items = [] if address is None else connection.parse_addresses(address)
+    except ValueError:
+        return False
+    return not all(is_ip(split_host_port(item)[0]) for item in items)
+
+
+class Membership:
+    """Looks for servers to take in at the env's step boundaries (:meth:`found`): every
+    :data:`PROBE_EVERY` seconds a health check goes to each given-up server and each new replica
+    of a DNS-name address; those answered SERVING by then are handed over with their channel."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self._endpoint = endpoint
+        self._options = options = endpoint.options
+        self._address = options.address
+        #: address -> (index or None for a new replica, connection, health check in flight).
+        self._probes: dict[str, tuple[int | None, Connection, grpc.Future | None]] = {}
+        self._next = time.monotonic() + PROBE_EVERY
+        #: The replicas the address resolved to last (the resolver thread's answer).
+        self._replicas: list[str] = []
+        self._stop = threading.Event()
+        every = options.resolve_every if has_name(options.address) else None
+        if every is not None:
+            threading.Thread(
+                target=self._resolve, args=(every,), name="dinerdash-resolve", daemon=True
+            ).start()
+
+    def found(self) -> list[tuple[int | None, Connection]]:
+        """The servers found since the last call: ``(index, conn)`` for a given-up server that
+        answers SERVING again, ``(None, conn)`` for a new replica."""
+        out = []
+        for address, (index, conn, check) in list(self._probes.items()):
+            if check is None or not check.done():
+                continue
+            serving = not check.cancelled() and check.exception() is None and check.result()
+            if serving:
+                del self._probes[address]
+                out.append((index, conn))
+            else:
+                self._probes[address] = (index, conn, None)
+        now = time.monotonic()
+        if now >= self._next:
+            self._next = now + PROBE_EVERY
+            endpoint = self._endpoint
+            wanted = {endpoint.addresses[i]: i for i in endpoint.given_up}
+            known = set(endpoint.addresses)
+            wanted.update({a: None for a in self._replicas if a not in known})
+            for address in [a for a in self._probes if a not in wanted]:
+                self._probes.pop(address)[1].close()
+            for address, index in wanted.items():
+                self._check(address, index)
+        return out
+
+    def _check(self, address: str, index: int | None) -> None:
+        _, conn, check = self._probes.get(address, (index, None, None))
+        if check is not None:
+            return  # the last one is still out
+        try:
+            if conn is None:
+                conn = self._options.connect(address, wait=False)
+            self._probes[address] = (index, conn, conn.health(PROBE_EVERY))
+        except (ServiceError, OSError, ValueError):
+            if conn is not None:
+                conn.close()
+            self._probes.pop(address, None)
+
+    def _resolve(self, every: float) -> None:
+        while not self._stop.wait(every):
+            try:
+                self._replicas = connection.resolve_replicas(self._address)
+            except (OSError, ValueError):
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        for _, conn, _ in self._probes.values():
+            conn.close()
+        self._probes = {}

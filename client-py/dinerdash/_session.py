@@ -157,12 +157,9 @@ class SessionOwner:
     def transports(self) -> dict[str, str]:
         """The transport each server's sessions step over now: ``{address: "shm" | "grpc"}``
         (``"shm,grpc"`` where they differ), in the order of their first environments."""
-        out: dict[str, list[str]] = {}
+        out: dict[str, dict[str, None]] = {}
         for core in self._cores:
-            name = core.transport.name if core.transport is not None else "grpc"
-            names = out.setdefault(core.conn.address, [])
-            if name not in names:
-                names.append(name)
+            out.setdefault(core.conn.address, {})[getattr(core.transport, "name", "grpc")] = None
         return {address: ",".join(names) for address, names in out.items()}
 
     @property
@@ -269,16 +266,21 @@ class SessionCore:
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up
 
-    def read_drain(self, batch: Batch) -> Batch:
-        """``batch``, its server's ``drain_remaining_ms`` kept."""
-        self.drain_ms = batch.drain_ms
-        return batch
+    def movable(self) -> bool:
+        """Its environments may move now: reset, and no step cut by a failover still to report."""
+        return self.last is not None and self.pending is None and not self.reconnected
 
     # -- what the env reports -------------------------------------------------------------------
 
-    def start_with(self, batch: Batch) -> None:
-        """``batch`` is what this new core's environments (moved by a failover) report."""
-        self.last = batch
+    def start_after(self, lost: SessionCore, given: dict | None) -> None:
+        """This new core's session (created) takes over environments of ``lost``'s (its server
+        given up): reset with ``given`` (a reset's keywords), or at a step, their episodes end
+        truncated in their last state, the unseeded Reset the autoreset (as after a reconnect)."""
+        if given is not None:
+            self.last = Batch.from_pb(self.conn.call("Reset", self.reset_request(**given)))
+        else:
+            last = lost.last.slice(self.start - lost.start, self.stop - lost.start)
+            self.last = self.interrupt(last, self.reset_new())
 
     def restored(self, reply: pb.CreateSessionResponse, last: Batch) -> None:
         """This new core's session is Restore's ``reply`` (environments moved exactly); ``last``
@@ -356,7 +358,6 @@ class SessionCore:
         """Waits for the lost server and opens a new session there (``reconnect=True``), for
         ``failover_after`` when another server is left (then :class:`ServerLost`), else for
         ``reconnect_timeout`` (then the error, or ``NoServerLeft`` after a failover)."""
-
         endpoint, s = self.endpoint, self.settings
         if self.index in endpoint.given_up:
             raise ServerLost(self, error)
@@ -366,15 +367,13 @@ class SessionCore:
             else f"the session ({error})"
         )
         failover = s.failover_after is not None and len(endpoint.connections) > 1
-        if failover and len(endpoint.live()) > 1:
-            try:
-                endpoint.reopen(self.index, self.create, lost, s.failover_after)
-            except ServiceTransportError:
-                raise ServerLost(self, error) from None
-            return
+        others = failover and len(endpoint.live()) > 1
         try:
-            endpoint.reopen(self.index, self.create, lost, s.reconnect_timeout)
+            wait = s.failover_after if others else s.reconnect_timeout
+            endpoint.reopen(self.index, self.create, lost, wait)
         except ServiceTransportError as e:
+            if others:
+                raise ServerLost(self, error) from None
             if not failover:
                 raise
             before = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
@@ -449,11 +448,9 @@ class SessionCore:
             r.seeds.extend(seeds[self.start : self.stop])
         elif seed is not None:
             r.seed = (int(seed) + self.start) % _U64
-        if arrivals:
-            if len(arrivals) == 1 or not self.settings.split:
-                r.arrivals.extend(arrivals)
-            else:
-                r.arrivals.extend(arrivals[self.start : self.stop])
+        if arrivals and len(arrivals) > 1 and self.settings.split:
+            arrivals = arrivals[self.start : self.stop]  # one list per environment
+        r.arrivals.extend(arrivals or ())
         return r
 
     def reset(self, request: pb.ResetRequest, future: grpc.Future | None = None) -> Batch:
@@ -472,7 +469,7 @@ class SessionCore:
             request.session_id = self.session_id
             request.ClearField("reset_mask")
             batch = Batch.from_pb(self.conn.call("Reset", request))
-        self.last, self.pending = self.read_drain(batch), None
+        self.last, self.pending, self.drain_ms = batch, None, batch.drain_ms
         return batch
 
     def reset_new(self, timeout: float | None = None) -> Batch:
@@ -494,7 +491,8 @@ class SessionCore:
                     raise ServiceTransportError(
                         "the server was given up", address=self.conn.address
                     )
-                batch = self.read_drain(self.step_on(actions, sent))
+                batch = self.step_on(actions, sent)
+                self.drain_ms = batch.drain_ms
             except ServiceError as e:
                 # A call cancelled because its server was given up (silent) is lost too.
                 if not (isinstance(e, LOST) or self.given_up()):
@@ -533,7 +531,7 @@ class SessionCore:
         if (
             self.pending is None
             and self.transport is not None
-            and self.transport.split
+            and self.transport.views
             and not self.given_up()
             and self.ready_transport().send(actions)
         ):
@@ -592,8 +590,6 @@ class StepThread:
     """A thread that makes one session core's blocking gRPC Steps, for ``step_async`` /
     ``step_wait`` (why not a grpcio future: docs/client.md#design-notes). It ends at
     :meth:`close`, or when the core whose method the work is is collected (held weakly)."""
-
-    __slots__ = ("_replies", "_reply", "_requests")
 
     def __init__(self, work: MethodType, name: str) -> None:
         self._requests: queue.SimpleQueue = queue.SimpleQueue()

@@ -1,11 +1,8 @@
 """How a session's Steps travel: a :class:`Transport`, over gRPC (:class:`GrpcTransport`) or
 through shared memory (:class:`ShmTransport`, the same-host data plane of docs/shm.md), chosen by
-:func:`open_for`; Reset and every other call go over gRPC. :func:`attach` opens a session's
-:class:`Channel` when the server runs on this machine as this user (Linux: the doorbell's peer
-checked before anything is sent, the region mapped) or says why not; each Step writes the actions
-into the region, rings, and reads the reply's arrays as views of the region, valid until the next
-Step. Shared memory that ends under a Step raises :class:`Detached`: the session core changes to
-gRPC, a counted and logged event.
+:func:`open_for`, which opens a session's :class:`Channel` (the doorbell, its peer checked, and the
+mapped region) or says why not; Reset and every other call go over gRPC. Shared memory that ends
+under a Step raises :class:`Detached`: the session core changes to gRPC.
 """
 
 from __future__ import annotations
@@ -23,7 +20,7 @@ import socket
 import struct
 import sys
 import time
-from typing import Any, NoReturn
+from typing import Any
 
 import grpc
 import numpy as np
@@ -32,14 +29,14 @@ from ._batch import FIELDS as _SHAPES
 from ._batch import Batch
 from ._proto import pb
 from .connection import Connection, split_host_port
-from .errors import EnvClosed, ServiceError, ServiceTimeout, ServiceTransportError
+from .errors import ServiceError, ServiceTransportError
 
 #: "DDsh" and the layout version this client reads (``server/src/shm/layout.rs``).
 _MAGIC, _VERSION = struct.unpack("<I", b"DDsh")[0], 2
 #: The region's arrays, in order: the ``actions`` the client writes, then the Batch's fields
 #: (:data:`dinerdash._batch.FIELDS`, the one table).
 FIELDS = ("actions", *_SHAPES)
-_TABLE, _LENGTHS, _ARRAYS = 32, 256, 512
+_TABLE, _LENGTHS = 32, 256
 #: The last reply's ``drain_remaining_ms``, right after the lengths.
 _DRAIN_AT, _DRAIN = _LENGTHS + 4 * len(FIELDS), struct.Struct("<I")
 _CODES = {c.value[0]: c for c in grpc.StatusCode}
@@ -71,16 +68,21 @@ class Offer:
     @classmethod
     def of(cls, reply: Any) -> Offer:
         """What ``reply`` (CreateSession's, Fork's or Restore's) offers."""
-        return cls(
-            reply.session_id,
-            reply.shm_doorbell,
-            bytes(getattr(reply, "shm_secret", b"")),
-            int(getattr(reply, "shm_server_pid", 0)),
-        )
+        return cls(reply.session_id, reply.shm_doorbell, reply.shm_secret, reply.shm_server_pid)
 
 
 class _Untrusted(Exception):
     """The doorbell's peer is not the server that made the offer: nothing was sent to it."""
+
+
+class Detached(Exception):
+    """The shared-memory transport ended (private: caught by the session core). ``error``: the
+    error to raise for this Step (a timeout, a cancellation), or ``None``: make it over gRPC."""
+
+    def __init__(self, reason: str, error: ServiceError | None = None) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.error = error
 
 
 @functools.lru_cache(maxsize=64)
@@ -91,20 +93,14 @@ def _on_this_host(address: str) -> bool:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (OSError, ValueError, UnicodeError):
         return False
-    if not infos:
-        return False
     for family, _, _, _, sockaddr in infos:
-        try:
-            if ipaddress.ip_address(sockaddr[0].partition("%")[0]).is_loopback:
-                continue
-        except ValueError:
+        try:  # not loopback: one of this host's addresses if a socket binds to it
+            if not ipaddress.ip_address(sockaddr[0].partition("%")[0]).is_loopback:
+                with socket.socket(family, socket.SOCK_DGRAM) as probe:
+                    probe.bind((sockaddr[0], 0, *sockaddr[2:]))
+        except (ValueError, OSError):
             return False
-        try:
-            with socket.socket(family, socket.SOCK_DGRAM) as probe:
-                probe.bind((sockaddr[0], 0, *sockaddr[2:]))
-        except OSError:
-            return False
-    return True
+    return bool(infos)
 
 
 def _check_peer(sock: socket.socket, offer: Offer) -> None:
@@ -156,10 +152,8 @@ class Channel:
             raise
         # Blocking from here, waking every _TICK to see the deadline and a closed connection.
         sock.settimeout(None)
-        tick = min(conn.timeout, _TICK)
-        seconds = int(tick)
-        micros = int((tick - seconds) * 1e6)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", seconds, micros))
+        tick = int(min(conn.timeout, _TICK) * 1e6)  # microseconds, under a second
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("ll", 0, tick))
         self.sock = sock
         magic, version, n, fields = struct.unpack_from("<IIII", self.mm, 0)
         if (magic, version, fields) != (_MAGIC, _VERSION, len(FIELDS)):
@@ -223,9 +217,10 @@ class Channel:
             if until is not None and now >= until:
                 return False
 
-    def receive(self) -> Batch | None:
+    def receive(self) -> Batch:
         """The reply of the Step :meth:`send` rang for: its Batch (views of the region, valid
-        until the next Step), its typed refusal raised, or ``None``: the doorbell closed."""
+        until the next Step) or its typed refusal raised; :class:`Detached` when the doorbell
+        closed, the Step timed out or the connection was closed (given up)."""
         sent = self.sent
         reply = self._poll(sent) if self._spin_next else None
         while reply is None:
@@ -236,14 +231,14 @@ class Channel:
             except BlockingIOError:
                 if closed or time.perf_counter() - sent >= self.timeout:
                     code = grpc.StatusCode["CANCELLED" if closed else "DEADLINE_EXCEEDED"]
-                    raise self.conn.error_for("Step", code, "") from None
+                    why = "was cancelled" if closed else "timed out"
+                    error = self.conn.error_for("Step", code, "")
+                    raise Detached(f"a Step over shared memory {why}", error) from None
             except OSError:
-                return None
+                raise self.gone() from None
         self._spin_next = time.perf_counter() - sent < _SPIN
         if reply != b"K":
-            if not reply:
-                return None
-            raise self._refusal("Step", reply)
+            raise self._refusal("Step", reply) if reply else self.gone()
         lengths = self._lengths.tobytes()
         known, views = self._known
         if lengths != known:
@@ -280,6 +275,12 @@ class Channel:
             except OSError:
                 return None
 
+    def gone(self) -> Detached:
+        return Detached(
+            f"the doorbell of the server at {self.address} closed under a Step (the server died, "
+            "drained or forgot the session)"
+        )
+
     def close(self) -> None:
         self.sock.close()
         self._lengths = None  # the views of the mapping this side keeps
@@ -290,12 +291,12 @@ class Channel:
             pass
 
 
-def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | None:
-    """The shared-memory channel of the session ``offer`` describes, on the server of ``conn``, when
-    ``transport`` allows it and it opens; else ``None``, why logged at debug level (raised as a
-    ``ServiceTransportError`` for ``transport="shm"``)."""
+def open_for(offer: Offer | None, conn: Connection, transport: str) -> Transport:
+    """The transport of the session ``offer`` describes, on the server of ``conn``: shared memory
+    when ``transport`` allows it and its :class:`Channel` opens; else gRPC, why logged at debug
+    level (raised as a ``ServiceTransportError`` for ``transport="shm"``)."""
     if transport == "grpc" or offer is None:
-        return None
+        return GrpcTransport(conn, offer.session_id if offer is not None else "")
     why = None
     if sys.platform != "linux":
         why = "shared memory needs Linux"
@@ -316,7 +317,7 @@ def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | N
         )
     else:
         try:
-            return Channel(offer, conn)
+            return ShmTransport(Channel(offer, conn))
         except (ConnectionRefusedError, FileNotFoundError):
             why = (
                 f"the server at {conn.address} is not on this machine (or runs in another "
@@ -335,25 +336,15 @@ def attach(offer: Offer | None, conn: Connection, transport: str) -> Channel | N
             f"transport='shm': {why}; use transport='auto' to fall back to gRPC",
             address=conn.address,
         )
-    return None
-
-
-class Detached(Exception):
-    """The shared-memory transport ended (private: caught by the session core). ``error``: the
-    error to raise for this Step (a timeout, a cancellation), or ``None``: make it over gRPC."""
-
-    def __init__(self, reason: str, error: ServiceError | None = None) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.error = error
+    return GrpcTransport(conn, offer.session_id)
 
 
 class Transport:
-    """One session's Steps: :meth:`step` returns a Step's Batch."""
+    """One session's Steps: :meth:`step` returns a Step's Batch. ``views``: its Batches are views
+    of a region, valid until the next Step, and a Step may be sent and received apart."""
 
     name: str
     views = False
-    split = False
 
     def step(self, actions: bytes) -> Batch:
         raise NotImplementedError
@@ -381,50 +372,20 @@ class ShmTransport(Transport):
 
     name = "shm"
     views = True
-    split = True
 
     def __init__(self, channel: Channel) -> None:
         self.channel = channel
+        #: A Step sent (False: the doorbell closed, nothing sent), and its reply in by a timeout.
+        self.send, self.ready = channel.send, channel.ready
 
     def step(self, actions: bytes) -> Batch:
         if not self.send(actions):
-            self._closed()
+            raise self.channel.gone()
         return self.receive()
 
-    def send(self, actions: bytes) -> bool:
-        """Sends a Step and returns at once; False when the doorbell closed (nothing sent)."""
-        return self.channel.send(actions)
-
-    def ready(self, timeout: float | None) -> bool:
-        """Whether the reply of the Step :meth:`send` sent is in within ``timeout``."""
-        return self.channel.ready(timeout)
-
     def receive(self) -> Batch:
-        """The Batch of the Step :meth:`send` sent; raises :class:`Detached` as :meth:`step`."""
-        try:
-            batch = self.channel.receive()
-        except ServiceTimeout as e:
-            raise Detached("a Step over shared memory timed out", e) from None
-        except EnvClosed as e:
-            raise Detached("a Step over shared memory was cancelled", e) from None
-        if batch is None:
-            self._closed()
-        return batch
-
-    def _closed(self) -> NoReturn:
-        raise Detached(
-            f"the doorbell of the server at {self.channel.address} closed under a Step (the "
-            "server died, drained or forgot the session)"
-        )
+        """The Batch of the Step :meth:`send` sent (:meth:`Channel.receive`)."""
+        return self.channel.receive()
 
     def close(self) -> None:
         self.channel.close()
-
-
-def open_for(offer: Offer | None, conn: Connection, option: str) -> Transport:
-    """The transport of the session ``offer`` describes: shared memory when ``option`` allows it
-    and it opens (:func:`attach`), else gRPC."""
-    channel = attach(offer, conn, option)
-    if channel is None:
-        return GrpcTransport(conn, offer.session_id if offer is not None else "")
-    return ShmTransport(channel)

@@ -116,14 +116,11 @@ def call_timeout(timeout: float | None) -> float:
     """The deadline of each call, in seconds: ``timeout``, else ``DINERDASH_TIMEOUT``, else
     :data:`DEFAULT_TIMEOUT`. Always finite and positive."""
     if timeout is None:
-        text = os.environ.get("DINERDASH_TIMEOUT", "").strip()
-        if text:
-            try:
-                timeout = float(text)
-            except ValueError:
-                raise ValueError(f"DINERDASH_TIMEOUT: expected seconds, got {text!r}") from None
-        else:
-            timeout = DEFAULT_TIMEOUT
+        text = os.environ.get("DINERDASH_TIMEOUT", "").strip() or str(DEFAULT_TIMEOUT)
+        try:
+            timeout = float(text)
+        except ValueError:
+            raise ValueError(f"DINERDASH_TIMEOUT: expected seconds, got {text!r}") from None
     timeout = float(timeout)
     if not 0 < timeout < float("inf"):
         raise ValueError(f"timeout: expected a positive number of seconds, got {timeout!r}")
@@ -178,13 +175,12 @@ def _speaks_tls(address: str, timeout: float = 2.0) -> bool | None:
         sock = socket.create_connection((host, port), timeout=timeout)
     except OSError:
         return None
-    try:
-        with context.wrap_socket(sock, server_hostname=host):
-            return True
-    except (OSError, ssl.SSLError):
-        return False
-    finally:
-        sock.close()
+    with sock:
+        try:
+            with context.wrap_socket(sock, server_hostname=host):
+                return True
+        except OSError:  # ssl.SSLError included
+            return False
 
 
 def _why_not_grpc(address: str, timeout: float = 2.0) -> str:
@@ -249,24 +245,25 @@ def resolve_replicas(address: str | Sequence[str]) -> list[str]:
     for item in parse_addresses(address):
         host, port = split_host_port(item)
         try:
-            ipaddress.ip_address(host)
-            out.append(item)
-            continue
-        except ValueError:
-            pass
-        try:
-            infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+            infos = [] if is_ip(host) else socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
         except OSError:
-            out.append(item)
-            continue
+            infos = []
         v4 = [i[4][0] for i in infos if i[0] == socket.AF_INET]
-        v6 = [i[4][0] for i in infos if i[0] == socket.AF_INET6]
-        ips = list(dict.fromkeys(v4 or v6))
+        ips = list(dict.fromkeys(v4 or [i[4][0] for i in infos if i[0] == socket.AF_INET6]))
         if len(ips) <= 1:
             out.append(item)  # one server: keep the name (nicer in messages, TLS-friendly)
         else:
             out.extend(join_host_port(ip, port) for ip in ips)
     return out
+
+
+def is_ip(host: str) -> bool:
+    """``host`` is an IP address, not a name."""
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -342,8 +339,7 @@ class ConnectOptions:
             raise TypeError(
                 f"{caller}() got an unexpected keyword argument {unknown[0]!r}"
                 + (f" (and {', '.join(map(repr, unknown[1:]))})" if unknown[1:] else "")
-                + "; "
-                f"the connection keywords are {', '.join(CONNECT_FIELDS)}"
+                + f"; the connection keywords are {', '.join(CONNECT_FIELDS)}"
             )
         if keywords.get("address", 0) is None:
             del keywords["address"]
@@ -356,15 +352,8 @@ class ConnectOptions:
     def connect(self, address: str, wait: bool = True) -> Connection:
         """A :class:`Connection` to one server, with these options (``wait=False``: returned at
         once, without waiting for the server to answer)."""
-        return Connection(
-            address,
-            token=self.token,
-            connect_timeout=self.connect_timeout,
-            timeout=self.timeout,
-            tls=self.tls,
-            tls_ca=self.tls_ca,
-            wait=wait,
-        )
+        fields = ("token", "connect_timeout", "timeout", "tls", "tls_ca")
+        return Connection(address, wait=wait, **{f: getattr(self, f) for f in fields})
 
 
 def _pushback_ms(error: grpc.RpcError) -> int | None:
@@ -615,12 +604,9 @@ class Connection:
         """The typed exception of ``method``'s failure (``code``, ``details``, ``status``: a
         serialized ``google.rpc.Status``) after ``attempts``, over gRPC and shared memory alike."""
         if code == grpc.StatusCode.UNAVAILABLE:
-            if attempts == 1:
-                made = "1 attempt"
-            elif self._channel_attempts(method) == 1:
-                made = f"{attempts} attempts"
-            else:
-                made = f"up to {attempts} attempts"
+            made = "1 attempt" if attempts == 1 else f"{attempts} attempts"
+            if attempts > 1 and self._channel_attempts(method) > 1:
+                made = "up to " + made
             if pushback is not None and pushback < 0:
                 made += "; it asked not to be retried"
             details = (

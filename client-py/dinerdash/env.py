@@ -21,7 +21,7 @@ from ._batch import decode_one, outcome_one
 from ._endpoint import Endpoint
 from ._proto import pb
 from ._session import SessionCore, SessionOwner, check_actions, close_session
-from .connection import Connection, ConnectOptions
+from .connection import ConnectOptions
 from .errors import InvalidArgument
 from .game import NUM_ACTIONS, observation_space
 
@@ -132,10 +132,6 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return self._core.session_id
 
     @property
-    def _conn(self) -> Connection:
-        return self._core.conn
-
-    @property
     def _cores(self) -> list[SessionCore]:
         return [self._core]
 
@@ -204,10 +200,10 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         """A new environment in exactly this one's state (game, random stream), with its own
         session on the same server (a local server this env started stops with this env)."""
         self._check_open("fork()")
-        reply = self._conn.call("Fork", pb.ForkRequest(session_id=self.session_id))
+        reply = self._core.conn.call("Fork", pb.ForkRequest(session_id=self.session_id))
         child = copy.copy(self)
         child._options = dataclasses.replace(
-            self._options, address=self._conn.address, server_binary=None
+            self._options, address=self.address, server_binary=None
         )
         child._endpoint = Endpoint(child._options)
         child._core = SessionCore(child._endpoint, 0, 0, 1, copy.copy(self._settings))
@@ -222,24 +218,21 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
     def snapshot(self) -> Snapshot:
         """Saves the session (game state and random stream); see :meth:`restore`."""
         self._check_open("snapshot()")
-        reply = self._conn.call("Snapshot", pb.SnapshotRequest(session_id=self.session_id))
-        obs = (
-            np.zeros(self.observation_space.shape, np.float32)
-            if self._last_obs is None
-            else self._last_obs.copy()
-        )
+        reply = self._core.conn.call("Snapshot", pb.SnapshotRequest(session_id=self.session_id))
+        obs = self._last_obs
+        obs = np.zeros(self.observation_space.shape, np.float32) if obs is None else obs.copy()
         return Snapshot(reply.snapshot, obs, copy.deepcopy(self._last_info))
 
     def restore(self, snapshot: Snapshot) -> tuple[np.ndarray, dict[str, Any]]:
         """Replaces this environment's session by one restored from ``snapshot`` (of any env, on
         any server of the same snapshot version); returns its observation and info."""
         self._check_open("restore()")
-        reply = self._conn.call("Restore", pb.RestoreRequest(snapshot=bytes(snapshot)))
+        reply = self._core.conn.call("Restore", pb.RestoreRequest(snapshot=bytes(snapshot)))
         old = self.session_id
         self._core.adopt(reply)
         self.spec_proto = reply.spec
         if old is not None:
-            close_session(self._conn, old)
+            close_session(self._core.conn, old)
         self._last_obs = snapshot.observation.copy()
         self._last_info = copy.deepcopy(snapshot.info)
         return self._last_obs.copy(), copy.deepcopy(self._last_info)

@@ -80,11 +80,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         **connection: Any,
     ) -> None:
         mode = AutoresetMode(autoreset_mode)
-        self.metadata = {
-            "render_modes": list(RENDER_MODES),
-            "render_fps": 8,
-            "autoreset_mode": mode,
-        }
+        self.metadata = dict(render_modes=list(RENDER_MODES), render_fps=8, autoreset_mode=mode)
         self.autoreset_mode = mode
         self.num_envs = int(num_envs)
         self._settings = settings = self._take_arguments(
@@ -174,14 +170,14 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def reset(
         self, *, seed: int | Sequence[int] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        seed_list = None
+        seeds = None
         if seed is None or isinstance(seed, (int, np.integer)):
             super().reset(seed=None if seed is None else int(seed))
         else:
-            seed_list = [int(s) for s in seed]
-            if len(seed_list) != self.num_envs:
+            seeds, seed = [int(s) for s in seed], None
+            if len(seeds) != self.num_envs:
                 raise ValueError(
-                    f"seed: expected an int or {self.num_envs} seeds, got {len(seed_list)}"
+                    f"seed: expected an int or {self.num_envs} seeds, got {len(seeds)}"
                 )
         options = check_options(options, ("arrivals", "config", "reset_mask"))
         self._check_idle("reset()")
@@ -200,13 +196,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         if config is not None:
             self._settings.config = config
 
-        # A core with none of its environments in the mask is not called: it keeps its state.
-        given = {
-            "seed": None if seed is None or seed_list is not None else int(seed),
-            "seeds": seed_list,
-            "arrivals": arrivals,
-            "config": config,
-        }
+        given = {"seed": seed, "seeds": seeds, "arrivals": arrivals, "config": config}
         called = self._fleet.reset(given, mask)
         batch = join(self._fleet.batches())
         obs, info = decode(batch, self.expert)
@@ -252,8 +242,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_open("step()")
         if self._fleet.blocking():
             return self.decode_step(self._fleet.step(wire))
-        self._start(wire)
-        return self.decode_step(self._finish())
+        self._fleet.start(wire)
+        self._pending = True
+        return self.step_wait()
 
     def step_async(self, actions: Any) -> None:
         """Checks and sends this step's ``actions`` and returns at once; :meth:`step_wait`
@@ -262,7 +253,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         wire = check_actions(actions, self.num_envs)
         self._check_idle("step_async()")
         self._check_open("step_async()")
-        self._start(wire)
+        self._fleet.start(wire)
+        self._pending = True
 
     def step_wait(
         self, timeout: float | None = None
@@ -279,7 +271,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                     f"step_wait(): no reply within {timeout:g} s; the step is still "
                     "pending, call step_wait() again"
                 )
-        return self.decode_step(self._finish())
+        self._fleet.wait()  # an interrupted wait (Ctrl-C) leaves the step pending
+        self._pending = False
+        return self.decode_step(self._fleet.finish())
 
     def _check_idle(self, what: str) -> None:
         if self._pending:
@@ -287,17 +281,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
                 f"{what} while a step_async() awaits its step_wait(); call step_wait() first",
                 "step",
             )
-
-    def _start(self, wire: np.ndarray) -> None:
-        self._fleet.start(wire)
-        self._pending = True
-
-    def _finish(self) -> list[Batch]:
-        """Every core's Batch of the pending step; an interrupted wait (Ctrl-C) leaves it
-        pending."""
-        self._fleet.wait()
-        self._pending = False
-        return self._fleet.finish()
 
     def action_masks(self) -> np.ndarray:
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
@@ -333,10 +316,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             final_obs = np.full(n, None, dtype=object)
             for i in np.flatnonzero(reset):  # only the environments that just ended
                 final_obs[i] = final[i]
-            info["final_obs"] = final_obs
-            info["_final_obs"] = reset.copy()
-            info["final_info"] = final_info
-            info["_final_info"] = reset.copy()
+            info["final_obs"], info["_final_obs"] = final_obs, reset.copy()
+            info["final_info"], info["_final_info"] = final_info, reset.copy()
         cut = [c for c in self._cores if c.reconnected]
         if cut:
             lost = np.zeros(n, dtype=np.bool_)
