@@ -80,6 +80,9 @@ class KickstartConfig(PPOConfig):
     kick_decay: float = 0.98
     #: Iterations at the start that update only the critic.
     critic_warmup: int = 10
+    #: Whether the critic reads the actor's memory features too (a truncated episode's last
+    #: observation reaches it with them zero); ``hidden`` is its width either way.
+    critic_memory: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -126,7 +129,10 @@ class KickstartModel(eqx.Module):
         else:
             bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
             self.actor = bc.BehaviourCloning(bc_config, ka)
-        self.critic = _mlp([OBSERVATION_SIZE, config.hidden, config.hidden, 1], 1.0, kc)
+        width = OBSERVATION_SIZE
+        if config.critic_memory:
+            width += dagger.memory_size(config.memory, config.timers)
+        self.critic = _mlp([width, config.hidden, config.hidden, 1], 1.0, kc)
         self.scale = observation_scale(config)
 
     def __call__(
@@ -136,8 +142,9 @@ class KickstartModel(eqx.Module):
         return self.actor(obs, mask)
 
     def value(self, obs: jax.Array) -> jax.Array:
-        obs = obs[:, :OBSERVATION_SIZE]  # never the memory features
-        return _forward(self.critic, obs / jnp.asarray(self.scale, jnp.float32))[:, 0]
+        scaled = obs[:, :OBSERVATION_SIZE] / jnp.asarray(self.scale, jnp.float32)
+        features = obs[:, OBSERVATION_SIZE : self.critic[0].in_features]
+        return _forward(self.critic, jnp.concatenate([scaled, features], axis=1))[:, 0]
 
 
 def init(config: KickstartConfig, seed: int = 0) -> KickstartModel:

@@ -10,11 +10,12 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from dinerdash.game import NUM_ACTIONS, OBSERVATION_HIGH, OBSERVATION_SIZE
 
-from dinerdash_agents import bc, kickstart
+from dinerdash_agents import bc, dagger, kickstart
 from dinerdash_agents.checkpoint import load
 from dinerdash_agents.cli import main as agents_main
 from dinerdash_agents.errors import AgentsError
@@ -110,6 +111,22 @@ def test_the_critic_warm_up_leaves_the_actor_unchanged():
     )
 
 
+def test_the_critic_reads_the_memory_features_only_when_told():
+    dagger_config = dagger.DaggerConfig(memory=True, hidden=16, layers=1).to_json()
+    obs = np.concatenate([_batch(4)["obs"][0], np.zeros((4, dagger.memory_size(True)))], 1)
+    moved = obs.copy()
+    moved[:, OBSERVATION_SIZE:] = 1.0
+    for critic_memory in (False, True):
+        config = kickstart.KickstartConfig(
+            init_algorithm="dagger", dagger_config=dagger_config, critic_memory=critic_memory
+        )
+        model = kickstart.init(config)
+        width = obs.shape[1] if critic_memory else OBSERVATION_SIZE
+        assert model.critic[0].in_features == width
+        same = np.allclose(model.value(jnp.asarray(obs)), model.value(jnp.asarray(moved)))
+        assert same is not critic_memory
+
+
 def test_the_kick_coefficient_follows_its_schedule():
     linear = kickstart.KickstartConfig(kick_coef=2.0, kick_until=0.5, critic_warmup=10)
     values = [kickstart.kick_coefficient(linear, i, 110) for i in (0, 10, 35, 60, 100)]
@@ -175,7 +192,7 @@ def test_kickstart_refuses_a_missing_or_foreign_init(server_address: str, tmp_pa
 def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
     server_address: str, tmp_path: Path
 ):
-    from dinerdash_agents import checkpoint, dagger
+    from dinerdash_agents import checkpoint
 
     # A DAgger learner with memory features and timers (untrained: what matters is its input's
     # shape; the committed ppo-kickstart-memory replays the features without timers).
