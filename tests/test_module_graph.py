@@ -231,8 +231,8 @@ def test_no_module_writes_another_objects_private_state(package: str) -> None:
 
 #: A session core's state (:class:`dinerdash._session.SessionCore`): its range of environments
 #: and server (fixed: a move makes new cores) and what a step, a failover, a move or a
-#: reconnect leaves in it. Only ``_session.py`` (the core's own methods: ``restored``,
-#: ``cut_over``, ``interrupt``, ``adopt``...) changes them; every other module reads them.
+#: reconnect leaves in it. Only ``_session.py`` (the core's own methods: ``adopt``,
+#: ``interrupt``, ``reset``...) changes them; every other module reads them.
 SESSION_STATE = [
     "index",
     "start",
@@ -241,7 +241,6 @@ SESSION_STATE = [
     "pending",
     "reconnected",
     "session_id",
-    "spec",
     "offer",
     "transport",
     "last_transport",
@@ -326,7 +325,7 @@ def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> Non
         "    env._core.reconnected = False\n"
         "    core.stop[0] = True\n"
         "    new.start |= 1\n"
-        "    new.spec.update([2])\n"
+        "    new.transport.update([2])\n"
         "    x = core.last\n"
         "    loads[core.index] += core.stop\n"
         "    mask[[i - core.start for i in core.session_id]] = True\n"
@@ -343,7 +342,7 @@ def test_the_session_state_check_sees_every_kind_of_write(tmp_path: Path) -> Non
         "env._core.reconnected",
         "core.stop",
         "new.start",
-        "new.spec.update()",
+        "new.transport.update()",
     ], found
 
 

@@ -21,14 +21,15 @@ Config = Mapping[str, int] | pb.GameConfig | None
 EXPERTS = {"expert": pb.POLICY_EXPERT, "planner": pb.POLICY_PLANNER}
 
 
-def expert_fields(expert: bool | str) -> dict[str, Any]:
-    """The CreateSession fields for ``expert=``: ``False`` (no ``expert_action``), ``True`` or
-    ``"expert"`` (the reference heuristic), or ``"planner"`` (the look-ahead planner)."""
+def expert_fields(expert: bool | str) -> tuple[bool, int]:
+    """CreateSession's ``expert_actions`` and ``expert_policy`` for ``expert=``: ``False`` (no
+    ``expert_action``), ``True`` or ``"expert"`` (the reference heuristic), or ``"planner"`` (the
+    look-ahead planner)."""
     if isinstance(expert, str):
         if expert not in EXPERTS:
             raise ValueError(f"expert must be a bool or one of {sorted(EXPERTS)}, got {expert!r}")
-        return {"expert_actions": True, "expert_policy": EXPERTS[expert]}
-    return {"expert_actions": bool(expert), "expert_policy": pb.POLICY_EXPERT}
+        return True, EXPERTS[expert]
+    return bool(expert), pb.POLICY_EXPERT
 
 
 def make_config(config: Config) -> pb.GameConfig | None:

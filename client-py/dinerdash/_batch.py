@@ -44,11 +44,6 @@ _LIST_UP_TO = 32
 STATE = ("observations", "scores", "lost", "ticks", "action_masks", "expert_actions")
 
 
-def _empty(name: str, n: int) -> np.ndarray:
-    dtype, width = FIELDS[name]
-    return np.zeros((n, width) if width > 1 else n, dtype=dtype)
-
-
 class Batch:
     """One reply for ``num_envs`` environments: each field it has as an array of ``num_envs`` rows
     (``batch[name]`` reads a field it lacks as zeros); a gRPC reply's decoded when first read."""
@@ -115,7 +110,8 @@ class Batch:
         if value is None:
             value = self.get(name)
             if value is None:
-                return _empty(name, self.num_envs)
+                dtype, width = FIELDS[name]
+                return np.zeros((self.num_envs, width) if width > 1 else self.num_envs, dtype)
         return value
 
     def __contains__(self, name: str) -> bool:

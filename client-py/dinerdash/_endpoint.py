@@ -42,8 +42,8 @@ class Endpoint:
         self.addresses = addresses[:max_servers]  # None: all
         #: The indices of the servers given up, in the order they were lost.
         self.given_up: list[int] = []
-        #: Draining servers: index -> the time.monotonic() by which their sessions must be gone.
-        self.draining: dict[int, float] = {}
+        #: The indices of the draining servers, in the order they said so (a dict's keys).
+        self.draining: dict[int, None] = {}
         #: Servers given up for a failure (not drained), taken back or added, since the open.
         self.failovers = 0
         self.rejoins = 0
@@ -133,19 +133,15 @@ class Endpoint:
         log.info("took in the server at %s: a new replica", conn.address)
 
     def drain(self, index: int, remaining: float | None) -> None:
-        """Server ``index`` drains, ``remaining`` seconds before its deadline (``None``: unsaid)."""
-        if index in self.given_up:
-            return
-        deadline = float("inf") if remaining is None else time.monotonic() + remaining
-        if index not in self.draining:
+        """Server ``index`` drains, ``remaining`` seconds before its deadline (``None``: unsaid):
+        said once."""
+        if index not in self.given_up and index not in self.draining:
+            self.draining[index] = None
             log.info(
                 "the server at %s drains (%s): its sessions move to the other servers",
                 self.addresses[index],
                 "deadline unknown" if remaining is None else f"{remaining:.1f} s left",
             )
-        elif remaining is None:
-            return
-        self.draining[index] = deadline
 
     def close(self) -> None:
         for conn in self.connections:

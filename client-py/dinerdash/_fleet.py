@@ -79,8 +79,6 @@ class Fleet:
             if len(endpoint.connections) > 1 or has_name(options.address):
                 self.membership = Membership(endpoint)
 
-    # -- a step and a reset --------------------------------------------------------------------
-
     def blocking(self) -> bool:
         """One session and no other server to watch: the step is one blocking call."""
         return len(self.cores) == 1 and not self.watched()
@@ -103,7 +101,7 @@ class Fleet:
         """Waits for every reply of the step :meth:`start` sent."""
         if self.watched():
             waiting = [(c.index, c.step_ready) for c in self.cores]
-            await_replies(waiting, self.endpoint, self.settings.failover_after, self.sent)
+            await_replies(waiting, self.endpoint, self.options.failover_after, self.sent)
         else:
             for core in self.cores:
                 core.step_ready()
@@ -150,7 +148,7 @@ class Fleet:
                 calls[core] = (req, None if core.given_up() else core.conn.future("Reset", req))
         if self.watched():
             waiting = [(c.index, _ready(f)) for c, (_, f) in calls.items() if f is not None]
-            await_replies(waiting, self.endpoint, self.settings.failover_after, time.monotonic())
+            await_replies(waiting, self.endpoint, self.options.failover_after, time.monotonic())
         self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), given)
         return called
 
@@ -167,15 +165,13 @@ class Fleet:
         return [c.last for c in self.cores]
 
     def failover_on(self) -> bool:
-        return self.settings.reconnect and self.settings.failover_after is not None
-
-    # -- failover -------------------------------------------------------------------------------
+        return self.options.reconnect and self.options.failover_after is not None
 
     def fail_over(self, lost: list[SessionCore], given: dict | None) -> None:
         """Gives up the servers of the ``lost`` cores and moves their environments (:meth:`move`,
         ``given``: a reset's keywords); the other cores are not touched."""
         for core in lost:
-            after = core.settings.failover_after
+            after = self.options.failover_after
             self.endpoint.give_up(core.index, f"unreachable past failover_after={after:g} s")
             core.close()
         kept = [c for c in self.cores if all(c is not x for x in lost)]
@@ -203,12 +199,16 @@ class Fleet:
                 raise NoServerLeft(
                     f"no server left for environments {core.start}..{core.stop - 1}: every "
                     f"server of the env was given up ({lost or 'none'}), each unreachable for "
-                    f"more than failover_after={core.settings.failover_after:g} s, or drains "
+                    f"more than failover_after={self.options.failover_after:g} s, or drains "
                     f"({draining or 'none'})",
                     address=core.conn.address,
                 )
             made: list[SessionCore] = []
-            parts = even_parts(core.start, core.stop, servers_loads(others, candidates))
+            loads = dict.fromkeys(candidates, 0)
+            for other in others:
+                if other.index in loads:
+                    loads[other.index] += other.stop - other.start
+            parts = even_parts(core.start, core.stop, loads)
             try:
                 for lo, hi, target in parts:
                     new = SessionCore(endpoint, target, lo, hi, core.settings)
@@ -228,8 +228,6 @@ class Fleet:
                     endpoint.drain(target, None)
                 candidates.remove(target)
 
-    # -- moves ----------------------------------------------------------------------------------
-
     def settle(self) -> None:
         """After a step or a reset: takes in the servers the membership watch found, notes which
         servers drain, and splits or moves slices at once (:func:`plan`, :meth:`split`) until no
@@ -244,16 +242,20 @@ class Fleet:
         if key == self.settled_key:
             return  # nothing changed since the slices were where they should be: the common step
         cores = list(self.cores)
-        slices = [(c.index, c.start, c.stop, c.movable()) for c in cores]
-        moves = plan(slices, self.num_envs, targets) if targets else []
         # The first refused stops the moves: planned again at the next step, knowing the refusal.
-        settled = all(self.split(cores[k], parts) for k, parts in moves)
+        settled = all(self.split(cores[k], parts) for k, parts in self.planned(targets))
         for i in list(endpoint.draining):
             if not any(c.index == i for c in self.cores):
                 endpoint.give_up(i)  # drained: probed, and taken back once it serves again
         key, targets = self.key()
-        settled = settled and not self.refused_until and self.balanced(targets)
+        settled = settled and not self.refused_until and not self.planned(targets, everyone=True)
         self.settled_key = key if settled else None
+
+    def planned(self, targets: list[int], everyone: bool = False) -> list:
+        """:func:`plan` for the slices as they are, those that may move now (``everyone``: all;
+        then nothing planned says every environment is on ``targets``, their loads within one)."""
+        slices = [(c.index, c.start, c.stop, everyone or c.movable()) for c in self.cores]
+        return plan(slices, self.num_envs, targets) if targets else []
 
     def key(self) -> tuple[tuple, list[int]]:
         """What :meth:`settle` compares with :attr:`settled_key`, and the :meth:`targets`."""
@@ -282,13 +284,6 @@ class Fleet:
             del self.refused_until[j]
         return [j for j in self.endpoint.open_to_new() if j not in self.refused_until]
 
-    def balanced(self, targets: list[int]) -> bool:
-        """Every environment is on a server of ``targets``, whose loads differ by at most one."""
-        loads = servers_loads(self.cores, targets)
-        if not targets or any(c.index not in loads for c in self.cores):
-            return not targets
-        return max(loads.values()) - min(loads.values()) <= 1
-
     def split(self, core: SessionCore, parts: list[tuple[int, int, int]]) -> bool:
         """Replaces ``core`` by new cores for ``parts`` (``(start, stop, server)``, covering its
         environments): a Snapshot of each range, restored on its server; then ``core``'s session is
@@ -307,8 +302,13 @@ class Fleet:
                 try:
                     if self.restore(new, snapshot.snapshot, last, core) and dest != core.index:
                         moved += hi - lo
-                except ServiceError as e:
-                    self.refused(dest, e)
+                except ServiceError as e:  # marked draining, given up (no answer), or full
+                    if isinstance(e, ServerDraining):
+                        self.endpoint.drain(dest, None)
+                    elif isinstance(e, (ServiceTransportError, ServiceTimeout)):
+                        self.endpoint.give_up(dest, f"could not restore a session there: {e}")
+                    else:
+                        self.refused_until[dest] = time.monotonic() + REFUSED_WAIT
                     raise
         except BaseException as e:
             for new in made:
@@ -342,24 +342,14 @@ class Fleet:
                     e.details,
                 )
             new.create(timeout)
-            new.cut_over(*cut(last, new.reset_new(timeout), self.settings.autoreset_mode))
+            new.interrupt(last, cut, timeout)
             return False
-        new.restored(reply, last)
+        new.adopt(reply, last)
         return True
-
-    def refused(self, dest: int, error: ServiceError) -> None:
-        """Server ``dest`` could not take environments: marked draining, given up (no answer), or
-        (full) not asked for :data:`REFUSED_WAIT`."""
-        if isinstance(error, ServerDraining):
-            self.endpoint.drain(dest, None)
-        elif isinstance(error, (ServiceTransportError, ServiceTimeout)):
-            self.endpoint.give_up(dest, f"could not restore a session there: {error}")
-        else:
-            self.refused_until[dest] = time.monotonic() + REFUSED_WAIT
 
     def move_timeout(self) -> float:
         """The deadline of a move's calls: a server silent for ``failover_after`` is passed over."""
-        return min(self.options.timeout, self.settings.failover_after)
+        return min(self.options.timeout, self.options.failover_after)
 
 
 def plan(
@@ -405,15 +395,6 @@ def plan(
         if at == hi:
             out.append((pos, parts))
     return out
-
-
-def servers_loads(cores: list[SessionCore], servers: list[int]) -> dict[int, int]:
-    """Server index -> environments ``cores`` hold there, for each of ``servers``."""
-    loads = dict.fromkeys(servers, 0)
-    for c in cores:
-        if c.index in loads:
-            loads[c.index] += c.size
-    return loads
 
 
 def even_parts(start: int, stop: int, loads: dict[int, int]) -> list[tuple[int, int, int]]:
@@ -504,7 +485,6 @@ class Membership:
     def __init__(self, endpoint: Endpoint) -> None:
         self._endpoint = endpoint
         self._options = options = endpoint.options
-        self._address = options.address
         #: address -> (index or None for a new replica, connection, health check in flight).
         self._probes: dict[str, tuple[int | None, Connection, grpc.Future | None]] = {}
         self._next = time.monotonic() + PROBE_EVERY
@@ -559,7 +539,7 @@ class Membership:
     def _resolve(self, every: float) -> None:
         while not self._stop.wait(every):
             try:
-                self._replicas = connection.resolve_replicas(self._address)
+                self._replicas = connection.resolve_replicas(self._options.address)
             except (OSError, ValueError):
                 pass
 

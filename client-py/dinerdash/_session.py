@@ -56,11 +56,6 @@ class Settings:
     expert: bool = False
     #: Which expert fills ``expert_action`` (``pb.POLICY_EXPERT`` or ``pb.POLICY_PLANNER``).
     expert_policy: int = pb.POLICY_EXPERT
-    reconnect: bool = False
-    reconnect_timeout: float = 60.0
-    #: Seconds a lost server is waited for before its environments move to the servers left
-    #: (``reconnect=True``, several servers); ``None``: it is waited for ``reconnect_timeout``.
-    failover_after: float | None = None
     #: Several cores: errors name the environments by their index in the whole env.
     split: bool = False
 
@@ -192,22 +187,14 @@ class SessionOwner:
     ) -> Settings:
         """Checks and keeps the arguments both envs take; returns their cores' :class:`Settings`."""
         self.render_mode = check_render_mode(render_mode)
-        expert_request = expert_fields(expert)
-        self.expert = expert_request["expert_actions"]
+        self.expert, expert_policy = expert_fields(expert)
         self._options = options = ConnectOptions.merged(
             connect, type(self).__name__, address=address, **connection
         )
         self.reconnect = options.reconnect
         self.reconnect_timeout = options.reconnect_timeout
         self.ansi_color = ansi_color
-        return Settings(
-            expert=self.expert,
-            expert_policy=expert_request["expert_policy"],
-            reconnect=self.reconnect,
-            reconnect_timeout=self.reconnect_timeout,
-            num_envs=num_envs,
-            autoreset_mode=autoreset_mode,
-        )
+        return Settings(num_envs, autoreset_mode, expert=self.expert, expert_policy=expert_policy)
 
     @property
     def server(self):
@@ -234,7 +221,6 @@ class SessionCore:
         self.settings = settings
         #: The session on the server, ``None`` before :meth:`create` and after :meth:`close`.
         self.session_id: str | None = None
-        self.spec: pb.Spec | None = None
         #: The last Batch received (over shared memory: views valid until the next Step).
         self.last: Batch | None = None
         #: NEXT_STEP after a reconnect: the new session's first Batch, the next step's autoreset.
@@ -258,19 +244,12 @@ class SessionCore:
     def conn(self) -> Connection:
         return self.endpoint.connections[self.index]
 
-    @property
-    def size(self) -> int:
-        """The environments this core holds."""
-        return self.stop - self.start
-
     def given_up(self) -> bool:
         return self.index in self.endpoint.given_up
 
     def movable(self) -> bool:
         """Its environments may move now: reset, and no step cut by a failover still to report."""
         return self.last is not None and self.pending is None and not self.reconnected
-
-    # -- what the env reports -------------------------------------------------------------------
 
     def start_after(self, lost: SessionCore, given: dict | None) -> None:
         """This new core's session (created) takes over environments of ``lost``'s (its server
@@ -279,32 +258,18 @@ class SessionCore:
         if given is not None:
             self.last = Batch.from_pb(self.conn.call("Reset", self.reset_request(**given)))
         else:
-            last = lost.last.slice(self.start - lost.start, self.stop - lost.start)
-            self.last = self.interrupt(last, self.reset_new())
-
-    def restored(self, reply: pb.CreateSessionResponse, last: Batch) -> None:
-        """This new core's session is Restore's ``reply`` (environments moved exactly); ``last``
-        is their report of the step just made."""
-        self.adopt(reply)
-        self.last = last
-
-    def cut_over(self, last: Batch, pending: Batch | None) -> None:
-        """This new core's session took over cut episodes (:func:`~dinerdash._batch.cut`): ``last``
-        reports the step just made, ``pending`` (NEXT_STEP) the next one."""
-        self.last, self.pending, self.reconnected = last, pending, True
+            self.interrupt(lost.last.slice(self.start - lost.start, self.stop - lost.start))
 
     def take_reconnected(self) -> bool:
         """Whether the session was reopened (or episodes cut) in the step just reported; once."""
         reconnected, self.reconnected = self.reconnected, False
         return reconnected
 
-    # -- the session ----------------------------------------------------------------------------
-
     def create(self, timeout: float | None = None) -> pb.Spec:
         """Opens the session (not reset yet) and returns the server's Spec."""
         s = self.settings
         request = pb.CreateSessionRequest(
-            num_envs=self.size,
+            num_envs=self.stop - self.start,
             config=s.config,
             autoreset_mode=_WIRE_AUTORESET[s.autoreset_mode],
             action_masks=True,
@@ -319,11 +284,12 @@ class SessionCore:
         self.attach()
         return reply.spec
 
-    def adopt(self, reply: pb.CreateSessionResponse) -> None:
-        """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's."""
+    def adopt(self, reply: pb.CreateSessionResponse, last: Batch | None = None) -> None:
+        """Makes the session of ``reply`` (CreateSession's, Fork's or Restore's) this core's;
+        ``last``: a Restore's, the moved environments' report of the step just made."""
         self.detach()
-        self.session_id, self.spec = reply.session_id, reply.spec
-        self.last = self.pending = None
+        self.session_id = reply.session_id
+        self.last, self.pending = last, None
         self.offer = _shm.Offer.of(reply)
 
     def attach(self) -> None:
@@ -358,18 +324,15 @@ class SessionCore:
         """Waits for the lost server and opens a new session there (``reconnect=True``), for
         ``failover_after`` when another server is left (then :class:`ServerLost`), else for
         ``reconnect_timeout`` (then the error, or ``NoServerLeft`` after a failover)."""
-        endpoint, s = self.endpoint, self.settings
+        endpoint, options = self.endpoint, self.endpoint.options
         if self.index in endpoint.given_up:
             raise ServerLost(self, error)
-        lost = (
-            f"environments {self.start}..{self.stop - 1} ({error})"
-            if s.split or s.num_envs > 1
-            else f"the session ({error})"
-        )
-        failover = s.failover_after is not None and len(endpoint.connections) > 1
+        what = f"environments {self.start}..{self.stop - 1}"
+        lost = f"{what if self.settings.num_envs > 1 else 'the session'} ({error})"
+        failover = options.failover_after is not None and len(endpoint.connections) > 1
         others = failover and len(endpoint.live()) > 1
         try:
-            wait = s.failover_after if others else s.reconnect_timeout
+            wait = options.failover_after if others else options.reconnect_timeout
             endpoint.reopen(self.index, self.create, lost, wait)
         except ServiceTransportError as e:
             if others:
@@ -379,7 +342,7 @@ class SessionCore:
             before = ", ".join(endpoint.addresses[i] for i in endpoint.given_up)
             raise NoServerLeft(
                 f"no server left: {e.details}; the env's other servers were given up before "
-                f"({before}), each after failover_after={s.failover_after:g} s",
+                f"({before}), each after failover_after={options.failover_after:g} s",
                 code=e.code,
                 address=e.address,
             ) from None
@@ -399,7 +362,7 @@ class SessionCore:
     def fail(self, error: ServiceError) -> ServiceError:
         """``error`` naming its environments' indices in the whole env when it is split over
         servers, and, for a lost server without ``reconnect=True``, what would ride it out."""
-        lost = isinstance(error, LOST) and not self.settings.reconnect
+        lost = isinstance(error, LOST) and not self.endpoint.options.reconnect
         if not (self.settings.split or lost):
             return error
         env_index = error.env_index
@@ -427,8 +390,6 @@ class SessionCore:
             env_index=env_index,
             metadata=error.metadata,
         )
-
-    # -- Reset ----------------------------------------------------------------------------------
 
     def reset_request(
         self,
@@ -463,7 +424,7 @@ class SessionCore:
                 batch = Batch.from_pb(self.conn.result("Reset", request, future))
         except ServiceError as e:
             # A call cancelled because its server was given up (silent) is lost too.
-            if not self.settings.reconnect or not (isinstance(e, LOST) or self.given_up()):
+            if not self.endpoint.options.reconnect or not (isinstance(e, LOST) or self.given_up()):
                 raise self.fail(e) from None
             self.reopen(e)
             request.session_id = self.session_id
@@ -472,17 +433,12 @@ class SessionCore:
         self.last, self.pending, self.drain_ms = batch, None, batch.drain_ms
         return batch
 
-    def reset_new(self, timeout: float | None = None) -> Batch:
-        """The Batch of a new session's first Reset, unseeded (its server draws the seeds)."""
-        request = pb.ResetRequest(session_id=self.session_id)
-        return Batch.from_pb(self.conn.call("Reset", request, timeout=timeout))
-
-    # -- Step -----------------------------------------------------------------------------------
-
     def step(self, actions: bytes, sent: bool = False) -> Batch:
         """One Step of this core's environments (``actions``: packed int32), blocking; ``sent``:
-        :meth:`start_step` sent it over shared memory, only its reply is awaited. A lost server
-        (``reconnect=True``) is recovered from (:meth:`recover_step`)."""
+        :meth:`start_step` sent it over shared memory, only its reply is awaited. Shared memory
+        lost under it changes to gRPC, where the Step is made unless it was abandoned; a lost
+        server (``reconnect=True``) gives a new session and a Batch that ends the interrupted
+        episodes (truncated)."""
         if self.pending is not None and not sent:
             batch, self.pending = self.pending, None
         else:
@@ -491,13 +447,26 @@ class SessionCore:
                     raise ServiceTransportError(
                         "the server was given up", address=self.conn.address
                     )
-                batch = self.step_on(actions, sent)
+                try:
+                    batch = (
+                        self.transport.receive() if sent else self.ready_transport().step(actions)
+                    )
+                except _shm.Detached as gone:
+                    self.detach()
+                    self.transport = _shm.GrpcTransport(self.conn, self.session_id)
+                    self.changed("grpc", gone.reason)
+                    if gone.error is not None:
+                        raise gone.error from None
+                    batch = self.transport.step(actions)
                 self.drain_ms = batch.drain_ms
             except ServiceError as e:
                 # A call cancelled because its server was given up (silent) is lost too.
-                if not (isinstance(e, LOST) or self.given_up()):
+                lost = isinstance(e, LOST) or self.given_up()
+                if not (lost and self.endpoint.options.reconnect and self.last is not None):
                     raise self.fail(e) from None
-                batch = self.recover_step(e)
+                last = self.last
+                self.reopen(e)
+                batch = self.interrupt(last)
         self.last = batch
         return batch
 
@@ -506,24 +475,9 @@ class SessionCore:
         next Step overwrites it and a lost server's episodes may end in it."""
         if self.transport is None:
             self.attach()
-        if self.transport.views and self.last is not None and self.settings.reconnect:
+        if self.transport.views and self.last is not None and self.endpoint.options.reconnect:
             self.last = self.last.copy()
         return self.transport
-
-    def step_on(self, actions: bytes, sent: bool = False) -> Batch:
-        """One Step on the session's transport (``sent``: its reply only); shared memory lost under
-        it changes to gRPC, where the Step is made unless it was abandoned."""
-        try:
-            if sent:
-                return self.transport.receive()
-            return self.ready_transport().step(actions)
-        except _shm.Detached as gone:
-            self.detach()
-            self.transport = _shm.GrpcTransport(self.conn, self.session_id)
-            self.changed("grpc", gone.reason)
-            if gone.error is not None:
-                raise gone.error from None
-            return self.transport.step(actions)
 
     def start_step(self, actions: bytes) -> None:
         """Starts a Step (over shared memory sent here, else by the step thread);
@@ -560,23 +514,16 @@ class SessionCore:
             return self.step(actions, sent=True)
         return self.step_thread.result()
 
-    def recover_step(self, error: ServiceError) -> Batch:
-        """With ``reconnect=True``, a new session and the Batch that ends the interrupted episodes
-        (truncated); otherwise ``error`` raised."""
-        if not self.settings.reconnect or self.last is None:
-            raise self.fail(error) from None
-        last = self.last
-        self.reopen(error)
-        return self.interrupt(last, self.reset_new())
-
-    def interrupt(self, last: Batch, first: Batch) -> Batch:
-        """The Batch that ends this core's episodes (``last``: the lost session's) and starts the
-        new session's (``first``, its Reset's): :func:`~dinerdash._batch.interrupt`."""
-        out, self.pending = interrupt(last, first, self.settings.autoreset_mode)
+    def interrupt(self, last: Batch, ends=interrupt, timeout: float | None = None) -> Batch:
+        """Ends this core's episodes (``last``: their last report; ``ends``: the lost session's,
+        :func:`~dinerdash._batch.interrupt`, or a refused Restore's, :func:`~dinerdash._batch.cut`)
+        and starts its new session's by an unseeded Reset (its server draws the seeds): the Batch
+        they report, kept as :attr:`last`, its ``pending`` the next step's (NEXT_STEP)."""
+        request = pb.ResetRequest(session_id=self.session_id)
+        first = Batch.from_pb(self.conn.call("Reset", request, timeout=timeout))
+        self.last, self.pending = ends(last, first, self.settings.autoreset_mode)
         self.reconnected = True
-        return out
-
-    # -- the rest -------------------------------------------------------------------------------
+        return self.last
 
     def render_text(self, env_index: int, color: bool) -> str:
         request = pb.RenderRequest(session_id=self.session_id, env_index=env_index, color=color)

@@ -375,17 +375,14 @@ class ShmTransport(Transport):
 
     def __init__(self, channel: Channel) -> None:
         self.channel = channel
-        #: A Step sent (False: the doorbell closed, nothing sent), and its reply in by a timeout.
-        self.send, self.ready = channel.send, channel.ready
+        #: A Step sent (False: the doorbell closed, nothing sent), its reply in by a timeout, and
+        #: its Batch (:meth:`Channel.receive`).
+        self.send, self.ready, self.receive = channel.send, channel.ready, channel.receive
 
     def step(self, actions: bytes) -> Batch:
         if not self.send(actions):
             raise self.channel.gone()
         return self.receive()
-
-    def receive(self) -> Batch:
-        """The Batch of the Step :meth:`send` sent (:meth:`Channel.receive`)."""
-        return self.channel.receive()
 
     def close(self) -> None:
         self.channel.close()

@@ -127,23 +127,6 @@ def call_timeout(timeout: float | None) -> float:
     return timeout
 
 
-def check_seconds_or_none(name: str, value: Any, none: str) -> float | None:
-    """Keyword ``name`` as seconds: ``None``, or a positive finite number (not a bool)."""
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(
-            f"{name}: expected a number of seconds or None, got {type(value).__name__} {value!r}"
-        )
-    seconds = float(value)
-    if not (seconds > 0 and math.isfinite(seconds)):
-        raise ValueError(
-            f"{name}: expected a positive, finite number of seconds (or None: {none}), "
-            f"got {value!r}"
-        )
-    return seconds
-
-
 def tls_credentials(
     tls: bool, tls_ca: str | os.PathLike | bool | None
 ) -> grpc.ChannelCredentials | None:
@@ -326,7 +309,20 @@ class ConnectOptions:
                 raise ValueError(f"{name}: expected a positive number of seconds, got {value!r}")
         no_failover = "a lost server is waited for reconnect_timeout, as without failover"
         for name, none in (("failover_after", no_failover), ("resolve_every", "never")):
-            object.__setattr__(self, name, check_seconds_or_none(name, getattr(self, name), none))
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise TypeError(
+                    f"{name}: expected a number of seconds or None, got {type(value).__name__} "
+                    f"{value!r}"
+                )
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(
+                    f"{name}: expected a positive, finite number of seconds (or None: {none}), "
+                    f"got {value!r}"
+                )
+            object.__setattr__(self, name, float(value))
 
     @classmethod
     def merged(cls, connect: ConnectOptions | None, caller: str, **keywords: Any) -> ConnectOptions:
@@ -364,12 +360,6 @@ def _pushback_ms(error: grpc.RpcError) -> int | None:
         return None if value is None else int(value)
     except (TypeError, ValueError):
         return -1
-
-
-def _serving(reply: bytes) -> bool:
-    """A ``grpc.health.v1.HealthCheckResponse`` is SERVING (field 1 is 1): decoded by hand, the
-    client needs no grpcio-health-checking."""
-    return reply == b"\x08\x01"
 
 
 #: The keywords that :class:`ConnectOptions` stands for, in its field order.
@@ -634,7 +624,8 @@ class Connection:
             self._health = self.channel.unary_unary(
                 "/grpc.health.v1.Health/Check",
                 request_serializer=bytes,
-                response_deserializer=_serving,
+                # SERVING (field 1 is 1) read by hand: the client needs no grpcio-health-checking
+                response_deserializer=lambda reply: reply == b"\x08\x01",
             )
         return self._health.future(
             b"", timeout=timeout, metadata=self._metadata, wait_for_ready=True

@@ -31,19 +31,6 @@ __all__ = ["DinerDashEnv", "Snapshot"]
 _ACTION_BYTES = tuple(struct.pack("<i", a) for a in range(NUM_ACTIONS))
 
 
-def _integer_action(action: Any) -> int:
-    """An action given as a one-element integer array (``np.array(3)``, ``[3]``); a float or a
-    string is refused, as Gymnasium's ``Discrete`` refuses it."""
-    acts = np.asarray(action)
-    if acts.size != 1 or acts.dtype.kind not in "iu":
-        raise InvalidArgument(
-            f"action must be an integer in 0..={NUM_ACTIONS - 1}, got {action!r}",
-            reason="ACTION_NOT_INTEGER",
-            field="action",
-        )
-    return int(acts.reshape(()))
-
-
 def _close(core: SessionCore, endpoint: Endpoint) -> None:
     core.close()
     endpoint.close()
@@ -105,8 +92,6 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         self.observation_space = observation_space(self.spec_proto)
         self.action_space = spaces.Discrete(self.spec_proto.num_actions)
 
-    # -- session --------------------------------------------------------------------------------
-
     def _open(self) -> None:
         """Connects and creates the session (at construction, and at a reset after close), on
         one replica at random: many single envs (e.g. under AsyncVectorEnv) spread over them."""
@@ -140,8 +125,6 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             raise gym.error.ResetNeeded("call reset() before render()")
         return [self._last_obs], [self._last_info["score"]], [self._last_info["lost"]]
 
-    # -- Gymnasium API ------------------------------------------------------------------------
-
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -161,7 +144,17 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         return obs.copy(), dict(info)
 
     def step(self, action: Any) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict[str, Any]]:
-        a = int(action) if isinstance(action, (int, np.integer)) else _integer_action(action)
+        if isinstance(action, (int, np.integer)):
+            a = int(action)
+        else:  # one integer as an array (np.array(3), [3]); floats and strings refused, as Discrete
+            acts = np.asarray(action)
+            if acts.size != 1 or acts.dtype.kind not in "iu":
+                raise InvalidArgument(
+                    f"action must be an integer in 0..={NUM_ACTIONS - 1}, got {action!r}",
+                    reason="ACTION_NOT_INTEGER",
+                    field="action",
+                )
+            a = int(acts.reshape(()))
         if 0 <= a < NUM_ACTIONS:
             data = _ACTION_BYTES[a]
         else:
@@ -193,8 +186,6 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
             self._finalizer()
             self._closed = True
         super().close()
-
-    # -- extras from the server ---------------------------------------------------------------
 
     def fork(self) -> DinerDashEnv:
         """A new environment in exactly this one's state (game, random stream), with its own

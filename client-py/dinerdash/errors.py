@@ -173,8 +173,33 @@ def error_for_status(
     address: str | None = None,
     status_details: bytes | None = None,
 ) -> ServiceError:
-    """The typed exception for a gRPC status and its ``grpc-status-details-bin`` trailer."""
-    reason, field, env_index, metadata = _decode_details(status_details)
+    """The typed exception for a gRPC status and its ``grpc-status-details-bin`` trailer (a
+    serialized ``google.rpc.Status``: ``reason``, ``field``, ``env_index``, other metadata)."""
+    reason = field = env_index = None
+    metadata: dict[str, str] = {}
+    if status_details:
+        # Imported on first use: only failing calls pay for the google.rpc descriptors.
+        from google.rpc import error_details_pb2, status_pb2
+
+        status = status_pb2.Status()
+        try:
+            status.ParseFromString(status_details)
+        except Exception:  # a trailer we cannot read is no worse than none
+            status = status_pb2.Status()
+        for detail in status.details:
+            if detail.Is(error_details_pb2.ErrorInfo.DESCRIPTOR):
+                info = error_details_pb2.ErrorInfo()
+                detail.Unpack(info)
+                if info.domain == ERROR_DOMAIN:
+                    reason = info.reason
+                    metadata.update(info.metadata)
+            elif detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
+                bad = error_details_pb2.BadRequest()
+                detail.Unpack(bad)
+                if bad.field_violations:
+                    field = bad.field_violations[0].field
+        index = metadata.pop("env_index", None)
+        env_index = int(index) if index is not None and index.isdigit() else None
     cls = _BY_REASON.get(reason or "") or _BY_CODE.get(code, ServiceInternalError)
     return cls(
         details or "(no message)",
@@ -194,36 +219,3 @@ def trailer(error: grpc.RpcError, key: str) -> Any:
         if name == key:
             return value
     return None
-
-
-def _decode_details(
-    data: bytes | None,
-) -> tuple[str | None, str | None, int | None, dict[str, str]]:
-    """``(reason, field, env_index, other metadata)`` of a serialized ``google.rpc.Status``."""
-    if not data:
-        return None, None, None, {}
-    # Imported on first use: only failing calls pay for the google.rpc descriptors.
-    from google.rpc import error_details_pb2, status_pb2
-
-    status = status_pb2.Status()
-    try:
-        status.ParseFromString(data)
-    except Exception:  # a trailer we cannot read is no worse than none
-        return None, None, None, {}
-    reason = field = None
-    metadata: dict[str, str] = {}
-    for detail in status.details:
-        if detail.Is(error_details_pb2.ErrorInfo.DESCRIPTOR):
-            info = error_details_pb2.ErrorInfo()
-            detail.Unpack(info)
-            if info.domain == ERROR_DOMAIN:
-                reason = info.reason
-                metadata.update(info.metadata)
-        elif detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
-            bad = error_details_pb2.BadRequest()
-            detail.Unpack(bad)
-            if bad.field_violations:
-                field = bad.field_violations[0].field
-    index = metadata.pop("env_index", None)
-    env_index = int(index) if index is not None and index.isdigit() else None
-    return reason, field, env_index, metadata

@@ -94,15 +94,13 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             cfg.time_limit = int(max_episode_steps)
             config = cfg
         settings.config = config
-        self.failover_after = settings.failover_after = self._options.failover_after
+        self.failover_after = self._options.failover_after
         self._open()
         spec = self.spec_proto
         self.single_observation_space = observation_space(spec)
         self.single_action_space = spaces.Discrete(spec.num_actions)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-
-    # -- sessions -------------------------------------------------------------------------------
 
     def _open(self) -> None:
         """Opens the fleet (at construction, and at a reset after close)."""
@@ -164,8 +162,6 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     @property
     def session_ids(self) -> list[str | None]:
         return [c.session_id for c in self._cores]
-
-    # -- Gymnasium API --------------------------------------------------------------------------
 
     def reset(
         self, *, seed: int | Sequence[int] | None = None, options: dict[str, Any] | None = None
