@@ -238,6 +238,7 @@ def test_fork_continues_identically(address: str) -> None:
                     break
         finally:
             child.close()
+        env.reset(seed=5)  # the child's close() closed its own session, not this env's
     finally:
         env.close()
 

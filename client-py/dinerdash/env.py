@@ -8,7 +8,6 @@ import random
 import struct
 import weakref
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Any, ClassVar, SupportsFloat
 
 import gymnasium as gym
@@ -36,14 +35,14 @@ def _close(core: SessionCore, endpoint: Endpoint) -> None:
     endpoint.close()
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class Snapshot:
     """A saved environment: the server's snapshot bytes (``data``: restored on any server of the
     same snapshot version) and the observation and info of the state they hold."""
 
     data: bytes
     observation: np.ndarray
-    info: dict[str, Any] = field(default_factory=dict)
+    info: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def __bytes__(self) -> bytes:
         return self.data
@@ -200,6 +199,7 @@ class DinerDashEnv(SessionOwner, gym.Env[np.ndarray, np.int64]):
         child._core = SessionCore(child._endpoint, 0, 0, 1, copy.copy(self._settings))
         child._settings = child._core.settings
         child._core.adopt(reply)
+        child._finalizer = weakref.finalize(child, _close, child._core, child._endpoint)
         child.spec_proto = reply.spec
         child._last_obs = None if self._last_obs is None else self._last_obs.copy()
         child._last_info = copy.deepcopy(self._last_info)
