@@ -150,12 +150,15 @@ def test_an_action_that_is_not_an_integer_is_refused(address: str) -> None:
 
 
 def test_a_closed_vector_env_reopens_at_reset(address: str) -> None:
-    envs = DinerDashVectorEnv(3, address)
+    envs = DinerDashVectorEnv(3, address, render_mode="ansi")
     envs.reset(seed=1)
     expected = envs.step(np.zeros(3, dtype=np.int64))[0]
     envs.close()
-    with pytest.raises(EnvClosed):
-        envs.step(np.zeros(3, dtype=np.int64))
+    zeros = np.zeros(3, dtype=np.int64)
+    calls = (lambda: envs.step(zeros), lambda: envs.step_async(zeros), envs.action_masks)
+    for call in (*calls, envs.render, envs.watch_url):
+        with pytest.raises(EnvClosed):
+            call()
     with pytest.raises(EnvClosed, match="full reset"):
         envs.reset(options={"reset_mask": np.ones(3, dtype=np.bool_)})
     envs.reset(seed=1)

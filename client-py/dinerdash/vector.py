@@ -282,6 +282,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         """``(N, 57) bool``: the actions that have an effect in each environment's current state
         (what sb3-contrib's MaskablePPO asks for; ``info["action_mask"]`` holds the same)."""
         self._check_idle("action_masks()")
+        self._check_open("action_masks()")
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
         return join(self._fleet.batches())["action_masks"].copy()
