@@ -54,13 +54,6 @@ def make_config(config: Config) -> pb.GameConfig | None:
     return msg
 
 
-def config_dict(config: pb.GameConfig) -> dict[str, int]:
-    """The fields present in a GameConfig, as a plain dict."""
-    return {
-        f.name: getattr(config, f.name) for f in config.DESCRIPTOR.fields if config.HasField(f.name)
-    }
-
-
 def _arrival(group: Any) -> pb.Arrival:
     if isinstance(group, Mapping):
         return pb.Arrival(customer_type=int(group["customer_type"]), size=int(group["size"]))
@@ -68,18 +61,13 @@ def _arrival(group: Any) -> pb.Arrival:
     return pb.Arrival(customer_type=int(customer_type), size=int(size))
 
 
-def _is_arrival_list(value: Any) -> bool:
-    """True for one list of groups (its first entry a (type, size) pair or a mapping)."""
-    first = value[0] if len(value) else {}
-    return isinstance(first, Mapping) or (len(first) == 2 and all(np.ndim(x) == 0 for x in first))
-
-
 def make_arrivals(arrivals: Any, num_envs: int = 1) -> list[pb.ArrivalList]:
     """ArrivalLists from one list of ``(customer_type, size)`` pairs (every environment gets it)
     or, for a vector env, a list of such lists (one per environment)."""
     if arrivals is None:
         return []
-    if _is_arrival_list(arrivals):
+    first = arrivals[0] if len(arrivals) else {}  # one list: its first a pair or a mapping
+    if isinstance(first, Mapping) or (len(first) == 2 and all(np.ndim(x) == 0 for x in first)):
         return [pb.ArrivalList(groups=[_arrival(g) for g in arrivals])]
     lists = [pb.ArrivalList(groups=[_arrival(g) for g in one]) for one in arrivals]
     if num_envs == 1 and len(lists) != 1:

@@ -114,9 +114,6 @@ class Batch:
                 return np.zeros((self.num_envs, width) if width > 1 else self.num_envs, dtype)
         return value
 
-    def __contains__(self, name: str) -> bool:
-        return self.get(name) is not None
-
     def copy(self) -> Batch:
         """A Batch of arrays of its own (valid whatever happens to the region it was read from)."""
         return Batch(self.num_envs, {k: v.copy() for k, v in self.fields.items()}, self.drain_ms)
@@ -128,8 +125,6 @@ class Batch:
 
     def slice(self, lo: int, hi: int) -> Batch:
         """Environments ``lo:hi`` (views)."""
-        if lo == 0 and hi == self.num_envs:
-            return self
         return Batch(hi - lo, {k: v[lo:hi] for k, v in self.fields.items()}, self.drain_ms)
 
 
@@ -186,7 +181,7 @@ def interrupt(last: Batch, first: Batch, mode: AutoresetMode) -> tuple[Batch, Ba
             reset=np.zeros(n, np.bool_), seeds=np.zeros(n, np.uint64), **outcome
         )
         return out, first if mode == AutoresetMode.NEXT_STEP else None
-    finals = {"final_" + k: last.fields[k].copy() for k in STATE if k in last}
+    finals = {"final_" + k: last.fields[k].copy() for k in STATE if k in last.fields}
     return first.replace(**finals, **outcome), None
 
 

@@ -133,8 +133,7 @@ class Endpoint:
         log.info("took in the server at %s: a new replica", conn.address)
 
     def drain(self, index: int, remaining: float | None) -> None:
-        """Server ``index`` drains, ``remaining`` seconds before its deadline (``None``: unsaid):
-        said once."""
+        """Server ``index`` drains, ``remaining`` seconds left (``None``: unsaid): said once."""
         if index not in self.given_up and index not in self.draining:
             self.draining[index] = None
             log.info(

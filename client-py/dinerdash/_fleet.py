@@ -2,10 +2,8 @@
 session cores each holding a contiguous range of environments, in environment order. After each
 step or reset (:meth:`Fleet.settle`) slices move at once by Snapshot and Restore, exactly
 (:func:`plan`); a lost server's environments get new sessions on the servers left
-(:meth:`Fleet.fail_over`, :func:`even_parts`). Why: docs/clusters.md#failover. Its watch:
-:func:`await_replies` gives up a server that answers nothing (no call, no health check) for
-``failover_after``; :class:`Membership` finds given-up servers that answer again and a DNS name's
-new replicas, at step boundaries, without blocking (docs/client.md#design-notes).
+(:meth:`Fleet.fail_over`). Its watch gives up silent servers (:meth:`Fleet.await_replies`) and
+finds servers to take in (:class:`Membership`). Why: docs/clusters.md#failover, docs/client.md.
 """
 
 from __future__ import annotations
@@ -84,7 +82,7 @@ class Fleet:
         return len(self.cores) == 1 and not self.watched()
 
     def watched(self) -> bool:
-        """Calls in flight are watched for silent servers (:func:`await_replies`)."""
+        """Calls in flight are watched for silent servers (:meth:`await_replies`)."""
         return self.failover_on() and len(self.endpoint.live()) > 1
 
     def step(self, wire: np.ndarray) -> list[Batch]:
@@ -101,7 +99,7 @@ class Fleet:
         """Waits for every reply of the step :meth:`start` sent."""
         if self.watched():
             waiting = [(c.index, c.step_ready) for c in self.cores]
-            await_replies(waiting, self.endpoint, self.options.failover_after, self.sent)
+            self.await_replies(waiting, self.sent)
         else:
             for core in self.cores:
                 core.step_ready()
@@ -114,9 +112,8 @@ class Fleet:
         self, outcome: Callable[[SessionCore], object], settle: bool, given: dict | None = None
     ) -> list[Batch]:
         """The cores' Batches once ``outcome(core)`` made each core's ``last`` this step's (or
-        reset's, ``given``): every core is updated before the first error is raised, a lost
-        server's environments move first (:meth:`fail_over`), and with ``settle`` slices then move
-        (:meth:`settle`)."""
+        reset's, ``given``): all updated before the first error is raised, a lost server's
+        environments moved (:meth:`fail_over`), then with ``settle`` slices (:meth:`settle`)."""
         error, lost = None, []
         for core in self.cores:
             try:
@@ -148,14 +145,54 @@ class Fleet:
                 calls[core] = (req, None if core.given_up() else core.conn.future("Reset", req))
         if self.watched():
             waiting = [(c.index, _ready(f)) for c, (_, f) in calls.items() if f is not None]
-            await_replies(waiting, self.endpoint, self.options.failover_after, time.monotonic())
+            self.await_replies(waiting, time.monotonic())
         self.collect(lambda c: c in calls and c.reset(*calls[c]), self.failover_on(), given)
         return called
+
+    def await_replies(
+        self, waiting: list[tuple[int, Callable[[float | None], bool]]], sent: float
+    ) -> None:
+        """Waits until every ``ready(deadline)`` of ``waiting`` (server index, ready) is True,
+        giving up (its calls cancelled) each server that answers nothing for ``failover_after``
+        seconds from ``sent`` or its last health check's answer, while another server answers."""
+        endpoint, failover_after = self.endpoint, self.options.failover_after
+        probe_after = min(PROBE_AFTER, failover_after / 4)
+        pending = [(i, ready) for i, ready in waiting if not ready(sent + probe_after)]
+        heard: dict[int, float] = {}  # server -> last answer (or ``sent``)
+        probes: dict[int, grpc.Future] = {}
+        while pending:
+            now = time.monotonic()
+            for i in {i for i, _ in pending}:
+                if i in endpoint.given_up:
+                    continue
+                heard.setdefault(i, sent)
+                probe = probes.get(i)
+                if probe is not None and probe.done():
+                    del probes[i]
+                    if not probe.cancelled() and probe.exception() is None:
+                        heard[i] = now
+                if i not in probes and now - heard[i] >= probe_after:
+                    try:
+                        probes[i] = endpoint.connections[i].health(
+                            max(0.05, failover_after - (now - heard[i]))
+                        )
+                    except ServiceError:
+                        pass
+            still = {i for i, ready in pending if not ready(now)} - set(endpoint.given_up)
+            silent = [i for i, t in heard.items() if i in still and now - t >= failover_after]
+            if silent and any(i not in silent for i in endpoint.live()):
+                for i in silent:
+                    endpoint.give_up(
+                        i,
+                        f"it answered nothing (no call, no health check) for "
+                        f"{now - heard[i]:.1f} s, past failover_after={failover_after:g} s",
+                    )
+                    probes.pop(i, None)
+            pending = [(i, r) for i, r in pending if not r(time.monotonic() + 0.05)]
 
     def close(self) -> None:
         if self.membership is not None:
             self.membership.close()
-            self.membership = None
         for core in self.cores:
             core.close()
         self.endpoint.close()
@@ -186,10 +223,9 @@ class Fleet:
         self.cores = sorted(kept + made, key=lambda c: c.start)
 
     def move(self, core: SessionCore, others: list[SessionCore], given: dict | None) -> list:
-        """New cores for the environments of ``core`` (its server given up) on the servers that
-        take new sessions, in :func:`even_parts` of the loads ``others`` leave, each started
-        (:meth:`~dinerdash._session.SessionCore.start_after`); a server that refuses one
-        (:data:`PASSED_OVER`) is passed over."""
+        """New cores, each started (:meth:`~dinerdash._session.SessionCore.start_after`), for the
+        environments of ``core`` (its server given up) in :func:`even_parts` of the loads
+        ``others`` leave on the servers open to new sessions, passing over those that refuse."""
         endpoint = core.endpoint
         candidates = [i for i in endpoint.open_to_new() if i != core.index]
         while True:
@@ -229,12 +265,18 @@ class Fleet:
                 candidates.remove(target)
 
     def settle(self) -> None:
-        """After a step or a reset: takes in the servers the membership watch found, notes which
-        servers drain, and splits or moves slices at once (:func:`plan`, :meth:`split`) until no
-        environment is on a draining server and the targets' loads differ by at most one. A slice
-        whose last step was cut (a failover's, waiting to report it) moves at the next step."""
+        """After a step or a reset: takes in the servers the membership watch found, notes those
+        that drain, and moves slices at once (:meth:`planned`, :meth:`split`) until none is on a
+        draining server and the loads differ by at most one (one a failover just cut: next step)."""
         endpoint = self.endpoint
-        self.take_in()
+        for index, conn in self.membership.found() if self.membership is not None else ():
+            new = index is None and conn.address not in endpoint.addresses
+            if index is not None and index in endpoint.given_up:
+                endpoint.take_back(index, conn)
+            elif new and len(endpoint.live()) < self.num_envs:  # no more servers than envs
+                endpoint.add(conn)
+            else:
+                conn.close()
         for core in self.cores:
             if core.drain_ms > 0:
                 endpoint.drain(core.index, core.drain_ms / 1000)
@@ -261,21 +303,6 @@ class Fleet:
         """What :meth:`settle` compares with :attr:`settled_key`, and the :meth:`targets`."""
         e, targets = self.endpoint, self.targets()
         return (len(self.cores), tuple(e.given_up), tuple(e.draining), tuple(targets)), targets
-
-    def take_in(self) -> None:
-        """Takes back the given-up servers the membership watch found, and adds new replicas (no
-        more servers than environments)."""
-        if self.membership is None:
-            return
-        endpoint = self.endpoint
-        for index, conn in self.membership.found():
-            new = index is None and conn.address not in endpoint.addresses
-            if index is not None and index in endpoint.given_up:
-                endpoint.take_back(index, conn)
-            elif new and len(endpoint.live()) < self.num_envs:
-                endpoint.add(conn)
-            else:
-                conn.close()
 
     def targets(self) -> list[int]:
         """The servers slices may move to now: open to new sessions and not resting (refused)."""
@@ -424,50 +451,6 @@ def _ready(future: grpc.Future):
     return ready
 
 
-def await_replies(
-    waiting: Sequence[tuple[int, Callable[[float | None], bool]]],
-    endpoint: Endpoint,
-    failover_after: float,
-    sent: float,
-) -> None:
-    """Waits until every ``ready(deadline)`` of ``waiting`` (server index, ready) is True, giving
-    up (its calls cancelled) each server that answers nothing for ``failover_after`` seconds from
-    ``sent`` or its last health check's answer, while another server is live and answers."""
-    probe_after = min(PROBE_AFTER, failover_after / 4)
-    pending = [(i, ready) for i, ready in waiting if not ready(sent + probe_after)]
-    heard: dict[int, float] = {}  # server -> last answer (or ``sent``)
-    probes: dict[int, grpc.Future] = {}
-    while pending:
-        now = time.monotonic()
-        for i in {i for i, _ in pending}:
-            if i in endpoint.given_up:
-                continue
-            heard.setdefault(i, sent)
-            probe = probes.get(i)
-            if probe is not None and probe.done():
-                del probes[i]
-                if not probe.cancelled() and probe.exception() is None:
-                    heard[i] = now
-            if i not in probes and now - heard[i] >= probe_after:
-                try:
-                    probes[i] = endpoint.connections[i].health(
-                        max(0.05, failover_after - (now - heard[i]))
-                    )
-                except ServiceError:
-                    pass
-        still = {i for i, ready in pending if not ready(now)} - set(endpoint.given_up)
-        silent = [i for i, t in heard.items() if i in still and now - t >= failover_after]
-        if silent and any(i not in silent for i in endpoint.live()):
-            for i in silent:
-                endpoint.give_up(
-                    i,
-                    f"it answered nothing (no call, no health check) for {now - heard[i]:.1f} s, "
-                    f"past failover_after={failover_after:g} s",
-                )
-                probes.pop(i, None)
-        pending = [(i, r) for i, r in pending if not r(time.monotonic() + 0.05)]
-
-
 def has_name(address: str | Sequence[str] | None) -> bool:
     """``address`` names a host by DNS name (which may resolve to other replicas later)."""
     try:
@@ -520,21 +503,18 @@ class Membership:
             for address in [a for a in self._probes if a not in wanted]:
                 self._probes.pop(address)[1].close()
             for address, index in wanted.items():
-                self._check(address, index)
+                _, conn, check = self._probes.get(address, (index, None, None))
+                if check is not None:
+                    continue  # the last one is still out
+                try:
+                    if conn is None:
+                        conn = self._options.connect(address, wait=False)
+                    self._probes[address] = (index, conn, conn.health(PROBE_EVERY))
+                except (ServiceError, OSError, ValueError):
+                    if conn is not None:
+                        conn.close()
+                    self._probes.pop(address, None)
         return out
-
-    def _check(self, address: str, index: int | None) -> None:
-        _, conn, check = self._probes.get(address, (index, None, None))
-        if check is not None:
-            return  # the last one is still out
-        try:
-            if conn is None:
-                conn = self._options.connect(address, wait=False)
-            self._probes[address] = (index, conn, conn.health(PROBE_EVERY))
-        except (ServiceError, OSError, ValueError):
-            if conn is not None:
-                conn.close()
-            self._probes.pop(address, None)
 
     def _resolve(self, every: float) -> None:
         while not self._stop.wait(every):

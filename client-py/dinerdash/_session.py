@@ -22,7 +22,7 @@ from gymnasium.vector import AutoresetMode
 
 from . import _shm
 from . import render as _render
-from ._arguments import check_render_mode, config_dict, expert_fields
+from ._arguments import check_render_mode, expert_fields
 from ._batch import Batch, interrupt
 from ._endpoint import Endpoint
 from ._proto import pb
@@ -204,7 +204,12 @@ class SessionOwner:
     @property
     def game_config(self) -> dict[str, int]:
         """The effective game configuration, every field present."""
-        return config_dict(self.spec_proto.config)
+        config = self.spec_proto.config
+        return {
+            f.name: getattr(config, f.name)
+            for f in config.DESCRIPTOR.fields
+            if config.HasField(f.name)
+        }
 
 
 class SessionCore:
@@ -252,9 +257,8 @@ class SessionCore:
         return self.last is not None and self.pending is None and not self.reconnected
 
     def start_after(self, lost: SessionCore, given: dict | None) -> None:
-        """This new core's session (created) takes over environments of ``lost``'s (its server
-        given up): reset with ``given`` (a reset's keywords), or at a step, their episodes end
-        truncated in their last state, the unseeded Reset the autoreset (as after a reconnect)."""
+        """This new core's session (created) takes over environments of ``lost``'s (its server given
+        up): reset with ``given`` (a reset's keywords), or at a step cut as by a lost server's."""
         if given is not None:
             self.last = Batch.from_pb(self.conn.call("Reset", self.reset_request(**given)))
         else:
@@ -354,10 +358,9 @@ class SessionCore:
         if self.step_thread is not None:
             self.step_thread.close()
             self.step_thread = None
-        if self.session_id is not None:
-            if self.index not in self.endpoint.given_up:
-                close_session(self.conn, self.session_id)
-            self.session_id = None
+        if self.session_id is not None and not self.given_up():
+            close_session(self.conn, self.session_id)
+        self.session_id = None
 
     def fail(self, error: ServiceError) -> ServiceError:
         """``error`` naming its environments' indices in the whole env when it is split over
@@ -434,11 +437,9 @@ class SessionCore:
         return batch
 
     def step(self, actions: bytes, sent: bool = False) -> Batch:
-        """One Step of this core's environments (``actions``: packed int32), blocking; ``sent``:
-        :meth:`start_step` sent it over shared memory, only its reply is awaited. Shared memory
-        lost under it changes to gRPC, where the Step is made unless it was abandoned; a lost
-        server (``reconnect=True``) gives a new session and a Batch that ends the interrupted
-        episodes (truncated)."""
+        """One Step of this core's environments (``actions``: packed int32), blocking (``sent``:
+        its reply only, :meth:`start_step` sent it). Shared memory lost changes to gRPC; a lost
+        server (``reconnect=True``) a new session, its episodes truncated (:meth:`interrupt`)."""
         if self.pending is not None and not sent:
             batch, self.pending = self.pending, None
         else:
@@ -454,7 +455,7 @@ class SessionCore:
                 except _shm.Detached as gone:
                     self.detach()
                     self.transport = _shm.GrpcTransport(self.conn, self.session_id)
-                    self.changed("grpc", gone.reason)
+                    self.changed("grpc", str(gone))
                     if gone.error is not None:
                         raise gone.error from None
                     batch = self.transport.step(actions)
@@ -495,10 +496,6 @@ class SessionCore:
             self.step_thread = StepThread(self.step, f"dinerdash-step-{self.index}")
         self.step_thread.submit(actions)
 
-    def in_flight(self) -> bool:
-        """A Step started by :meth:`start_step` awaits :meth:`finish_step`."""
-        return self.shm_sent is not None or self.step_thread is not None
-
     def step_ready(self, deadline: float | None = None) -> bool:
         """Whether the Step :meth:`start_step` began has its outcome by ``deadline``
         (:func:`time.monotonic`; ``None``: waits for it)."""
@@ -515,10 +512,9 @@ class SessionCore:
         return self.step_thread.result()
 
     def interrupt(self, last: Batch, ends=interrupt, timeout: float | None = None) -> Batch:
-        """Ends this core's episodes (``last``: their last report; ``ends``: the lost session's,
-        :func:`~dinerdash._batch.interrupt`, or a refused Restore's, :func:`~dinerdash._batch.cut`)
-        and starts its new session's by an unseeded Reset (its server draws the seeds): the Batch
-        they report, kept as :attr:`last`, its ``pending`` the next step's (NEXT_STEP)."""
+        """Ends this core's episodes (``last``: their last report) as ``ends`` says (a lost session:
+        :func:`~dinerdash._batch.interrupt`; a refused Restore: :func:`~dinerdash._batch.cut`) and
+        starts its new session's by an unseeded Reset: their Batch, kept as :attr:`last`."""
         request = pb.ResetRequest(session_id=self.session_id)
         first = Batch.from_pb(self.conn.call("Reset", request, timeout=timeout))
         self.last, self.pending = ends(last, first, self.settings.autoreset_mode)
@@ -549,9 +545,7 @@ class StepThread:
             daemon=True,
         ).start()
         weakref.finalize(work.__self__, self._requests.put, None)
-
-    def submit(self, item: Any) -> None:
-        self._requests.put(item)
+        self.submit = self._requests.put
 
     def wait(self, deadline: float | None = None) -> bool:
         """True when the reply is in by ``deadline`` (``None``: waits for it); it is then kept for

@@ -81,7 +81,6 @@ class Detached(Exception):
 
     def __init__(self, reason: str, error: ServiceError | None = None) -> None:
         super().__init__(reason)
-        self.reason = reason
         self.error = error
 
 
@@ -125,7 +124,6 @@ class Channel:
     """One session's doorbell socket and mapped region."""
 
     def __init__(self, offer: Offer, conn: Connection) -> None:
-        self.address = conn.address
         self.conn = conn
         self.timeout = conn.timeout
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
@@ -159,9 +157,9 @@ class Channel:
         if (magic, version, fields) != (_MAGIC, _VERSION, len(FIELDS)):
             self.close()
             raise ServiceTransportError(
-                f"the server at {self.address} speaks shared-memory layout {version}, this "
+                f"the server at {self.conn.address} speaks shared-memory layout {version}, this "
                 f"client {_VERSION}",
-                address=self.address,
+                address=self.conn.address,
             )
         self.num_envs = n
         self._offsets = [
@@ -180,7 +178,7 @@ class Channel:
         if reply[:1] != b"E" or len(reply) < 9:
             return ServiceTransportError(
                 f"{method}: unexpected reply {bytes(reply[:16])!r} from the doorbell",
-                address=self.address,
+                address=self.conn.address,
             )
         code, size = struct.unpack_from("<II", reply, 1)
         message = bytes(reply[9 : 9 + size]).decode("utf-8", "replace")
@@ -241,27 +239,18 @@ class Channel:
             raise self._refusal("Step", reply) if reply else self.gone()
         lengths = self._lengths.tobytes()
         known, views = self._known
-        if lengths != known:
-            views = self._views()
+        if lengths != known:  # the reply's arrays as read-only views of the region, made anew
+            views = {}
+            for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
+                if size and name != "actions":
+                    dtype, width = _SHAPES[name]
+                    count = size // np.dtype(dtype).itemsize
+                    view = np.frombuffer(self.mm, dtype=dtype, count=count, offset=lo)
+                    views[name] = view.reshape(-1, width) if width > 1 else view
+                    views[name].flags.writeable = False
             self._known = (lengths, views)
         (drain,) = _DRAIN.unpack_from(self.mm, _DRAIN_AT)
         return Batch(self.num_envs, views, drain)
-
-    def _views(self) -> dict[str, np.ndarray]:
-        """The reply's arrays as read-only views of the region, for the lengths it wrote."""
-        views = {}
-        for name, lo, size in zip(FIELDS, self._offsets, self._lengths.tolist(), strict=True):
-            if not size or name == "actions":
-                continue
-            dtype, width = _SHAPES[name]
-            view = np.frombuffer(
-                self.mm, dtype=dtype, count=size // np.dtype(dtype).itemsize, offset=lo
-            )
-            if width > 1:
-                view = view.reshape(-1, width)
-            view.flags.writeable = False
-            views[name] = view
-        return views
 
     def _poll(self, sent: float) -> bytes | None:
         """The reply if it comes within _SPIN of ``sent`` (polled, no sleep), or ``None``."""
@@ -277,8 +266,8 @@ class Channel:
 
     def gone(self) -> Detached:
         return Detached(
-            f"the doorbell of the server at {self.address} closed under a Step (the server died, "
-            "drained or forgot the session)"
+            f"the doorbell of the server at {self.conn.address} closed under a Step (the server "
+            "died, drained or forgot the session)"
         )
 
     def close(self) -> None:

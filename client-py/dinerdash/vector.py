@@ -6,6 +6,7 @@ moves: docs/client.md#failover-across-servers and docs/clusters.md#failover.
 
 from __future__ import annotations
 
+import copy
 import multiprocessing
 import time
 from collections.abc import Sequence
@@ -88,11 +89,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         )
         config = make_config(config)
         if max_episode_steps is not None:
-            cfg = pb.GameConfig()
-            if config is not None:
-                cfg.CopyFrom(config)
-            cfg.time_limit = int(max_episode_steps)
-            config = cfg
+            config = pb.GameConfig() if config is None else copy.deepcopy(config)
+            config.time_limit = int(max_episode_steps)
         settings.config = config
         self.failover_after = self._options.failover_after
         self._open()
@@ -104,8 +102,10 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
 
     def _open(self) -> None:
         """Opens the fleet (at construction, and at a reset after close)."""
-        self._fleet = Fleet(self._options, self._settings)
-        self.spec_proto: pb.Spec = self._fleet.spec
+        #: The servers and sessions this env steps, for the bench and the tests that look inside a
+        #: step; not a stable API.
+        self.fleet = Fleet(self._options, self._settings)
+        self.spec_proto: pb.Spec = self.fleet.spec
         #: A step_async() was sent and step_wait() has not collected it yet.
         self._pending = False
         self._seeds = np.zeros(self.num_envs, np.int64)  # each environment's episode seed
@@ -114,18 +114,12 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self.closed = False  # Gymnasium's flag: close() calls close_extras only when False
 
     @property
-    def fleet(self) -> Fleet:
-        """The servers and sessions this env steps (:class:`~dinerdash._fleet.Fleet`), for the
-        bench and the tests that look inside a step; not a stable API."""
-        return self._fleet
-
-    @property
     def _cores(self) -> list[SessionCore]:
-        return self._fleet.cores
+        return self.fleet.cores
 
     @property
     def _endpoint(self) -> Endpoint:
-        return self._fleet.endpoint
+        return self.fleet.endpoint
 
     @property
     def addresses(self) -> list[str]:
@@ -152,7 +146,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def moves(self) -> int:
         """Environments moved exactly, by Snapshot and Restore, to another server; not a
         failover's nor a refused Restore's, whose episodes restart (docs/client.md)."""
-        return self._fleet.moves
+        return self.fleet.moves
 
     @property
     def env_slices(self) -> list[tuple[str, slice]]:
@@ -193,8 +187,8 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             self._settings.config = config
 
         given = {"seed": seed, "seeds": seeds, "arrivals": arrivals, "config": config}
-        called = self._fleet.reset(given, mask)
-        batch = join(self._fleet.batches())
+        called = self.fleet.reset(given, mask)
+        batch = join(self.fleet.batches())
         obs, info = decode(batch, self.expert)
         info["seed"] = batch["seeds"].astype(np.int64)  # as SyncVectorEnv; torch has no uint64
         info["_seed"] = batch["reset"] & called
@@ -236,9 +230,9 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         wire = check_actions(actions, self.num_envs)
         self._check_idle("step()")
         self._check_open("step()")
-        if self._fleet.blocking():
-            return self.decode_step(self._fleet.step(wire))
-        self._fleet.start(wire)
+        if self.fleet.blocking():
+            return self.decode_step(self.fleet.step(wire))
+        self.fleet.start(wire)
         self._pending = True
         return self.step_wait()
 
@@ -249,7 +243,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         wire = check_actions(actions, self.num_envs)
         self._check_idle("step_async()")
         self._check_open("step_async()")
-        self._fleet.start(wire)
+        self.fleet.start(wire)
         self._pending = True
 
     def step_wait(
@@ -262,14 +256,14 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
             raise NoAsyncCallError("step_wait() without a step_async() before it", "step")
         if timeout is not None:
             deadline = time.monotonic() + timeout
-            if not all(core.step_ready(deadline) for core in self._cores if core.in_flight()):
+            if not all(core.step_ready(deadline) for core in self._cores):
                 raise multiprocessing.TimeoutError(
                     f"step_wait(): no reply within {timeout:g} s; the step is still "
                     "pending, call step_wait() again"
                 )
-        self._fleet.wait()  # an interrupted wait (Ctrl-C) leaves the step pending
+        self.fleet.wait()  # an interrupted wait (Ctrl-C) leaves the step pending
         self._pending = False
-        return self.decode_step(self._fleet.finish())
+        return self.decode_step(self.fleet.finish())
 
     def _check_idle(self, what: str) -> None:
         if self._pending:
@@ -285,7 +279,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         self._check_open("action_masks()")
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before action_masks()")
-        return join(self._fleet.batches())["action_masks"].copy()
+        return join(self.fleet.batches())["action_masks"].copy()
 
     def decode_step(self, batches: list[Batch]):
         """The step's ``(obs, rewards, terminated, truncated, info)`` from the sessions' replies
@@ -328,7 +322,7 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
     def _shown(self) -> tuple[Any, Any, Any]:
         if any(c.last is None for c in self._cores):
             raise gym.error.ResetNeeded("call reset() before render()")
-        obs, info = decode(join(self._fleet.batches()), self.expert)
+        obs, info = decode(join(self.fleet.batches()), self.expert)
         return obs, info["score"], info["lost"]
 
     def close_extras(self, **kwargs: Any) -> None:
@@ -336,5 +330,5 @@ class DinerDashVectorEnv(SessionOwner, VectorEnv):
         opens new ones."""
         if not self._closed:
             self._pending = False  # the cores' threads end as the sessions close
-            self._fleet.close()
+            self.fleet.close()
             self._closed = True
