@@ -89,12 +89,17 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     from .train_rl import train_rl
 
     config = None
-    if args.kick_coef is not None:
+    given = {"kick_coef": args.kick_coef, "hidden": args.hidden}
+    given = {k: v for k, v in given.items() if v is not None}
+    if args.critic_memory:
+        given["critic_memory"] = True
+    if given:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
-                "--kick-coef is a new ppo-kickstart run's (a resumed run keeps its schedule)"
+                "--kick-coef, --critic-memory and --hidden are a new ppo-kickstart run's (a "
+                "resumed run keeps its settings)"
             )
-        config = KickstartConfig(kick_coef=args.kick_coef)
+        config = KickstartConfig(**given)
     trainer = train_rl(
         args.algorithm,
         args.steps,
@@ -377,7 +382,16 @@ def _parser() -> argparse.ArgumentParser:
         help="dagger: β_i = p^(i-1), or β_1 = 1 then 0",
     )
     p.add_argument("--beta-p", type=float, help="dagger: p of the exponential schedule")
-    p.add_argument("--hidden", type=int, help="dagger: units per hidden layer")
+    p.add_argument(
+        "--hidden",
+        type=int,
+        help="dagger: units per hidden layer; ppo-kickstart: the critic's (default 128)",
+    )
+    p.add_argument(
+        "--critic-memory",
+        action="store_true",
+        help="ppo-kickstart: the critic also reads the --init DAgger learner's memory features",
+    )
     p.add_argument("--layers", type=int, help="dagger: hidden layers")
     p.add_argument(
         "--seat-weight",

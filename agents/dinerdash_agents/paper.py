@@ -116,7 +116,12 @@ _LABELS = {
     "gail": lambda a: f"GAIL (masked PPO on a discriminator's reward), {a.episodes} demos",
     "ppo-kickstart": lambda a: (
         f"masked PPO from `{a.start}`'s policy, its memory features kept, on the game's reward "
-        "alone (beyond the paper)"
+        "alone"
+        + (
+            ", its critic reading them too (beyond the paper)"
+            if KICKSTART_SETTINGS[a.name].get("critic_memory")
+            else " (beyond the paper)"
+        )
         if KICKSTART_SETTINGS.get(a.name, {}).get("kick_coef") == 0
         else f"masked PPO kick-started from `{a.start}`, pulled toward the {a.teacher}'s "
         "actions (beyond the paper)"
@@ -149,6 +154,16 @@ AGENTS = [
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
     Agent(
         "ppo-kickstart-memory",
+        "ppo-kickstart",
+        0,
+        "masked",
+        None,
+        "expert",
+        LONG_SEEDS,
+        "dagger-planner-memory",
+    ),
+    Agent(
+        "ppo-kickstart-critic",
         "ppo-kickstart",
         0,
         "masked",
@@ -197,12 +212,21 @@ RECURRENT_SETTINGS: dict[str, dict[str, Any]] = {
 }
 #: Environment steps of the RL agents: the paper's PPO budget, and the others' by name.
 RL_STEPS = 30_000_000
-STEPS = {"gail-274": 10_000_000, "ppo-kickstart": RL_STEPS, "ppo-kickstart-memory": 20_000_000}
+STEPS = {
+    "gail-274": 10_000_000,
+    "ppo-kickstart": RL_STEPS,
+    "ppo-kickstart-memory": 20_000_000,
+    "ppo-kickstart-critic": 20_000_000,
+}
 #: Kick-started rows' settings beyond :class:`~dinerdash_agents.kickstart.KickstartConfig`'s
 #: defaults: from the DAgger learner with memory, no pull toward a teacher (its pull would be
 #: toward the expert, whose play the planner's pupil does not follow; the planner as teacher
-#: costs the server a look-ahead at every step); chosen on seeds 2000..2099.
-KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {"ppo-kickstart-memory": {"kick_coef": 0.0}}
+#: costs the server a look-ahead at every step); chosen on seeds 2000..2099, as was the critic
+#: that reads the memory features too, 256 wide (issue 49).
+KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {
+    "ppo-kickstart-memory": {"kick_coef": 0.0},
+    "ppo-kickstart-critic": {"kick_coef": 0.0, "critic_memory": True, "hidden": 256},
+}
 
 
 def run_paper(
@@ -379,6 +403,7 @@ COMPARISONS = [
     ("dagger-gru-w10", "dagger-stack-w10", "the recurrence, at the same budget"),
     ("ppo-kickstart-memory", "dagger-planner-memory", "PPO on the game's reward after DAgger"),
     ("ppo-kickstart-memory", "ppo-kickstart", "the memory features, both PPO from imitation"),
+    ("ppo-kickstart-critic", "ppo-kickstart-memory", "the critic reading the memory features"),
 ]
 
 

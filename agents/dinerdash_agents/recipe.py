@@ -1,7 +1,7 @@
 """The best learned policy's whole recipe for one training seed, in one command: DAgger with the
 look-ahead planner as teacher and memory features (``dagger-planner-memory``), then masked PPO
-on the game's reward from that learner (``ppo-kickstart-memory``); docs/agents.md gives its
-results and times.
+on the game's reward from that learner, its critic reading the memory features too
+(``ppo-kickstart-critic``); docs/agents.md gives its results and times.
 
 ::
 
@@ -26,14 +26,14 @@ from . import checkpoint
 from .connect import options, served
 from .dagger import DaggerConfig
 from .kickstart import KickstartConfig
-from .paper import DAGGER_SETTINGS
+from .paper import DAGGER_SETTINGS, KICKSTART_SETTINGS
 from .train_dagger import train_dagger
 from .train_rl import TRAINER_STATE, train_rl
 
 __all__ = ["PPO_STEPS", "run_recipe"]
 
 DAGGER = "dagger-planner-memory"
-PPO = "ppo-kickstart-memory"
+PPO = "ppo-kickstart-critic"
 #: The PPO stage's environment steps.
 PPO_STEPS = 20_000_000
 
@@ -49,7 +49,7 @@ def run_recipe(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Trains (or finishes) the recipe's two stages for training seed ``seed`` into
-    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-memory``, with their TensorBoard curves
+    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-critic``, with their TensorBoard curves
     under ``out/tensorboard``; returns what it writes to ``out/recipe.json``. ``dagger``: settings
     that replace the recipe's DAgger ones (tests use fewer rounds); ``num_envs``: the PPO stage's
     environments (default its config's)."""
@@ -108,7 +108,7 @@ def _run(
                 seed=seed,
                 resume=resume,
                 init=None if resume else out / DAGGER,
-                config=None if resume else KickstartConfig(kick_coef=0.0),
+                config=None if resume else KickstartConfig(**KICKSTART_SETTINGS[PPO]),
                 progress=progress,
                 tensorboard=curves,
             ),
