@@ -9,7 +9,7 @@ demonstration term of DAPG, Rajeswaran et al. 2018, with the teacher asked on-li
   checkpoint's network, with its :class:`~dinerdash_agents.dagger.MemoryFeatures` if it has
   them (the trainer then computes them for every environment, and the checkpoint's policy
   does when it plays). The critic is PPO's (two tanh layers over the observation scaled by the
-  server's Spec; never the memory features) and starts untrained.
+  server's Spec; with ``critic_memory``, the actor's memory features too) and starts untrained.
 - **Critic warm-up**: the first ``critic_warmup`` iterations update only the critic; the policy
   terms are multiplied by 0, so the actor's gradients, and with Adam its updates, are exactly 0.
   The policy then moves on advantages of a critic that already knows the BC policy's returns.
@@ -224,6 +224,11 @@ class KickstartTrainer(Trainer):
     ) -> None:
         if not isinstance(config, KickstartConfig):
             raise TypeError("KickstartTrainer needs a KickstartConfig")
+        if config.critic_memory and not config.memory:
+            raise AgentsError(
+                "--critic-memory: the critic reads the actor's memory features, and this actor "
+                "has none (--init a dagger checkpoint trained with --memory)"
+            )
         super().__init__(config, total_steps, seed)
         model = init(config, seed)
         if load_init:

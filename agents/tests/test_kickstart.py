@@ -125,6 +125,9 @@ def test_the_critic_reads_the_memory_features_only_when_told():
         assert model.critic[0].in_features == width
         same = np.allclose(model.value(jnp.asarray(obs)), model.value(jnp.asarray(moved)))
         assert same is not critic_memory
+    # An actor without memory features leaves the critic nothing more to read: refused.
+    with pytest.raises(AgentsError, match="has none"):
+        _trainer(critic_memory=True)
 
 
 def test_the_kick_coefficient_follows_its_schedule():
