@@ -136,6 +136,17 @@ _LABELS = {
 FAST_SEEDS = 5
 LONG_SEEDS = 3
 
+#: The kick-started rows from the DAgger learner with memory: everything after their names.
+_FROM_MEMORY_LEARNER = (
+    "ppo-kickstart",
+    0,
+    "masked",
+    None,
+    "expert",
+    LONG_SEEDS,
+    "dagger-planner-memory",
+)
+
 AGENTS = [
     Agent("dpgm-274", "dpgm", 274, "masked", 9608.1, training_seeds=FAST_SEEDS),
     Agent("bc-274", "bc", 274, "masked", 7791.2, training_seeds=FAST_SEEDS),
@@ -152,26 +163,8 @@ AGENTS = [
     Agent("dagger-planner", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("dagger-expert", "dagger", 0, "masked", None, "expert", LONG_SEEDS),
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
-    Agent(
-        "ppo-kickstart-memory",
-        "ppo-kickstart",
-        0,
-        "masked",
-        None,
-        "expert",
-        LONG_SEEDS,
-        "dagger-planner-memory",
-    ),
-    Agent(
-        "ppo-kickstart-critic",
-        "ppo-kickstart",
-        0,
-        "masked",
-        None,
-        "expert",
-        LONG_SEEDS,
-        "dagger-planner-memory",
-    ),
+    Agent("ppo-kickstart-memory", *_FROM_MEMORY_LEARNER),
+    Agent("ppo-kickstart-critic", *_FROM_MEMORY_LEARNER),
     Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, "planner"),
     Agent("dagger-gru-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
