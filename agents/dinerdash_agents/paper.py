@@ -107,6 +107,20 @@ def _recurrent_label(agent: Agent) -> str:
     return f"DAgger, the {agent.teacher} labelling the states of {what}{budget} (beyond the paper)"
 
 
+def _kickstart_label(agent: Agent) -> str:
+    settings = KICKSTART_SETTINGS.get(agent.name, {})
+    if settings.get("kick_coef") != 0:
+        return (
+            f"masked PPO kick-started from `{agent.start}`, pulled toward the {agent.teacher}'s "
+            "actions (beyond the paper)"
+        )
+    critic = ", its critic reading them too" if settings.get("critic_memory") else ""
+    return (
+        f"masked PPO from `{agent.start}`'s policy, its memory features kept, on the game's "
+        f"reward alone{critic} (beyond the paper)"
+    )
+
+
 #: Each algorithm's row label in the table.
 _LABELS = {
     "bc": _imitation_label,
@@ -114,18 +128,7 @@ _LABELS = {
     "ppo": _ppo_label,
     "ppo-masked": _ppo_label,
     "gail": lambda a: f"GAIL (masked PPO on a discriminator's reward), {a.episodes} demos",
-    "ppo-kickstart": lambda a: (
-        f"masked PPO from `{a.start}`'s policy, its memory features kept, on the game's reward "
-        "alone"
-        + (
-            ", its critic reading them too (beyond the paper)"
-            if KICKSTART_SETTINGS[a.name].get("critic_memory")
-            else " (beyond the paper)"
-        )
-        if KICKSTART_SETTINGS.get(a.name, {}).get("kick_coef") == 0
-        else f"masked PPO kick-started from `{a.start}`, pulled toward the {a.teacher}'s "
-        "actions (beyond the paper)"
-    ),
+    "ppo-kickstart": _kickstart_label,
     "dagger": _dagger_label,
     "dagger-recurrent": _recurrent_label,
 }
