@@ -89,15 +89,15 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     from .train_rl import train_rl
 
     config = None
-    given = {"kick_coef": args.kick_coef, "hidden": args.hidden}
+    given = {"kick_coef": args.kick_coef, "hidden": args.hidden, "update_epochs": args.epochs}
     given = {k: v for k, v in given.items() if v is not None}
     if args.critic_memory:
         given["critic_memory"] = True
     if given:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
-                "--kick-coef, --critic-memory and --hidden are a new ppo-kickstart run's (a "
-                "resumed run keeps its settings)"
+                "--kick-coef, --critic-memory, --hidden and --epochs are a new ppo-kickstart "
+                "run's (a resumed run keeps its settings)"
             )
         config = KickstartConfig(**given)
     trainer = train_rl(
@@ -333,7 +333,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0, help="initialisation and shuffling seed")
     p.add_argument(
-        "--epochs", type=int, default=None, help="epochs (of every stage, for dpgm); default: tuned"
+        "--epochs",
+        type=int,
+        default=None,
+        help="epochs (of every stage, for dpgm; default: tuned); ppo-kickstart: passes over "
+        "each rollout (default 2)",
     )
     p.add_argument(
         "--loss",
