@@ -78,6 +78,8 @@ def main() -> None:
         "--server", help="the server binary (default: this checkout's release)"
     )
     args = parser.parse_args()
+    if args.rounds < 3:
+        parser.error("--rounds: at least 3 (an interval needs them)")
     runs: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
     with LocalCluster(1, binary=args.server) as cluster:
         for r in range(args.rounds):
