@@ -26,7 +26,7 @@ from . import checkpoint
 from .connect import options, served
 from .dagger import DaggerConfig
 from .kickstart import KickstartConfig
-from .paper import DAGGER_SETTINGS, KICKSTART_SETTINGS
+from .paper import DAGGER_SETTINGS, KICKSTART_SETTINGS, STEPS
 from .train_dagger import train_dagger
 from .train_rl import TRAINER_STATE, train_rl
 
@@ -34,8 +34,8 @@ __all__ = ["PPO_STEPS", "run_recipe"]
 
 DAGGER = "dagger-planner-memory"
 PPO = "ppo-kickstart-critic"
-#: The PPO stage's environment steps.
-PPO_STEPS = 20_000_000
+#: The PPO stage's environment steps: its row's in the paper table.
+PPO_STEPS = STEPS[PPO]
 
 
 def run_recipe(
