@@ -9,8 +9,10 @@ the bench harness's own single-env and vector-env rows over gRPC and shared memo
 median of three repetitions; the side that goes first alternates every round. It prints each
 row's median over the rounds for both sides and the after/before ratio's geometric mean over the
 rounds' pairs with its 95 % BCa interval (``scipy.stats.bootstrap``): an interval above 1 is
-faster, one across 1 a difference this machine's noise hides. Quiet the machine first; docs/
-benchmarks.md quotes runs.
+faster, one across 1 a difference this machine's noise hides. ``--pin`` runs the server's threads
+on the last CPU and the clients on the others (Linux), so the two do not trade cores between
+rounds; ``--rounds-out FILE`` keeps every round's rates (JSON lines). Quiet the machine first;
+docs/benchmarks.md quotes runs.
 """
 
 from __future__ import annotations
@@ -61,6 +63,17 @@ def _side(tree: Path, address: str) -> dict[str, float]:
     return json.loads(out.stdout.splitlines()[-1])
 
 
+def _pin(server_pid: int) -> None:
+    """The server's threads (each set: affinity is a thread's) on the last CPU, this process, and
+    so the clients it starts, on the others."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        raise SystemExit("--pin: needs at least 2 CPUs")
+    for tid in os.listdir(f"/proc/{server_pid}/task"):
+        os.sched_setaffinity(int(tid), {cpus[-1]})
+    os.sched_setaffinity(0, set(cpus[:-1]))
+
+
 def _rate(x: float) -> str:
     return f"{x / 1e6:.2f} M" if x >= 1e5 else f"{x:,.0f}"
 
@@ -77,14 +90,28 @@ def main() -> None:
     parser.add_argument(
         "--server", help="the server binary (default: this checkout's release)"
     )
+    parser.add_argument(
+        "--pin",
+        action="store_true",
+        help="server on the last CPU, clients on the others",
+    )
+    parser.add_argument(
+        "--rounds-out", type=Path, help="every round's rates, as JSON lines"
+    )
     args = parser.parse_args()
     if args.rounds < 3:
         parser.error("--rounds: at least 3 (an interval needs them)")
     runs: dict[str, list[dict[str, float]]] = {"before": [], "after": []}
     with LocalCluster(1, binary=args.server) as cluster:
+        if args.pin:
+            _pin(cluster.pid(0))
         for r in range(args.rounds):
             for side in ("before", "after") if r % 2 == 0 else ("after", "before"):
                 runs[side].append(_side(getattr(args, side), cluster.address(0)))
+            if args.rounds_out is not None:
+                with args.rounds_out.open("a") as out:
+                    rates = {side: runs[side][-1] for side in runs}
+                    out.write(json.dumps({"round": r + 1, **rates}) + "\n")
             print(f"round {r + 1} of {args.rounds}", file=sys.stderr)
     print(
         "| row | before | after | after / before [95 % BCa] |\n| --- | ---: | ---: | ---: |"
