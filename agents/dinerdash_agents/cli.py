@@ -91,13 +91,12 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     config = None
     given = {"kick_coef": args.kick_coef, "hidden": args.hidden, "update_epochs": args.epochs}
     given = {k: v for k, v in given.items() if v is not None}
-    if args.critic_memory:
-        given["critic_memory"] = True
+    given.update({k: True for k in ("critic_memory", "critic_lives") if getattr(args, k)})
     if given:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
-                "--kick-coef, --critic-memory, --hidden and --epochs are a new ppo-kickstart "
-                "run's (a resumed run keeps its settings)"
+                "--kick-coef, --critic-memory, --critic-lives, --hidden and --epochs are a new "
+                "ppo-kickstart run's (a resumed run keeps its settings)"
             )
         config = KickstartConfig(**given)
     trainer = train_rl(
@@ -395,6 +394,11 @@ def _parser() -> argparse.ArgumentParser:
         "--critic-memory",
         action="store_true",
         help="ppo-kickstart: the critic also reads the --init DAgger learner's memory features",
+    )
+    p.add_argument(
+        "--critic-lives",
+        action="store_true",
+        help="ppo-kickstart: the critic also reads the groups lost so far (the actor does not)",
     )
     p.add_argument("--layers", type=int, help="dagger: hidden layers")
     p.add_argument(

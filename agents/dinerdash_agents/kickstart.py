@@ -9,7 +9,8 @@ demonstration term of DAPG, Rajeswaran et al. 2018, with the teacher asked on-li
   checkpoint's network, with its :class:`~dinerdash_agents.dagger.MemoryFeatures` if it has
   them (the trainer then computes them for every environment, and the checkpoint's policy
   does when it plays). The critic is PPO's (two tanh layers over the observation scaled by the
-  server's Spec; with ``critic_memory``, the actor's memory features too) and starts untrained.
+  server's Spec; with ``critic_memory``, the actor's memory features too; with ``critic_lives``,
+  the groups lost so far, which the actor does not see) and starts untrained.
 - **Critic warm-up**: the first ``critic_warmup`` iterations update only the critic; the policy
   terms are multiplied by 0, so the actor's gradients, and with Adam its updates, are exactly 0.
   The policy then moves on advantages of a critic that already knows the BC policy's returns.
@@ -42,6 +43,7 @@ from .errors import AgentsError
 from .ppo import PPOConfig, Rollout, Trainer, _forward, _mlp, make_update, observation_scale
 
 __all__ = [
+    "LOST_COLUMNS",
     "TEACHERS",
     "KickstartConfig",
     "KickstartModel",
@@ -54,6 +56,9 @@ __all__ = [
 
 #: ``--teacher`` -> the vector env's ``expert`` keyword.
 TEACHERS: dict[str, bool | str] = {"expert": True, "planner": "planner"}
+#: ``critic_lives``: ``info["lost"]`` one-hot over 0, 1, 2, 3 and 4 or more, after the actor's
+#: inputs.
+LOST_COLUMNS = 5
 
 
 @dataclass(frozen=True)
@@ -83,6 +88,10 @@ class KickstartConfig(PPOConfig):
     #: Whether the critic reads the actor's memory features too (a truncated episode's last
     #: observation reaches it with them zero); ``hidden`` is its width either way.
     critic_memory: bool = False
+    #: Whether the critic also reads the groups lost so far (:data:`LOST_COLUMNS`; the episode
+    #: ends at the fifth): an input of the critic's alone, the actor and so the policy that plays
+    #: do not see it; a truncated episode's last observation reaches the critic with it zero.
+    critic_lives: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -121,6 +130,10 @@ class KickstartModel(eqx.Module):
     critic: list[eqx.nn.Linear]
     #: The critic's observation scale (:func:`~dinerdash_agents.ppo.observation_scale`).
     scale: tuple[float, ...] = eqx.field(static=True)
+    #: The input's columns the actor reads (the observation and its memory features); the
+    #: critic's, as ``(start, stop)`` runs after the observation's 40.
+    actor_width: int = eqx.field(static=True)
+    critic_columns: tuple[tuple[int, int], ...] = eqx.field(static=True)
 
     def __init__(self, config: KickstartConfig, key: jax.Array) -> None:
         ka, kc = jax.random.split(key)
@@ -129,9 +142,14 @@ class KickstartModel(eqx.Module):
         else:
             bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
             self.actor = bc.BehaviourCloning(bc_config, ka)
-        width = OBSERVATION_SIZE
+        self.actor_width = OBSERVATION_SIZE + dagger.memory_size(config.memory, config.timers)
+        columns = []
         if config.critic_memory:
-            width += dagger.memory_size(config.memory, config.timers)
+            columns.append((OBSERVATION_SIZE, self.actor_width))
+        if config.critic_lives:
+            columns.append((self.actor_width, self.actor_width + LOST_COLUMNS))
+        self.critic_columns = tuple(columns)
+        width = OBSERVATION_SIZE + sum(stop - start for start, stop in columns)
         self.critic = _mlp([width, config.hidden, config.hidden, 1], 1.0, kc)
         self.scale = observation_scale(config)
 
@@ -139,12 +157,12 @@ class KickstartModel(eqx.Module):
         self, obs: jax.Array, mask: jax.Array | None = None, key: jax.Array | None = None
     ) -> jax.Array:
         del key  # never dropout: PPO's ratios need the policy that acted
-        return self.actor(obs, mask)
+        return self.actor(obs[:, : self.actor_width], mask)
 
     def value(self, obs: jax.Array) -> jax.Array:
         scaled = obs[:, :OBSERVATION_SIZE] / jnp.asarray(self.scale, jnp.float32)
-        features = obs[:, OBSERVATION_SIZE : self.critic[0].in_features]
-        return _forward(self.critic, jnp.concatenate([scaled, features], axis=1))[:, 0]
+        parts = [scaled, *(obs[:, start:stop] for start, stop in self.critic_columns)]
+        return _forward(self.critic, jnp.concatenate(parts, axis=1))[:, 0]
 
 
 def init(config: KickstartConfig, seed: int = 0) -> KickstartModel:
@@ -238,11 +256,18 @@ class KickstartTrainer(Trainer):
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
-        width = OBSERVATION_SIZE + dagger.memory_size(config.memory, config.timers)
+        width = self.model.actor_width + (LOST_COLUMNS if config.critic_lives else 0)
         self._buffers = Rollout(config.num_steps, config.num_envs, expert=True, width=width)
 
     def view(self):
         return _view(self.config)
+
+    def with_info(self, seen: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        """With ``critic_lives``, the groups lost (one-hot) after the actor's inputs."""
+        if not self.config.critic_lives:
+            return seen
+        lost = np.minimum(np.asarray(info["lost"], np.int64), LOST_COLUMNS - 1)
+        return np.concatenate([seen, np.eye(LOST_COLUMNS, dtype=np.float32)[lost]], axis=1)
 
     def _combine(self, terms: dict, mb: dict, logits: jax.Array, coefs: dict):
         c = self.config

@@ -554,7 +554,8 @@ class Trainer:
             group = _Group(part, slice(start, start + size))
             group.view = self.view()
             obs, info = part.reset(seed=seeds[start : start + size])
-            group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
+            group.obs = self.with_info(group.see(obs), info)
+            group.mask, group.info = info["action_mask"], info
             self._groups.append(group)
             start += size
         self._score = np.zeros(self.config.num_envs)
@@ -683,7 +684,8 @@ class Trainer:
                 score[i], length[i] = 0.0, 0
             self.episodes += int(done.sum())
             del self.recent_scores[:-100], self.recent_lengths[:-100]
-        group.obs, group.mask, group.info = group.see(obs), info["action_mask"], info
+        group.obs = self.with_info(group.see(obs), info)
+        group.mask, group.info = info["action_mask"], info
 
     def view(self) -> Callable[[np.ndarray], np.ndarray] | None:
         """A fresh, stateful ``obs (B, 40) -> model input (B, width)`` for one vector env of
@@ -691,6 +693,11 @@ class Trainer:
         critic of such a model reads only the first 40 columns (a truncated episode's last
         observation reaches it with the rest zero)."""
         return None
+
+    def with_info(self, seen: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        """The model's input of a step: ``seen`` (the observations through :meth:`view`), with
+        what the model reads of the step's ``info`` after it (PPO's: nothing)."""
+        return seen
 
     def _bootstrap(self) -> None:
         """The next values: the next step's values, 0 after a termination, and the critic's

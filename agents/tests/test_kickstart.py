@@ -130,6 +130,28 @@ def test_the_critic_reads_the_memory_features_only_when_told():
         _trainer(critic_memory=True)
 
 
+def test_the_critic_reads_the_groups_lost_and_the_actor_does_not():
+    dagger_config = dagger.DaggerConfig(memory=True, hidden=16, layers=1).to_json()
+    width = OBSERVATION_SIZE + dagger.memory_size(True)
+    obs = np.concatenate([_batch(5)["obs"][0], np.zeros((5, dagger.memory_size(True)))], 1)
+    trainer = _trainer(init_algorithm="dagger", dagger_config=dagger_config, critic_lives=True)
+    seen = trainer.with_info(obs, {"lost": np.array([0, 1, 2, 4, 7])})
+    assert seen.shape == (5, width + kickstart.LOST_COLUMNS)
+    np.testing.assert_array_equal(seen[:, :width], obs)
+    np.testing.assert_array_equal(seen[:, width:].argmax(1), [0, 1, 2, 4, 4])  # 7: "4 or more"
+    assert trainer._buffers.obs.shape[-1] == seen.shape[1]
+    model = trainer.model
+    assert model.critic[0].in_features == OBSERVATION_SIZE + kickstart.LOST_COLUMNS
+    other = seen.copy()
+    other[:, width:] = np.eye(kickstart.LOST_COLUMNS)[[3, 3, 3, 3, 0]]
+    # The actor reads its own columns only: the policy that plays does not see the lives.
+    np.testing.assert_array_equal(model(jnp.asarray(seen)), model(jnp.asarray(obs)))
+    assert not np.allclose(model.value(jnp.asarray(seen)), model.value(jnp.asarray(other)))
+    # Without the flag the model's input is what the view gives.
+    plain = _trainer(init_algorithm="dagger", dagger_config=dagger_config)
+    assert plain.with_info(obs, {"lost": np.zeros(5)}) is obs
+
+
 def test_the_kick_coefficient_follows_its_schedule():
     linear = kickstart.KickstartConfig(kick_coef=2.0, kick_until=0.5, critic_warmup=10)
     values = [kickstart.kick_coefficient(linear, i, 110) for i in (0, 10, 35, 60, 100)]

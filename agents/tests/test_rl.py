@@ -153,7 +153,13 @@ def test_rl_bad_input_is_refused_with_a_clear_error(tmp_path: Path, capsys):
     assert agents_main(argv) == 1
     assert "checkpoint.json" in capsys.readouterr().err
     # A new ppo-kickstart run's settings, asked of another algorithm.
-    for flags in (["--critic-memory"], ["--kick-coef", "0"], ["--hidden", "64"], ["--epochs", "4"]):
+    for flags in (
+        ["--critic-memory"],
+        ["--critic-lives"],
+        ["--kick-coef", "0"],
+        ["--hidden", "64"],
+        ["--epochs", "4"],
+    ):
         argv = ["train", "ppo-masked", "--steps", "100", *flags, "--out", str(tmp_path / "k")]
         assert agents_main(argv) == 1
         assert "are a new ppo-kickstart run's" in capsys.readouterr().err
