@@ -115,6 +115,8 @@ def _kickstart_label(agent: Agent) -> str:
             "actions (beyond the paper)"
         )
     critic = ", its critic reading them too" if settings.get("critic_memory") else ""
+    if settings.get("critic_lives"):
+        critic += " and the groups lost"
     return (
         f"masked PPO from `{agent.start}`'s policy, its memory features kept, on the game's "
         f"reward alone{critic} (beyond the paper)"
@@ -168,6 +170,7 @@ AGENTS = [
     Agent("dagger-planner-memory", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("ppo-kickstart-memory", *_FROM_MEMORY_LEARNER),
     Agent("ppo-kickstart-critic", *_FROM_MEMORY_LEARNER),
+    Agent("ppo-kickstart-lives", *_FROM_MEMORY_LEARNER),
     Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, "planner"),
     Agent("dagger-gru-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
@@ -213,15 +216,22 @@ STEPS = {
     "ppo-kickstart": RL_STEPS,
     "ppo-kickstart-memory": 20_000_000,
     "ppo-kickstart-critic": 20_000_000,
+    "ppo-kickstart-lives": 20_000_000,
 }
 #: Kick-started rows' settings beyond :class:`~dinerdash_agents.kickstart.KickstartConfig`'s
 #: defaults: from the DAgger learner with memory, no pull toward a teacher (its pull would be
 #: toward the expert, whose play the planner's pupil does not follow; the planner as teacher
 #: costs the server a look-ahead at every step); chosen on seeds 2000..2099, as was the critic
-#: that reads the memory features too, 256 wide (issue 49).
+#: that reads the memory features too, 256 wide (issue 49), and the groups lost (on 2000..2399).
 KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {
     "ppo-kickstart-memory": {"kick_coef": 0.0},
     "ppo-kickstart-critic": {"kick_coef": 0.0, "critic_memory": True, "hidden": 256},
+    "ppo-kickstart-lives": {
+        "kick_coef": 0.0,
+        "critic_memory": True,
+        "critic_lives": True,
+        "hidden": 256,
+    },
 }
 
 
@@ -400,6 +410,7 @@ COMPARISONS = [
     ("ppo-kickstart-memory", "dagger-planner-memory", "PPO on the game's reward after DAgger"),
     ("ppo-kickstart-memory", "ppo-kickstart", "the memory features, both PPO from imitation"),
     ("ppo-kickstart-critic", "ppo-kickstart-memory", "the critic reading the memory features"),
+    ("ppo-kickstart-lives", "ppo-kickstart-critic", "the critic reading the groups lost too"),
 ]
 
 

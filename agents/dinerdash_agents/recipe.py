@@ -1,7 +1,7 @@
 """The best learned policy's whole recipe for one training seed, in one command: DAgger with the
 look-ahead planner as teacher and memory features (``dagger-planner-memory``), then masked PPO
-on the game's reward from that learner, its critic reading the memory features too
-(``ppo-kickstart-critic``); docs/agents.md gives its results and times.
+on the game's reward from that learner, its critic reading the memory features and the groups
+lost too (``ppo-kickstart-lives``); docs/agents.md gives its results and times.
 
 ::
 
@@ -33,7 +33,7 @@ from .train_rl import TRAINER_STATE, train_rl
 __all__ = ["PPO_STEPS", "run_recipe"]
 
 DAGGER = "dagger-planner-memory"
-PPO = "ppo-kickstart-critic"
+PPO = "ppo-kickstart-lives"
 #: The PPO stage's environment steps: its row's in the paper table.
 PPO_STEPS = STEPS[PPO]
 
@@ -49,7 +49,7 @@ def run_recipe(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Trains (or finishes) the recipe's two stages for training seed ``seed`` into
-    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-critic``, with their TensorBoard curves
+    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-lives``, with their TensorBoard curves
     under ``out/tensorboard``; returns what it writes to ``out/recipe.json``. ``dagger``: settings
     that replace the recipe's DAgger ones (tests use fewer rounds); ``num_envs``: the PPO stage's
     environments (default its config's)."""
