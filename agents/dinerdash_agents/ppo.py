@@ -1,11 +1,12 @@
 """PPO against batched server sessions: the model, the update and the :class:`Trainer`.
 
 Not a CleanRL-style single file: the algorithm is a class, as Stable-Baselines3's are.
-:class:`Trainer` holds one iteration (collect, then update) and four hooks its variants
+:class:`Trainer` holds one iteration (collect, then update) and five hooks its variants
 override: :meth:`~Trainer.rewards_of` (GAIL's discriminator reward), :meth:`~Trainer.update_coefs`
 with :func:`make_update`'s ``combine`` (kick-starting's pull toward a teacher),
-:meth:`~Trainer.record_info` (the teacher's actions kept with each step) and
-:meth:`~Trainer.view` (a learner with memory sees its observations' features). The run around it
+:meth:`~Trainer.record_info` (the teacher's actions kept with each step),
+:meth:`~Trainer.view` (a learner with memory sees its observations' features) and
+:meth:`~Trainer.with_info` (a critic reads the groups lost). The run around it
 (servers, checkpoints, curve, resume) is :mod:`~dinerdash_agents.train_rl`.
 
 ``gymnasium.make_vec("dinerdash:DinerDash-v0", num_envs=N, address=..., autoreset_mode=SAME_STEP)``
@@ -475,10 +476,11 @@ class Trainer:
     """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
     one iteration: collect ``num_steps`` steps of every environment, then update.
 
-    Its variants subclass it and override its four hooks: GAIL replaces :meth:`rewards_of`;
+    Its variants subclass it and override its five hooks: GAIL replaces :meth:`rewards_of`;
     kick-starting adds a loss term through :meth:`update_coefs` and :func:`make_update`'s
     ``combine``, and keeps the teacher's actions through :meth:`record_info`; a learner with
-    memory sees its observations through :meth:`view`.
+    memory sees its observations through :meth:`view`; a critic reads more of each step's info
+    through :meth:`with_info`.
     """
 
     def __init__(self, config: PPOConfig, total_steps: int, seed: int = 0) -> None:
