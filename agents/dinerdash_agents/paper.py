@@ -223,15 +223,11 @@ STEPS = {
 #: toward the expert, whose play the planner's pupil does not follow; the planner as teacher
 #: costs the server a look-ahead at every step); chosen on seeds 2000..2099, as was the critic
 #: that reads the memory features too, 256 wide (issue 49), and the groups lost (on 2000..2399).
+_CRITIC = {"kick_coef": 0.0, "critic_memory": True, "hidden": 256}
 KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {
     "ppo-kickstart-memory": {"kick_coef": 0.0},
-    "ppo-kickstart-critic": {"kick_coef": 0.0, "critic_memory": True, "hidden": 256},
-    "ppo-kickstart-lives": {
-        "kick_coef": 0.0,
-        "critic_memory": True,
-        "critic_lives": True,
-        "hidden": 256,
-    },
+    "ppo-kickstart-critic": _CRITIC,
+    "ppo-kickstart-lives": {**_CRITIC, "critic_lives": True},
 }
 
 
