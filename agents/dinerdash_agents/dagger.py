@@ -106,6 +106,9 @@ class DaggerConfig:
     memory: bool = False
     #: With ``memory``, the features also hold the tables' timers (``MemoryFeatures(timers=True)``).
     timers: bool = False
+    #: With ``memory``, the features end with the groups lost so far, counted from the
+    #: observations (``MemoryFeatures(lives=True)``).
+    lives: bool = False
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -119,8 +122,8 @@ class DaggerConfig:
                 raise AgentsError(f"{name} must be at least 1 (got {getattr(self, name)})")
         if not 0.0 <= self.p <= 1.0:
             raise AgentsError(f"p must be in [0, 1] (got {self.p})")
-        if self.timers and not self.memory:
-            raise AgentsError("timers are memory features: they need memory")
+        if (self.timers or self.lives) and not self.memory:
+            raise AgentsError("timers and lives are memory features: they need memory")
 
     def to_json(self) -> dict:
         return {**asdict(self), "betas": betas(self)}
@@ -152,6 +155,10 @@ TIMER_CAP = 16
 #: Per table, the steps since its status changed and since its order reached the kitchen (0:
 #: no order there); then the steps since the last group arrived. Each / :data:`TIMER_CAP`.
 TIMERS_SIZE = 2 * NUM_TABLES + 1
+#: The groups lost so far, one-hot over 0, 1, 2, 3 and 4 or more (the fifth ends the episode).
+LIVES_SIZE = 5
+#: Table statuses with a group seated, which a group that runs away leaves as status 0.
+_SEATED = (1, 2, 3, 4, 6)
 
 
 class _Group:
@@ -225,6 +232,54 @@ class _Timers:
         return [x / TIMER_CAP for x in (*self.since_status, *kitchen, self.since_arrival)]
 
 
+class _Lives:
+    """One environment's count of the groups lost (see :class:`MemoryFeatures`), from what each
+    step changed: a table whose group was seated and is now free lost it; the queue lost what
+    is missing once the group seated from it and the arrival are counted. Arrivals follow the
+    rules' clock (docs/rules.md §5.5: the first at once, then one a step after 8 more ticks while
+    there is room). A full queue that stays full either lost none or lost one and took in the
+    next: it lost none if every group is still in its place (same size, level the same or one
+    lower) or none had level 0, from which alone a group walks out."""
+
+    def __init__(self, obs: np.ndarray) -> None:
+        self.last = obs.copy()
+        self.now, self.next_arrival, self.lost = 0, 8, 0
+
+    def step(self, obs: np.ndarray) -> None:
+        was, status = self.last[0 : 3 * NUM_TABLES : 3], obs[0 : 3 * NUM_TABLES : 3]
+        self.lost += int((np.isin(was, _SEATED) & (status == 0)).sum())
+        before, after = _queue(self.last), _queue(obs)
+        room = len(before) - int(((was == 0) & (status == 1)).sum())
+        due = self.now > self.next_arrival
+        if due and room < QUEUE_CAPACITY:
+            walked, arrived = room + 1 - len(after), True
+        elif due and len(after) < QUEUE_CAPACITY:  # full: whoever walked out made room
+            walked, arrived = QUEUE_CAPACITY + 1 - len(after), True
+        elif due:
+            walked = int(not _in_place(before, after))
+            arrived = walked > 0
+        else:
+            walked, arrived = room - len(after), False
+        self.lost += walked
+        if arrived:
+            self.next_arrival = self.now + 8
+        self.now += 1
+        self.last = obs.copy()
+
+    def features(self) -> np.ndarray:
+        return np.eye(LIVES_SIZE, dtype=np.float32)[min(self.lost, LIVES_SIZE - 1)]
+
+
+def _in_place(before: list[tuple[int, int]], after: list[tuple[int, int]]) -> bool:
+    """Whether the queue ``after`` a tick holds the groups ``before`` it, each where it was."""
+    if all(level > 0 for level, _ in before):
+        return True
+    return all(
+        size == old_size and level in (old_level, old_level - 1)
+        for (old_level, old_size), (level, size) in zip(before, after, strict=True)
+    )
+
+
 def _orders_in_hand(obs: np.ndarray) -> set[int]:
     """The tables (0..5) whose order is in a hand."""
     return {int(h) - 1 for h in obs[38:40] if 1 <= h <= NUM_TABLES}
@@ -233,10 +288,11 @@ def _orders_in_hand(obs: np.ndarray) -> set[int]:
 class _Memory:
     """One environment's patience memory (see :class:`MemoryFeatures`)."""
 
-    def __init__(self, obs: np.ndarray, timers: bool = False) -> None:
+    def __init__(self, obs: np.ndarray, timers: bool = False, lives: bool = False) -> None:
         self.tables: list[_Group | None] = [None] * NUM_TABLES
         self.queue = [_Group(level, size) for level, size in _queue(obs)]
         self.timers = _Timers(obs) if timers else None
+        self.lives = _Lives(obs) if lives else None
 
     def step(self, obs: np.ndarray) -> None:
         arrived = False
@@ -277,15 +333,20 @@ class _Memory:
                     self.tables[t] = _Group(level, 0)
         if self.timers is not None:
             self.timers.step(obs, arrived)
+        if self.lives is not None:
+            self.lives.step(obs)
 
     def features(self) -> np.ndarray:
         out = np.zeros((MEMORY_SLOTS, 3), np.float32)
         for k, g in enumerate(self.tables + self.queue):
             if g is not None:
                 out[k] = (g.count / MEMORY_CAP, float(g.type2), float(g.changed))
-        if self.timers is None:
-            return out.reshape(-1)
-        return np.concatenate([out.reshape(-1), np.array(self.timers.features(), np.float32)])
+        parts = [out.reshape(-1)]
+        if self.timers is not None:
+            parts.append(np.array(self.timers.features(), np.float32))
+        if self.lives is not None:
+            parts.append(self.lives.features())
+        return np.concatenate(parts)
 
 
 class MemoryFeatures:
@@ -301,13 +362,15 @@ class MemoryFeatures:
 
     With ``timers`` (issue 49's experiment, docs/agents.md), also :data:`TIMERS_SIZE` timers
     after those: per table the steps since its status changed and since its order reached the
-    kitchen, and the steps since the last group arrived.
+    kitchen, and the steps since the last group arrived. With ``lives``, last, the groups lost
+    so far (:data:`LIVES_SIZE`, one-hot), as the observations show them (``info["lost"]`` is not
+    read: the features stay a function of the observations).
 
     ``augment(obs)`` takes a batch (B, 40), one step of B environments, and returns (B, 40 +
     :func:`memory_size`); a batch of another size starts every memory afresh."""
 
-    def __init__(self, timers: bool = False) -> None:
-        self.timers = timers
+    def __init__(self, timers: bool = False, lives: bool = False) -> None:
+        self.timers, self.lives = timers, lives
         self._memories: list[_Memory] = []
         self._last = np.zeros((0, OBSERVATION_SIZE), np.float32)
 
@@ -317,11 +380,11 @@ class MemoryFeatures:
             raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
         fresh = len(self._memories) != len(obs)
         if fresh:
-            self._memories = [_Memory(o, self.timers) for o in obs]
+            self._memories = [_Memory(o, self.timers, self.lives) for o in obs]
         else:
             for k, (o, last) in enumerate(zip(obs, self._last, strict=True)):
                 if is_episode_start(o) and not np.array_equal(o, last):
-                    self._memories[k] = _Memory(o, self.timers)
+                    self._memories[k] = _Memory(o, self.timers, self.lives)
                 else:
                     self._memories[k].step(o)
         self._last = obs.copy()
@@ -329,19 +392,22 @@ class MemoryFeatures:
         return np.concatenate([obs, feats], axis=1)
 
 
-def memory_size(memory: bool, timers: bool = False) -> int:
+def memory_size(memory: bool, timers: bool = False, lives: bool = False) -> int:
     """How many memory features follow the observation."""
-    return (MEMORY_SIZE + (TIMERS_SIZE if timers else 0)) if memory else 0
+    extra = (TIMERS_SIZE if timers else 0) + (LIVES_SIZE if lives else 0)
+    return MEMORY_SIZE + extra if memory else 0
 
 
-def memory_view(memory: bool, timers: bool = False) -> Callable[[np.ndarray], np.ndarray] | None:
+def memory_view(
+    memory: bool, timers: bool = False, lives: bool = False
+) -> Callable[[np.ndarray], np.ndarray] | None:
     """A policy's view of its observations: with ``memory``, a fresh :class:`MemoryFeatures`."""
-    return MemoryFeatures(timers).augment if memory else None
+    return MemoryFeatures(timers, lives).augment if memory else None
 
 
 def input_size(config: DaggerConfig) -> int:
     """The learner's input width: the observation, and the memory features with ``memory``."""
-    return OBSERVATION_SIZE + memory_size(config.memory, config.timers)
+    return OBSERVATION_SIZE + memory_size(config.memory, config.timers, config.lives)
 
 
 class DaggerNet(eqx.Module):
@@ -664,7 +730,7 @@ def fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed
 
 
 def _view(config: DaggerConfig) -> Callable[[np.ndarray], np.ndarray] | None:
-    return memory_view(config.memory, config.timers)
+    return memory_view(config.memory, config.timers, config.lives)
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``dagger`` checkpoint.

@@ -10,7 +10,10 @@ demonstration term of DAPG, Rajeswaran et al. 2018, with the teacher asked on-li
   them (the trainer then computes them for every environment, and the checkpoint's policy
   does when it plays). The critic is PPO's (two tanh layers over the observation scaled by the
   server's Spec; with ``critic_memory``, the actor's memory features too; with ``critic_lives``,
-  the groups lost so far, which the actor does not see) and starts untrained.
+  the groups lost so far, which the actor does not see) and starts untrained. With
+  ``actor_lives`` the actor's memory features also count the groups lost, from its observations
+  (``MemoryFeatures(lives=True)``); the DAgger network's first layer gets those inputs with
+  weights 0, so the run starts from the same policy.
 - **Critic warm-up**: the first ``critic_warmup`` iterations update only the critic; the policy
   terms are multiplied by 0, so the actor's gradients, and with Adam its updates, are exactly 0.
   The policy then moves on advantages of a critic that already knows the BC policy's returns.
@@ -92,6 +95,9 @@ class KickstartConfig(PPOConfig):
     #: ends at the fifth): an input of the critic's alone, the actor and so the policy that plays
     #: do not see it; a truncated episode's last observation reaches the critic with it zero.
     critic_lives: bool = False
+    #: Whether the actor's memory features also count the groups lost, from the observations
+    #: (a DAgger actor with memory; its new inputs start with weights 0).
+    actor_lives: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -115,6 +121,11 @@ class KickstartConfig(PPOConfig):
     def timers(self) -> bool:
         """Whether those features hold the timers too."""
         return bool(self.dagger_config and self.dagger_config.get("timers"))
+
+    @property
+    def lives(self) -> bool:
+        """Whether they end with the groups lost, as the observations show them."""
+        return bool(self.dagger_config and self.dagger_config.get("lives"))
 
 
 def config_from_json(values: dict) -> KickstartConfig:
@@ -142,7 +153,9 @@ class KickstartModel(eqx.Module):
         else:
             bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
             self.actor = bc.BehaviourCloning(bc_config, ka)
-        self.actor_width = OBSERVATION_SIZE + dagger.memory_size(config.memory, config.timers)
+        self.actor_width = OBSERVATION_SIZE + dagger.memory_size(
+            config.memory, config.timers, config.lives
+        )
         columns = []
         if config.critic_memory:
             columns.append((OBSERVATION_SIZE, self.actor_width))
@@ -197,12 +210,20 @@ def config_for_init(config: KickstartConfig, directory: str | Path) -> Kickstart
     description = _init_description(directory)
     sizes = description["config"]
     if description["algorithm"] == "dagger":
+        if config.actor_lives and not sizes.get("memory"):
+            raise AgentsError(
+                f"--actor-lives: the groups lost are memory features, and --init {directory} "
+                "has none (a dagger checkpoint trained with --memory)"
+            )
+        lives = {"lives": True} if config.actor_lives else {}
         return replace(
             config,
             init=str(directory),
             init_algorithm="dagger",
-            dagger_config=dagger.config_from_json(sizes).to_json(),
+            dagger_config=dagger.config_from_json({**sizes, **lives}).to_json(),
         )
+    if config.actor_lives:
+        raise AgentsError(f"--actor-lives needs a dagger --init with memory, not {directory}")
     return replace(
         config,
         init=str(directory),
@@ -252,7 +273,7 @@ class KickstartTrainer(Trainer):
         if load_init:
             if not config.init:
                 raise AgentsError("ppo-kickstart needs --init DIR (a bc or dagger checkpoint)")
-            model = eqx.tree_at(lambda m: m.actor, model, _load_init(config.init))
+            model = eqx.tree_at(lambda m: m.actor, model, _widened(_load_init(config.init), model))
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
@@ -290,6 +311,21 @@ class KickstartTrainer(Trainer):
         self._buffers.expert_actions[t, rows] = expert
 
 
+def _widened(actor, model: KickstartModel):
+    """``actor``'s weights in ``model``'s actor, its first layer's extra inputs (``actor_lives``:
+    the init learnt without the groups lost) with weights 0, so it plays as it did."""
+    first = actor.layers[0].weight
+    missing = model.actor_width - first.shape[1]
+    if missing > 0:
+        zeros = jnp.zeros((first.shape[0], missing), first.dtype)
+        actor = eqx.tree_at(lambda a: a.layers[0].weight, actor, jnp.concatenate([first, zeros], 1))
+    params, static = eqx.partition(model.actor, eqx.is_array)
+    leaves = jax.tree_util.tree_leaves(eqx.filter(actor, eqx.is_array))
+    return eqx.combine(
+        jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(params), leaves), static
+    )
+
+
 def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> dict[str, Any]:
     """The update's ``coefs``: λ_k, and whether the policy terms count (0 in the warm-up)."""
     return {
@@ -301,7 +337,7 @@ def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> di
 def _view(config: KickstartConfig):
     """An actor with memory sees its observations with a fresh
     :class:`~dinerdash_agents.dagger.MemoryFeatures` beside them (as it did when it learnt)."""
-    return dagger.memory_view(config.memory, config.timers)
+    return dagger.memory_view(config.memory, config.timers, config.lives)
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo-kickstart`` checkpoint.

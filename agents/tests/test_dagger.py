@@ -292,6 +292,39 @@ def test_a_checkpoint_with_memory_plays_through_its_own_memory(
         dagger.DaggerConfig(timers=True)
 
 
+def test_the_groups_lost_counted_from_the_observations_are_infos(server_address: str) -> None:
+    """The count of groups lost that the memory keeps from the observations alone is the
+    server's ``info["lost"]`` at every step: under the expert (groups run away from tables),
+    a random legal policy and one that only waits (the queue fills, groups walk out of it, a
+    full queue takes in the next)."""
+    from dinerdash import DinerDashEnv
+
+    rng = np.random.default_rng(0)
+    policies = {
+        "expert": lambda info: info["expert_action"],
+        "random": lambda info: rng.choice(np.flatnonzero(info["action_mask"])),
+        "wait": lambda info: 0,
+    }
+    lost = {name: 0 for name in policies}
+    with DinerDashEnv(address=server_address, expert=True) as env:
+        for name, policy in policies.items():
+            for seed in (3, 4):
+                memory = dagger.MemoryFeatures(lives=True)
+                obs, info = env.reset(seed=seed)
+                row = memory.augment(obs[None])[0]
+                assert row.shape == (OBSERVATION_SIZE + dagger.MEMORY_SIZE + dagger.LIVES_SIZE,)
+                for _ in range(3000):
+                    obs, _, terminated, truncated, info = env.step(policy(info))
+                    counted = memory.augment(obs[None])[0][-dagger.LIVES_SIZE :]
+                    assert counted.sum() == 1 and counted.argmax() == min(info["lost"], 4), name
+                    if terminated or truncated:
+                        break
+                lost[name] += info["lost"]
+    assert lost == {"expert": 10, "random": 10, "wait": 10}
+    with pytest.raises(AgentsError, match="need memory"):
+        dagger.DaggerConfig(lives=True)
+
+
 def test_the_timers_follow_reading_eating_cooking_and_arrivals(server_address: str) -> None:
     """An expert episode's timers against the rules' fixed durations: reading and eating last 10
     steps, an order handed to the kitchen is food on a counter 10 steps later, and a group

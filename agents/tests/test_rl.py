@@ -156,6 +156,7 @@ def test_rl_bad_input_is_refused_with_a_clear_error(tmp_path: Path, capsys):
     for flags in (
         ["--critic-memory"],
         ["--critic-lives"],
+        ["--actor-lives"],
         ["--kick-coef", "0"],
         ["--hidden", "64"],
         ["--epochs", "4"],
