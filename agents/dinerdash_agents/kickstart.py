@@ -273,7 +273,10 @@ class KickstartTrainer(Trainer):
         if load_init:
             if not config.init:
                 raise AgentsError("ppo-kickstart needs --init DIR (a bc or dagger checkpoint)")
-            model = eqx.tree_at(lambda m: m.actor, model, _widened(_load_init(config.init), model))
+            actor = _load_init(config.init)
+            if config.actor_lives:
+                actor = _widened(actor, model)
+            model = eqx.tree_at(lambda m: m.actor, model, actor)
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
@@ -311,7 +314,7 @@ class KickstartTrainer(Trainer):
         self._buffers.expert_actions[t, rows] = expert
 
 
-def _widened(actor, model: KickstartModel):
+def _widened(actor: dagger.DaggerNet, model: KickstartModel) -> dagger.DaggerNet:
     """``actor``'s weights in ``model``'s actor, its first layer's extra inputs (``actor_lives``:
     the init learnt without the groups lost) with weights 0, so it plays as it did."""
     first = actor.layers[0].weight

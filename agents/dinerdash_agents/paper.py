@@ -117,6 +117,8 @@ def _kickstart_label(agent: Agent) -> str:
     critic = ", its critic reading them too" if settings.get("critic_memory") else ""
     if settings.get("critic_lives"):
         critic += " and the groups lost"
+    if settings.get("actor_lives"):
+        critic += ", the actor counting them from what it sees"
     return (
         f"masked PPO from `{agent.start}`'s policy, its memory features kept, on the game's "
         f"reward alone{critic} (beyond the paper)"
@@ -171,6 +173,7 @@ AGENTS = [
     Agent("ppo-kickstart-memory", *_FROM_MEMORY_LEARNER),
     Agent("ppo-kickstart-critic", *_FROM_MEMORY_LEARNER),
     Agent("ppo-kickstart-lives", *_FROM_MEMORY_LEARNER),
+    Agent("ppo-kickstart-actor-lives", *_FROM_MEMORY_LEARNER),
     Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, "planner"),
     Agent("dagger-gru-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
@@ -217,17 +220,20 @@ STEPS = {
     "ppo-kickstart-memory": 20_000_000,
     "ppo-kickstart-critic": 20_000_000,
     "ppo-kickstart-lives": 20_000_000,
+    "ppo-kickstart-actor-lives": 20_000_000,
 }
 #: Kick-started rows' settings beyond :class:`~dinerdash_agents.kickstart.KickstartConfig`'s
 #: defaults: from the DAgger learner with memory, no pull toward a teacher (its pull would be
 #: toward the expert, whose play the planner's pupil does not follow; the planner as teacher
 #: costs the server a look-ahead at every step); chosen on seeds 2000..2099, as was the critic
-#: that reads the memory features too, 256 wide (issue 49), and the groups lost (on 2000..2399).
+#: that reads the memory features too, 256 wide (issue 49), the groups lost, and the actor counting
+#: them from its observations (both on 2000..2399).
 _CRITIC = {"kick_coef": 0.0, "critic_memory": True, "hidden": 256}
 KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {
     "ppo-kickstart-memory": {"kick_coef": 0.0},
     "ppo-kickstart-critic": _CRITIC,
     "ppo-kickstart-lives": {**_CRITIC, "critic_lives": True},
+    "ppo-kickstart-actor-lives": {**_CRITIC, "critic_lives": True, "actor_lives": True},
 }
 
 
@@ -407,6 +413,7 @@ COMPARISONS = [
     ("ppo-kickstart-memory", "ppo-kickstart", "the memory features, both PPO from imitation"),
     ("ppo-kickstart-critic", "ppo-kickstart-memory", "the critic reading the memory features"),
     ("ppo-kickstart-lives", "ppo-kickstart-critic", "the critic reading the groups lost too"),
+    ("ppo-kickstart-actor-lives", "ppo-kickstart-lives", "the actor counting the groups lost"),
 ]
 
 

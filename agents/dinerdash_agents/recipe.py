@@ -1,7 +1,8 @@
 """The best learned policy's whole recipe for one training seed, in one command: DAgger with the
 look-ahead planner as teacher and memory features (``dagger-planner-memory``), then masked PPO
 on the game's reward from that learner, its critic reading the memory features and the groups
-lost too (``ppo-kickstart-lives``); docs/agents.md gives its results and times.
+lost too, its actor counting them from the observations (``ppo-kickstart-actor-lives``);
+docs/agents.md gives its results and times.
 
 ::
 
@@ -33,7 +34,7 @@ from .train_rl import TRAINER_STATE, train_rl
 __all__ = ["PPO_STEPS", "run_recipe"]
 
 DAGGER = "dagger-planner-memory"
-PPO = "ppo-kickstart-lives"
+PPO = "ppo-kickstart-actor-lives"
 #: The PPO stage's environment steps: its row's in the paper table.
 PPO_STEPS = STEPS[PPO]
 
@@ -49,10 +50,10 @@ def run_recipe(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Trains (or finishes) the recipe's two stages for training seed ``seed`` into
-    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-lives``, with their TensorBoard curves
-    under ``out/tensorboard``; returns what it writes to ``out/recipe.json``. ``dagger``: settings
-    that replace the recipe's DAgger ones (tests use fewer rounds); ``num_envs``: the PPO stage's
-    environments (default its config's)."""
+    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-actor-lives``, with their TensorBoard
+    curves under ``out/tensorboard``; returns what it writes to ``out/recipe.json``. ``dagger``:
+    settings that replace the recipe's DAgger ones (tests use fewer rounds); ``num_envs``: the PPO
+    stage's environments (default its config's)."""
     # One local server, if any, for both stages, started before any JAX work.
     with served(options(connect, "run_recipe")) as (connect, _):
         return _run(Path(out), seed, ppo_steps, connect, dagger, num_envs, progress)

@@ -42,7 +42,7 @@ def test_the_recipe_trains_dagger_then_ppo_from_it_and_a_second_run_only_finishe
     assert first["config"]["init_algorithm"] == "dagger"
     assert first["config"]["kick_coef"] == 0.0
     assert first["config"]["critic_memory"] is True and first["config"]["hidden"] == 256
-    assert first["config"]["critic_lives"] is True
+    assert first["config"]["critic_lives"] is True and first["config"]["actor_lives"] is True
     assert first["training"]["seed"] == 3
     assert first["data"]["environment_steps"] == per_iteration
     assert (tmp_path / "tensorboard" / PPO).is_dir()
