@@ -67,6 +67,7 @@ __all__ = [
     "config_from_json",
     "fit_round",
     "init",
+    "lives_one_hot",
     "mix_actions",
     "play_round",
     "seat_weights",
@@ -159,6 +160,12 @@ TIMERS_SIZE = 2 * NUM_TABLES + 1
 LIVES_SIZE = 5
 #: Table statuses with a group seated, which a group that runs away leaves as status 0.
 _SEATED = (1, 2, 3, 4, 6)
+
+
+def lives_one_hot(lost: int | np.ndarray) -> np.ndarray:
+    """The groups lost (a count, or an array of counts) one-hot over :data:`LIVES_SIZE`
+    columns: 0, 1, 2, 3 and 4 or more."""
+    return np.eye(LIVES_SIZE, dtype=np.float32)[np.minimum(lost, LIVES_SIZE - 1)]
 
 
 class _Group:
@@ -267,7 +274,7 @@ class _Lives:
         self.last = obs.copy()
 
     def features(self) -> np.ndarray:
-        return np.eye(LIVES_SIZE, dtype=np.float32)[min(self.lost, LIVES_SIZE - 1)]
+        return lives_one_hot(self.lost)
 
 
 def _in_place(before: list[tuple[int, int]], after: list[tuple[int, int]]) -> bool:

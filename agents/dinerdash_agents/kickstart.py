@@ -59,9 +59,9 @@ __all__ = [
 
 #: ``--teacher`` -> the vector env's ``expert`` keyword.
 TEACHERS: dict[str, bool | str] = {"expert": True, "planner": "planner"}
-#: ``critic_lives``: ``info["lost"]`` one-hot over 0, 1, 2, 3 and 4 or more, after the actor's
-#: inputs.
-LOST_COLUMNS = 5
+#: ``critic_lives``: ``info["lost"]`` one-hot (:func:`~dinerdash_agents.dagger.lives_one_hot`),
+#: after the actor's inputs.
+LOST_COLUMNS = dagger.LIVES_SIZE
 
 
 @dataclass(frozen=True)
@@ -290,8 +290,8 @@ class KickstartTrainer(Trainer):
         """With ``critic_lives``, the groups lost (one-hot) after the actor's inputs."""
         if not self.config.critic_lives:
             return seen
-        lost = np.minimum(np.asarray(info["lost"], np.int64), LOST_COLUMNS - 1)
-        return np.concatenate([seen, np.eye(LOST_COLUMNS, dtype=np.float32)[lost]], axis=1)
+        lost = dagger.lives_one_hot(np.asarray(info["lost"], np.int64))
+        return np.concatenate([seen, lost], axis=1)
 
     def _combine(self, terms: dict, mb: dict, logits: jax.Array, coefs: dict):
         c = self.config

@@ -21,6 +21,7 @@ from dinerdash.evaluation import EVALUATION_SEEDS
 __all__ = [
     "EVALUATION_SEEDS",
     "RESERVED_SEEDS",
+    "SELECTION_SEEDS",
     "VALIDATION_SEEDS",
     "as_ranges",
     "evaluation_seed",
@@ -33,8 +34,13 @@ __all__ = [
 
 #: DAgger's validation seeds (its learner after each round is judged there).
 VALIDATION_SEEDS = range(2000, 2100)
+#: Where an experiment is kept or not before the evaluation seeds are looked at
+#: (docs/agents.md): DAgger's validation seeds and the 300 after them.
+SELECTION_SEEDS = range(2000, 2400)
 #: Seeds no training episode of the package's runs takes.
-RESERVED_SEEDS = (EVALUATION_SEEDS, VALIDATION_SEEDS)
+RESERVED_SEEDS = (EVALUATION_SEEDS, SELECTION_SEEDS)
+#: The seeds a ``data["seeds"]`` span skipped when it was written (before ``seed_ranges``).
+_SKIPPED_BEFORE = (EVALUATION_SEEDS, VALIDATION_SEEDS)
 #: Algorithms whose ``data["seeds"]`` span skips :data:`RESERVED_SEEDS`.
 _SKIPPING = ("dagger", "dagger-recurrent")
 
@@ -74,7 +80,7 @@ def trained_on(description: Mapping[str, Any]) -> list[range]:
     span = range(first, last + 1)
     if description.get("algorithm") not in _SKIPPING:
         return [span]
-    kept = (s for s in span if not any(s in r for r in RESERVED_SEEDS))
+    kept = (s for s in span if not any(s in r for r in _SKIPPED_BEFORE))
     return [range(first, last + 1) for first, last in as_ranges(kept)]
 
 

@@ -153,6 +153,8 @@ def test_schedules_seeds_and_refusals() -> None:
     seeds = dagger.training_seeds(995, 10)
     assert seeds == [995, 996, 997, 998, 999, 1100, 1101, 1102, 1103, 1104]
     assert not set(dagger.training_seeds(0, 3000)) & set(range(1000, 1100))
+    # Nor the 400 seeds experiments are kept or not on.
+    assert dagger.training_seeds(1995, 10) == [1995, 1996, 1997, 1998, 1999, *range(2400, 2405)]
     with pytest.raises(AgentsError, match="--teacher"):
         dagger.DaggerConfig(teacher="oracle")
     aggregate = dagger.Aggregate()

@@ -24,6 +24,9 @@ def test_what_a_checkpoint_records_it_was_trained_on() -> None:
     dagger = {"algorithm": "dagger", "data": {"seeds": [0, 1299]}}
     assert seeds.trained_on(dagger) == [range(1000), range(1100, 1300)]
     assert sum(map(len, seeds.trained_on(dagger))) == len(training_seeds(0, 1200))
+    # Such a span skipped what was reserved then: 2100..2399 were not yet.
+    wide = seeds.trained_on({"algorithm": "dagger", "data": {"seeds": [0, 2499]}})
+    assert wide == [range(1000), range(1100, 2000), range(2100, 2500)]
     assert seeds.trained_on({"algorithm": "ppo", "data": {}}) == []
 
 
