@@ -1,6 +1,9 @@
 """``bench-ppo``: PPO's end-to-end training speed (env-steps/s) and where an iteration's time goes.
 
-It trains masked PPO (the committed hyper-parameters) as ``train`` does, on the same vector envs
+It trains masked PPO (the committed hyper-parameters), or the recipe's PPO stage (``ppo-kickstart``
+with the settings of :data:`~dinerdash_agents.recipe.PPO`'s row, from a DAgger checkpoint:
+memory features computed on the client, expert labels asked of the server), as ``train`` does,
+on the same vector envs
 (:func:`~dinerdash_agents.train_rl.make_envs`), for a few iterations after one that compiles,
 and reads :attr:`~dinerdash_agents.ppo.Trainer.timings`: acting (the jitted calls and their
 copies), waiting for the environments (the server's step and the client's decoding, minus what
@@ -22,7 +25,7 @@ import jax
 from . import ppo
 from .connect import ConnectOptions, options, served
 from .errors import AgentsError
-from .train_rl import PIPELINE, RL_ALGORITHMS, make_envs
+from .train_rl import PIPELINE, RL, RL_ALGORITHMS, make_envs
 
 __all__ = ["bench_ppo"]
 
@@ -38,6 +41,18 @@ def _cpu_seconds(pid: int | None) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _config(algorithm: str, init: str | Path | None) -> tuple[ppo.PPOConfig, dict[str, Any]]:
+    """The benchmarked run's config and its environments' game keywords."""
+    if init is None:
+        return ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm]), {}
+    from .kickstart import KickstartConfig, config_for_init
+    from .paper import KICKSTART_SETTINGS
+    from .recipe import PPO
+
+    config = config_for_init(KickstartConfig(**KICKSTART_SETTINGS[PPO]), init)
+    return config, RL[algorithm].game(config)
+
+
 def bench_ppo(
     *,
     algorithm: str = "ppo-masked",
@@ -47,14 +62,18 @@ def bench_ppo(
     address: Any = None,
     connect: ConnectOptions | None = None,
     seed: int = 0,
+    init: str | Path | None = None,
     **connection: Any,
 ) -> dict[str, Any]:
     """Runs ``iterations`` timed PPO iterations (after one untimed) and returns the figures:
     ``env_steps_per_s`` and per iteration ``ms`` by part, CPU seconds (client, server).
-    ``connect``: how to reach the server, with ``address`` and the connection keywords put in
-    (none named: ``DINERDASH_ADDRESS``, else a local server started here)."""
-    if algorithm not in ("ppo", "ppo-masked"):
-        raise AgentsError(f"bench-ppo runs ppo or ppo-masked, not {algorithm!r}")
+    ``init``: ``ppo-kickstart``'s DAgger checkpoint. ``connect``: how to reach the server, with
+    ``address`` and the connection keywords put in (none named: ``DINERDASH_ADDRESS``, else a
+    local server started here)."""
+    if algorithm not in ("ppo", "ppo-masked", "ppo-kickstart"):
+        raise AgentsError(f"bench-ppo runs ppo, ppo-masked or ppo-kickstart, not {algorithm!r}")
+    if (algorithm == "ppo-kickstart") != (init is not None):
+        raise AgentsError("--init DIR (a dagger checkpoint) goes with ppo-kickstart, and only it")
     if iterations < 1:
         raise AgentsError(f"--iterations must be at least 1 (got {iterations})")
     if pipeline < 1:
@@ -62,15 +81,17 @@ def bench_ppo(
     connect = options(connect, "bench_ppo", address, **connection)
     # A local server, if any, starts before any JAX work.
     with served(connect) as (connect, server):
-        config = ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm])
+        config, game = _config(algorithm, init)
         if num_envs is not None:  # as train: the rollout and minibatches adapted
             config = config.for_num_envs(num_envs)
-        envs = make_envs(config, connect, pipeline)
+        envs = make_envs(config, connect, pipeline, **game)
         try:
             high = envs[0].single_observation_space.high
             config = dataclasses.replace(config, observation_high=tuple(high.tolist()))
             per_iteration = config.num_envs * config.num_steps
-            trainer = ppo.Trainer(config, (iterations + 1) * per_iteration, seed=seed)
+            trainer = RL[algorithm].trainer(
+                config, (iterations + 1) * per_iteration, seed, None, False
+            )
             trainer.attach(envs)
             trainer.step()  # compiles
             trainer.timings = dict.fromkeys(ppo.TIMED, 0.0)

@@ -280,6 +280,7 @@ def _cmd_bench_ppo(args: argparse.Namespace) -> int:
         num_envs=args.num_envs,
         iterations=args.iterations,
         pipeline=args.pipeline,
+        init=args.init,
         connect=_connect(args),
     )
     print_bench(result)
@@ -520,7 +521,17 @@ def _parser() -> argparse.ArgumentParser:
         help="PPO's end-to-end env-steps/s and where an iteration's time goes",
         formatter_class=DefaultsHelpFormatter,
     )
-    p.add_argument("--algorithm", choices=["ppo-masked", "ppo"], default="ppo-masked")
+    p.add_argument(
+        "--algorithm",
+        choices=["ppo-masked", "ppo", "ppo-kickstart"],
+        default="ppo-masked",
+        help="ppo-kickstart: the recipe's PPO stage, from --init",
+    )
+    p.add_argument(
+        "--init",
+        metavar="DIR",
+        help="ppo-kickstart: the DAgger checkpoint (with memory) it starts from",
+    )
     p.add_argument("--num-envs", type=int, default=256, help="environments stepped together")
     p.add_argument(
         "--iterations", type=int, default=10, help="timed iterations (after one that compiles)"

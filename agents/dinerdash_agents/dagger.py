@@ -35,7 +35,7 @@ hidden layers of ``hidden`` units, ReLU, dropout after each), 57 action logits.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -182,7 +182,7 @@ class _Group:
             self.count = min(self.count + 1, MEMORY_CAP)
 
 
-def _queue(obs: np.ndarray) -> list[tuple[int, int]]:
+def _queue(obs: Sequence[int]) -> list[tuple[int, int]]:
     return [
         (int(obs[24 + 2 * g]), int(obs[25 + 2 * g]))
         for g in range(QUEUE_CAPACITY)
@@ -210,14 +210,14 @@ class _Timers:
     it left the hands while its table still waits for food, and left it when the food is on a
     counter or the table no longer waits."""
 
-    def __init__(self, obs: np.ndarray) -> None:
+    def __init__(self, obs: list[int]) -> None:
         self.status = [int(x) for x in obs[0 : 3 * NUM_TABLES : 3]]
         self.since_status = [0] * NUM_TABLES
         self.kitchen = [-1] * NUM_TABLES  # steps since it got the table's order, or -1
         self.orders = _orders_in_hand(obs)
         self.since_arrival = 0
 
-    def step(self, obs: np.ndarray, arrived: bool) -> None:
+    def step(self, obs: list[int], arrived: bool) -> None:
         orders = _orders_in_hand(obs)
         for t in range(NUM_TABLES):
             status = int(obs[3 * t])
@@ -248,15 +248,16 @@ class _Lives:
     next: it lost none if every group is still in its place (same size, level the same or one
     lower) or none had level 0, from which alone a group walks out."""
 
-    def __init__(self, obs: np.ndarray) -> None:
-        self.last = obs.copy()
+    def __init__(self, obs: list[int]) -> None:
+        self.last = obs
         self.now, self.next_arrival, self.lost = 0, 8, 0
 
-    def step(self, obs: np.ndarray) -> None:
+    def step(self, obs: list[int]) -> None:
         was, status = self.last[0 : 3 * NUM_TABLES : 3], obs[0 : 3 * NUM_TABLES : 3]
-        self.lost += int((np.isin(was, _SEATED) & (status == 0)).sum())
+        pairs = list(zip(was, status, strict=True))
+        self.lost += sum(1 for w, s in pairs if s == 0 and w in _SEATED)
         before, after = _queue(self.last), _queue(obs)
-        room = len(before) - int(((was == 0) & (status == 1)).sum())
+        room = len(before) - sum(1 for w, s in pairs if w == 0 and s == 1)
         due = self.now > self.next_arrival
         if due and room < QUEUE_CAPACITY:
             walked, arrived = room + 1 - len(after), True
@@ -271,10 +272,7 @@ class _Lives:
         if arrived:
             self.next_arrival = self.now + 8
         self.now += 1
-        self.last = obs.copy()
-
-    def features(self) -> np.ndarray:
-        return lives_one_hot(self.lost)
+        self.last = obs
 
 
 def _in_place(before: list[tuple[int, int]], after: list[tuple[int, int]]) -> bool:
@@ -287,7 +285,7 @@ def _in_place(before: list[tuple[int, int]], after: list[tuple[int, int]]) -> bo
     )
 
 
-def _orders_in_hand(obs: np.ndarray) -> set[int]:
+def _orders_in_hand(obs: Sequence[int]) -> set[int]:
     """The tables (0..5) whose order is in a hand."""
     return {int(h) - 1 for h in obs[38:40] if 1 <= h <= NUM_TABLES}
 
@@ -295,13 +293,13 @@ def _orders_in_hand(obs: np.ndarray) -> set[int]:
 class _Memory:
     """One environment's patience memory (see :class:`MemoryFeatures`)."""
 
-    def __init__(self, obs: np.ndarray, timers: bool = False, lives: bool = False) -> None:
+    def __init__(self, obs: list[int], timers: bool = False, lives: bool = False) -> None:
         self.tables: list[_Group | None] = [None] * NUM_TABLES
         self.queue = [_Group(level, size) for level, size in _queue(obs)]
         self.timers = _Timers(obs) if timers else None
         self.lives = _Lives(obs) if lives else None
 
-    def step(self, obs: np.ndarray) -> None:
+    def step(self, obs: list[int]) -> None:
         arrived = False
         # The queue: new places matched in order to the old groups whose size is the same and
         # whose level is the same or one lower; unmatched old groups left (seated or walked
@@ -343,17 +341,16 @@ class _Memory:
         if self.lives is not None:
             self.lives.step(obs)
 
-    def features(self) -> np.ndarray:
-        out = np.zeros((MEMORY_SLOTS, 3), np.float32)
-        for k, g in enumerate(self.tables + self.queue):
-            if g is not None:
-                out[k] = (g.count / MEMORY_CAP, float(g.type2), float(g.changed))
-        parts = [out.reshape(-1)]
+    def features(self) -> list[float]:
+        """The memory (and the timers'), the groups lost apart: :class:`MemoryFeatures` one-hots
+        them for the whole batch at once."""
+        out: list[float] = []
+        for g in self.tables + self.queue:
+            out += (0.0, 0.0, 0.0) if g is None else (g.count / MEMORY_CAP, g.type2, g.changed)
+        out += [0.0] * (3 * MEMORY_SLOTS - len(out))
         if self.timers is not None:
-            parts.append(np.array(self.timers.features(), np.float32))
-        if self.lives is not None:
-            parts.append(self.lives.features())
-        return np.concatenate(parts)
+            out += self.timers.features()
+        return out
 
 
 class MemoryFeatures:
@@ -385,18 +382,23 @@ class MemoryFeatures:
         obs = np.asarray(obs, np.float32)
         if obs.ndim != 2 or obs.shape[1] != OBSERVATION_SIZE:
             raise ValueError(f"obs must have shape (B, {OBSERVATION_SIZE}), got {obs.shape}")
-        fresh = len(self._memories) != len(obs)
-        if fresh:
-            self._memories = [_Memory(o, self.timers, self.lives) for o in obs]
+        # Each environment's memory works on its observation as a list of ints: numpy's
+        # element access costs more than the arithmetic on 40 numbers.
+        rows = obs.astype(np.int64).tolist()
+        if len(self._memories) != len(obs):
+            self._memories = [_Memory(o, self.timers, self.lives) for o in rows]
         else:
-            for k, (o, last) in enumerate(zip(obs, self._last, strict=True)):
-                if is_episode_start(o) and not np.array_equal(o, last):
+            starts = episode_starts(obs, self._last)
+            for k, o in enumerate(rows):
+                if starts[k]:
                     self._memories[k] = _Memory(o, self.timers, self.lives)
                 else:
                     self._memories[k].step(o)
         self._last = obs.copy()
-        feats = np.stack([m.features() for m in self._memories])
-        return np.concatenate([obs, feats], axis=1)
+        parts = [obs, np.array([m.features() for m in self._memories], np.float32)]
+        if self.lives:
+            parts.append(lives_one_hot(np.array([m.lives.lost for m in self._memories])))
+        return np.concatenate(parts, axis=1)
 
 
 def memory_size(memory: bool, timers: bool = False, lives: bool = False) -> int:

@@ -330,6 +330,22 @@ def test_bench_ppo_reports_the_rate_and_where_the_time_goes(server_address: str,
     assert "--pipeline must be at least 1" in capsys.readouterr().err
 
 
+def test_bench_ppo_runs_the_recipes_ppo_stage_from_its_init(server_address: str, capsys):
+    """``--algorithm ppo-kickstart`` benchmarks the recipe's PPO stage (memory features and the
+    groups lost counted on the client, the critic reading ``info["lost"]``) from the committed
+    DAgger learner; ``--init`` goes with it alone."""
+    init = Path(__file__).resolve().parents[2] / "docs/results/checkpoints/dagger-planner-memory"
+    argv = ["bench-ppo", "--num-envs", "8", "--iterations", "2", "--address", server_address]
+    assert agents_main([*argv, "--algorithm", "ppo-kickstart", "--init", str(init), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["algorithm"] == "ppo-kickstart" and result["samples_per_iteration"] == 8 * 64
+    assert result["env_steps_per_s"] > 0 and result["ms_per_iteration"]["update"] > 0
+    assert agents_main([*argv, "--init", str(init)]) == 1
+    assert "--init DIR (a dagger checkpoint) goes with ppo-kickstart" in capsys.readouterr().err
+    assert agents_main([*argv, "--algorithm", "ppo-kickstart"]) == 1
+    assert "goes with ppo-kickstart" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("split", [1, 2])
 def test_an_iteration_crosses_host_and_device_only_where_it_says(server_address: str, split: int):
     """Under ``jax.transfer_guard_device_to_host("disallow")`` an implicit copy from the device
