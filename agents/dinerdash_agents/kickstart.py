@@ -166,6 +166,11 @@ class KickstartModel(eqx.Module):
         self.critic = _mlp([width, config.hidden, config.hidden, 1], 1.0, kc)
         self.scale = observation_scale(config)
 
+    @property
+    def input_width(self) -> int:
+        """The width of the rows it is given: the actor's columns, then the critic's own."""
+        return max([self.actor_width, *(stop for _, stop in self.critic_columns)])
+
     def __call__(
         self, obs: jax.Array, mask: jax.Array | None = None, key: jax.Array | None = None
     ) -> jax.Array:
@@ -280,8 +285,9 @@ class KickstartTrainer(Trainer):
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
         self._update = make_update(config, self.optimizer, combine=self._combine)
-        width = self.model.actor_width + (LOST_COLUMNS if config.critic_lives else 0)
-        self._buffers = Rollout(config.num_steps, config.num_envs, expert=True, width=width)
+        self._buffers = Rollout(
+            config.num_steps, config.num_envs, expert=True, width=self.model.input_width
+        )
 
     def view(self):
         return _view(self.config)
