@@ -248,15 +248,16 @@ class _Lives:
     next: it lost none if every group is still in its place (same size, level the same or one
     lower) or none had level 0, from which alone a group walks out."""
 
-    def __init__(self, obs: list[int]) -> None:
-        self.last = obs
+    def __init__(self, obs: list[int], queue: list[tuple[int, int]]) -> None:
+        self.last, self.last_queue = obs, queue
         self.now, self.next_arrival, self.lost = 0, 8, 0
 
-    def step(self, obs: list[int]) -> None:
+    def step(self, obs: list[int], after: list[tuple[int, int]]) -> None:
+        """``after``: ``_queue(obs)``."""
         was, status = self.last[0 : 3 * NUM_TABLES : 3], obs[0 : 3 * NUM_TABLES : 3]
         pairs = list(zip(was, status, strict=True))
         self.lost += sum(1 for w, s in pairs if s == 0 and w in _SEATED)
-        before, after = _queue(self.last), _queue(obs)
+        before = self.last_queue
         room = len(before) - sum(1 for w, s in pairs if w == 0 and s == 1)
         due = self.now > self.next_arrival
         if due and room < QUEUE_CAPACITY:
@@ -272,7 +273,7 @@ class _Lives:
         if arrived:
             self.next_arrival = self.now + 8
         self.now += 1
-        self.last = obs
+        self.last, self.last_queue = obs, after
 
 
 def _in_place(before: list[tuple[int, int]], after: list[tuple[int, int]]) -> bool:
@@ -295,17 +296,18 @@ class _Memory:
 
     def __init__(self, obs: list[int], timers: bool = False, lives: bool = False) -> None:
         self.tables: list[_Group | None] = [None] * NUM_TABLES
-        self.queue = [_Group(level, size) for level, size in _queue(obs)]
+        places = _queue(obs)
+        self.queue = [_Group(level, size) for level, size in places]
         self.timers = _Timers(obs) if timers else None
-        self.lives = _Lives(obs) if lives else None
+        self.lives = _Lives(obs, places) if lives else None
 
     def step(self, obs: list[int]) -> None:
         arrived = False
         # The queue: new places matched in order to the old groups whose size is the same and
         # whose level is the same or one lower; unmatched old groups left (seated or walked
         # out), unmatched new ones at the back arrived.
-        old, left, queue, i = self.queue, [], [], 0
-        for level, size in _queue(obs):
+        old, left, queue, i, places = self.queue, [], [], 0, _queue(obs)
+        for level, size in places:
             while i < len(old) and not (
                 old[i].size == size and level in (old[i].level, old[i].level - 1)
             ):
@@ -339,7 +341,7 @@ class _Memory:
         if self.timers is not None:
             self.timers.step(obs, arrived)
         if self.lives is not None:
-            self.lives.step(obs)
+            self.lives.step(obs, places)
 
     def features(self) -> list[float]:
         """The memory (and the timers'), the groups lost apart: :class:`MemoryFeatures` one-hots
