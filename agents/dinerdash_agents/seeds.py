@@ -41,7 +41,7 @@ SELECTION_SEEDS = range(2000, 2400)
 RESERVED_SEEDS = (EVALUATION_SEEDS, SELECTION_SEEDS)
 #: The seeds a ``data["seeds"]`` span skipped when it was written (before ``seed_ranges``).
 _SKIPPED_BEFORE = (EVALUATION_SEEDS, VALIDATION_SEEDS)
-#: Algorithms whose ``data["seeds"]`` span skips :data:`RESERVED_SEEDS`.
+#: Algorithms whose ``data["seeds"]`` span skips :data:`_SKIPPED_BEFORE`.
 _SKIPPING = ("dagger", "dagger-recurrent")
 
 
