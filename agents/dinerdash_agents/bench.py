@@ -45,11 +45,11 @@ def _config(algorithm: str, init: str | Path | None) -> tuple[ppo.PPOConfig, dic
     """The benchmarked run's config and its environments' game keywords."""
     if init is None:
         return ppo.PPOConfig(masked=RL_ALGORITHMS[algorithm]), {}
-    from .kickstart import KickstartConfig, config_for_init
+    from .kickstart import KickstartConfig
     from .paper import KICKSTART_SETTINGS
     from .recipe import PPO
 
-    config = config_for_init(KickstartConfig(**KICKSTART_SETTINGS[PPO]), init)
+    config = RL[algorithm].start(KickstartConfig(**KICKSTART_SETTINGS[PPO]), init, None, False)
     return config, RL[algorithm].game(config)
 
 
