@@ -87,6 +87,7 @@ class Hooks:
     check: Callable[[Any], str | None] | None = None
     #: ``view(config)``: a fresh, stateful ``obs -> model input`` for one batch of environments
     #: (a learner with memory sees its episode's history), or ``None``: the observation itself.
+    #: A view with an ``acted(actions)`` method is told the actions the policy returned.
     view: Callable[[Any], Callable[[np.ndarray], np.ndarray] | None] | None = None
     #: ``policy(model, description)``: the policy :func:`load` returns instead of a
     #: :class:`Policy`, for a model that is not a batch -> logits function (a recurrent learner
@@ -222,6 +223,9 @@ class Policy(BasePolicy):
                 state = self._make_view(self._config)
             obs = state(obs)  # the memory restarts where an observation starts an episode
         actions = np.asarray(_greedy(self.model, obs, mask, use_mask), dtype=np.int64)
+        acted = getattr(state, "acted", None)
+        if acted is not None:  # a memory that follows the groups its seat actions took
+            acted(actions)
         return (actions[0] if single else actions), state
 
 

@@ -91,13 +91,14 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     config = None
     given = {"kick_coef": args.kick_coef, "hidden": args.hidden, "update_epochs": args.epochs}
     given = {k: v for k, v in given.items() if v is not None}
-    switches = ("critic_memory", "critic_lives", "actor_lives")
+    switches = ("critic_memory", "critic_lives", "actor_lives", "actor_patience")
     given.update({k: True for k in switches if getattr(args, k)})
     if given:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
-                "--kick-coef, --critic-memory, --critic-lives, --actor-lives, --hidden and "
-                "--epochs are a new ppo-kickstart run's (a resumed run keeps its settings)"
+                "--kick-coef, --critic-memory, --critic-lives, --actor-lives, --actor-patience, "
+                "--hidden and --epochs are a new ppo-kickstart run's (a resumed run keeps its "
+                "settings)"
             )
         config = KickstartConfig(**given)
     trainer = train_rl(
@@ -406,6 +407,11 @@ def _parser() -> argparse.ArgumentParser:
         "--actor-lives",
         action="store_true",
         help="ppo-kickstart: the actor's memory also counts the groups lost, from its observations",
+    )
+    p.add_argument(
+        "--actor-patience",
+        action="store_true",
+        help="ppo-kickstart: the actor's memory also holds each group's exact patience",
     )
     p.add_argument("--layers", type=int, help="dagger: hidden layers")
     p.add_argument(

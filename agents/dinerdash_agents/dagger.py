@@ -35,7 +35,7 @@ hidden layers of ``hidden`` units, ReLU, dropout after each), 57 action logits.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -110,6 +110,9 @@ class DaggerConfig:
     #: With ``memory``, the features end with the groups lost so far, counted from the
     #: observations (``MemoryFeatures(lives=True)``).
     lives: bool = False
+    #: With ``memory``, the features end with each group's exact patience and grace buffer,
+    #: the memory told the actions played (``MemoryFeatures(patience=True)``).
+    patience: bool = False
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -123,8 +126,8 @@ class DaggerConfig:
                 raise AgentsError(f"{name} must be at least 1 (got {getattr(self, name)})")
         if not 0.0 <= self.p <= 1.0:
             raise AgentsError(f"p must be in [0, 1] (got {self.p})")
-        if (self.timers or self.lives) and not self.memory:
-            raise AgentsError("timers and lives are memory features: they need memory")
+        if (self.timers or self.lives or self.patience) and not self.memory:
+            raise AgentsError("timers, lives and patience are memory features: they need memory")
 
     def to_json(self) -> dict:
         return {**asdict(self), "betas": betas(self)}
@@ -158,6 +161,9 @@ TIMER_CAP = 16
 TIMERS_SIZE = 2 * NUM_TABLES + 1
 #: The groups lost so far, one-hot over 0, 1, 2, 3 and 4 or more (the fifth ends the episode).
 LIVES_SIZE = 5
+#: Per slot (as the memory's): the group's patience P / 800 and grace buffer B / 400 (0 for an
+#: empty slot).
+PATIENCE_SIZE = 2 * MEMORY_SLOTS
 #: Table statuses with a group seated, which a group that runs away leaves as status 0.
 _SEATED = (1, 2, 3, 4, 6)
 
@@ -169,13 +175,27 @@ def lives_one_hot(lost: int | np.ndarray) -> np.ndarray:
 
 
 class _Group:
-    __slots__ = ("changed", "count", "level", "size", "type2")
+    """A group the memory follows: what the observations showed of it, and its patience ``p``
+    and grace buffer ``b`` as the rules count them (docs/rules.md §1, §5.1)."""
+
+    __slots__ = ("b", "changed", "count", "level", "p", "rate", "size", "type2")
 
     def __init__(self, level: int, size: int) -> None:
         self.level, self.size = level, size
         self.count, self.type2, self.changed = 0, level >= 4, False
+        # Type 1 arrives with P = 600 (level 3), type 2 with P = 800 (level 4), both with B = 100.
+        # A group first met at a table (a memory started mid-episode) gets its level's middle.
+        self.p = (800 if self.type2 else 600) if size else 200 * level + 100
+        self.b = 100 if size else 0
+        self.rate = 7 if self.type2 else 12
 
-    def see(self, level: int) -> None:
+    def see(self, level: int, bonus: int = 0) -> None:
+        """One tick, after which the group shows ``level``; ``bonus``: what the action before it
+        added to the group's B (seated, order taken, food served: 100 each)."""
+        b = self.b + bonus - self.rate
+        if b < 0:  # the overshoot is forgotten (docs/rules.md §5.1)
+            self.p, b = self.p - self.rate, 0
+        self.b = b
         if level != self.level:
             self.level, self.count, self.changed = level, 0, True
         else:
@@ -194,15 +214,18 @@ def is_episode_start(obs: np.ndarray) -> bool:
     """Whether ``obs`` looks like the first observation of an episode (docs/rules.md §3): every
     table free and clean, no food on the counters, empty hands, and one group waiting at its
     starting patience level (3 or 4)."""
-    tables = obs[: 3 * NUM_TABLES].reshape(NUM_TABLES, 3)
-    queue = _queue(obs)
-    return bool(
-        (tables[:, 0] == 0).all()
-        and (obs[18:24] == 0).all()
-        and (obs[38:40] == 0).all()
-        and len(queue) == 1
-        and queue[0][0] >= 3
-    )
+    return bool(_look_like_starts(np.asarray(obs)[None])[0])
+
+
+def _look_like_starts(obs: np.ndarray) -> np.ndarray:
+    """:func:`is_episode_start` of each row of a batch (B, 40)."""
+    tables_free = (obs[:, 0 : 3 * NUM_TABLES : 3] == 0).all(axis=1)
+    empty = (obs[:, 18:24] == 0).all(axis=1) & (obs[:, 38:40] == 0).all(axis=1)
+    sizes, levels = obs[:, 25:39:2], obs[:, 24:38:2]
+    waiting = sizes > 0
+    one = waiting.sum(axis=1) == 1
+    first_level = np.where(waiting, levels, -1).max(axis=1)
+    return tables_free & empty & one & (first_level >= 3)
 
 
 class _Timers:
@@ -211,20 +234,20 @@ class _Timers:
     counter or the table no longer waits."""
 
     def __init__(self, obs: list[int]) -> None:
-        self.status = [int(x) for x in obs[0 : 3 * NUM_TABLES : 3]]
         self.since_status = [0] * NUM_TABLES
         self.kitchen = [-1] * NUM_TABLES  # steps since it got the table's order, or -1
         self.orders = _orders_in_hand(obs)
         self.since_arrival = 0
 
-    def step(self, obs: list[int], arrived: bool) -> None:
+    def step(self, obs: list[int], was: list[int], arrived: bool) -> None:
+        """``was``: the tables' statuses before the step."""
         orders = _orders_in_hand(obs)
         for t in range(NUM_TABLES):
-            status = int(obs[3 * t])
-            if status == self.status[t]:
+            status = obs[3 * t]
+            if status == was[t]:
                 self.since_status[t] = min(self.since_status[t] + 1, TIMER_CAP)
             else:
-                self.status[t], self.since_status[t] = status, 0
+                self.since_status[t] = 0
             if status != 3 or obs[18 + t]:
                 self.kitchen[t] = -1
             elif self.kitchen[t] >= 0:
@@ -248,14 +271,13 @@ class _Lives:
     next: it lost none if every group is still in its place (same size, level the same or one
     lower) or none had level 0, from which alone a group walks out."""
 
-    def __init__(self, obs: list[int], queue: list[tuple[int, int]]) -> None:
-        self.last, self.last_queue = obs, queue
+    def __init__(self, queue: list[tuple[int, int]]) -> None:
+        self.last_queue = queue
         self.now, self.next_arrival, self.lost = 0, 8, 0
 
-    def step(self, obs: list[int], after: list[tuple[int, int]]) -> None:
-        """``after``: ``_queue(obs)``."""
-        was, status = self.last[0 : 3 * NUM_TABLES : 3], obs[0 : 3 * NUM_TABLES : 3]
-        pairs = list(zip(was, status, strict=True))
+    def step(self, obs: list[int], was: list[int], after: list[tuple[int, int]]) -> None:
+        """``was``: the tables' statuses before the step; ``after``: ``_queue(obs)``."""
+        pairs = list(zip(was, obs[0 : 3 * NUM_TABLES : 3], strict=True))
         self.lost += sum(1 for w, s in pairs if s == 0 and w in _SEATED)
         before = self.last_queue
         room = len(before) - sum(1 for w, s in pairs if w == 0 and s == 1)
@@ -273,7 +295,7 @@ class _Lives:
         if arrived:
             self.next_arrival = self.now + 8
         self.now += 1
-        self.last, self.last_queue = obs, after
+        self.last_queue = after
 
 
 def _in_place(before: list[tuple[int, int]], after: list[tuple[int, int]]) -> bool:
@@ -299,14 +321,25 @@ class _Memory:
         places = _queue(obs)
         self.queue = [_Group(level, size) for level, size in places]
         self.timers = _Timers(obs) if timers else None
-        self.lives = _Lives(obs, places) if lives else None
+        self.lives = _Lives(places) if lives else None
+        self.status = obs[0 : 3 * NUM_TABLES : 3]
 
-    def step(self, obs: list[int]) -> None:
+    def step(self, obs: list[int], action: int | None = None) -> None:
+        """``action``: the action played from the last observation, if known."""
         arrived = False
+        # The group a seat action took leaves its place in the queue for its table.
+        old, seated = self.queue, None
+        if action is not None and action >= FIRST_SEAT:
+            place, table = divmod(action - FIRST_SEAT, NUM_TABLES)
+            if place < len(old):
+                old = old[:place] + old[place + 1 :]
+                seated = (table, self.queue[place])
+        if action is not None:  # P is then exact: who runs out of it this tick walks out
+            old = [g for g in old if g.b >= g.rate or g.p > g.rate]
         # The queue: new places matched in order to the old groups whose size is the same and
         # whose level is the same or one lower; unmatched old groups left (seated or walked
         # out), unmatched new ones at the back arrived.
-        old, left, queue, i, places = self.queue, [], [], 0, _queue(obs)
+        left, queue, i, places = [], [], 0, _queue(obs)
         for level, size in places:
             while i < len(old) and not (
                 old[i].size == size and level in (old[i].level, old[i].level - 1)
@@ -322,26 +355,34 @@ class _Memory:
                 arrived = True
         left.extend(old[i:])
         self.queue = queue
-        # The tables: a group newly at a table is the first group that left the queue and fits.
+        # The tables: a group newly at a table is the one the seat action took, or else the
+        # first group that left the queue and fits. A group's B grew by 100 when it was seated,
+        # when its order was taken (status 2 -> 3) and when its food came (3 -> 4).
+        was = self.status
+        self.status = obs[0 : 3 * NUM_TABLES : 3]
         for t in range(NUM_TABLES):
-            level, seats = int(obs[3 * t + 2]), int(obs[3 * t + 1])
+            level, seats = obs[3 * t + 2], obs[3 * t + 1]
             group = self.tables[t]
             if level < 0:
                 self.tables[t] = None
             elif group is not None:
-                group.see(level)
+                served = (was[t], self.status[t]) in ((2, 3), (3, 4))
+                group.see(level, 100 if served else 0)
+            elif seated is not None and seated[0] == t:
+                seated[1].see(level, 100)
+                self.tables[t] = seated[1]
             else:
                 for k, g in enumerate(left):
                     if g.size <= seats and level in (g.level, g.level - 1):
-                        g.see(level)
+                        g.see(level, 100)
                         self.tables[t] = left.pop(k)
                         break
                 else:
                     self.tables[t] = _Group(level, 0)
         if self.timers is not None:
-            self.timers.step(obs, arrived)
+            self.timers.step(obs, was, arrived)
         if self.lives is not None:
-            self.lives.step(obs, places)
+            self.lives.step(obs, was, places)
 
     def features(self) -> list[float]:
         """The memory (and the timers'), the groups lost apart: :class:`MemoryFeatures` one-hots
@@ -353,6 +394,13 @@ class _Memory:
         if self.timers is not None:
             out += self.timers.features()
         return out
+
+    def patience(self) -> list[float]:
+        """P / 800 and B / 400 of each slot's group (see :data:`PATIENCE_SIZE`)."""
+        out: list[float] = []
+        for g in self.tables + self.queue:
+            out += (0.0, 0.0) if g is None else (g.p / 800, g.b / 400)
+        return out + [0.0] * (PATIENCE_SIZE - len(out))
 
 
 class MemoryFeatures:
@@ -372,13 +420,28 @@ class MemoryFeatures:
     so far (:data:`LIVES_SIZE`, one-hot), as the observations show them (``info["lost"]`` is not
     read: the features stay a function of the observations).
 
-    ``augment(obs)`` takes a batch (B, 40), one step of B environments, and returns (B, 40 +
-    :func:`memory_size`); a batch of another size starts every memory afresh."""
+    With ``patience``, last, each slot's group's patience P and grace buffer B as the rules count
+    them (:data:`PATIENCE_SIZE`), the memory told the actions played (:meth:`acted`): a group a
+    seat action took is followed from its place in the queue to its table, and a group whose P
+    runs out walks out. From the observations alone, of two groups of the same size and level
+    side by side, the one seated (or walked out) cannot be told; with the actions, P and B are
+    exact (docs/agents.md). These features are a function of the observations and of the
+    actions played.
 
-    def __init__(self, timers: bool = False, lives: bool = False) -> None:
-        self.timers, self.lives = timers, lives
+    ``augment(obs)`` (or calling it) takes a batch (B, 40), one step of B environments, and
+    returns (B, 40 + :func:`memory_size`); a batch of another size starts every memory afresh."""
+
+    def __init__(self, timers: bool = False, lives: bool = False, patience: bool = False) -> None:
+        self.timers, self.lives, self.patience = timers, lives, patience
         self._memories: list[_Memory] = []
         self._last = np.zeros((0, OBSERVATION_SIZE), np.float32)
+        self._actions: list[int | None] | None = None
+
+    def acted(self, actions: np.ndarray) -> None:
+        """The actions played from the observations last augmented, one per environment (kept
+        with ``patience`` only)."""
+        if self.patience:
+            self._actions = np.asarray(actions, np.int64).tolist()
 
     def augment(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, np.float32)
@@ -387,6 +450,10 @@ class MemoryFeatures:
         # Each environment's memory works on its observation as a list of ints: numpy's
         # element access costs more than the arithmetic on 40 numbers.
         rows = obs.astype(np.int64).tolist()
+        actions = self._actions
+        if actions is None or len(actions) != len(rows):
+            actions = [None] * len(rows)
+        self._actions = None
         if len(self._memories) != len(obs):
             self._memories = [_Memory(o, self.timers, self.lives) for o in rows]
         else:
@@ -395,30 +462,39 @@ class MemoryFeatures:
                 if starts[k]:
                     self._memories[k] = _Memory(o, self.timers, self.lives)
                 else:
-                    self._memories[k].step(o)
+                    self._memories[k].step(o, actions[k])
         self._last = obs.copy()
         parts = [obs, np.array([m.features() for m in self._memories], np.float32)]
         if self.lives:
             parts.append(lives_one_hot(np.array([m.lives.lost for m in self._memories])))
+        if self.patience:
+            parts.append(np.array([m.patience() for m in self._memories], np.float32))
         return np.concatenate(parts, axis=1)
 
+    __call__ = augment
 
-def memory_size(memory: bool, timers: bool = False, lives: bool = False) -> int:
+
+def memory_size(
+    memory: bool, timers: bool = False, lives: bool = False, patience: bool = False
+) -> int:
     """How many memory features follow the observation."""
     extra = (TIMERS_SIZE if timers else 0) + (LIVES_SIZE if lives else 0)
-    return MEMORY_SIZE + extra if memory else 0
+    return MEMORY_SIZE + extra + (PATIENCE_SIZE if patience else 0) if memory else 0
 
 
 def memory_view(
-    memory: bool, timers: bool = False, lives: bool = False
-) -> Callable[[np.ndarray], np.ndarray] | None:
-    """A policy's view of its observations: with ``memory``, a fresh :class:`MemoryFeatures`."""
-    return MemoryFeatures(timers, lives).augment if memory else None
+    memory: bool, timers: bool = False, lives: bool = False, patience: bool = False
+) -> MemoryFeatures | None:
+    """A policy's view of its observations: with ``memory``, a fresh :class:`MemoryFeatures`
+    (called on each step's observations, and told the actions played with :meth:`acted`)."""
+    return MemoryFeatures(timers, lives, patience) if memory else None
 
 
 def input_size(config: DaggerConfig) -> int:
     """The learner's input width: the observation, and the memory features with ``memory``."""
-    return OBSERVATION_SIZE + memory_size(config.memory, config.timers, config.lives)
+    return OBSERVATION_SIZE + memory_size(
+        config.memory, config.timers, config.lives, config.patience
+    )
 
 
 class DaggerNet(eqx.Module):
@@ -542,14 +618,7 @@ def episode_starts(obs: np.ndarray, last: np.ndarray | None) -> np.ndarray:
     if last is None:
         return np.ones(len(obs), np.bool_)
     last = np.asarray(last)[:, :OBSERVATION_SIZE]
-    tables_free = (obs[:, 0 : 3 * NUM_TABLES : 3] == 0).all(axis=1)
-    empty = (obs[:, 18:24] == 0).all(axis=1) & (obs[:, 38:40] == 0).all(axis=1)
-    sizes, levels = obs[:, 25:39:2], obs[:, 24:38:2]
-    waiting = sizes > 0
-    one = waiting.sum(axis=1) == 1
-    first_level = np.where(waiting, levels, -1).max(axis=1)
-    looks = tables_free & empty & one & (first_level >= 3)
-    return looks & (obs != last).any(axis=1)
+    return _look_like_starts(obs) & (obs != last).any(axis=1)
 
 
 def sequence_starts(obs: np.ndarray) -> np.ndarray:
@@ -682,6 +751,8 @@ def play_round(
             choices += int(asked.sum())
             agreed += int((asked & (np.asarray(learned) == teacher)).sum())
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
+        if memory is not None:
+            memory.acted(actions)
         teacher_steps += int((from_teacher & active).sum())
         restart = np.zeros(n, np.bool_)
         obs, _, terminated, truncated, info = envs.step(actions)
@@ -740,8 +811,8 @@ def fit_round(model: DaggerNet, aggregate: Aggregate, config: DaggerConfig, seed
     )
 
 
-def _view(config: DaggerConfig) -> Callable[[np.ndarray], np.ndarray] | None:
-    return memory_view(config.memory, config.timers, config.lives)
+def _view(config: DaggerConfig) -> MemoryFeatures | None:
+    return memory_view(config.memory, config.timers, config.lives, config.patience)
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``dagger`` checkpoint.

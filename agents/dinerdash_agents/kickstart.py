@@ -98,6 +98,10 @@ class KickstartConfig(PPOConfig):
     #: Whether the actor's memory features also count the groups lost, from the observations
     #: (a DAgger actor with memory; its new inputs start with weights 0).
     actor_lives: bool = False
+    #: Whether the actor's memory features also hold each group's exact patience and grace
+    #: buffer (``MemoryFeatures(patience=True)``; a DAgger actor with memory; its new inputs
+    #: start with weights 0).
+    actor_patience: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -127,6 +131,11 @@ class KickstartConfig(PPOConfig):
         """Whether they end with the groups lost, as the observations show them."""
         return bool(self.dagger_config and self.dagger_config.get("lives"))
 
+    @property
+    def patience(self) -> bool:
+        """Whether they end with the groups' exact patience and grace buffers."""
+        return bool(self.dagger_config and self.dagger_config.get("patience"))
+
 
 def config_from_json(values: dict) -> KickstartConfig:
     return KickstartConfig(**values)
@@ -154,7 +163,7 @@ class KickstartModel(eqx.Module):
             bc_config = bc.BCConfig(hidden=config.bc_hidden, dropout=config.bc_dropout)
             self.actor = bc.BehaviourCloning(bc_config, ka)
         self.actor_width = OBSERVATION_SIZE + dagger.memory_size(
-            config.memory, config.timers, config.lives
+            config.memory, config.timers, config.lives, config.patience
         )
         columns = []
         if config.critic_memory:
@@ -215,20 +224,28 @@ def config_for_init(config: KickstartConfig, directory: str | Path) -> Kickstart
     description = _init_description(directory)
     sizes = description["config"]
     if description["algorithm"] == "dagger":
-        if config.actor_lives and not sizes.get("memory"):
-            raise AgentsError(
-                f"--actor-lives: the groups lost are memory features, and --init {directory} "
-                "has none (a dagger checkpoint trained with --memory)"
-            )
-        lives = {"lives": True} if config.actor_lives else {}
+        for flag, wanted in (
+            ("--actor-lives", config.actor_lives),
+            ("--actor-patience", config.actor_patience),
+        ):
+            if wanted and not sizes.get("memory"):
+                raise AgentsError(
+                    f"{flag}: a memory feature, and --init {directory} has no memory (a "
+                    "dagger checkpoint trained with --memory)"
+                )
+        extra = {"lives": True} if config.actor_lives else {}
+        if config.actor_patience:
+            extra["patience"] = True
         return replace(
             config,
             init=str(directory),
             init_algorithm="dagger",
-            dagger_config=dagger.config_from_json({**sizes, **lives}).to_json(),
+            dagger_config=dagger.config_from_json({**sizes, **extra}).to_json(),
         )
-    if config.actor_lives:
-        raise AgentsError(f"--actor-lives needs a dagger --init with memory, not {directory}")
+    if config.actor_lives or config.actor_patience:
+        raise AgentsError(
+            f"--actor-lives and --actor-patience need a dagger --init with memory, not {directory}"
+        )
     return replace(
         config,
         init=str(directory),
@@ -279,7 +296,7 @@ class KickstartTrainer(Trainer):
             if not config.init:
                 raise AgentsError("ppo-kickstart needs --init DIR (a bc or dagger checkpoint)")
             actor = _load_init(config.init)
-            if config.actor_lives:
+            if config.actor_lives or config.actor_patience:
                 actor = _widened(actor, model)
             model = eqx.tree_at(lambda m: m.actor, model, actor)
         self.model = model
@@ -321,8 +338,9 @@ class KickstartTrainer(Trainer):
 
 
 def _widened(actor: dagger.DaggerNet, model: KickstartModel) -> dagger.DaggerNet:
-    """``actor``'s weights in ``model``'s actor, its first layer's extra inputs (``actor_lives``:
-    the init learnt without the groups lost) with weights 0, so it plays as it did."""
+    """``actor``'s weights in ``model``'s actor, its first layer's extra inputs (``actor_lives``,
+    ``actor_patience``: features the init learnt without) with weights 0, so it plays as it
+    did."""
     first = actor.layers[0].weight
     missing = model.actor_width - first.shape[1]
     if missing > 0:
@@ -346,7 +364,7 @@ def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> di
 def _view(config: KickstartConfig):
     """An actor with memory sees its observations with a fresh
     :class:`~dinerdash_agents.dagger.MemoryFeatures` beside them (as it did when it learnt)."""
-    return dagger.memory_view(config.memory, config.timers, config.lives)
+    return dagger.memory_view(config.memory, config.timers, config.lives, config.patience)
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo-kickstart`` checkpoint.

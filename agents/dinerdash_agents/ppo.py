@@ -465,11 +465,18 @@ class _Group:
         #: and its index in the iteration.
         self.sent: Any = None
         self.step = 0
-        #: The group's own ``obs -> model input`` (:meth:`Trainer.view`), or ``None``.
+        #: The group's own ``obs -> model input`` (:meth:`Trainer.view`), or ``None``; one with
+        #: an ``acted(actions)`` method is told the actions sent.
         self.view: Callable[[np.ndarray], np.ndarray] | None = None
 
     def see(self, obs: np.ndarray) -> np.ndarray:
         return obs if self.view is None else self.view(obs)
+
+    def acted(self, actions: np.ndarray) -> None:
+        """Tells the view (one with an ``acted`` method) the actions sent."""
+        acted = getattr(self.view, "acted", None)
+        if acted is not None:
+            acted(actions)
 
 
 class Trainer:
@@ -647,6 +654,7 @@ class Trainer:
         a = a_logp_v[0].astype(np.int32)
         b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
         self.record_info(t, rows, group.info)
+        group.acted(a)
         group.step = t
         if len(self._groups) == 1:
             sent = time.perf_counter()

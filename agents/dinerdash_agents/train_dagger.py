@@ -94,7 +94,7 @@ LEARNERS: dict[type, Learner] = {
         dagger.fit_round,
         checkpoint.Policy,
         lambda config: f"DAgger, teacher {config.teacher}",
-        lambda config: MemoryFeatures(config.timers) if config.memory else None,
+        dagger.CHECKPOINT.view,
     ),
     RecurrentConfig: Learner(
         recurrent.ALGORITHM,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE
+from dinerdash.game import NUM_ACTIONS, OBSERVATION_SIZE, seat_action
 
 from dinerdash_agents import checkpoint, dagger, load, train_dagger
 from dinerdash_agents.cli import main
@@ -292,6 +292,73 @@ def test_a_checkpoint_with_memory_plays_through_its_own_memory(
     assert dagger.input_size(config) == OBSERVATION_SIZE + dagger.MEMORY_SIZE + timer_size
     with pytest.raises(AgentsError, match="need memory"):
         dagger.DaggerConfig(timers=True)
+
+
+def test_told_the_actions_the_memory_keeps_each_groups_exact_patience() -> None:
+    """With ``patience``, the features end with each slot's P / 800 and B / 400, which are the
+    rules' own (the plain-Python simulator's groups, matched step for step against the recorded
+    reference in tests/test_reference.py) at every step of four games played by a mixture of
+    the expert and random legal actions, across episode ends. Without the actions, the memory
+    cannot tell which of two like groups side by side was seated, and goes wrong."""
+    from dinerdash_bench.reference import Game
+
+    width = OBSERVATION_SIZE + dagger.memory_size(True, lives=True, patience=True)
+    assert width == OBSERVATION_SIZE + dagger.MEMORY_SIZE + dagger.LIVES_SIZE + 26
+    rng = np.random.default_rng(1)
+    games = [Game() for _ in range(4)]
+    seeds = iter(range(7000, 8000))
+    obs = np.array([g.reset(seed=next(seeds)) for g in games], np.float32)
+    told, blind = (
+        dagger.MemoryFeatures(lives=True, patience=True),
+        dagger.MemoryFeatures(patience=True),
+    )
+    exact = wrong_blind = ends = 0
+    for _ in range(1500):
+        rows, blind_rows = told(obs), blind(obs)
+        assert rows.shape == (4, width)
+        for k, game in enumerate(games):
+            r = game.restaurant
+            groups = [t.group for t in r.tables] + list(r.queue)
+            truth = [(g.patience / 800, g.buffer / 400) if g else (0, 0) for g in groups]
+            truth = np.array(truth + [(0, 0)] * (13 - len(truth)), np.float32).ravel()
+            np.testing.assert_allclose(rows[k, -26:], truth, atol=1e-6)
+            exact += 1
+            wrong_blind += not np.allclose(blind_rows[k, -26:], truth, atol=1e-6)
+        actions = []
+        for game in games:
+            legal = np.flatnonzero(game.action_mask())
+            expert = rng.random() < 0.6
+            actions.append(game.expert_action() if expert else int(rng.choice(legal)))
+        told.acted(np.array(actions))
+        for k, (game, a) in enumerate(zip(games, actions, strict=True)):
+            o, _, done = game.step(a)
+            if done:
+                o, ends = game.reset(seed=next(seeds)), ends + 1
+            obs[k] = o
+    assert exact == 6000 and ends > 0 and wrong_blind > 0
+
+
+def test_told_the_seat_the_memory_follows_the_group_seated_of_two_alike() -> None:
+    """Two groups of 2 at level 2 wait side by side, the second for longer in its level; the
+    first is seated at table 3. Told the action, the memory carries the second group's count on
+    in the queue and the first's to the table; from the observations alone it takes the first
+    group's count to stay."""
+    start = _restaurant(queue=[(3, 2)])
+    story = [start] + [_restaurant(queue=[(2, 2), (2, 2)])] * 4
+    # The memory's groups, as if the second had been at level 2 longer: set up by hand.
+    seated = _restaurant(tables=[(3, 1, 2, 2)], queue=[(2, 2)])
+    counts = {}
+    for told in (True, False):
+        memory = dagger.MemoryFeatures(patience=True)
+        for obs in story:
+            memory(obs[None])
+        first, second = memory._memories[0].queue
+        first.count, second.count = 1, 9
+        if told:
+            memory.acted(np.array([seat_action(1, 3)]))
+        row = memory(seated[None])[0]
+        counts[told] = (_slot(row, 2)[0], _slot(row, 6)[0])
+    assert counts == {True: (2, 10), False: (10, 2)}
 
 
 def test_the_groups_lost_counted_from_the_observations_are_infos(server_address: str) -> None:

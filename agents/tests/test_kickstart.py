@@ -257,8 +257,9 @@ def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
         train_rl("ppo-kickstart", 100, tmp_path / "x", address=server_address, init=out)
 
 
+@pytest.mark.parametrize("patience", [False, True])
 def test_the_actor_counts_the_groups_lost_and_starts_as_its_init_played(
-    server_address: str, tmp_path: Path
+    server_address: str, tmp_path: Path, patience: bool
 ):
     from dinerdash_agents import checkpoint
 
@@ -267,26 +268,41 @@ def test_the_actor_counts_the_groups_lost_and_starts_as_its_init_played(
     description = {"name": "d", "algorithm": "dagger", "config": config.to_json()}
     checkpoint.save(init, dagger.init(config, 3), description)
     out = tmp_path / "kick"
-    run = kickstart.KickstartConfig(num_envs=8, num_steps=32, critic_warmup=2, actor_lives=True)
+    run = kickstart.KickstartConfig(
+        num_envs=8, num_steps=32, critic_warmup=1, actor_lives=True, actor_patience=patience
+    )
     common = {"address": server_address, "teacher": "expert", "progress": False}
-    trainer = train_rl("ppo-kickstart", 2 * 8 * 32, out, config=run, init=init, **common)
-    # The actor's inputs end with the groups lost, one-hot, after the memory features; its
-    # first layer reads them with weights 0 (the two iterations were the critic's warm-up).
+    trainer = train_rl("ppo-kickstart", 8 * 32, out, config=run, init=init, **common)
+    # The actor's inputs end with the groups lost, one-hot, after the memory features (then,
+    # with patience, each group's P and B); its first layer reads them with weights 0 (the
+    # iteration was the critic's warm-up).
     width = OBSERVATION_SIZE + dagger.MEMORY_SIZE
-    assert trainer._buffers.obs.shape == (32, 8, width + dagger.LIVES_SIZE)
-    np.testing.assert_array_equal(trainer._buffers.obs[..., width:].sum(-1), 1)
+    added = dagger.LIVES_SIZE + (dagger.PATIENCE_SIZE if patience else 0)
+    rows = trainer._buffers.obs
+    assert rows.shape == (32, 8, width + added)
+    np.testing.assert_array_equal(rows[..., width : width + dagger.LIVES_SIZE].sum(-1), 1)
     first = trainer.model.actor.layers[0].weight
-    assert first.shape[1] == width + dagger.LIVES_SIZE and not first[:, width:].any()
+    assert first.shape[1] == width + added and not first[:, width:].any()
     saved = json.loads((out / "checkpoint.json").read_text())["config"]
     assert saved["actor_lives"] is True and saved["dagger_config"]["lives"] is True
+    assert saved["actor_patience"] is patience
+    assert saved["dagger_config"]["patience"] is patience
+    # The trainer told each environment's memory the actions it sent: the rows are those of a
+    # memory told them (the run's one iteration started at the episodes' resets).
+    memory = dagger.MemoryFeatures(lives=True, patience=patience)
+    for t in range(32):
+        np.testing.assert_array_equal(memory(rows[t, :, :OBSERVATION_SIZE]), rows[t])
+        memory.acted(trainer._buffers.actions[t])
     # So it plays, from its checkpoint, as the DAgger learner it started from.
     seeds = {"seed": 2000, "address": server_address, "num_envs": 4, "max_steps": 400}
     kicked, _ = evaluate_policy(load(out).act, 4, **seeds)
     learner, _ = evaluate_policy(load(init).act, 4, **seeds)
     np.testing.assert_array_equal(kicked, learner)
-    # The count is a memory feature: an init without memory is refused.
+    # These are memory features: an init without memory is refused.
     bare = tmp_path / "bare"
     plain = dagger.DaggerConfig(hidden=8, layers=1)
     checkpoint.save(bare, dagger.init(plain), {**description, "config": plain.to_json()})
-    with pytest.raises(AgentsError, match="--actor-lives"):
+    flag = "--actor-patience" if patience else "--actor-lives"
+    run = kickstart.KickstartConfig(actor_lives=not patience, actor_patience=patience)
+    with pytest.raises(AgentsError, match=flag):
         train_rl("ppo-kickstart", 100, tmp_path / "x", config=run, init=bare, **common)

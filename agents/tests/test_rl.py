@@ -157,6 +157,7 @@ def test_rl_bad_input_is_refused_with_a_clear_error(tmp_path: Path, capsys):
         ["--critic-memory"],
         ["--critic-lives"],
         ["--actor-lives"],
+        ["--actor-patience"],
         ["--kick-coef", "0"],
         ["--hidden", "64"],
         ["--epochs", "4"],
