@@ -142,6 +142,7 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
         "seat_weight": args.seat_weight,
         "memory": True if args.memory else None,
         "timers": True if args.timers else None,
+        "patience": True if args.patience else None,
     }
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
@@ -432,6 +433,12 @@ def _parser() -> argparse.ArgumentParser:
         help="dagger, with --memory: the memory also holds, per table, the steps since its "
         "status changed and since its order reached the kitchen, and the steps since the last "
         "group arrived",
+    )
+    p.add_argument(
+        "--patience",
+        action="store_true",
+        help="dagger, with --memory: the memory also holds each group's exact patience and "
+        "grace buffer (from the observations and the actions played)",
     )
     p.add_argument(
         "--kind",

@@ -435,7 +435,7 @@ class MemoryFeatures:
         self.timers, self.lives, self.patience = timers, lives, patience
         self._memories: list[_Memory] = []
         self._last = np.zeros((0, OBSERVATION_SIZE), np.float32)
-        self._actions: list[int | None] | None = None
+        self._actions: list[int] | None = None
 
     def acted(self, actions: np.ndarray) -> None:
         """The actions played from the observations last augmented, one per environment (kept
@@ -753,6 +753,9 @@ def play_round(
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
         if memory is not None:
             memory.acted(actions)
+        acted = getattr(state, "acted", None)
+        if acted is not None:  # a learner's memory follows the actions played, not its own
+            acted(actions)
         teacher_steps += int((from_teacher & active).sum())
         restart = np.zeros(n, np.bool_)
         obs, _, terminated, truncated, info = envs.step(actions)

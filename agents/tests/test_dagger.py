@@ -361,6 +361,59 @@ def test_told_the_seat_the_memory_follows_the_group_seated_of_two_alike() -> Non
     assert counts == {True: (2, 10), False: (10, 2)}
 
 
+class _Recording(dagger.MemoryFeatures):
+    """Patience memory features that keep every batch they compute."""
+
+    def __init__(self) -> None:
+        super().__init__(patience=True)
+        self.rows: list[np.ndarray] = []
+
+    def augment(self, obs: np.ndarray) -> np.ndarray:
+        self.rows.append(super().augment(obs))
+        return self.rows[-1]
+
+    __call__ = augment
+
+
+class _RandomWithMemory(checkpoint.BasePolicy):
+    """A learner with a patience memory as its state (told its own actions, as
+    :class:`~dinerdash_agents.checkpoint.Policy` does) that picks a random legal action."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rng = np.random.default_rng(0)
+        self.memory = _Recording()
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True, action_masks=None):
+        self.memory(obs)
+        actions = np.array([self.rng.choice(np.flatnonzero(m)) for m in action_masks])
+        self.memory.acted(actions)
+        return actions, self.memory
+
+
+def test_a_round_tells_the_memories_the_actions_it_played(server_address: str) -> None:
+    """A round of the mixture on a real server, recorded with ``--patience``'s memory (``train
+    dagger --memory --patience``): each episode's recorded features are those of a memory told,
+    step by step, the actions played, and so are the learner's own, though half the actions
+    played were the teacher's."""
+    import gymnasium
+
+    config = dagger.DaggerConfig(memory=True, patience=True, teacher="expert")
+    envs = gymnasium.make_vec(
+        "dinerdash:DinerDash-v0", num_envs=2, address=server_address, expert=True
+    )
+    memory, learner = _Recording(), _RandomWithMemory()
+    try:
+        played = dagger.play_round(envs, learner, 0.5, [5, 6, 7], np.random.default_rng(0), memory)
+    finally:
+        envs.close()
+    assert [len(e.obs) > 20 for e in played.episodes] == [True] * 3
+    assert 0 < played.teacher_steps < played.states
+    for episode in played.episodes:
+        assert episode.obs.shape[1] == dagger.input_size(config)
+    np.testing.assert_array_equal(np.stack(learner.memory.rows), np.stack(memory.rows))
+
+
 def test_the_groups_lost_counted_from_the_observations_are_infos(server_address: str) -> None:
     """The count of groups lost that the memory keeps from the observations alone is the
     server's ``info["lost"]`` at every step: under the expert (groups run away from tables),
