@@ -49,6 +49,7 @@ __all__ = [
     "lookup",
     "read_description",
     "save",
+    "tell_actions",
 ]
 
 FORMAT = "dinerdash-agents checkpoint"
@@ -223,10 +224,17 @@ class Policy(BasePolicy):
                 state = self._make_view(self._config)
             obs = state(obs)  # the memory restarts where an observation starts an episode
         actions = np.asarray(_greedy(self.model, obs, mask, use_mask), dtype=np.int64)
-        acted = getattr(state, "acted", None)
-        if acted is not None:  # a memory that follows the groups its seat actions took
-            acted(actions)
+        tell_actions(state, actions)
         return (actions[0] if single else actions), state
+
+
+def tell_actions(view: Any, actions: np.ndarray) -> None:
+    """Tells ``view`` (a policy's view of its observations, see :attr:`Hooks.view`) the actions
+    played from the observations it last saw, if it has an ``acted`` method (a memory that
+    follows the group each seat action took)."""
+    acted = getattr(view, "acted", None)
+    if acted is not None:
+        acted(actions)
 
 
 @eqx.filter_jit

@@ -753,9 +753,8 @@ def play_round(
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
         if memory is not None:
             memory.acted(actions)
-        acted = getattr(state, "acted", None)
-        if acted is not None:  # a learner's memory follows the actions played, not its own
-            acted(actions)
+        # A learner's memory follows the actions played, not its own choices.
+        checkpoint.tell_actions(state, actions)
         teacher_steps += int((from_teacher & active).sum())
         restart = np.zeros(n, np.bool_)
         obs, _, terminated, truncated, info = envs.step(actions)

@@ -472,12 +472,6 @@ class _Group:
     def see(self, obs: np.ndarray) -> np.ndarray:
         return obs if self.view is None else self.view(obs)
 
-    def acted(self, actions: np.ndarray) -> None:
-        """Tells the view (one with an ``acted`` method) the actions sent."""
-        acted = getattr(self.view, "acted", None)
-        if acted is not None:
-            acted(actions)
-
 
 class Trainer:
     """PPO's state between iterations (model, optimiser, random key, counts, learning curve) and
@@ -654,7 +648,7 @@ class Trainer:
         a = a_logp_v[0].astype(np.int32)
         b.actions[t, rows], b.logp[t, rows], b.values[t, rows] = a, a_logp_v[1], a_logp_v[2]
         self.record_info(t, rows, group.info)
-        group.acted(a)
+        checkpoint.tell_actions(group.view, a)
         group.step = t
         if len(self._groups) == 1:
             sent = time.perf_counter()
