@@ -490,11 +490,20 @@ def memory_view(
     return MemoryFeatures(timers, lives, patience) if memory else None
 
 
+def input_blocks(config: DaggerConfig) -> list[tuple[str, int]]:
+    """The learner's input columns in order, as (name, width) blocks: the observation, then
+    the memory features :class:`MemoryFeatures` appends with ``config``'s switches."""
+    blocks = [("observation", OBSERVATION_SIZE)]
+    if config.memory:
+        blocks.append(("memory", MEMORY_SIZE))
+        switches = (("timers", TIMERS_SIZE), ("lives", LIVES_SIZE), ("patience", PATIENCE_SIZE))
+        blocks += [(name, width) for name, width in switches if getattr(config, name)]
+    return blocks
+
+
 def input_size(config: DaggerConfig) -> int:
     """The learner's input width: the observation, and the memory features with ``memory``."""
-    return OBSERVATION_SIZE + memory_size(
-        config.memory, config.timers, config.lives, config.patience
-    )
+    return sum(width for _, width in input_blocks(config))
 
 
 class DaggerNet(eqx.Module):

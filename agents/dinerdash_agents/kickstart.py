@@ -297,7 +297,9 @@ class KickstartTrainer(Trainer):
                 raise AgentsError("ppo-kickstart needs --init DIR (a bc or dagger checkpoint)")
             actor = _load_init(config.init)
             if config.actor_lives or config.actor_patience:
-                actor = _widened(actor, model)
+                learnt = dagger.config_from_json(_init_description(config.init)["config"])
+                wanted = dagger.config_from_json(config.dagger_config)
+                actor = _widened(actor, model, learnt, wanted)
             model = eqx.tree_at(lambda m: m.actor, model, actor)
         self.model = model
         self.opt_state = self.optimizer.init(eqx.filter(self.model, eqx.is_array))
@@ -337,15 +339,26 @@ class KickstartTrainer(Trainer):
         self._buffers.expert_actions[t, rows] = expert
 
 
-def _widened(actor: dagger.DaggerNet, model: KickstartModel) -> dagger.DaggerNet:
-    """``actor``'s weights in ``model``'s actor, its first layer's extra inputs (``actor_lives``,
-    ``actor_patience``: features the init learnt without) with weights 0, so it plays as it
-    did."""
+def _widened(
+    actor: dagger.DaggerNet,
+    model: KickstartModel,
+    learnt: dagger.DaggerConfig,
+    wanted: dagger.DaggerConfig,
+) -> dagger.DaggerNet:
+    """``actor`` (whose inputs are ``learnt``'s) in ``model``'s actor (whose inputs are
+    ``wanted``'s): its first layer's weights of each input block it learnt kept, those of the
+    blocks it learnt without (``actor_lives``, ``actor_patience``) 0, so it plays as it did."""
     first = actor.layers[0].weight
-    missing = model.actor_width - first.shape[1]
-    if missing > 0:
-        zeros = jnp.zeros((first.shape[0], missing), first.dtype)
-        actor = eqx.tree_at(lambda a: a.layers[0].weight, actor, jnp.concatenate([first, zeros], 1))
+    starts, at = {}, 0
+    for name, width in dagger.input_blocks(learnt):
+        starts[name], at = at, at + width
+    columns = [
+        first[:, starts[name] : starts[name] + width]
+        if name in starts
+        else jnp.zeros((first.shape[0], width), first.dtype)
+        for name, width in dagger.input_blocks(wanted)
+    ]
+    actor = eqx.tree_at(lambda a: a.layers[0].weight, actor, jnp.concatenate(columns, 1))
     params, static = eqx.partition(model.actor, eqx.is_array)
     leaves = jax.tree_util.tree_leaves(eqx.filter(actor, eqx.is_array))
     return eqx.combine(

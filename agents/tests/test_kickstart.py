@@ -257,39 +257,50 @@ def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
         train_rl("ppo-kickstart", 100, tmp_path / "x", address=server_address, init=out)
 
 
-@pytest.mark.parametrize("patience", [False, True])
+@pytest.mark.parametrize(("learnt", "patience"), [(False, False), (False, True), (True, False)])
 def test_the_actor_counts_the_groups_lost_and_starts_as_its_init_played(
-    server_address: str, tmp_path: Path, patience: bool
+    server_address: str, tmp_path: Path, learnt: bool, patience: bool
 ):
+    """``learnt``: the DAgger init has the exact patience features already (their block then
+    follows the new groups-lost block); ``patience``: the run adds them."""
     from dinerdash_agents import checkpoint
 
-    config = dagger.DaggerConfig(memory=True, hidden=32, layers=2)
+    config = dagger.DaggerConfig(memory=True, patience=learnt, hidden=32, layers=2)
     init = tmp_path / "dagger"
     description = {"name": "d", "algorithm": "dagger", "config": config.to_json()}
-    checkpoint.save(init, dagger.init(config, 3), description)
+    learner_model = dagger.init(config, 3)
+    checkpoint.save(init, learner_model, description)
     out = tmp_path / "kick"
     run = kickstart.KickstartConfig(
         num_envs=8, num_steps=32, critic_warmup=1, actor_lives=True, actor_patience=patience
     )
     common = {"address": server_address, "teacher": "expert", "progress": False}
     trainer = train_rl("ppo-kickstart", 8 * 32, out, config=run, init=init, **common)
-    # The actor's inputs end with the groups lost, one-hot, after the memory features (then,
-    # with patience, each group's P and B); its first layer reads them with weights 0 (the
-    # iteration was the critic's warm-up).
+    # The actor's inputs: the memory features, the groups lost one-hot, then (with patience,
+    # learnt or added) each group's P and B. Its first layer reads the blocks its init learnt
+    # with the init's weights, the others with weights 0 (the iteration was the critic's
+    # warm-up).
     width = OBSERVATION_SIZE + dagger.MEMORY_SIZE
-    added = dagger.LIVES_SIZE + (dagger.PATIENCE_SIZE if patience else 0)
+    lives = slice(width, width + dagger.LIVES_SIZE)
+    pat = dagger.PATIENCE_SIZE if learnt or patience else 0
     rows = trainer._buffers.obs
-    assert rows.shape == (32, 8, width + added)
-    np.testing.assert_array_equal(rows[..., width : width + dagger.LIVES_SIZE].sum(-1), 1)
+    assert rows.shape == (32, 8, width + dagger.LIVES_SIZE + pat)
+    np.testing.assert_array_equal(rows[..., lives].sum(-1), 1)
     first = trainer.model.actor.layers[0].weight
-    assert first.shape[1] == width + added and not first[:, width:].any()
+    old = learner_model.layers[0].weight
+    assert first.shape[1] == width + dagger.LIVES_SIZE + pat and not first[:, lives].any()
+    np.testing.assert_array_equal(first[:, :width], old[:, :width])
+    if learnt:
+        np.testing.assert_array_equal(first[:, lives.stop :], old[:, width:])
+    else:
+        assert not first[:, lives.stop :].any()
     saved = json.loads((out / "checkpoint.json").read_text())["config"]
     assert saved["actor_lives"] is True and saved["dagger_config"]["lives"] is True
     assert saved["actor_patience"] is patience
-    assert saved["dagger_config"]["patience"] is patience
+    assert saved["dagger_config"]["patience"] is (learnt or patience)
     # The trainer told each environment's memory the actions it sent: the rows are those of a
     # memory told them (the run's one iteration started at the episodes' resets).
-    memory = dagger.MemoryFeatures(lives=True, patience=patience)
+    memory = dagger.MemoryFeatures(lives=True, patience=learnt or patience)
     for t in range(32):
         np.testing.assert_array_equal(memory(rows[t, :, :OBSERVATION_SIZE]), rows[t])
         memory.acted(trainer._buffers.actions[t])
