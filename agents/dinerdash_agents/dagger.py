@@ -477,9 +477,11 @@ class MemoryFeatures:
 def memory_size(
     memory: bool, timers: bool = False, lives: bool = False, patience: bool = False
 ) -> int:
-    """How many memory features follow the observation."""
-    extra = (TIMERS_SIZE if timers else 0) + (LIVES_SIZE if lives else 0)
-    return MEMORY_SIZE + extra + (PATIENCE_SIZE if patience else 0) if memory else 0
+    """How many memory features follow the observation (:func:`input_blocks` after it)."""
+    if not memory:
+        return 0
+    config = DaggerConfig(memory=True, timers=timers, lives=lives, patience=patience)
+    return input_size(config) - OBSERVATION_SIZE
 
 
 def memory_view(
