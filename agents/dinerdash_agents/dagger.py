@@ -762,10 +762,9 @@ def play_round(
             choices += int(asked.sum())
             agreed += int((asked & (np.asarray(learned) == teacher)).sum())
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
-        if memory is not None:
-            memory.acted(actions)
-        # A learner's memory follows the actions played, not its own choices.
-        checkpoint.tell_actions(state, actions)
+        # The recorded memory, and a learner's own, follow the actions played (not its choices).
+        for view in (memory, state):
+            checkpoint.tell_actions(view, actions)
         teacher_steps += int((from_teacher & active).sum())
         restart = np.zeros(n, np.bool_)
         obs, _, terminated, truncated, info = envs.step(actions)

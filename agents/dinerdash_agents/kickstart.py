@@ -215,8 +215,10 @@ def _init_description(directory: str | Path) -> dict:
     return description
 
 
-def _load_init(directory: str | Path) -> bc.BehaviourCloning | dagger.DaggerNet:
-    return checkpoint.load(directory, _init_description(directory)["algorithm"]).model
+def _load_init(directory: str | Path) -> tuple[bc.BehaviourCloning | dagger.DaggerNet, dict]:
+    """The checkpoint ``directory``'s network and its description."""
+    description = _init_description(directory)
+    return checkpoint.load(directory, description["algorithm"]).model, description
 
 
 def config_for_init(config: KickstartConfig, directory: str | Path) -> KickstartConfig:
@@ -224,18 +226,14 @@ def config_for_init(config: KickstartConfig, directory: str | Path) -> Kickstart
     description = _init_description(directory)
     sizes = description["config"]
     if description["algorithm"] == "dagger":
-        for flag, wanted in (
-            ("--actor-lives", config.actor_lives),
-            ("--actor-patience", config.actor_patience),
-        ):
-            if wanted and not sizes.get("memory"):
-                raise AgentsError(
-                    f"{flag}: a memory feature, and --init {directory} has no memory (a "
-                    "dagger checkpoint trained with --memory)"
-                )
-        extra = {"lives": True} if config.actor_lives else {}
-        if config.actor_patience:
-            extra["patience"] = True
+        # The memory features the actor gains (--actor-lives, --actor-patience).
+        extra = {name: True for name in ("lives", "patience") if getattr(config, f"actor_{name}")}
+        if extra and not sizes.get("memory"):
+            flag = f"--actor-{next(iter(extra))}"
+            raise AgentsError(
+                f"{flag}: a memory feature, and --init {directory} has no memory (a dagger "
+                "checkpoint trained with --memory)"
+            )
         return replace(
             config,
             init=str(directory),
@@ -295,9 +293,9 @@ class KickstartTrainer(Trainer):
         if load_init:
             if not config.init:
                 raise AgentsError("ppo-kickstart needs --init DIR (a bc or dagger checkpoint)")
-            actor = _load_init(config.init)
+            actor, description = _load_init(config.init)
             if config.actor_lives or config.actor_patience:
-                learnt = dagger.config_from_json(_init_description(config.init)["config"])
+                learnt = dagger.config_from_json(description["config"])
                 wanted = dagger.config_from_json(config.dagger_config)
                 actor = _widened(actor, model, learnt, wanted)
             model = eqx.tree_at(lambda m: m.actor, model, actor)
