@@ -143,6 +143,7 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
         "memory": True if args.memory else None,
         "timers": True if args.timers else None,
         "patience": True if args.patience else None,
+        "learner_memory": args.learner_memory,
     }
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
@@ -439,6 +440,13 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="dagger, with --memory: the memory also holds each group's exact patience and "
         "grace buffer (from the observations and the actions played)",
+    )
+    p.add_argument(
+        "--learner-memory",
+        choices=["played", "own"],
+        help="dagger, with --patience: what the learner's own memory is told while it plays a "
+        "round, the actions played (default) or its own choices (its patience beliefs then err "
+        "where the teacher acted; docs/agents.md)",
     )
     p.add_argument(
         "--kind",

@@ -113,6 +113,11 @@ class DaggerConfig:
     #: With ``memory``, the features end with each group's exact patience and grace buffer,
     #: the memory told the actions played (``MemoryFeatures(patience=True)``).
     patience: bool = False
+    #: What the learner's own memory is told while it plays a round: the actions "played", or
+    #: its "own" choices. With ``patience``, "own" leaves its patience beliefs wrong wherever the
+    #: teacher acted instead, until that group leaves: the learner errs more in its rounds and
+    #: the teacher labels the states it errs into (docs/agents.md; a perturbation in DART's spirit).
+    learner_memory: str = "played"
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -128,6 +133,12 @@ class DaggerConfig:
             raise AgentsError(f"p must be in [0, 1] (got {self.p})")
         if (self.timers or self.lives or self.patience) and not self.memory:
             raise AgentsError("timers, lives and patience are memory features: they need memory")
+        if self.learner_memory not in ("played", "own"):
+            raise AgentsError(
+                f"--learner-memory must be played or own, got {self.learner_memory!r}"
+            )
+        if self.learner_memory == "own" and not self.patience:
+            raise AgentsError("--learner-memory own: only the patience memory is told actions")
 
     def to_json(self) -> dict:
         return {**asdict(self), "betas": betas(self)}
@@ -720,6 +731,7 @@ def play_round(
     seeds: list[int],
     rng: np.random.Generator,
     memory: MemoryFeatures | None = None,
+    learner_memory: str = "played",
 ) -> RoundPlay:
     """Plays one episode per seed of ``seeds`` with the mixture ``β·teacher + (1 − β)·learner``
     on ``envs`` (a vector env whose infos carry ``expert_action`` and ``action_mask``; an
@@ -734,7 +746,9 @@ def play_round(
     environment, with probability ``beta`` the teacher's action is executed, else the learner's
     (:func:`mix_actions`, one draw per environment and step). Environments left without a seed
     at the end play on unrecorded. With ``memory``, the recorded observations are extended by
-    its :class:`MemoryFeatures` (as a learner with memory computes its own)."""
+    its :class:`MemoryFeatures` (as a learner with memory computes its own). The recorded memory
+    is told the actions played; the learner's own too, unless ``learner_memory`` is "own"
+    (:attr:`DaggerConfig.learner_memory`: it keeps what its ``predict`` told it, its choices)."""
     n = envs.num_envs
     episodes = SeedQueue(seeds, n)
     slot, active = episodes.slot, episodes.active
@@ -762,9 +776,9 @@ def play_round(
             choices += int(asked.sum())
             agreed += int((asked & (np.asarray(learned) == teacher)).sum())
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
-        # The recorded memory, and a learner's own, follow the actions played (not its choices).
-        for view in (memory, state):
-            checkpoint.tell_actions(view, actions)
+        checkpoint.tell_actions(memory, actions)
+        if learner_memory == "played":
+            checkpoint.tell_actions(state, actions)
         teacher_steps += int((from_teacher & active).sum())
         restart = np.zeros(n, np.bool_)
         obs, _, terminated, truncated, info = envs.step(actions)

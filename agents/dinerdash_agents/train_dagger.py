@@ -176,6 +176,8 @@ def _train(
                 round_seeds,
                 rng,
                 learner.memory(config),
+                # A recurrent learner's memory is not told actions: it has no learner_memory.
+                getattr(config, "learner_memory", "played"),
             )
         finally:
             envs.close()

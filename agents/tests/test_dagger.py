@@ -376,42 +376,66 @@ class _Recording(dagger.MemoryFeatures):
 
 
 class _RandomWithMemory(checkpoint.BasePolicy):
-    """A learner with a patience memory as its state (told its own actions, as
+    """A learner with a patience memory as its state (told its own choices, as
     :class:`~dinerdash_agents.checkpoint.Policy` does) that picks a random legal action."""
 
     def __init__(self) -> None:
         super().__init__()
         self.rng = np.random.default_rng(0)
         self.memory = _Recording()
+        #: The observations it was shown and its choices, step by step.
+        self.seen: list[np.ndarray] = []
+        self.choices: list[np.ndarray] = []
 
     def predict(self, obs, state=None, episode_start=None, deterministic=True, action_masks=None):
+        self.seen.append(obs)
         self.memory(obs)
         actions = np.array([self.rng.choice(np.flatnonzero(m)) for m in action_masks])
+        self.choices.append(actions)
         self.memory.acted(actions)
         return actions, self.memory
 
 
-def test_a_round_tells_the_memories_the_actions_it_played(server_address: str) -> None:
+@pytest.mark.parametrize("learner_memory", ["played", "own"])
+def test_a_round_tells_the_memories_the_actions_it_played(
+    server_address: str, learner_memory: str
+) -> None:
     """A round of the mixture on a real server, recorded with ``--patience``'s memory (``train
     dagger --memory --patience``): each episode's recorded features are those of a memory told,
     step by step, the actions played, and so are the learner's own, though half the actions
-    played were the teacher's."""
+    played were the teacher's; with ``--learner-memory own``, the learner's are those of a memory
+    told its own choices, and differ from the recorded ones."""
     import gymnasium
 
-    config = dagger.DaggerConfig(memory=True, patience=True, teacher="expert")
+    config = dagger.DaggerConfig(
+        memory=True, patience=True, teacher="expert", learner_memory=learner_memory
+    )
     envs = gymnasium.make_vec(
         "dinerdash:DinerDash-v0", num_envs=2, address=server_address, expert=True
     )
     memory, learner = _Recording(), _RandomWithMemory()
+    rng = np.random.default_rng(0)
     try:
-        played = dagger.play_round(envs, learner, 0.5, [5, 6, 7], np.random.default_rng(0), memory)
+        played = dagger.play_round(envs, learner, 0.5, [5, 6, 7], rng, memory, learner_memory)
     finally:
         envs.close()
     assert [len(e.obs) > 20 for e in played.episodes] == [True] * 3
     assert 0 < played.teacher_steps < played.states
     for episode in played.episodes:
         assert episode.obs.shape[1] == dagger.input_size(config)
-    np.testing.assert_array_equal(np.stack(learner.memory.rows), np.stack(memory.rows))
+    learners, recorded = np.stack(learner.memory.rows), np.stack(memory.rows)
+    if learner_memory == "played":
+        np.testing.assert_array_equal(learners, recorded)
+        return
+    assert not np.array_equal(learners, recorded)
+    own = dagger.MemoryFeatures(patience=True)
+    rows = []
+    for obs, choices in zip(learner.seen, learner.choices, strict=True):
+        rows.append(own.augment(obs))
+        own.acted(choices)
+    np.testing.assert_array_equal(learners, np.stack(rows))
+    with pytest.raises(AgentsError, match="only the patience memory"):
+        dagger.DaggerConfig(memory=True, learner_memory="own")
 
 
 def test_the_groups_lost_counted_from_the_observations_are_infos(server_address: str) -> None:
