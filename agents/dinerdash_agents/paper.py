@@ -77,11 +77,16 @@ def _ppo_label(agent: Agent) -> str:
 
 
 def _dagger_label(agent: Agent) -> str:
+    settings = DAGGER_SETTINGS.get(agent.name, {})
     memory = (
         ", the learner remembering how long each patience level has lasted"
-        if DAGGER_SETTINGS.get(agent.name, {}).get("memory")
+        if settings.get("memory")
         else ""
     )
+    if settings.get("patience"):
+        memory += " and each group's exact patience"
+    if settings.get("learner_memory") == "own":
+        memory += ", its memory told its own choices where the teacher acted"
     return f"DAgger, the {agent.teacher} labelling the learner's states{memory} (beyond the paper)"
 
 
@@ -174,6 +179,9 @@ AGENTS = [
     Agent("ppo-kickstart-critic", *_FROM_MEMORY_LEARNER),
     Agent("ppo-kickstart-lives", *_FROM_MEMORY_LEARNER),
     Agent("ppo-kickstart-actor-lives", *_FROM_MEMORY_LEARNER),
+    Agent("dagger-planner-own-memory", "dagger", 0, "masked", None, "planner", LONG_SEEDS),
+    # The same as those, started from another DAgger learner.
+    Agent("ppo-kickstart-own-memory", *_FROM_MEMORY_LEARNER[:-1], "dagger-planner-own-memory"),
     Agent("dagger-gru", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
     Agent("dagger-stack", "dagger-recurrent", 0, "masked", None, "planner"),
     Agent("dagger-gru-w10", "dagger-recurrent", 0, "masked", None, "planner", LONG_SEEDS),
@@ -185,6 +193,14 @@ DAGGER_SETTINGS: dict[str, dict[str, Any]] = {
     "dagger-planner": {"rounds": 12, "seat_weight": 10.0},
     "dagger-expert": {"rounds": 8, "seat_weight": 1.0},
     "dagger-planner-memory": {"rounds": 12, "seat_weight": 4.0, "memory": True},
+    # Exact patience too, the learner's own memory told its choices (issue 49: docs/agents.md).
+    "dagger-planner-own-memory": {
+        "rounds": 12,
+        "seat_weight": 4.0,
+        "memory": True,
+        "patience": True,
+        "learner_memory": "own",
+    },
 }
 #: The recurrent and frame-stacked DAgger rows' settings beyond
 #: :class:`~dinerdash_agents.recurrent.RecurrentConfig`'s defaults.
@@ -221,6 +237,7 @@ STEPS = {
     "ppo-kickstart-critic": 20_000_000,
     "ppo-kickstart-lives": 20_000_000,
     "ppo-kickstart-actor-lives": 20_000_000,
+    "ppo-kickstart-own-memory": 20_000_000,
 }
 #: Kick-started rows' settings beyond :class:`~dinerdash_agents.kickstart.KickstartConfig`'s
 #: defaults: from the DAgger learner with memory, no pull toward a teacher (its pull would be
@@ -229,11 +246,14 @@ STEPS = {
 #: that reads the memory features too, 256 wide (issue 49), the groups lost, and the actor counting
 #: them from its observations (both on 2000..2399).
 _CRITIC = {"kick_coef": 0.0, "critic_memory": True, "hidden": 256}
+_ACTOR_LIVES = {**_CRITIC, "critic_lives": True, "actor_lives": True}
 KICKSTART_SETTINGS: dict[str, dict[str, Any]] = {
     "ppo-kickstart-memory": {"kick_coef": 0.0},
     "ppo-kickstart-critic": _CRITIC,
     "ppo-kickstart-lives": {**_CRITIC, "critic_lives": True},
-    "ppo-kickstart-actor-lives": {**_CRITIC, "critic_lives": True, "actor_lives": True},
+    "ppo-kickstart-actor-lives": _ACTOR_LIVES,
+    # The same stage from the learner whose memory was told its own choices.
+    "ppo-kickstart-own-memory": _ACTOR_LIVES,
 }
 
 
@@ -414,6 +434,16 @@ COMPARISONS = [
     ("ppo-kickstart-critic", "ppo-kickstart-memory", "the critic reading the memory features"),
     ("ppo-kickstart-lives", "ppo-kickstart-critic", "the critic reading the groups lost too"),
     ("ppo-kickstart-actor-lives", "ppo-kickstart-lives", "the actor counting the groups lost"),
+    (
+        "dagger-planner-own-memory",
+        "dagger-planner-memory",
+        "exact patience, the learner's memory told its own choices",
+    ),
+    (
+        "ppo-kickstart-own-memory",
+        "ppo-kickstart-actor-lives",
+        "PPO's start: the DAgger learner whose memory was told its own choices",
+    ),
 ]
 
 

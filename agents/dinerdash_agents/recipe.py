@@ -1,7 +1,8 @@
 """The best learned policy's whole recipe for one training seed, in one command: DAgger with the
-look-ahead planner as teacher and memory features (``dagger-planner-memory``), then masked PPO
-on the game's reward from that learner, its critic reading the memory features and the groups
-lost too, its actor counting them from the observations (``ppo-kickstart-actor-lives``);
+look-ahead planner as teacher and memory features, exact patience among them, the learner's own
+memory told its choices rather than the actions played (``dagger-planner-own-memory``), then
+masked PPO on the game's reward from that learner, its critic reading the memory features and
+the groups lost too, its actor counting them from the observations (``ppo-kickstart-own-memory``);
 docs/agents.md gives its results and times.
 
 ::
@@ -33,8 +34,8 @@ from .train_rl import TRAINER_STATE, train_rl
 
 __all__ = ["PPO_STEPS", "run_recipe"]
 
-DAGGER = "dagger-planner-memory"
-PPO = "ppo-kickstart-actor-lives"
+DAGGER = "dagger-planner-own-memory"
+PPO = "ppo-kickstart-own-memory"
 #: The PPO stage's environment steps: its row's in the paper table.
 PPO_STEPS = STEPS[PPO]
 
@@ -50,7 +51,7 @@ def run_recipe(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Trains (or finishes) the recipe's two stages for training seed ``seed`` into
-    ``out/dagger-planner-memory`` and ``out/ppo-kickstart-actor-lives``, with their TensorBoard
+    ``out/dagger-planner-own-memory`` and ``out/ppo-kickstart-own-memory``, with their TensorBoard
     curves under ``out/tensorboard``; returns what it writes to ``out/recipe.json``. ``dagger``:
     settings that replace the recipe's DAgger ones (tests use fewer rounds); ``num_envs``: the PPO
     stage's environments (default its config's)."""

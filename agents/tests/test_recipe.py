@@ -35,7 +35,8 @@ def test_the_recipe_trains_dagger_then_ppo_from_it_and_a_second_run_only_finishe
     assert record == json.loads((tmp_path / "recipe.json").read_text())
 
     dagger = json.loads((tmp_path / DAGGER / "checkpoint.json").read_text())
-    assert dagger["config"]["memory"] is True
+    assert dagger["config"]["memory"] is True and dagger["config"]["patience"] is True
+    assert dagger["config"]["learner_memory"] == "own"
     assert dagger["training"]["seed"] == 3
     first = json.loads((tmp_path / PPO / "checkpoint.json").read_text())
     assert first["config"]["init"] == str(tmp_path / DAGGER)
