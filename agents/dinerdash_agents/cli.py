@@ -144,6 +144,7 @@ def _cmd_train_dagger(args: argparse.Namespace) -> int:
         "timers": True if args.timers else None,
         "patience": True if args.patience else None,
         "learner_memory": args.learner_memory,
+        "learner_noise": args.learner_noise,
     }
     config = dataclasses.replace(
         DaggerConfig(), **{k: v for k, v in given.items() if v is not None}
@@ -447,6 +448,12 @@ def _parser() -> argparse.ArgumentParser:
         help="dagger, with --patience: what the learner's own memory is told while it plays a "
         "round, the actions played (default) or its own choices (its patience beliefs then err "
         "where the teacher acted; docs/agents.md)",
+    )
+    p.add_argument(
+        "--learner-noise",
+        type=float,
+        help="dagger: per step where the learner acts, the chance its action is replaced by a "
+        "legal one drawn uniformly (DART's noise; default 0)",
     )
     p.add_argument(
         "--kind",

@@ -118,6 +118,9 @@ class DaggerConfig:
     #: teacher acted instead, until that group leaves: the learner errs more in its rounds and
     #: the teacher labels the states it errs into (docs/agents.md; a perturbation in DART's spirit).
     learner_memory: str = "played"
+    #: Per step where the learner acts, the chance its action is replaced by a legal one drawn
+    #: uniformly: DART's injected noise, so the teacher labels states the learner errs into.
+    learner_noise: float = 0.0
 
     def __post_init__(self) -> None:
         if self.teacher not in TEACHERS:
@@ -131,6 +134,8 @@ class DaggerConfig:
                 raise AgentsError(f"{name} must be at least 1 (got {getattr(self, name)})")
         if not 0.0 <= self.p <= 1.0:
             raise AgentsError(f"p must be in [0, 1] (got {self.p})")
+        if not 0.0 <= self.learner_noise <= 1.0:
+            raise AgentsError(f"--learner-noise must be in [0, 1] (got {self.learner_noise})")
         if (self.timers or self.lives or self.patience) and not self.memory:
             raise AgentsError("timers, lives and patience are memory features: they need memory")
         if self.learner_memory not in ("played", "own"):
@@ -580,6 +585,16 @@ def mix_actions(
     return np.where(from_teacher, teacher, learner).astype(np.int64), from_teacher
 
 
+def add_noise(
+    actions: np.ndarray, learner_acted: np.ndarray, mask: np.ndarray, noise: float, rng
+) -> np.ndarray:
+    """``actions`` with each of the learner's replaced, with probability ``noise``, by a legal
+    action drawn uniformly (:attr:`DaggerConfig.learner_noise`)."""
+    noised = learner_acted & (rng.random(len(actions)) < noise)
+    drawn = np.argmax(np.where(mask, rng.random(mask.shape), -1.0), axis=1)
+    return np.where(noised, drawn, actions).astype(np.int64)
+
+
 class Aggregate:
     """DAgger's dataset: every visited state (observation, action mask) with the teacher's action
     in it, and the round it was visited in."""
@@ -732,6 +747,7 @@ def play_round(
     rng: np.random.Generator,
     memory: MemoryFeatures | None = None,
     learner_memory: str = "played",
+    learner_noise: float = 0.0,
 ) -> RoundPlay:
     """Plays one episode per seed of ``seeds`` with the mixture ``β·teacher + (1 − β)·learner``
     on ``envs`` (a vector env whose infos carry ``expert_action`` and ``action_mask``; an
@@ -748,7 +764,8 @@ def play_round(
     at the end play on unrecorded. With ``memory``, the recorded observations are extended by
     its :class:`MemoryFeatures` (as a learner with memory computes its own). The recorded memory
     is told the actions played; the learner's own too, unless ``learner_memory`` is "own"
-    (:attr:`DaggerConfig.learner_memory`: it keeps what its ``predict`` told it, its choices)."""
+    (:attr:`DaggerConfig.learner_memory`: it keeps what its ``predict`` told it, its choices).
+    With ``learner_noise``, the learner's actions are perturbed first (:func:`add_noise`)."""
     n = envs.num_envs
     episodes = SeedQueue(seeds, n)
     slot, active = episodes.slot, episodes.active
@@ -776,6 +793,8 @@ def play_round(
             choices += int(asked.sum())
             agreed += int((asked & (np.asarray(learned) == teacher)).sum())
         actions, from_teacher = mix_actions(teacher, np.asarray(learned, np.int64), beta, rng)
+        if learner_noise > 0.0:
+            actions = add_noise(actions, ~from_teacher, mask, learner_noise, rng)
         checkpoint.tell_actions(memory, actions)
         if learner_memory == "played":
             checkpoint.tell_actions(state, actions)

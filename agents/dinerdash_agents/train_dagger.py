@@ -82,6 +82,8 @@ class Learner:
     label: Callable[[Any], str]
     #: The memory features a round records beside the observations (None: none).
     memory: Callable[[Any], MemoryFeatures | None]
+    #: ``play_round``'s perturbations of the learner's play a config asks for, by keyword.
+    perturbations: Callable[[Any], dict[str, Any]] = lambda config: {}
 
 
 #: The learners, by their config's type.
@@ -95,6 +97,10 @@ LEARNERS: dict[type, Learner] = {
         checkpoint.Policy,
         lambda config: f"DAgger, teacher {config.teacher}",
         dagger.CHECKPOINT.view,
+        lambda config: {
+            "learner_memory": config.learner_memory,
+            "learner_noise": config.learner_noise,
+        },
     ),
     RecurrentConfig: Learner(
         recurrent.ALGORITHM,
@@ -176,8 +182,7 @@ def _train(
                 round_seeds,
                 rng,
                 learner.memory(config),
-                # A recurrent learner's memory is not told actions: it has no learner_memory.
-                getattr(config, "learner_memory", "played"),
+                **learner.perturbations(config),
             )
         finally:
             envs.close()

@@ -147,6 +147,24 @@ def test_the_mixture_follows_beta() -> None:
     assert (dagger.mix_actions(teacher, learner, 0.0, rng)[0] == 3).all()
 
 
+def test_noise_replaces_only_the_learners_actions_and_only_by_legal_ones() -> None:
+    rng = np.random.default_rng(2)
+    n = 20_000
+    actions = np.full(n, 3)
+    learner_acted = np.arange(n) % 2 == 0
+    mask = np.zeros((n, NUM_ACTIONS), bool)
+    mask[:, [3, 10, 20, 30]] = True
+    noised = dagger.add_noise(actions, learner_acted, mask, 0.4, rng)
+    changed = noised != actions
+    assert not changed[~learner_acted].any()
+    assert np.isin(noised, [3, 10, 20, 30]).all()
+    # Drawn uniformly over the 4 legal actions, one of which is the learner's own: 0.4 · 3/4.
+    assert abs(changed[learner_acted].mean() - 0.3) < 0.02
+    assert (dagger.add_noise(actions, learner_acted, mask, 0.0, rng) == 3).all()
+    with pytest.raises(AgentsError, match="learner-noise"):
+        dagger.DaggerConfig(learner_noise=1.5)
+
+
 def test_schedules_seeds_and_refusals() -> None:
     assert dagger.betas(dagger.DaggerConfig(rounds=4, p=0.5)) == [1.0, 0.5, 0.25, 0.125]
     assert dagger.betas(dagger.DaggerConfig(rounds=3, schedule="first")) == [1.0, 0.0, 0.0]
