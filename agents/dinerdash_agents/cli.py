@@ -90,6 +90,9 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
 
     config = None
     given = {"kick_coef": args.kick_coef, "hidden": args.hidden, "update_epochs": args.epochs}
+    given.update(
+        {k: getattr(args, k) for k in ("learning_rate", "gamma", "gae_lambda", "ent_coef")}
+    )
     given = {k: v for k, v in given.items() if v is not None}
     switches = ("critic_memory", "critic_lives", "actor_lives", "actor_patience")
     given.update({k: True for k in switches if getattr(args, k)})
@@ -97,10 +100,13 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
                 "--kick-coef, --critic-memory, --critic-lives, --actor-lives, --actor-patience, "
-                "--hidden and --epochs are a new ppo-kickstart run's (a resumed run keeps its "
-                "settings)"
+                "--hidden, --epochs, --learning-rate, --gamma, --gae-lambda and --ent-coef are a "
+                "new ppo-kickstart run's (a resumed run keeps its settings)"
             )
-        config = KickstartConfig(**given)
+        try:
+            config = KickstartConfig(**given)
+        except ValueError as e:
+            raise AgentsError(str(e)) from e
     trainer = train_rl(
         args.algorithm,
         args.steps,
@@ -415,6 +421,16 @@ def _parser() -> argparse.ArgumentParser:
         "--actor-patience",
         action="store_true",
         help="ppo-kickstart: the actor's memory also holds each group's exact patience",
+    )
+    p.add_argument(
+        "--learning-rate",
+        type=float,
+        help="ppo-kickstart: Adam's step size at the start, falling linearly to 0 (default 3e-4)",
+    )
+    p.add_argument("--gamma", type=float, help="ppo-kickstart: the discount (default 0.995)")
+    p.add_argument("--gae-lambda", type=float, help="ppo-kickstart: GAE's λ (default 0.95)")
+    p.add_argument(
+        "--ent-coef", type=float, help="ppo-kickstart: the entropy bonus's weight (default 0.003)"
     )
     p.add_argument("--layers", type=int, help="dagger: hidden layers")
     p.add_argument(

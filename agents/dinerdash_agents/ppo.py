@@ -88,6 +88,14 @@ class PPOConfig:
     observation_high: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
+        for name, ok, allowed in (
+            ("learning_rate", self.learning_rate > 0, "above 0"),
+            ("gamma", 0 < self.gamma <= 1, "in (0, 1]"),
+            ("gae_lambda", 0 <= self.gae_lambda <= 1, "in [0, 1]"),
+            ("ent_coef", self.ent_coef >= 0, "0 or more"),
+        ):
+            if not ok:
+                raise ValueError(f"{name} is {getattr(self, name)}; it must be {allowed}")
         if self.observation_high is not None:  # a list, read back from JSON
             high = tuple(float(x) for x in self.observation_high)
             if len(high) != OBSERVATION_SIZE:

@@ -257,6 +257,34 @@ def test_a_run_from_a_dagger_learner_with_memory_keeps_its_memory(
         train_rl("ppo-kickstart", 100, tmp_path / "x", address=server_address, init=out)
 
 
+def test_the_cli_sets_the_ppo_stage_hyper_parameters(server_address: str, tmp_path: Path, capsys):
+    from dinerdash_agents import checkpoint
+
+    config = dagger.DaggerConfig(memory=True, hidden=16, layers=1)
+    init = tmp_path / "dagger"
+    description = {"name": "d", "algorithm": "dagger", "config": config.to_json()}
+    checkpoint.save(init, dagger.init(config, 3), description)
+    out = tmp_path / "kick"
+    argv = ["train", "ppo-kickstart", "--init", str(init), "--kick-coef", "0", "--steps", "512"]
+    argv += ["--num-envs", "8", "--address", server_address]
+    flags = ["--learning-rate", "1e-4", "--gamma", "0.99", "--gae-lambda", "0.9"]
+    assert agents_main([*argv, *flags, "--ent-coef", "0.01", "--out", str(out)]) == 0
+    saved = json.loads((out / "checkpoint.json").read_text())["config"]
+    assert (saved["learning_rate"], saved["gamma"], saved["gae_lambda"]) == (1e-4, 0.99, 0.9)
+    assert saved["ent_coef"] == 0.01 and saved["kick_coef"] == 0.0
+    # Out of range: refused before a run starts, naming the setting.
+    for flag, value, allowed in (
+        ("--gamma", "1.5", "gamma is 1.5; it must be in (0, 1]"),
+        ("--gae-lambda", "-0.1", "gae_lambda is -0.1; it must be in [0, 1]"),
+        ("--learning-rate", "0", "learning_rate is 0.0; it must be above 0"),
+        ("--ent-coef", "-1", "ent_coef is -1.0; it must be 0 or more"),
+    ):
+        bad = tmp_path / f"bad{flag}"
+        assert agents_main([*argv, flag, value, "--out", str(bad)]) == 1
+        assert allowed in capsys.readouterr().err
+        assert not bad.exists()
+
+
 @pytest.mark.parametrize(("learnt", "patience"), [(False, False), (False, True), (True, False)])
 def test_the_actor_counts_the_groups_lost_and_starts_as_its_init_played(
     server_address: str, tmp_path: Path, learnt: bool, patience: bool

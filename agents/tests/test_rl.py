@@ -161,6 +161,10 @@ def test_rl_bad_input_is_refused_with_a_clear_error(tmp_path: Path, capsys):
         ["--kick-coef", "0"],
         ["--hidden", "64"],
         ["--epochs", "4"],
+        ["--learning-rate", "1e-4"],
+        ["--gamma", "0.99"],
+        ["--gae-lambda", "0.9"],
+        ["--ent-coef", "0.01"],
     ):
         argv = ["train", "ppo-masked", "--steps", "100", *flags, "--out", str(tmp_path / "k")]
         assert agents_main(argv) == 1
