@@ -83,9 +83,9 @@ lint: venv
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets -- -D warnings
 	RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --document-private-items
-	$(VENV)/bin/ruff check client-py tests agents bench scripts server/python
+	$(VENV)/bin/ruff check client-py tests agents bench scripts server/python docker
 	scripts/buf_check.sh
-	$(VENV)/bin/ruff format --check client-py tests agents bench scripts server/python
+	$(VENV)/bin/ruff format --check client-py tests agents bench scripts server/python docker
 
 ## Criterion benchmarks of the simulator and the gRPC service, then the Python client's bench
 ## (the dinerdash-bench package, bench/).

@@ -9,10 +9,9 @@ import argparse
 import os
 import time
 
+import dinerdash  # noqa: F401  (registers DinerDash-v0)
 import gymnasium as gym
 import numpy as np
-
-import dinerdash  # noqa: F401  (registers DinerDash-v0)
 
 
 def main() -> None:
