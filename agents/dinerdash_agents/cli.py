@@ -94,14 +94,14 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         {k: getattr(args, k) for k in ("learning_rate", "gamma", "gae_lambda", "ent_coef")}
     )
     given = {k: v for k, v in given.items() if v is not None}
-    switches = ("critic_memory", "critic_timers", "critic_lives", "actor_lives", "actor_patience")
+    switches = ("critic_memory", "critic_lives", "actor_lives", "actor_patience")
     given.update({k: True for k in switches if getattr(args, k)})
     if given:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
-                "--kick-coef, --critic-memory, --critic-timers, --critic-lives, --actor-lives, "
-                "--actor-patience, --hidden, --epochs, --learning-rate, --gamma, --gae-lambda and "
-                "--ent-coef are a new ppo-kickstart run's (a resumed run keeps its settings)"
+                "--kick-coef, --critic-memory, --critic-lives, --actor-lives, --actor-patience, "
+                "--hidden, --epochs, --learning-rate, --gamma, --gae-lambda and --ent-coef are a "
+                "new ppo-kickstart run's (a resumed run keeps its settings)"
             )
         try:
             config = KickstartConfig(**given)
@@ -406,11 +406,6 @@ def _parser() -> argparse.ArgumentParser:
         "--critic-memory",
         action="store_true",
         help="ppo-kickstart: the critic also reads the --init DAgger learner's memory features",
-    )
-    p.add_argument(
-        "--critic-timers",
-        action="store_true",
-        help="ppo-kickstart: the critic also reads the memory's timers (the actor does not)",
     )
     p.add_argument(
         "--critic-lives",

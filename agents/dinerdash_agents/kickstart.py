@@ -95,11 +95,6 @@ class KickstartConfig(PPOConfig):
     #: ends at the fifth): an input of the critic's alone, the actor and so the policy that plays
     #: do not see it; a truncated episode's last observation reaches the critic with it zero.
     critic_lives: bool = False
-    #: Whether the critic also reads the memory's timers (``MemoryFeatures(timers=True)``: per
-    #: table the steps since its status changed and since its order reached the kitchen, and
-    #: the steps since the last group arrived): inputs of the critic's alone, after the actor's
-    #: and before the groups lost; a truncated episode's last observation reaches it with them 0.
-    critic_timers: bool = False
     #: Whether the actor's memory features also count the groups lost, from the observations
     #: (a DAgger actor with memory; its new inputs start with weights 0).
     actor_lives: bool = False
@@ -170,14 +165,11 @@ class KickstartModel(eqx.Module):
         self.actor_width = OBSERVATION_SIZE + dagger.memory_size(
             config.memory, config.timers, config.lives, config.patience
         )
-        columns, after = [], self.actor_width
+        columns = []
         if config.critic_memory:
             columns.append((OBSERVATION_SIZE, self.actor_width))
-        if config.critic_timers:
-            columns.append((after, after + dagger.TIMERS_SIZE))
-            after += dagger.TIMERS_SIZE
         if config.critic_lives:
-            columns.append((after, after + LOST_COLUMNS))
+            columns.append((self.actor_width, self.actor_width + LOST_COLUMNS))
         self.critic_columns = tuple(columns)
         width = OBSERVATION_SIZE + sum(stop - start for start, stop in columns)
         self.critic = _mlp([width, config.hidden, config.hidden, 1], 1.0, kc)
@@ -291,14 +283,11 @@ class KickstartTrainer(Trainer):
     ) -> None:
         if not isinstance(config, KickstartConfig):
             raise TypeError("KickstartTrainer needs a KickstartConfig")
-        for switch in ("critic_memory", "critic_timers"):
-            if getattr(config, switch) and not config.memory:
-                raise AgentsError(
-                    f"--{switch.replace('_', '-')}: the critic reads memory features, and this "
-                    "actor has none (--init a dagger checkpoint trained with --memory)"
-                )
-        if config.critic_timers and config.timers:
-            raise AgentsError("--critic-timers: this actor's memory has the timers already")
+        if config.critic_memory and not config.memory:
+            raise AgentsError(
+                "--critic-memory: the critic reads the actor's memory features, and this actor "
+                "has none (--init a dagger checkpoint trained with --memory)"
+            )
         super().__init__(config, total_steps, seed)
         model = init(config, seed)
         if load_init:
@@ -385,27 +374,8 @@ def coefficients(config: KickstartConfig, iteration: int, iterations: int) -> di
 
 def _view(config: KickstartConfig):
     """An actor with memory sees its observations with a fresh
-    :class:`~dinerdash_agents.dagger.MemoryFeatures` beside them (as it did when it learnt); with
-    ``critic_timers``, the memory's timers after them, for the critic."""
-    if config.critic_timers and config.memory:
-        return _TimersLast(config.lives, config.patience)
+    :class:`~dinerdash_agents.dagger.MemoryFeatures` beside them (as it did when it learnt)."""
     return dagger.memory_view(config.memory, config.timers, config.lives, config.patience)
-
-
-class _TimersLast(dagger.MemoryFeatures):
-    """The memory features with the timers, moved from their place after the base memory to
-    the end, so that the actor's columns (without them) come first."""
-
-    def __init__(self, lives: bool, patience: bool) -> None:
-        super().__init__(timers=True, lives=lives, patience=patience)
-
-    def augment(self, obs: np.ndarray) -> np.ndarray:
-        full = super().augment(obs)
-        cut = OBSERVATION_SIZE + dagger.MEMORY_SIZE
-        timers = full[:, cut : cut + dagger.TIMERS_SIZE]
-        return np.concatenate([full[:, :cut], full[:, cut + dagger.TIMERS_SIZE :], timers], 1)
-
-    __call__ = augment
 
 
 #: What :func:`~dinerdash_agents.checkpoint.load` needs of a ``ppo-kickstart`` checkpoint.

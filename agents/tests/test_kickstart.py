@@ -152,50 +152,6 @@ def test_the_critic_reads_the_groups_lost_and_the_actor_does_not():
     assert plain.with_info(obs, {"lost": np.zeros(5)}) is obs
 
 
-def test_the_critic_reads_the_timers_and_the_actor_does_not(server_address: str):
-    """``critic_timers``: the view gives the actor's memory columns as they were, then the
-    timers a memory with them computes; the critic reads them, the actor does not."""
-    from dinerdash import DinerDashEnv
-
-    dagger_config = dagger.DaggerConfig(memory=True, lives=True, hidden=16, layers=1).to_json()
-    config = kickstart.KickstartConfig(
-        init_algorithm="dagger",
-        dagger_config=dagger_config,
-        critic_memory=True,
-        critic_timers=True,
-        critic_lives=True,
-    )
-    view, plain = kickstart._view(config), dagger.MemoryFeatures(lives=True)
-    with_timers = dagger.MemoryFeatures(timers=True, lives=True)
-    actor = OBSERVATION_SIZE + dagger.memory_size(True, lives=True)
-    cut = OBSERVATION_SIZE + dagger.MEMORY_SIZE
-    rows = []
-    with DinerDashEnv(address=server_address, expert=True) as env:
-        obs, info = env.reset(seed=7)
-        for _ in range(80):
-            seen = view(obs[None])
-            np.testing.assert_array_equal(seen[:, :actor], plain(obs[None]))
-            timers = with_timers(obs[None])[:, cut : cut + dagger.TIMERS_SIZE]
-            np.testing.assert_array_equal(seen[:, actor:], timers)
-            rows.append(seen[0])
-            obs, *_, info = env.step(info["expert_action"])
-    seen = np.stack(rows)
-    assert seen[:, actor:].any()  # the timers ran
-    model = kickstart.init(config)
-    full = np.concatenate([seen, np.zeros((len(seen), kickstart.LOST_COLUMNS))], 1)
-    assert model.input_width == full.shape[1]
-    assert model.critic[0].in_features == full.shape[1]
-    other = full.copy()
-    other[:, actor : actor + dagger.TIMERS_SIZE] = 0.5
-    np.testing.assert_array_equal(model(jnp.asarray(full)), model(jnp.asarray(other)))
-    assert not np.allclose(model.value(jnp.asarray(full)), model.value(jnp.asarray(other)))
-    with pytest.raises(AgentsError, match="has none"):
-        _trainer(critic_timers=True)
-    timed = dagger.DaggerConfig(memory=True, timers=True, hidden=16, layers=1).to_json()
-    with pytest.raises(AgentsError, match="already"):
-        _trainer(init_algorithm="dagger", dagger_config=timed, critic_timers=True)
-
-
 def test_the_kick_coefficient_follows_its_schedule():
     linear = kickstart.KickstartConfig(kick_coef=2.0, kick_until=0.5, critic_warmup=10)
     values = [kickstart.kick_coefficient(linear, i, 110) for i in (0, 10, 35, 60, 100)]
