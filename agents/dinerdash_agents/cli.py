@@ -91,10 +91,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     config = None
     given = {"kick_coef": args.kick_coef, "hidden": args.hidden, "update_epochs": args.epochs}
     given.update(
-        {
-            k: getattr(args, k)
-            for k in ("learning_rate", "gamma", "gae_lambda", "ent_coef", "lost_penalty")
-        }
+        {k: getattr(args, k) for k in ("learning_rate", "gamma", "gae_lambda", "ent_coef")}
     )
     given = {k: v for k, v in given.items() if v is not None}
     switches = ("critic_memory", "critic_lives", "actor_lives", "actor_patience")
@@ -103,8 +100,7 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
                 "--kick-coef, --critic-memory, --critic-lives, --actor-lives, --actor-patience, "
-                "--hidden, --epochs, --learning-rate, --gamma, --gae-lambda, --ent-coef and "
-                "--lost-penalty are a "
+                "--hidden, --epochs, --learning-rate, --gamma, --gae-lambda and --ent-coef are a "
                 "new ppo-kickstart run's (a resumed run keeps its settings)"
             )
         try:
@@ -435,11 +431,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--gae-lambda", type=float, help="ppo-kickstart: GAE's λ (default 0.95)")
     p.add_argument(
         "--ent-coef", type=float, help="ppo-kickstart: the entropy bonus's weight (default 0.003)"
-    )
-    p.add_argument(
-        "--lost-penalty",
-        type=float,
-        help="ppo-kickstart: points taken from the training reward for each group lost (default 0)",
     )
     p.add_argument("--layers", type=int, help="dagger: hidden layers")
     p.add_argument(

@@ -82,10 +82,6 @@ class PPOConfig:
     reward_scale: float = 0.01
     #: Training episodes are truncated here (ruleset v0 has no time limit).
     max_episode_steps: int = 5000
-    #: Points taken from the training reward for each group lost (``info["lost"]`` rising): a
-    #: group that walks out of the queue costs no points, only one of the five lives. The
-    #: training curves' score stays the game's.
-    lost_penalty: float = 0.0
     #: The observation's upper bounds the networks divide it by, from the server's Spec (the env's
     #: ``single_observation_space.high``); ``None`` (a checkpoint written before they were
     #: recorded): ruleset v0's, :data:`dinerdash.game.OBSERVATION_HIGH`.
@@ -97,7 +93,6 @@ class PPOConfig:
             ("gamma", 0 < self.gamma <= 1, "in (0, 1]"),
             ("gae_lambda", 0 <= self.gae_lambda <= 1, "in [0, 1]"),
             ("ent_coef", self.ent_coef >= 0, "0 or more"),
-            ("lost_penalty", self.lost_penalty >= 0, "0 or more"),
         ):
             if not ok:
                 raise ValueError(f"{name} is {getattr(self, name)}; it must be {allowed}")
@@ -576,7 +571,6 @@ class Trainer:
             start += size
         self._score = np.zeros(self.config.num_envs)
         self._length = np.zeros(self.config.num_envs, np.int64)
-        self._lost = np.zeros(self.config.num_envs, np.int64)
 
     def _next_key(self) -> jax.Array:
         self.key, k = jax.random.split(self.key)
@@ -690,8 +684,6 @@ class Trainer:
         group.sent = None
         done = terminated | truncated
         b.rewards[t, rows], b.terminated[t, rows], b.done[t, rows] = reward, terminated, done
-        if self.config.lost_penalty:
-            b.rewards[t, rows] -= self.config.lost_penalty * self._newly_lost(rows, info)
         score, length = self._score[rows], self._length[rows]
         score += reward
         length += 1
@@ -706,16 +698,6 @@ class Trainer:
             del self.recent_scores[:-100], self.recent_lengths[:-100]
         group.obs = self.with_info(group.see(obs), info)
         group.mask, group.info = info["action_mask"], info
-
-    def _newly_lost(self, rows: slice, info: dict[str, Any]) -> np.ndarray:
-        """The groups each of ``rows``' environments lost in its last step: an environment
-        whose episode ended was reset in the same step, its count read from ``final_info``."""
-        lost = info["lost"]
-        ended = info.get("_final_info")
-        lost_then = lost if ended is None else np.where(ended, info["final_info"]["lost"], lost)
-        newly = lost_then - self._lost[rows]
-        self._lost[rows] = lost
-        return newly
 
     def view(self) -> Callable[[np.ndarray], np.ndarray] | None:
         """A fresh, stateful ``obs (B, 40) -> model input (B, width)`` for one vector env of

@@ -270,55 +270,6 @@ class _Recording:
         return result
 
 
-class _LostRecording(_Recording):
-    """A vector env that keeps every step's rewards and groups lost (a finished episode's from
-    ``final_info``, its environment reset in the same step)."""
-
-    def step(self, actions):
-        result = self.envs.step(actions)
-        _, reward, terminated, truncated, info = result
-        lost = info["lost"].copy()
-        if "_final_info" in info:
-            lost = np.where(info["_final_info"], info["final_info"]["lost"], lost)
-        self.steps.append((reward.copy(), lost, terminated | truncated))
-        return result
-
-
-def test_the_lost_penalty_takes_points_for_each_group_lost(server_address: str):
-    """With ``lost_penalty`` the rollout's rewards are the game's less the penalty for each
-    group lost in that step, across episodes that end and restart in the same step; the
-    curves' score stays the game's."""
-    config = ppo.PPOConfig(num_envs=8, num_steps=64, lost_penalty=1000.0)
-    trainer = ppo.Trainer(config, 4 * 8 * 64, seed=5)
-    envs = _LostRecording(
-        gymnasium.make_vec(
-            "dinerdash:DinerDash-v0",
-            num_envs=8,
-            address=server_address,
-            autoreset_mode=AutoresetMode.SAME_STEP,
-            max_episode_steps=config.max_episode_steps,
-        )
-    )
-    try:
-        trainer.attach(envs)
-        before = np.zeros(8, np.int64)
-        ended_losing = 0
-        for _ in range(4):
-            rollout = trainer.collect()
-            steps = envs.steps[-config.num_steps :]
-            for t, (reward, lost, done) in enumerate(steps):
-                newly = lost - before
-                assert (newly >= 0).all()
-                np.testing.assert_array_equal(rollout.rewards[t], reward - 1000.0 * newly)
-                ended_losing += int((done & (lost == 5)).sum())
-                before = np.where(done, 0, lost)
-        assert ended_losing > 0  # episodes ended at the fifth group lost, counted at their end
-        game = [float(sum(r[i] for r, _, _ in envs.steps)) for i in range(8)]
-        assert sum(trainer.recent_scores) + sum(trainer._score) == pytest.approx(sum(game))
-    finally:
-        envs.envs.close()
-
-
 def test_pipelined_halves_play_the_samples_of_one_vector_env(server_address: str):
     """Two vector envs of 4 stepped in turn give the rollout one of 8 gives (same seeds, same
     actions), and the next values are the critic's of what follows each step: the next
