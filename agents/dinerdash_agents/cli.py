@@ -93,15 +93,13 @@ def _cmd_train_rl(args: argparse.Namespace) -> int:
     given.update(
         {k: getattr(args, k) for k in ("learning_rate", "gamma", "gae_lambda", "ent_coef")}
     )
-    given["critic_arrivals"] = args.critic_arrivals
     given = {k: v for k, v in given.items() if v is not None}
     switches = ("critic_memory", "critic_lives", "actor_lives", "actor_patience")
     given.update({k: True for k in switches if getattr(args, k)})
     if given:
         if args.algorithm != "ppo-kickstart" or args.resume is not None:
             raise AgentsError(
-                "--kick-coef, --critic-memory, --critic-lives, --critic-arrivals, --actor-lives, "
-                "--actor-patience, "
+                "--kick-coef, --critic-memory, --critic-lives, --actor-lives, --actor-patience, "
                 "--hidden, --epochs, --learning-rate, --gamma, --gae-lambda and --ent-coef are a "
                 "new ppo-kickstart run's (a resumed run keeps its settings)"
             )
@@ -413,12 +411,6 @@ def _parser() -> argparse.ArgumentParser:
         "--critic-lives",
         action="store_true",
         help="ppo-kickstart: the critic also reads the groups lost so far (the actor does not)",
-    )
-    p.add_argument(
-        "--critic-arrivals",
-        type=int,
-        metavar="K",
-        help="ppo-kickstart: the critic also reads the next K groups of the arrival list",
     )
     p.add_argument(
         "--actor-lives",

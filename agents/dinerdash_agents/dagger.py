@@ -290,9 +290,6 @@ class _Lives:
     def __init__(self, queue: list[tuple[int, int]]) -> None:
         self.last_queue = queue
         self.now, self.next_arrival, self.lost = 0, 8, 0
-        #: The groups arrived so far (the first at once): the next is the arrival list's entry
-        #: ``arrivals mod 200``.
-        self.arrivals = 1
 
     def step(self, obs: list[int], was: list[int], after: list[tuple[int, int]]) -> None:
         """``was``: the tables' statuses before the step; ``after``: ``_queue(obs)``."""
@@ -313,7 +310,6 @@ class _Lives:
         self.lost += walked
         if arrived:
             self.next_arrival = self.now + 8
-            self.arrivals += 1
         self.now += 1
         self.last_queue = after
 
@@ -492,11 +488,6 @@ class MemoryFeatures:
         return np.concatenate(parts, axis=1)
 
     __call__ = augment
-
-    def arrivals(self) -> list[int]:
-        """Each environment's groups arrived so far in its episode (with ``lives``, whose clock
-        counts them)."""
-        return [m.lives.arrivals for m in self._memories]
 
 
 def memory_size(

@@ -10,8 +10,7 @@ demonstration term of DAPG, Rajeswaran et al. 2018, with the teacher asked on-li
   them (the trainer then computes them for every environment, and the checkpoint's policy
   does when it plays). The critic is PPO's (two tanh layers over the observation scaled by the
   server's Spec; with ``critic_memory``, the actor's memory features too; with ``critic_lives``,
-  the groups lost so far, which the actor does not see; with ``critic_arrivals``, the coming
-  groups of the episode's arrival list, the future it is not shown) and starts untrained. With
+  the groups lost so far, which the actor does not see) and starts untrained. With
   ``actor_lives`` the actor's memory features also count the groups lost, from its observations
   (``MemoryFeatures(lives=True)``); the DAgger network's first layer gets those inputs with
   weights 0, so the run starts from the same policy.
@@ -32,7 +31,6 @@ Everything else (sampling, GAE, the clipped update, checkpoints and ``--resume``
 
 from __future__ import annotations
 
-import random
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -64,8 +62,6 @@ TEACHERS: dict[str, bool | str] = {"expert": True, "planner": "planner"}
 #: ``critic_lives``: ``info["lost"]`` one-hot (:func:`~dinerdash_agents.dagger.lives_one_hot`),
 #: after the actor's inputs.
 LOST_COLUMNS = dagger.LIVES_SIZE
-#: An episode's arrival list (docs/rules.md §2): 200 (type, size) pairs.
-ARRIVAL_LIST = 200
 
 
 @dataclass(frozen=True)
@@ -106,15 +102,9 @@ class KickstartConfig(PPOConfig):
     #: buffer (``MemoryFeatures(patience=True)``; a DAgger actor with memory; its new inputs
     #: start with weights 0).
     actor_patience: bool = False
-    #: How many of the coming groups the critic also reads, each as its type (0 or 1) and size
-    #: / 6 from the episode's arrival list (:class:`ArrivalLists`), after the groups lost: the
-    #: future the actor is not shown. Needs ``actor_lives``, whose clock counts the arrivals.
-    critic_arrivals: int = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.critic_arrivals < 0:
-            raise ValueError(f"critic_arrivals is {self.critic_arrivals}; it must be 0 or more")
         if not self.masked:
             raise TypeError("ppo-kickstart's policy is masked (masked=True)")
         if self.teacher not in TEACHERS:
@@ -178,12 +168,8 @@ class KickstartModel(eqx.Module):
         columns = []
         if config.critic_memory:
             columns.append((OBSERVATION_SIZE, self.actor_width))
-        at = self.actor_width
         if config.critic_lives:
-            columns.append((at, at + LOST_COLUMNS))
-            at += LOST_COLUMNS
-        if config.critic_arrivals:
-            columns.append((at, at + 2 * config.critic_arrivals))
+            columns.append((self.actor_width, self.actor_width + LOST_COLUMNS))
         self.critic_columns = tuple(columns)
         width = OBSERVATION_SIZE + sum(stop - start for start, stop in columns)
         self.critic = _mlp([width, config.hidden, config.hidden, 1], 1.0, kc)
@@ -302,14 +288,7 @@ class KickstartTrainer(Trainer):
                 "--critic-memory: the critic reads the actor's memory features, and this actor "
                 "has none (--init a dagger checkpoint trained with --memory)"
             )
-        if config.critic_arrivals and not config.lives:
-            raise AgentsError(
-                "--critic-arrivals: the arrivals are counted by the groups-lost memory "
-                "(--actor-lives, or an --init DAgger learner trained with it)"
-            )
         super().__init__(config, total_steps, seed)
-        #: Each vector env's arrival lists (``critic_arrivals``), by its first row.
-        self._arrival_lists: dict[int, ArrivalLists] = {}
         model = init(config, seed)
         if load_init:
             if not config.init:
@@ -330,23 +309,12 @@ class KickstartTrainer(Trainer):
     def view(self):
         return _view(self.config)
 
-    def with_info(
-        self, seen: np.ndarray, info: dict[str, Any], group: Any, done: np.ndarray | None
-    ) -> np.ndarray:
-        """With ``critic_lives``, the groups lost (one-hot) after the actor's inputs; then with
-        ``critic_arrivals``, the coming groups."""
-        parts = [seen]
-        if self.config.critic_lives:
-            parts.append(dagger.lives_one_hot(np.asarray(info["lost"], np.int64)))
-        if self.config.critic_arrivals:
-            lists = self._arrival_lists
-            if done is None:  # the first reset, seeded
-                lists[group.rows.start] = ArrivalLists(info["seed"], self.config.critic_arrivals)
-            else:
-                for i in np.flatnonzero(done):
-                    lists[group.rows.start].next_episode(int(i))
-            parts.append(lists[group.rows.start].coming(group.view.arrivals()))
-        return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    def with_info(self, seen: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        """With ``critic_lives``, the groups lost (one-hot) after the actor's inputs."""
+        if not self.config.critic_lives:
+            return seen
+        lost = dagger.lives_one_hot(np.asarray(info["lost"], np.int64))
+        return np.concatenate([seen, lost], axis=1)
 
     def _combine(self, terms: dict, mb: dict, logits: jax.Array, coefs: dict):
         c = self.config
@@ -367,34 +335,6 @@ class KickstartTrainer(Trainer):
                 f"expert={TEACHERS[self.config.teacher]!r}"
             )
         self._buffers.expert_actions[t, rows] = expert
-
-
-class ArrivalLists:
-    """Each environment's arrival list, as the server draws it (docs/rules.md §2): 200 (type,
-    size) pairs from CPython's ``random`` at every reset, the generator seeded at the first
-    reset and continued by the resets after it (the vector env's autoresets). ``coming(n)``:
-    for each environment, the ``k`` groups after the ``n`` arrived, as type (0 or 1), size / 6."""
-
-    def __init__(self, seeds: Any, k: int) -> None:
-        self.k = k
-        self._rngs = [random.Random(int(s)) for s in seeds]
-        self._lists = [self._draw(rng) for rng in self._rngs]
-
-    def _draw(self, rng: random.Random) -> np.ndarray:
-        pairs = [(rng.randint(1, 2) - 1, rng.randint(1, 6) / 6) for _ in range(ARRIVAL_LIST)]
-        pairs += pairs[: self.k]  # the list wraps: group n is entry n mod 200
-        return np.array(pairs, np.float32)
-
-    def next_episode(self, i: int) -> None:
-        """Environment ``i`` reset without a seed: its next 200 pairs."""
-        self._lists[i] = self._draw(self._rngs[i])
-
-    def coming(self, arrived: list[int]) -> np.ndarray:
-        out = np.empty((len(arrived), 2 * self.k), np.float32)
-        for i, n in enumerate(arrived):
-            start = n % ARRIVAL_LIST
-            out[i] = self._lists[i][start : start + self.k].reshape(-1)
-        return out
 
 
 def _widened(

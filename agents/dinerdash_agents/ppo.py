@@ -565,7 +565,7 @@ class Trainer:
             group = _Group(part, slice(start, start + size))
             group.view = self.view()
             obs, info = part.reset(seed=seeds[start : start + size])
-            group.obs = self.with_info(group.see(obs), info, group, None)
+            group.obs = self.with_info(group.see(obs), info)
             group.mask, group.info = info["action_mask"], info
             self._groups.append(group)
             start += size
@@ -696,7 +696,7 @@ class Trainer:
                 score[i], length[i] = 0.0, 0
             self.episodes += int(done.sum())
             del self.recent_scores[:-100], self.recent_lengths[:-100]
-        group.obs = self.with_info(group.see(obs), info, group, done)
+        group.obs = self.with_info(group.see(obs), info)
         group.mask, group.info = info["action_mask"], info
 
     def view(self) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -706,12 +706,9 @@ class Trainer:
         observation reaches it with the rest zero)."""
         return None
 
-    def with_info(
-        self, seen: np.ndarray, info: dict[str, Any], group: _Group, done: np.ndarray | None
-    ) -> np.ndarray:
-        """The model's input of a step of ``group``: ``seen`` (the observations through
-        :meth:`view`), with what the model reads of the step's ``info`` after it (PPO's:
-        nothing); ``done``: which episodes the step ended (``None`` at the first reset)."""
+    def with_info(self, seen: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+        """The model's input of a step: ``seen`` (the observations through :meth:`view`), with
+        what the model reads of the step's ``info`` after it (PPO's: nothing)."""
         return seen
 
     def _bootstrap(self) -> None:

@@ -135,7 +135,7 @@ def test_the_critic_reads_the_groups_lost_and_the_actor_does_not():
     width = OBSERVATION_SIZE + dagger.memory_size(True)
     obs = np.concatenate([_batch(5)["obs"][0], np.zeros((5, dagger.memory_size(True)))], 1)
     trainer = _trainer(init_algorithm="dagger", dagger_config=dagger_config, critic_lives=True)
-    seen = trainer.with_info(obs, {"lost": np.array([0, 1, 2, 4, 7])}, None, None)
+    seen = trainer.with_info(obs, {"lost": np.array([0, 1, 2, 4, 7])})
     assert seen.shape == (5, width + kickstart.LOST_COLUMNS)
     np.testing.assert_array_equal(seen[:, :width], obs)
     np.testing.assert_array_equal(seen[:, width:].argmax(1), [0, 1, 2, 4, 4])  # 7: "4 or more"
@@ -149,60 +149,7 @@ def test_the_critic_reads_the_groups_lost_and_the_actor_does_not():
     assert not np.allclose(model.value(jnp.asarray(seen)), model.value(jnp.asarray(other)))
     # Without the flag the model's input is what the view gives.
     plain = _trainer(init_algorithm="dagger", dagger_config=dagger_config)
-    assert plain.with_info(obs, {"lost": np.zeros(5)}, None, None) is obs
-
-
-def test_the_critic_reads_the_coming_groups_of_the_arrival_list(
-    server_address: str, tmp_path: Path
-):
-    """Each row ends with the next K groups of its episode's arrival list; when a group arrives
-    they move up by one, and the group at the back of the queue is the one that was first."""
-    from dinerdash_agents import checkpoint
-
-    config = dagger.DaggerConfig(memory=True, hidden=16, layers=1)
-    init = tmp_path / "dagger"
-    description = {"name": "d", "algorithm": "dagger", "config": config.to_json()}
-    checkpoint.save(init, dagger.init(config, 3), description)
-    k = 4
-    run = kickstart.KickstartConfig(
-        num_envs=8,
-        num_steps=256,
-        critic_warmup=2,
-        critic_memory=True,
-        critic_lives=True,
-        actor_lives=True,
-        critic_arrivals=k,
-        hidden=16,
-    )
-    common = {"address": server_address, "teacher": "expert", "progress": False}
-    out = tmp_path / "kick"
-    trainer = train_rl("ppo-kickstart", 2 * 8 * 256, out, config=run, init=init, **common)
-    rows, done = trainer._buffers.obs, trainer._buffers.done
-    actor = OBSERVATION_SIZE + dagger.MEMORY_SIZE + dagger.LIVES_SIZE
-    assert rows.shape[-1] == actor + kickstart.LOST_COLUMNS + 2 * k
-    assert trainer.model.critic_columns[-1] == (actor + kickstart.LOST_COLUMNS, rows.shape[-1])
-    coming = rows[..., -2 * k :]
-    arrived = 0
-    for t in range(rows.shape[0] - 1):
-        for i in range(rows.shape[1]):
-            if done[t, i]:
-                continue
-            now, then = coming[t + 1, i], coming[t, i]
-            if np.array_equal(now, then):
-                continue
-            np.testing.assert_array_equal(now[:-2], then[2:])  # moved up by one group
-            queue = dagger._queue(rows[t + 1, i, :OBSERVATION_SIZE].astype(int).tolist())
-            kind, size = then[0], then[1] * 6
-            assert queue[-1] == (3 + int(kind), round(size)), (t, i)
-            arrived += 1
-    assert arrived > 100 and done.any()  # across episode ends (autoresets)
-    saved = json.loads((out / "checkpoint.json").read_text())["config"]
-    assert saved["critic_arrivals"] == k
-    # The count comes from the groups-lost memory: without it, refused.
-    with pytest.raises(AgentsError, match="--critic-arrivals"):
-        kickstart.KickstartTrainer(
-            kickstart.KickstartConfig(critic_arrivals=2, init=str(init)), 100, load_init=False
-        )
+    assert plain.with_info(obs, {"lost": np.zeros(5)}) is obs
 
 
 def test_the_kick_coefficient_follows_its_schedule():
